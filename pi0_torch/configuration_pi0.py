@@ -1,0 +1,182 @@
+"""Configuration of the π0 / π0.5 vision-language-action model."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+from transformers import PretrainedConfig
+
+DEFAULT_CAMERA_NAMES = ("base_0_rgb", "left_wrist_0_rgb", "right_wrist_0_rgb")
+PALIGEMMA_VOCAB_SIZE = 257_152
+
+# Sizes of the vision tower, the VLM Gemma (expert 0) and the action expert (expert 1) for each preset.
+# "pi0"/"pi05" are the released sizes (SigLIP So400m/14, Gemma 2B, Gemma 300M); "small" matches the openpi test
+# fixtures (deliberately non-square so a transposed weight shows); "medium" is the benchmark size of issue 7.
+_SIZES: dict[str, dict[str, Any]] = {
+    "full": dict(
+        vision_hidden_size=1152, vision_intermediate_size=4304, vision_num_layers=27, vision_num_heads=16,
+        vlm_hidden_size=2048, vlm_intermediate_size=16_384,
+        expert_hidden_size=1024, expert_intermediate_size=4096,
+        num_hidden_layers=18, num_attention_heads=8, num_key_value_heads=1, head_dim=256,
+        vocab_size=PALIGEMMA_VOCAB_SIZE,
+    ),
+    "medium": dict(
+        vision_hidden_size=384, vision_intermediate_size=1536, vision_num_layers=6, vision_num_heads=6,
+        vlm_hidden_size=512, vlm_intermediate_size=2048,
+        expert_hidden_size=256, expert_intermediate_size=1024,
+        num_hidden_layers=6, num_attention_heads=8, num_key_value_heads=1, head_dim=64,
+        vocab_size=16_384,
+    ),
+    "small": dict(
+        vision_hidden_size=40, vision_intermediate_size=80, vision_num_layers=2, vision_num_heads=4,
+        vlm_hidden_size=64, vlm_intermediate_size=128,
+        expert_hidden_size=48, expert_intermediate_size=96,
+        num_hidden_layers=3, num_attention_heads=4, num_key_value_heads=1, head_dim=32,
+        vocab_size=1024,
+    ),
+}
+
+
+class PI0Config(PretrainedConfig):
+    """Configuration of [`PI0ForActionGeneration`].
+
+    Holds the dimensions of the SigLIP vision tower, the VLM Gemma ("expert 0", width `vlm_hidden_size`) and the
+    action expert ("expert 1", width `expert_hidden_size`), which share depth, head count and head size, plus the
+    action/flow-matching settings. `pi05=True` selects π0.5 (adaRMS time conditioning in the action expert, no state
+    token). Use the presets for the released sizes:
+
+    ```python
+    >>> from pi0_torch import PI0Config
+    >>> PI0Config.pi0().vlm_hidden_size, PI0Config.pi05().max_token_len
+    (2048, 200)
+    >>> PI0Config.from_preset("pi05_small").expert_hidden_size
+    48
+    ```
+    """
+
+    model_type = "pi0_torch"
+
+    def __init__(
+        self,
+        pi05: bool = False,
+        # SigLIP vision tower
+        image_size: int = 224,
+        patch_size: int = 14,
+        vision_hidden_size: int = 1152,
+        vision_intermediate_size: int = 4304,
+        vision_num_layers: int = 27,
+        vision_num_heads: int = 16,
+        # joint two-expert Gemma
+        vlm_hidden_size: int = 2048,
+        vlm_intermediate_size: int = 16_384,
+        expert_hidden_size: int = 1024,
+        expert_intermediate_size: int = 4096,
+        num_hidden_layers: int = 18,
+        num_attention_heads: int = 8,
+        num_key_value_heads: int = 1,
+        head_dim: int = 256,
+        vocab_size: int = PALIGEMMA_VOCAB_SIZE,
+        rms_norm_eps: float = 1e-6,
+        rope_theta: float = 10_000.0,
+        # actions and flow matching
+        action_dim: int = 32,
+        action_horizon: int = 50,
+        max_token_len: int | None = None,
+        num_inference_steps: int = 10,
+        time_beta_alpha: float = 1.5,
+        time_beta_beta: float = 1.0,
+        time_scale: float = 0.999,
+        time_offset: float = 0.001,
+        time_min_period: float = 4e-3,
+        time_max_period: float = 4.0,
+        camera_names: Sequence[str] = DEFAULT_CAMERA_NAMES,
+        **kwargs: Any,
+    ) -> None:
+        self.pi05 = bool(pi05)
+        self.image_size = image_size
+        self.patch_size = patch_size
+        self.vision_hidden_size = vision_hidden_size
+        self.vision_intermediate_size = vision_intermediate_size
+        self.vision_num_layers = vision_num_layers
+        self.vision_num_heads = vision_num_heads
+        self.vlm_hidden_size = vlm_hidden_size
+        self.vlm_intermediate_size = vlm_intermediate_size
+        self.expert_hidden_size = expert_hidden_size
+        self.expert_intermediate_size = expert_intermediate_size
+        self.num_hidden_layers = num_hidden_layers
+        self.num_attention_heads = num_attention_heads
+        self.num_key_value_heads = num_key_value_heads
+        self.head_dim = head_dim
+        self.vocab_size = vocab_size
+        self.rms_norm_eps = rms_norm_eps
+        self.rope_theta = rope_theta
+        self.action_dim = action_dim
+        self.action_horizon = action_horizon
+        self.max_token_len = max_token_len if max_token_len is not None else (200 if self.pi05 else 48)
+        self.num_inference_steps = num_inference_steps
+        self.time_beta_alpha = time_beta_alpha
+        self.time_beta_beta = time_beta_beta
+        self.time_scale = time_scale
+        self.time_offset = time_offset
+        self.time_min_period = time_min_period
+        self.time_max_period = time_max_period
+        self.camera_names = list(camera_names)
+        super().__init__(**kwargs)
+        self._check()
+
+    def _check(self) -> None:
+        if self.num_attention_heads % self.num_key_value_heads:
+            raise ValueError(
+                f"num_attention_heads ({self.num_attention_heads}) must be a multiple of "
+                f"num_key_value_heads ({self.num_key_value_heads})"
+            )
+        if self.expert_hidden_size % 2:
+            raise ValueError(f"expert_hidden_size must be even for the sin/cos time embedding, got {self.expert_hidden_size}")
+        if self.head_dim % 2:
+            raise ValueError(f"head_dim must be even for RoPE, got {self.head_dim}")
+        if self.image_size % self.patch_size:
+            raise ValueError(f"image_size ({self.image_size}) must be a multiple of patch_size ({self.patch_size})")
+        if not self.camera_names or len(set(self.camera_names)) != len(self.camera_names):
+            raise ValueError(f"camera_names must be non-empty and unique, got {self.camera_names}")
+
+    @property
+    def num_cameras(self) -> int:
+        return len(self.camera_names)
+
+    @property
+    def tokens_per_image(self) -> int:
+        return (self.image_size // self.patch_size) ** 2
+
+    @property
+    def prefix_len(self) -> int:
+        """Tokens in the prefix: every camera's image tokens, then the text tokens."""
+        return self.num_cameras * self.tokens_per_image + self.max_token_len
+
+    @property
+    def suffix_len(self) -> int:
+        """Tokens in the suffix: (π0 only) one state token, then one token per action step."""
+        return self.action_horizon + (0 if self.pi05 else 1)
+
+    @classmethod
+    def from_preset(cls, name: str, **overrides: Any) -> PI0Config:
+        """Build a preset: `pi0`, `pi05` (released sizes), `pi0_medium`, `pi05_medium`, `pi0_small`, `pi05_small`."""
+        variant, _, size = name.partition("_")
+        if variant not in ("pi0", "pi05") or (size or "full") not in _SIZES:
+            raise ValueError(f"unknown preset {name!r}; expected one of {', '.join(preset_names())}")
+        return cls(pi05=variant == "pi05", **{**_SIZES[size or "full"], **overrides})
+
+    @classmethod
+    def pi0(cls, **overrides: Any) -> PI0Config:
+        """π0 at the released size (3,238,048,528 parameters)."""
+        return cls.from_preset("pi0", **overrides)
+
+    @classmethod
+    def pi05(cls, **overrides: Any) -> PI0Config:
+        """π0.5 at the released size (3,353,433,872 parameters)."""
+        return cls.from_preset("pi05", **overrides)
+
+
+def preset_names() -> list[str]:
+    """Names accepted by [`PI0Config.from_preset`]."""
+    return [f"{variant}{'' if size == 'full' else '_' + size}" for variant in ("pi0", "pi05") for size in _SIZES]

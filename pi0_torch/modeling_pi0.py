@@ -1,0 +1,646 @@
+"""π0 / π0.5 in PyTorch, numerically matching openpi (`src/openpi/models/pi0.py`, `gemma.py`, `siglip.py`).
+
+Reading order: normalisation and RoPE, one layer of the joint two-expert Gemma, the model (prefix and suffix
+embedding, training forward, cached sampling). Shapes: B batch, C cameras, P prefix tokens, S suffix tokens,
+N query heads, K kv heads, H head size, D0 / D1 widths of the VLM Gemma (expert 0) and the action expert (expert 1).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+from transformers import PreTrainedModel, SiglipVisionConfig, SiglipVisionModel
+from transformers.modeling_layers import GradientCheckpointingLayer
+from transformers.utils import ModelOutput
+
+from .configuration_pi0 import PI0Config
+from .flow_matching import euler_times, interpolate, sample_flow_time, sincos_time_embedding
+from .masks import masked_attention, prefix_lm_mask
+
+# ----------------------------------------------------------------------------------------------------------------------
+# Normalisation and rotary position embedding
+# ----------------------------------------------------------------------------------------------------------------------
+
+
+def _rms_normalize(x: torch.Tensor, eps: float) -> torch.Tensor:
+    """`x * rsqrt(mean(x^2) + eps)`, computed and returned in float32."""
+    x = x.float()
+    return x * torch.rsqrt(x.pow(2).mean(dim=-1, keepdim=True) + eps)
+
+
+class RMSNorm(nn.Module):
+    """Gemma RMSNorm: `normalize(x) * (1 + weight)` in float32, returned in the input dtype."""
+
+    def __init__(self, dim: int, eps: float) -> None:
+        super().__init__()
+        self.eps = eps
+        self.weight = nn.Parameter(torch.zeros(dim))
+
+    def forward(self, x: torch.Tensor, modulation: torch.Tensor | None = None) -> tuple[torch.Tensor, None]:
+        return (_rms_normalize(x, self.eps) * (1 + self.weight)).to(x.dtype), None
+
+
+class AdaRMSNorm(nn.Module):
+    """π0.5 adaptive RMSNorm: the flow-time condition sets scale, shift and a residual gate.
+
+    `modulation` is `self.modulation(condition)` `[B, 3 * dim]` = [scale | shift | gate]; callers compute it (once
+    for all sampling steps, see `PI0ForActionGeneration.expert_modulations`). Returns the normed input and the gate.
+    """
+
+    def __init__(self, dim: int, eps: float) -> None:
+        super().__init__()
+        self.eps = eps
+        self.modulation = nn.Linear(dim, 3 * dim)
+
+    def forward(self, x: torch.Tensor, modulation: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        scale, shift, gate = modulation[:, None, :].chunk(3, dim=-1)  # [B, 1, dim] each
+        return (_rms_normalize(x, self.eps) * (1 + scale) + shift).to(x.dtype), gate
+
+
+def rope_cos_sin(positions: torch.Tensor, head_dim: int, theta: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """RoPE rotation for `positions` [B, T]: float32 cos and sin `[B, 1, T, H/2]` (frequencies theta**(-2k/H))."""
+    exponents = (2.0 / head_dim) * torch.arange(head_dim // 2, dtype=torch.float32, device=positions.device)
+    angles = positions.float()[:, None, :, None] / theta**exponents  # [B, 1, T, H/2]
+    return torch.cos(angles), torch.sin(angles)
+
+
+def apply_rope(x: torch.Tensor, cos: torch.Tensor, sin: torch.Tensor) -> torch.Tensor:
+    """Rotate `x` [B, heads, T, H] in the split-halves layout, in float32; returns x's dtype."""
+    first, second = x.float().chunk(2, dim=-1)
+    return torch.cat([first * cos - second * sin, second * cos + first * sin], dim=-1).to(x.dtype)
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# The joint two-expert Gemma
+# ----------------------------------------------------------------------------------------------------------------------
+
+
+class ExpertLayer(nn.Module):
+    """One expert's weights in one layer: pre-norms, fused q/k/v, o-projection and the GeGLU MLP (no biases)."""
+
+    def __init__(self, config: PI0Config, width: int, mlp_width: int, adaptive: bool) -> None:
+        super().__init__()
+        norm = AdaRMSNorm if adaptive else RMSNorm
+        heads, kv_heads, head_dim = config.num_attention_heads, config.num_key_value_heads, config.head_dim
+        self.q_width, self.kv_width = heads * head_dim, kv_heads * head_dim
+        self.attn_norm = norm(width, config.rms_norm_eps)
+        self.qkv_proj = nn.Linear(width, self.q_width + 2 * self.kv_width, bias=False)  # rows: q | k | v
+        self.o_proj = nn.Linear(self.q_width, width, bias=False)
+        self.mlp_norm = norm(width, config.rms_norm_eps)
+        self.gate_up_proj = nn.Linear(width, 2 * mlp_width, bias=False)  # rows: gate | up
+        self.down_proj = nn.Linear(mlp_width, width, bias=False)
+        self.head_dim = head_dim
+
+    def project_qkv(self, h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """`h` [B, T, D] -> q [B, N, T, H], k and v [B, K, T, H] (before RoPE)."""
+        q, k, v = self.qkv_proj(h).split([self.q_width, self.kv_width, self.kv_width], dim=-1)
+        batch, length = h.shape[:2]
+        return tuple(y.view(batch, length, -1, self.head_dim).transpose(1, 2) for y in (q, k, v))  # type: ignore[return-value]
+
+    def mlp(self, h: torch.Tensor) -> torch.Tensor:
+        gate, up = self.gate_up_proj(h).chunk(2, dim=-1)
+        return self.down_proj(F.gelu(gate, approximate="tanh") * up)
+
+
+def _residual(x: torch.Tensor, y: torch.Tensor, gate: torch.Tensor | None) -> torch.Tensor:
+    return x + y if gate is None else x + y * gate
+
+
+class JointDecoderLayer(GradientCheckpointingLayer):
+    """One Gemma layer run by both experts at once: each expert normalises and projects its own tokens, attention
+    runs over the concatenated sequence (prefix first), then each expert finishes its own tokens.
+
+    Either stream may be None: the prefix runs alone when its k/v are cached for sampling, the suffix runs alone in
+    each sampling step against that cache.
+    """
+
+    def __init__(self, config: PI0Config) -> None:
+        super().__init__()
+        self.vlm = ExpertLayer(config, config.vlm_hidden_size, config.vlm_intermediate_size, adaptive=False)
+        self.expert = ExpertLayer(config, config.expert_hidden_size, config.expert_intermediate_size, config.pi05)
+
+    def forward(
+        self,
+        prefix: torch.Tensor | None,  # [B, P, D0]
+        suffix: torch.Tensor | None,  # [B, S, D1]
+        cos: torch.Tensor,  # [B, 1, T, H/2] for the tokens passed (T = P + S of the streams present)
+        sin: torch.Tensor,
+        mask: torch.Tensor,  # bool [B, 1, T, T_kv]
+        expert_modulation: tuple[torch.Tensor, torch.Tensor] | None = None,  # adaRMS (attn, mlp) [B, 3*D1] each
+        kv_buffer: tuple[torch.Tensor, torch.Tensor] | None = None,  # [B, K, P + S, H] each
+        kv_offset: int = 0,
+    ) -> tuple[torch.Tensor | None, torch.Tensor | None]:
+        """Returns the updated (prefix, suffix). With `kv_buffer`, the new post-RoPE k/v are written into it at
+        `kv_offset` and attention reads the buffer up to the end of the new tokens (a static k/v cache)."""
+        attn_modulation, mlp_modulation = expert_modulation if expert_modulation is not None else (None, None)
+        streams = [
+            (expert, x, attn_mod, mlp_mod)
+            for expert, x, attn_mod, mlp_mod in ((self.vlm, prefix, None, None), (self.expert, suffix, attn_modulation, mlp_modulation))
+            if x is not None
+        ]
+
+        queries, keys, values, gates = [], [], [], []
+        for expert, x, attn_mod, _ in streams:
+            h, gate = expert.attn_norm(x, attn_mod)
+            q, k, v = expert.project_qkv(h)
+            queries.append(q), keys.append(k), values.append(v), gates.append(gate)
+        q = apply_rope(torch.cat(queries, dim=2), cos, sin)
+        k = apply_rope(torch.cat(keys, dim=2), cos, sin)
+        v = torch.cat(values, dim=2)
+        if kv_buffer is not None:
+            key_buffer, value_buffer = kv_buffer
+            end = kv_offset + k.shape[2]
+            key_buffer[:, :, kv_offset:end] = k
+            value_buffer[:, :, kv_offset:end] = v
+            k, v = key_buffer[:, :, :end], value_buffer[:, :, :end]
+        attended = masked_attention(q, k, v, mask, scale=q.shape[-1] ** -0.5)  # [B, N, T, H]
+        attended = attended.transpose(1, 2).flatten(2)  # [B, T, N*H]
+
+        outputs: list[torch.Tensor] = []
+        start = 0
+        for (expert, x, _, mlp_mod), gate in zip(streams, gates):
+            stream_attended = attended[:, start : start + x.shape[1]]
+            start += x.shape[1]
+            x = _residual(x, expert.o_proj(stream_attended), gate)
+            h, gate = expert.mlp_norm(x, mlp_mod)
+            outputs.append(_residual(x, expert.mlp(h), gate))
+        prefix_out = outputs.pop(0) if prefix is not None else None
+        suffix_out = outputs.pop(0) if suffix is not None else None
+        return prefix_out, suffix_out
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# The model
+# ----------------------------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class PI0Output(ModelOutput):
+    """Output of [`PI0ForActionGeneration.forward`].
+
+    Attributes:
+        loss: scalar flow-matching loss, mean of `(velocity - (noise - actions))^2` over everything (when `actions`
+            were given).
+        velocity: predicted flow velocity `v_t` `[B, horizon, action_dim]`.
+    """
+
+    loss: torch.Tensor | None = None
+    velocity: torch.Tensor | None = None
+
+
+@dataclass
+class PrefixCache:
+    """Post-RoPE keys and values of the prefix for every layer, in static buffers with room for the suffix."""
+
+    keys: list[torch.Tensor]  # per layer [B, K, P + S, H]
+    values: list[torch.Tensor]
+    prefix_valid: torch.Tensor  # bool [B, P]
+
+    @property
+    def prefix_len(self) -> int:
+        return self.prefix_valid.shape[1]
+
+
+class PI0PreTrainedModel(PreTrainedModel):
+    config_class = PI0Config
+    config: PI0Config
+    base_model_prefix = "pi0"
+    main_input_name = "pixel_values"
+    supports_gradient_checkpointing = True
+    _no_split_modules = ["JointDecoderLayer", "SiglipEncoderLayer"]
+    _supports_sdpa = True
+
+    @torch.no_grad()
+    def _init_weights(self, module: nn.Module) -> None:
+        std = 0.02
+        if isinstance(module, AdaRMSNorm):
+            # openpi initialises the adaRMS Dense to zero: unit scale, no shift, closed residual gates.
+            nn.init.zeros_(module.modulation.weight)
+            nn.init.zeros_(module.modulation.bias)
+        elif isinstance(module, RMSNorm):
+            nn.init.zeros_(module.weight)
+        elif isinstance(module, nn.Linear) and not _is_inside_vision_tower(self, module):
+            nn.init.normal_(module.weight, std=std)
+            if module.bias is not None:
+                nn.init.zeros_(module.bias)
+        elif isinstance(module, nn.Embedding) and not _is_inside_vision_tower(self, module):
+            nn.init.normal_(module.weight, std=std)
+        else:
+            super()._init_weights(module)
+
+    @classmethod
+    def from_pretrained(cls, pretrained_model_name_or_path: Any, *args: Any, **kwargs: Any) -> Any:
+        """`PreTrainedModel.from_pretrained` that refuses a checkpoint whose tensors do not match the model.
+
+        transformers only warns about missing or unexpected weights and initialises the missing ones randomly; a
+        policy with silently random weights is worse than no policy, so any missing, unexpected or mis-shaped
+        tensor raises `ValueError` naming them.
+        """
+        want_info = kwargs.pop("output_loading_info", False)
+        model, info = super().from_pretrained(pretrained_model_name_or_path, *args, output_loading_info=True, **kwargs)
+        problems = {
+            "missing": sorted(info.get("missing_keys", ())),
+            "unexpected": sorted(info.get("unexpected_keys", ())),
+            "mis-shaped": sorted(str(item) for item in info.get("mismatched_keys", ())),
+        }
+        problems = {kind: names for kind, names in problems.items() if names}
+        if problems:
+            details = "; ".join(f"{kind}: {', '.join(names[:10])}{' ...' if len(names) > 10 else ''}" for kind, names in problems.items())
+            raise ValueError(f"checkpoint {pretrained_model_name_or_path} does not match {cls.__name__}({model.config.model_type}): {details}")
+        return (model, info) if want_info else model
+
+
+def _is_inside_vision_tower(model: nn.Module, module: nn.Module) -> bool:
+    vision_tower = getattr(model, "vision_tower", None)
+    return vision_tower is not None and any(module is m for m in vision_tower.modules())
+
+
+class PI0ForActionGeneration(PI0PreTrainedModel):
+    """π0 / π0.5: SigLIP vision tower + VLM Gemma (expert 0) + action expert Gemma (expert 1) + action heads.
+
+    ```python
+    >>> import torch
+    >>> from pi0_torch import PI0Config, PI0ForActionGeneration
+    >>> config = PI0Config.from_preset("pi0_small")
+    >>> model = PI0ForActionGeneration(config).eval()
+    >>> batch = dict(
+    ...     pixel_values=torch.zeros(1, config.num_cameras, 3, 224, 224),
+    ...     image_masks=torch.ones(1, config.num_cameras, dtype=torch.bool),
+    ...     input_ids=torch.ones(1, config.max_token_len, dtype=torch.long),
+    ...     attention_mask=torch.ones(1, config.max_token_len, dtype=torch.bool),
+    ...     state=torch.zeros(1, config.action_dim),
+    ... )
+    >>> model.generate_actions(**batch, generator=torch.Generator().manual_seed(0)).shape
+    torch.Size([1, 50, 32])
+    >>> model(**batch, actions=torch.zeros(1, 50, 32)).loss.shape
+    torch.Size([])
+    ```
+    """
+
+    def __init__(self, config: PI0Config) -> None:
+        super().__init__(config)
+        vision_config = SiglipVisionConfig(
+            hidden_size=config.vision_hidden_size,
+            intermediate_size=config.vision_intermediate_size,
+            num_hidden_layers=config.vision_num_layers,
+            num_attention_heads=config.vision_num_heads,
+            image_size=config.image_size,
+            patch_size=config.patch_size,
+            hidden_act="gelu_pytorch_tanh",
+            layer_norm_eps=1e-6,
+            vision_use_head=False,
+            attn_implementation="sdpa",
+        )
+        self.vision_tower = SiglipVisionModel(vision_config)
+        self.image_projection = nn.Linear(config.vision_hidden_size, config.vlm_hidden_size)
+        self.embed_tokens = nn.Embedding(config.vocab_size, config.vlm_hidden_size)
+        self.layers = nn.ModuleList(JointDecoderLayer(config) for _ in range(config.num_hidden_layers))
+        self.vlm_final_norm = RMSNorm(config.vlm_hidden_size, config.rms_norm_eps)
+        width = config.expert_hidden_size
+        self.expert_final_norm = (AdaRMSNorm if config.pi05 else RMSNorm)(width, config.rms_norm_eps)
+        self.action_in_proj = nn.Linear(config.action_dim, width)
+        self.action_out_proj = nn.Linear(width, config.action_dim)
+        if config.pi05:
+            self.time_mlp_in = nn.Linear(width, width)
+            self.time_mlp_out = nn.Linear(width, width)
+        else:
+            self.state_proj = nn.Linear(config.action_dim, width)
+            self.action_time_mlp_in = nn.Linear(2 * width, width)
+            self.action_time_mlp_out = nn.Linear(width, width)
+        self.post_init()
+
+    # -- prefix: images and text ---------------------------------------------------------------------------------------
+
+    def embed_images(self, pixel_values: torch.Tensor) -> torch.Tensor:
+        """SigLIP + linear head: `[B, C, 3, H, W]` in [-1, 1] -> image tokens `[B, C, tokens_per_image, D0]`."""
+        batch, cameras = pixel_values.shape[:2]
+        images = pixel_values.flatten(0, 1).to(self.image_projection.weight.dtype)
+        features = self.vision_tower(pixel_values=images).last_hidden_state  # [B*C, 256, W]
+        return self.image_projection(features).unflatten(0, (batch, cameras))
+
+    def embed_prefix(
+        self, pixel_values: torch.Tensor, image_masks: torch.Tensor, input_ids: torch.Tensor, attention_mask: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Prefix tokens `[B, P, D0]` (each camera's image tokens, then the scaled text embeddings) and their
+        validity `[B, P]`. Image tokens are not scaled; text embeddings are multiplied by sqrt(D0)."""
+        image_tokens = self.embed_images(pixel_values)  # [B, C, 256, D0]
+        text_tokens = self.embed_tokens(input_ids)
+        text_tokens = text_tokens * torch.tensor(math.sqrt(text_tokens.shape[-1]), dtype=text_tokens.dtype)
+        tokens = torch.cat([image_tokens.flatten(1, 2), text_tokens], dim=1)
+        image_valid = image_masks.bool()[:, :, None].expand(-1, -1, image_tokens.shape[2]).flatten(1)
+        return tokens, torch.cat([image_valid, attention_mask.bool()], dim=1)
+
+    # -- suffix: state, noisy actions, flow time -----------------------------------------------------------------------
+
+    def suffix_block_flags(self, device: torch.device) -> torch.Tensor:
+        """Block starts of the suffix: π0 [state, a_0, a_1, ...] = [1, 1, 0, ...]; π0.5 [a_0, a_1, ...] = [1, 0, ...]."""
+        flags = torch.zeros(self.config.suffix_len, dtype=torch.bool, device=device)
+        flags[: 1 if self.config.pi05 else 2] = True
+        return flags
+
+    def time_conditioning(self, time: torch.Tensor) -> torch.Tensor:
+        """What the flow time contributes, for any number of times `[T]`.
+
+        π0: the time half of `action_time_mlp_in` (its bias included) `[T, D1]`; π0.5: the adaRMS condition
+        `silu(time_mlp_out(silu(time_mlp_in(emb))))` `[T, D1]`. Depends on nothing else, so sampling computes it
+        for every step at once.
+        """
+        config = self.config
+        dtype = self.action_in_proj.weight.dtype
+        embedding = sincos_time_embedding(time, config.expert_hidden_size, config.time_min_period, config.time_max_period)
+        embedding = embedding.to(dtype)
+        if config.pi05:
+            return F.silu(self.time_mlp_out(F.silu(self.time_mlp_in(embedding))))
+        width = config.expert_hidden_size
+        return F.linear(embedding, self.action_time_mlp_in.weight[:, width:], self.action_time_mlp_in.bias)
+
+    def expert_modulations(self, condition: torch.Tensor) -> tuple[list[tuple[torch.Tensor, torch.Tensor]], torch.Tensor]:
+        """π0.5 adaRMS modulations `[..., 3*D1]` of every expert norm for `condition` `[..., D1]`: per layer
+        (attention norm, MLP norm), and the final norm."""
+        per_layer = [
+            (layer.expert.attn_norm.modulation(condition), layer.expert.mlp_norm.modulation(condition)) for layer in self.layers
+        ]
+        return per_layer, self.expert_final_norm.modulation(condition)
+
+    def embed_suffix(
+        self, state: torch.Tensor | None, noisy_actions: torch.Tensor, time_conditioning: torch.Tensor
+    ) -> torch.Tensor:
+        """Suffix tokens `[B, S, D1]` from the state (π0), the noisy actions `[B, horizon, action_dim]` and
+        `time_conditioning(time)` `[B, D1]`."""
+        dtype = self.action_in_proj.weight.dtype
+        action_tokens = self.action_in_proj(noisy_actions.to(dtype))
+        if self.config.pi05:
+            return action_tokens
+        width = self.config.expert_hidden_size
+        # action_time_mlp_in(cat(actions, time)) split into its action half and the precomputed time half
+        hidden = F.linear(action_tokens, self.action_time_mlp_in.weight[:, :width]) + time_conditioning[:, None, :]
+        action_tokens = self.action_time_mlp_out(F.silu(hidden))
+        state_token = self.state_proj(state.to(dtype))[:, None, :]
+        return torch.cat([state_token, action_tokens], dim=1)
+
+    # -- training forward ----------------------------------------------------------------------------------------------
+
+    def forward(
+        self,
+        pixel_values: torch.Tensor,
+        image_masks: torch.Tensor,
+        input_ids: torch.Tensor,
+        attention_mask: torch.Tensor,
+        state: torch.Tensor | None = None,
+        actions: torch.Tensor | None = None,
+        noise: torch.Tensor | None = None,
+        time: torch.Tensor | None = None,
+        **unused: Any,
+    ) -> PI0Output:
+        """Predict the flow velocity at time `time` for `x_t = time * noise + (1 - time) * actions`.
+
+        Args:
+            pixel_values: float `[B, C, 3, H, W]` in [-1, 1], cameras in `config.camera_names` order.
+            image_masks: bool `[B, C]`, False for a missing camera.
+            input_ids: long `[B, L]` (L <= `config.max_token_len`); attention_mask: bool/long `[B, L]`.
+            state: float `[B, action_dim]` (required by π0, unused by π0.5).
+            actions: float `[B, horizon, action_dim]` normalized target actions; gives `loss`. Without them
+                `noise` is used as the noisy input `x_t` directly (with `time`, default 1).
+            noise: float `[B, horizon, action_dim]`, drawn from N(0, I) when not given.
+            time: float `[B]` flow times, drawn from Beta(1.5, 1) * 0.999 + 0.001 when not given.
+
+        Returns:
+            [`PI0Output`] with `velocity` `[B, horizon, action_dim]` and `loss` (scalar, when `actions` is given).
+        """
+        batch = self._check_inputs(pixel_values, image_masks, input_ids, attention_mask, state)
+        config, device = self.config, pixel_values.device
+        shape = (batch, config.action_horizon, config.action_dim)
+        if actions is not None:
+            _check_tensor("actions", actions, shape, floating=True)
+        if noise is None:
+            noise = torch.randn(shape, device=device, dtype=torch.float32)
+        _check_tensor("noise", noise, shape, floating=True)
+        if time is None:
+            time = (
+                sample_flow_time(batch, config.time_beta_alpha, config.time_beta_beta, config.time_scale, config.time_offset, device)
+                if actions is not None
+                else torch.ones(batch, device=device)
+            )
+        _check_tensor("time", time, (batch,), floating=True)
+
+        if actions is not None:
+            x_t, target = interpolate(actions.float(), noise.float(), time.float())
+        else:
+            x_t, target = noise.float(), None
+
+        prefix, prefix_valid = self.embed_prefix(pixel_values, image_masks, input_ids, attention_mask)
+        condition = self.time_conditioning(time)
+        suffix = self.embed_suffix(state, x_t, condition)
+        suffix_flags = self.suffix_block_flags(device)
+        valid = torch.cat([prefix_valid, torch.ones(batch, suffix.shape[1], dtype=torch.bool, device=device)], dim=1)
+        flags = torch.cat([torch.zeros(prefix.shape[1], dtype=torch.bool, device=device), suffix_flags])
+        mask, positions = prefix_lm_mask(valid, flags)
+        _, suffix_out = self.run_layers(prefix, suffix, mask, positions, condition)
+        velocity = self.action_out_proj(suffix_out[:, -config.action_horizon :]).float()
+        loss = F.mse_loss(velocity, target) if target is not None else None
+        return PI0Output(loss=loss, velocity=velocity)
+
+    def run_layers(
+        self,
+        prefix: torch.Tensor,
+        suffix: torch.Tensor,
+        mask: torch.Tensor,
+        positions: torch.Tensor,
+        condition: torch.Tensor,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Both experts jointly through every layer and their final norms: (prefix_out, suffix_out).
+
+        `mask` bool [B, P+S, P+S], `positions` [B, P+S], `condition` the time conditioning [B, D1].
+        """
+        cos, sin = rope_cos_sin(positions, self.config.head_dim, self.config.rope_theta)
+        mask = mask[:, None]
+        if self.config.pi05:
+            layer_modulations, final_modulation = self.expert_modulations(condition)
+        else:
+            layer_modulations, final_modulation = [None] * len(self.layers), None
+        for layer, modulation in zip(self.layers, layer_modulations):
+            prefix, suffix = layer(prefix, suffix, cos, sin, mask, modulation)
+        prefix, _ = self.vlm_final_norm(prefix)
+        suffix, _ = self.expert_final_norm(suffix, final_modulation)
+        return prefix, suffix
+
+    # -- sampling ------------------------------------------------------------------------------------------------------
+
+    def cache_prefix(
+        self, pixel_values: torch.Tensor, image_masks: torch.Tensor, input_ids: torch.Tensor, attention_mask: torch.Tensor
+    ) -> PrefixCache:
+        """Run the prefix once through the VLM expert and keep every layer's post-RoPE k/v.
+
+        Exact for sampling because the prefix never attends to the suffix. The buffers have room for the suffix,
+        whose k/v each denoising step writes in place (no per-step copy of the prefix).
+        """
+        prefix, prefix_valid = self.embed_prefix(pixel_values, image_masks, input_ids, attention_mask)
+        batch, prefix_len = prefix_valid.shape
+        config = self.config
+        buffer_shape = (batch, config.num_key_value_heads, prefix_len + config.suffix_len, config.head_dim)
+        cache = PrefixCache(
+            keys=[prefix.new_empty(buffer_shape) for _ in self.layers],
+            values=[prefix.new_empty(buffer_shape) for _ in self.layers],
+            prefix_valid=prefix_valid,
+        )
+        mask, positions = prefix_lm_mask(prefix_valid, torch.zeros(prefix_len, dtype=torch.bool, device=prefix.device))
+        cos, sin = rope_cos_sin(positions, config.head_dim, config.rope_theta)
+        for layer, key_buffer, value_buffer in zip(self.layers, cache.keys, cache.values):
+            prefix, _ = layer(prefix, None, cos, sin, mask[:, None], kv_buffer=(key_buffer, value_buffer), kv_offset=0)
+        return cache
+
+    def suffix_attention(self, prefix_valid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Mask `[B, 1, S, P+S]` and RoPE cos/sin of the suffix queries: they see every valid prefix token and the
+        suffix block mask; their positions continue after the valid prefix tokens."""
+        batch = prefix_valid.shape[0]
+        device = prefix_valid.device
+        suffix_valid = torch.ones(batch, self.config.suffix_len, dtype=torch.bool, device=device)
+        suffix_mask, suffix_positions = prefix_lm_mask(suffix_valid, self.suffix_block_flags(device))
+        prefix_part = prefix_valid[:, None, :].expand(-1, self.config.suffix_len, -1)
+        mask = torch.cat([prefix_part, suffix_mask], dim=2)[:, None]
+        positions = prefix_valid.sum(dim=1, keepdim=True) + suffix_positions
+        cos, sin = rope_cos_sin(positions, self.config.head_dim, self.config.rope_theta)
+        return mask, cos, sin
+
+    def denoise_step(
+        self,
+        cache: PrefixCache,
+        state: torch.Tensor | None,
+        x_t: torch.Tensor,
+        condition: torch.Tensor,
+        modulations: tuple[list[tuple[torch.Tensor, torch.Tensor]], torch.Tensor] | None,
+        suffix_attention: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
+    ) -> torch.Tensor:
+        """Velocity `[B, horizon, action_dim]` (float32) at `x_t` given the cached prefix.
+
+        `condition` is `time_conditioning(t)` broadcast to `[B, D1]`; `modulations` the π0.5 adaRMS modulations
+        for this step (None for π0); `suffix_attention` from `suffix_attention(cache.prefix_valid)`.
+        """
+        mask, cos, sin = suffix_attention
+        suffix = self.embed_suffix(state, x_t, condition)
+        layer_modulations, final_modulation = modulations if modulations is not None else ([None] * len(self.layers), None)
+        for layer, key_buffer, value_buffer, modulation in zip(self.layers, cache.keys, cache.values, layer_modulations):
+            _, suffix = layer(
+                None, suffix, cos, sin, mask, modulation, kv_buffer=(key_buffer, value_buffer), kv_offset=cache.prefix_len
+            )
+        suffix, _ = self.expert_final_norm(suffix, final_modulation)
+        return self.action_out_proj(suffix[:, -self.config.action_horizon :]).float()
+
+    @torch.no_grad()
+    def generate_actions(
+        self,
+        pixel_values: torch.Tensor,
+        image_masks: torch.Tensor,
+        input_ids: torch.Tensor,
+        attention_mask: torch.Tensor,
+        state: torch.Tensor | None = None,
+        noise: torch.Tensor | None = None,
+        num_steps: int | None = None,
+        generator: torch.Generator | None = None,
+    ) -> torch.Tensor:
+        """Sample an action chunk by Euler integration of the flow from noise (t = 1) to actions (t = 0).
+
+        The prefix runs once (`cache_prefix`); each of the `num_steps` steps (default `config.num_inference_steps`)
+        runs only the suffix against the cached k/v. Everything that depends only on the flow time is computed for
+        all steps up front. The Euler state is kept in float32 whatever the weights' dtype.
+
+        Args: as [`forward`], plus `noise` `[B, horizon, action_dim]` (drawn with `generator` when not given).
+
+        Returns:
+            float32 `[B, horizon, action_dim]` actions in normalized model space (see `PI0Processor` to map them
+            back to robot units).
+        """
+        batch = self._check_inputs(pixel_values, image_masks, input_ids, attention_mask, state)
+        config, device = self.config, pixel_values.device
+        shape = (batch, config.action_horizon, config.action_dim)
+        if noise is None:
+            noise = torch.randn(shape, generator=generator, device=device, dtype=torch.float32)
+        _check_tensor("noise", noise, shape, floating=True)
+        num_steps = config.num_inference_steps if num_steps is None else num_steps
+        times = euler_times(num_steps)
+        dt = -1.0 / num_steps
+
+        cache = self.cache_prefix(pixel_values, image_masks, input_ids, attention_mask)
+        suffix_attention = self.suffix_attention(cache.prefix_valid)
+        conditions = self.time_conditioning(torch.tensor(times, dtype=torch.float32, device=device))  # [steps, D1]
+        modulations = self.expert_modulations(conditions) if config.pi05 else None
+
+        x_t = noise.float()
+        for step in range(len(times)):
+            step_modulations = None
+            if modulations is not None:
+                layer_modulations, final_modulation = modulations
+                step_modulations = (
+                    [(attn[step].expand(batch, -1), mlp[step].expand(batch, -1)) for attn, mlp in layer_modulations],
+                    final_modulation[step].expand(batch, -1),
+                )
+            condition = conditions[step].expand(batch, -1)
+            velocity = self.denoise_step(cache, state, x_t, condition, step_modulations, suffix_attention)
+            x_t = x_t + dt * velocity
+        return x_t
+
+    # -- input checks --------------------------------------------------------------------------------------------------
+
+    def _check_inputs(
+        self,
+        pixel_values: torch.Tensor,
+        image_masks: torch.Tensor,
+        input_ids: torch.Tensor,
+        attention_mask: torch.Tensor,
+        state: torch.Tensor | None,
+    ) -> int:
+        """Validate the model inputs; returns the batch size. Errors name the argument, expected and actual."""
+        config = self.config
+        if not isinstance(pixel_values, torch.Tensor) or pixel_values.dim() != 5:
+            raise ValueError(
+                f"pixel_values must be a float tensor [B, num_cameras={config.num_cameras}, 3, {config.image_size}, "
+                f"{config.image_size}], got {_describe(pixel_values)}"
+            )
+        batch = pixel_values.shape[0]
+        _check_tensor("pixel_values", pixel_values, (batch, config.num_cameras, 3, config.image_size, config.image_size), floating=True)
+        low, high = pixel_values.aminmax()
+        if low < -1.001 or high > 1.001 or not (torch.isfinite(low) and torch.isfinite(high)):
+            raise ValueError(
+                f"pixel_values must lie in [-1, 1] (uint8 images map to x / 255 * 2 - 1), got range "
+                f"[{low.item():.4g}, {high.item():.4g}]"
+            )
+        _check_tensor("image_masks", image_masks, (batch, config.num_cameras), dtypes=(torch.bool,))
+        if input_ids.dim() != 2 or input_ids.shape[0] != batch or not 1 <= input_ids.shape[1] <= config.max_token_len:
+            raise ValueError(
+                f"input_ids must be [B={batch}, L] with 1 <= L <= max_token_len={config.max_token_len}, got {_describe(input_ids)}"
+            )
+        _check_tensor("input_ids", input_ids, tuple(input_ids.shape), dtypes=(torch.long, torch.int32))
+        _check_tensor("attention_mask", attention_mask, tuple(input_ids.shape), dtypes=(torch.bool, torch.long, torch.int32))
+        if not config.pi05 or state is not None:
+            if state is None:
+                raise ValueError(f"state is required by pi0: a float tensor [B={batch}, action_dim={config.action_dim}]")
+            _check_tensor("state", state, (batch, config.action_dim), floating=True)
+        return batch
+
+
+def _describe(value: Any) -> str:
+    if isinstance(value, torch.Tensor):
+        return f"shape {tuple(value.shape)} dtype {value.dtype}"
+    return f"{type(value).__name__}"
+
+
+def _check_tensor(
+    name: str,
+    value: Any,
+    shape: tuple[int, ...],
+    floating: bool = False,
+    dtypes: tuple[torch.dtype, ...] = (),
+) -> None:
+    if not isinstance(value, torch.Tensor):
+        raise ValueError(f"{name} must be a torch.Tensor of shape {shape}, got {_describe(value)}")
+    if tuple(value.shape) != tuple(shape):
+        raise ValueError(f"{name} must have shape {tuple(shape)}, got {tuple(value.shape)}")
+    if floating and not value.is_floating_point():
+        raise ValueError(f"{name} must be a floating-point tensor, got dtype {value.dtype}")
+    if dtypes and value.dtype not in dtypes:
+        raise ValueError(f"{name} must have dtype in {[str(d) for d in dtypes]}, got {value.dtype}")
