@@ -239,20 +239,32 @@ class PI0PreTrainedModel(PreTrainedModel):
 
         transformers only warns about missing or unexpected weights and initialises the missing ones randomly; a
         policy with silently random weights is worse than no policy, so any missing, unexpected or mis-shaped
-        tensor raises `ValueError` naming them.
+        tensor raises `ValueError` naming them. `ignore_mismatched_sizes=True` is the explicit opt-in to
+        re-initialise mis-shaped tensors (e.g. fine-tuning with another `action_dim`).
         """
         want_info = kwargs.pop("output_loading_info", False)
-        model, info = super().from_pretrained(pretrained_model_name_or_path, *args, output_loading_info=True, **kwargs)
+        allow_mismatched = kwargs.pop("ignore_mismatched_sizes", False)  # an explicit opt-in to re-initialise them
+        model, info = super().from_pretrained(
+            pretrained_model_name_or_path, *args, output_loading_info=True, ignore_mismatched_sizes=True, **kwargs
+        )
         problems = {
             "missing": sorted(info.get("missing_keys", ())),
             "unexpected": sorted(info.get("unexpected_keys", ())),
-            "mis-shaped": sorted(str(item) for item in info.get("mismatched_keys", ())),
+            "mis-shaped": [] if allow_mismatched else sorted(_describe_mismatch(item) for item in info.get("mismatched_keys", ())),
         }
         problems = {kind: names for kind, names in problems.items() if names}
         if problems:
             details = "; ".join(f"{kind}: {', '.join(names[:10])}{' ...' if len(names) > 10 else ''}" for kind, names in problems.items())
             raise ValueError(f"checkpoint {pretrained_model_name_or_path} does not match {cls.__name__}({model.config.model_type}): {details}")
         return (model, info) if want_info else model
+
+
+def _describe_mismatch(item: Any) -> str:
+    """transformers reports a mismatch as (name, checkpoint shape, model shape)."""
+    if isinstance(item, (tuple, list)) and len(item) == 3:
+        name, checkpoint_shape, model_shape = item
+        return f"{name} (checkpoint {tuple(checkpoint_shape)}, model {tuple(model_shape)})"
+    return str(item)
 
 
 def _is_inside_vision_tower(model: nn.Module, module: nn.Module) -> bool:

@@ -1,0 +1,73 @@
+"""Shared test helpers: the openpi reference fixtures (see tests/fixtures/openpi/README.md)."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+# Keep the suite predictable on small CI machines.
+torch.set_num_threads(min(2, os.cpu_count() or 1))
+
+FIXTURES = Path(__file__).parent / "fixtures" / "openpi"
+VARIANTS = ("pi0_small", "pi05_small")
+
+
+class OpenpiReference:
+    """A fixture variant: its openpi weights, inputs in our layout, and openpi's outputs."""
+
+    def __init__(self, variant: str) -> None:
+        from pi0_torch.openpi_weights import config_from_openpi_shapes
+
+        self.variant = variant
+        self.dir = FIXTURES / variant
+        self.params = dict(np.load(self.dir / "params_flat.npz"))
+        self.arrays = dict(np.load(self.dir / "reference.npz"))
+        self.config = config_from_openpi_shapes({k: v.shape for k, v in self.params.items()})
+
+    def __getitem__(self, key: str) -> np.ndarray:
+        return self.arrays[key]
+
+    def tensor(self, key: str) -> torch.Tensor:
+        return torch.from_numpy(np.asarray(self.arrays[key]))
+
+    def model(self, dtype: torch.dtype = torch.float32):
+        from pi0_torch import PI0ForActionGeneration
+        from pi0_torch.openpi_weights import load_openpi_params
+
+        model = PI0ForActionGeneration(self.config).eval()
+        load_openpi_params(model, self.params)
+        return model.to(dtype)
+
+    def model_inputs(self) -> dict[str, torch.Tensor]:
+        """`inputs/*` in the model's layout (images channels-first, cameras stacked in config order)."""
+        cameras = self.config.camera_names
+        images = np.stack([self.arrays[f"inputs/images/{c}"] for c in cameras], axis=1)  # [B, C, H, W, 3]
+        masks = np.stack([self.arrays[f"inputs/image_masks/{c}"] for c in cameras], axis=1)
+        return dict(
+            pixel_values=torch.from_numpy(images).permute(0, 1, 4, 2, 3).contiguous(),
+            image_masks=torch.from_numpy(masks),
+            input_ids=self.tensor("inputs/tokenized_prompt").long(),
+            attention_mask=self.tensor("inputs/tokenized_prompt_mask"),
+            state=self.tensor("inputs/state"),
+        )
+
+
+def relative_error(ours: torch.Tensor | np.ndarray, reference: np.ndarray) -> float:
+    """max|ours - ref| / max|ref|."""
+    ours_np = ours.detach().float().cpu().numpy() if isinstance(ours, torch.Tensor) else np.asarray(ours)
+    reference = np.asarray(reference, dtype=np.float64)
+    return float(np.abs(ours_np - reference).max() / np.abs(reference).max())
+
+
+@pytest.fixture(scope="session", params=VARIANTS)
+def reference(request: pytest.FixtureRequest) -> OpenpiReference:
+    return OpenpiReference(request.param)
+
+
+@pytest.fixture(scope="session")
+def references() -> dict[str, OpenpiReference]:
+    return {variant: OpenpiReference(variant) for variant in VARIANTS}

@@ -1,0 +1,178 @@
+"""Numerical parity with openpi's own JAX outputs at every level of the model (fixtures in tests/fixtures/openpi).
+
+Relative error = max|ours - ref| / max|ref|. Float32 must agree to 1e-4 (measured ~1e-6); bf16 inference to 3e-2.
+`python tests/test_parity.py` prints the measured table.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from pi0_torch.flow_matching import euler_times, interpolate, sincos_time_embedding
+from pi0_torch.masks import prefix_lm_mask
+
+from conftest import VARIANTS, OpenpiReference, relative_error
+
+FLOAT32_TOLERANCE = 1e-4
+BF16_TOLERANCE = 3e-2
+
+
+@torch.no_grad()
+def loss_path_errors(ref: OpenpiReference, dtype: torch.dtype = torch.float32) -> dict[str, float]:
+    """Errors of every intermediate of openpi's `compute_loss` pass (`fp32/loss_path/*`)."""
+    model, inputs = ref.model(dtype), ref.model_inputs()
+    config, mode = model.config, "fp32"
+    time, noise, actions = ref.tensor("inputs/loss_time"), ref.tensor("inputs/loss_noise"), ref.tensor("inputs/actions")
+    errors: dict[str, float] = {}
+
+    images = inputs["pixel_values"].flatten(0, 1)
+    encoded = model.vision_tower(pixel_values=images).last_hidden_state.unflatten(0, inputs["pixel_values"].shape[:2])
+    image_tokens = model.embed_images(inputs["pixel_values"])
+    for c, camera in enumerate(config.camera_names):
+        errors[f"siglip_encoded/{camera}"] = relative_error(encoded[:, c], ref[f"{mode}/loss_path/siglip/{camera}/encoded"])
+        errors[f"img_tokens/{camera}"] = relative_error(image_tokens[:, c], ref[f"{mode}/loss_path/img_tokens/{camera}"])
+
+    prefix, prefix_valid = model.embed_prefix(
+        inputs["pixel_values"], inputs["image_masks"], inputs["input_ids"], inputs["attention_mask"]
+    )
+    errors["prefix_tokens"] = relative_error(prefix, ref[f"{mode}/loss_path/prefix_tokens"])
+    assert torch.equal(prefix_valid, ref.tensor(f"{mode}/loss_path/prefix_mask"))
+
+    errors["time_emb_sincos"] = relative_error(
+        sincos_time_embedding(time, config.expert_hidden_size, config.time_min_period, config.time_max_period),
+        ref[f"{mode}/loss_path/time_emb_sincos"],
+    )
+    x_t, target = interpolate(actions, noise, time)
+    errors["x_t"] = relative_error(x_t, ref[f"{mode}/loss_path/x_t"])
+    errors["u_t"] = relative_error(target, ref[f"{mode}/loss_path/u_t"])
+    condition = model.time_conditioning(time)
+    if config.pi05:
+        errors["adarms_cond"] = relative_error(condition, ref[f"{mode}/loss_path/adarms_cond"])
+    suffix = model.embed_suffix(inputs["state"], x_t, condition)
+    errors["suffix_tokens"] = relative_error(suffix, ref[f"{mode}/loss_path/suffix_tokens"])
+    suffix_flags = model.suffix_block_flags(suffix.device)
+    assert torch.equal(suffix_flags, ref.tensor(f"{mode}/loss_path/suffix_ar_mask"))
+
+    valid = torch.cat([prefix_valid, ref.tensor(f"{mode}/loss_path/suffix_mask")], dim=1)
+    flags = torch.cat([ref.tensor(f"{mode}/loss_path/prefix_ar_mask"), suffix_flags])
+    mask, positions = prefix_lm_mask(valid, flags)
+    assert torch.equal(mask, ref.tensor(f"{mode}/loss_path/attn_mask"))
+    assert torch.equal(positions, ref.tensor(f"{mode}/loss_path/positions").long())
+
+    prefix_out, suffix_out = model.run_layers(prefix, suffix, mask, positions, condition)
+    # padded query rows of the prefix are meaningless: compare valid tokens only
+    reference_prefix_out = ref[f"{mode}/loss_path/prefix_out"][prefix_valid.numpy()]
+    errors["prefix_out (valid)"] = relative_error(prefix_out[prefix_valid], reference_prefix_out)
+    errors["suffix_out"] = relative_error(suffix_out, ref[f"{mode}/loss_path/suffix_out"])
+
+    output = model(**inputs, actions=actions, noise=noise, time=time)
+    errors["v_t"] = relative_error(output.velocity, ref[f"{mode}/loss_path/v_t"])
+    per_step_loss = ((output.velocity - target) ** 2).mean(dim=-1)  # openpi's compute_loss: [B, horizon]
+    errors["loss"] = relative_error(per_step_loss, ref[f"{mode}/loss"])
+    errors["loss (scalar mean)"] = relative_error(output.loss, ref[f"{mode}/loss"].mean())
+    return errors
+
+
+@torch.no_grad()
+def sample_path_errors(ref: OpenpiReference) -> dict[str, float]:
+    """Errors of openpi's `sample_actions`: the prefix k/v cache, the first step, every Euler step, the actions."""
+    model, inputs = ref.model(), ref.model_inputs()
+    config = model.config
+    errors: dict[str, float] = {}
+    image_inputs = (inputs["pixel_values"], inputs["image_masks"], inputs["input_ids"], inputs["attention_mask"])
+    cache = model.cache_prefix(*image_inputs)
+    P = cache.prefix_len
+    # openpi: [layers, B, P, K, H]; ours: per layer [B, K, P + S, H]
+    keys = torch.stack([k[:, :, :P] for k in cache.keys]).permute(0, 1, 3, 2, 4)
+    values = torch.stack([v[:, :, :P] for v in cache.values]).permute(0, 1, 3, 2, 4)
+    errors["kv_cache_k"] = relative_error(keys, ref["fp32/sample_path/kv_cache_k"])
+    errors["kv_cache_v"] = relative_error(values, ref["fp32/sample_path/kv_cache_v"])
+
+    mask, _, _ = suffix_attention = model.suffix_attention(cache.prefix_valid)
+    assert torch.equal(mask[:, 0], ref.tensor("fp32/sample_path/step0_full_attn_mask"))
+    suffix_positions = cache.prefix_valid.sum(1, keepdim=True) + torch.arange(config.suffix_len)
+    assert torch.equal(suffix_positions, ref.tensor("fp32/sample_path/step0_suffix_positions").long())
+
+    times = euler_times(int(ref["inputs/num_steps"]))
+    np.testing.assert_array_equal(np.array(times, dtype=np.float32), ref["fp32/sample_path/traj_time"])
+    conditions = model.time_conditioning(torch.tensor(times))
+    modulations = model.expert_modulations(conditions) if config.pi05 else None
+    batch = inputs["state"].shape[0]
+    x_t = ref.tensor("inputs/sample_noise")
+    step0_tokens = model.embed_suffix(inputs["state"], x_t, conditions[0].expand(batch, -1))
+    errors["step0_suffix_tokens"] = relative_error(step0_tokens, ref["fp32/sample_path/step0_suffix_tokens"])
+    velocity_errors, state_errors = [], []
+    for step in range(len(times)):
+        step_modulations = None
+        if modulations is not None:
+            per_layer, final = modulations
+            step_modulations = ([(a[step].expand(batch, -1), m[step].expand(batch, -1)) for a, m in per_layer], final[step].expand(batch, -1))
+        velocity = model.denoise_step(cache, inputs["state"], x_t, conditions[step].expand(batch, -1), step_modulations, suffix_attention)
+        x_t = x_t + (-1.0 / len(times)) * velocity
+        velocity_errors.append(relative_error(velocity, ref["fp32/sample_path/traj_v"][step]))
+        state_errors.append(relative_error(x_t, ref["fp32/sample_path/traj_x"][step]))
+    errors["traj_v (worst step)"] = max(velocity_errors)
+    errors["traj_x (worst step)"] = max(state_errors)
+
+    actions = model.generate_actions(*image_inputs, state=inputs["state"], noise=ref.tensor("inputs/sample_noise"))
+    errors["actions"] = relative_error(actions, ref["fp32/actions"])
+    return errors
+
+
+@torch.no_grad()
+def bf16_errors(ref: OpenpiReference) -> dict[str, float]:
+    """bf16 inference (weights and residual stream bf16, float32 islands) against openpi's `bf16_infer` outputs."""
+    model, inputs = ref.model(torch.bfloat16), ref.model_inputs()
+    actions = model.generate_actions(**inputs, noise=ref.tensor("inputs/sample_noise"))
+    time, noise, target_actions = ref.tensor("inputs/loss_time"), ref.tensor("inputs/loss_noise"), ref.tensor("inputs/actions")
+    velocity = model(**inputs, actions=target_actions, noise=noise, time=time).velocity
+    per_step_loss = ((velocity - (noise - target_actions)) ** 2).mean(dim=-1)
+    return {"bf16 actions": relative_error(actions, ref["bf16_infer/actions"]), "bf16 loss": relative_error(per_step_loss, ref["bf16_infer/loss"])}
+
+
+def test_loss_path_float32(reference: OpenpiReference) -> None:
+    errors = loss_path_errors(reference)
+    assert max(errors.values()) <= FLOAT32_TOLERANCE, errors
+
+
+def test_sample_path_float32(reference: OpenpiReference) -> None:
+    errors = sample_path_errors(reference)
+    assert max(errors.values()) <= FLOAT32_TOLERANCE, errors
+
+
+def test_bf16_inference(reference: OpenpiReference) -> None:
+    errors = bf16_errors(reference)
+    assert max(errors.values()) <= BF16_TOLERANCE, errors
+    assert all(np.isfinite(v) for v in errors.values())
+
+
+def test_batch_elements_are_independent(reference: OpenpiReference) -> None:
+    """Each batch element sampled alone gives the same actions as in the batch (masks/positions are per element)."""
+    model, inputs = reference.model(), reference.model_inputs()
+    noise = reference.tensor("inputs/sample_noise")
+    batched = model.generate_actions(**inputs, noise=noise)
+    for b in range(noise.shape[0]):
+        single = model.generate_actions(**{k: v[b : b + 1] for k, v in inputs.items()}, noise=noise[b : b + 1])
+        torch.testing.assert_close(single[0], batched[b], rtol=1e-5, atol=1e-5)
+
+
+def test_shorter_token_padding_changes_nothing(reference: OpenpiReference) -> None:
+    """Padding does not advance positions, so trimming trailing padding leaves the actions unchanged."""
+    model, inputs = reference.model(), reference.model_inputs()
+    noise = reference.tensor("inputs/sample_noise")
+    longest = int(inputs["attention_mask"].sum(1).max())
+    trimmed = dict(inputs, input_ids=inputs["input_ids"][:, :longest], attention_mask=inputs["attention_mask"][:, :longest])
+    torch.testing.assert_close(
+        model.generate_actions(**trimmed, noise=noise), model.generate_actions(**inputs, noise=noise), rtol=1e-5, atol=1e-5
+    )
+
+
+if __name__ == "__main__":
+    torch.set_num_threads(2)
+    for variant in VARIANTS:
+        ref = OpenpiReference(variant)
+        print(f"\n{variant}: relative error max|ours-ref|/max|ref|")
+        for name, value in {**loss_path_errors(ref), **sample_path_errors(ref), **bf16_errors(ref)}.items():
+            print(f"  {name:32s} {value:.2e}")
