@@ -134,13 +134,21 @@ class JointDecoderLayer(GradientCheckpointingLayer):
         expert_modulation: tuple[torch.Tensor, torch.Tensor] | None = None,  # adaRMS (attn, mlp) [B, 3*D1] each
         kv_buffer: tuple[torch.Tensor, torch.Tensor] | None = None,  # [B, K, P + S, H] each
         kv_offset: int = 0,
+        keys_only: bool = False,
     ) -> tuple[torch.Tensor | None, torch.Tensor | None]:
-        """Returns the updated (prefix, suffix). With `kv_buffer`, the new post-RoPE k/v are written into it at
-        `kv_offset` and attention reads the buffer up to the end of the new tokens (a static k/v cache)."""
+        """Returns the updated (prefix, suffix).
+
+        With `kv_buffer`, the new post-RoPE k/v are written into it at `kv_offset` and attention reads the buffer up
+        to the end of the new tokens (a static k/v cache). `keys_only` stops once they are written (the last layer
+        of the cached prefix: its outputs are never read) and returns (None, None).
+        """
         attn_modulation, mlp_modulation = expert_modulation if expert_modulation is not None else (None, None)
         streams = [
             (expert, x, attn_mod, mlp_mod)
-            for expert, x, attn_mod, mlp_mod in ((self.vlm, prefix, None, None), (self.expert, suffix, attn_modulation, mlp_modulation))
+            for expert, x, attn_mod, mlp_mod in (
+                (self.vlm, prefix, None, None),
+                (self.expert, suffix, attn_modulation, mlp_modulation),
+            )
             if x is not None
         ]
 
@@ -158,20 +166,20 @@ class JointDecoderLayer(GradientCheckpointingLayer):
             key_buffer[:, :, kv_offset:end] = k
             value_buffer[:, :, kv_offset:end] = v
             k, v = key_buffer[:, :, :end], value_buffer[:, :, :end]
+        if keys_only:
+            return None, None
         attended = masked_attention(q, k, v, mask, scale=q.shape[-1] ** -0.5)  # [B, N, T, H]
         attended = attended.transpose(1, 2).flatten(2)  # [B, T, N*H]
 
-        outputs: list[torch.Tensor] = []
+        outputs: list[torch.Tensor | None] = [None, None]
         start = 0
         for (expert, x, _, mlp_mod), gate in zip(streams, gates):
             stream_attended = attended[:, start : start + x.shape[1]]
             start += x.shape[1]
             x = _residual(x, expert.o_proj(stream_attended), gate)
             h, gate = expert.mlp_norm(x, mlp_mod)
-            outputs.append(_residual(x, expert.mlp(h), gate))
-        prefix_out = outputs.pop(0) if prefix is not None else None
-        suffix_out = outputs.pop(0) if suffix is not None else None
-        return prefix_out, suffix_out
+            outputs[0 if expert is self.vlm else 1] = _residual(x, expert.mlp(h), gate)
+        return outputs[0], outputs[1]
 
 
 # ----------------------------------------------------------------------------------------------------------------------
@@ -324,23 +332,38 @@ class PI0ForActionGeneration(PI0PreTrainedModel):
             self.state_proj = nn.Linear(config.action_dim, width)
             self.action_time_mlp_in = nn.Linear(2 * width, width)
             self.action_time_mlp_out = nn.Linear(width, width)
+        self._compiled_sample: Any = None  # set by `compile_sampling`
         self.post_init()
 
     # -- prefix: images and text ---------------------------------------------------------------------------------------
 
-    def embed_images(self, pixel_values: torch.Tensor) -> torch.Tensor:
-        """SigLIP + linear head: `[B, C, 3, H, W]` in [-1, 1] -> image tokens `[B, C, tokens_per_image, D0]`."""
+    def embed_images(self, pixel_values: torch.Tensor, image_masks: torch.Tensor | None = None) -> torch.Tensor:
+        """SigLIP + linear head: `[B, C, 3, H, W]` in [-1, 1] -> image tokens `[B, C, tokens_per_image, D0]`.
+
+        With `image_masks` (eager mode only), masked cameras skip the vision tower and get zero tokens: no valid
+        token ever attends to them, so the result is unchanged.
+        """
         batch, cameras = pixel_values.shape[:2]
-        images = pixel_values.flatten(0, 1).to(self.image_projection.weight.dtype)
-        features = self.vision_tower(pixel_values=images).last_hidden_state  # [B*C, 256, W]
-        return self.image_projection(features).unflatten(0, (batch, cameras))
+        images = pixel_values.flatten(0, 1).to(self.image_projection.weight.dtype)  # [B*C, 3, H, W]
+        if image_masks is not None and not torch.compiler.is_compiling():
+            keep = image_masks.flatten().bool()
+            if not keep.all():
+                tokens = images.new_zeros(batch * cameras, self.config.tokens_per_image, self.config.vlm_hidden_size)
+                if keep.any():
+                    tokens[keep] = self._encode_images(images[keep])
+                return tokens.unflatten(0, (batch, cameras))
+        return self._encode_images(images).unflatten(0, (batch, cameras))
+
+    def _encode_images(self, images: torch.Tensor) -> torch.Tensor:
+        """`[n, 3, H, W]` -> `[n, tokens_per_image, D0]`."""
+        return self.image_projection(self.vision_tower(pixel_values=images).last_hidden_state)
 
     def embed_prefix(
         self, pixel_values: torch.Tensor, image_masks: torch.Tensor, input_ids: torch.Tensor, attention_mask: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Prefix tokens `[B, P, D0]` (each camera's image tokens, then the scaled text embeddings) and their
         validity `[B, P]`. Image tokens are not scaled; text embeddings are multiplied by sqrt(D0)."""
-        image_tokens = self.embed_images(pixel_values)  # [B, C, 256, D0]
+        image_tokens = self.embed_images(pixel_values, image_masks)  # [B, C, 256, D0]
         text_tokens = self.embed_tokens(input_ids)
         text_tokens = text_tokens * torch.tensor(math.sqrt(text_tokens.shape[-1]), dtype=text_tokens.dtype)
         tokens = torch.cat([image_tokens.flatten(1, 2), text_tokens], dim=1)
@@ -502,8 +525,10 @@ class PI0ForActionGeneration(PI0PreTrainedModel):
         )
         mask, positions = prefix_lm_mask(prefix_valid, torch.zeros(prefix_len, dtype=torch.bool, device=prefix.device))
         cos, sin = rope_cos_sin(positions, config.head_dim, config.rope_theta)
-        for layer, key_buffer, value_buffer in zip(self.layers, cache.keys, cache.values):
-            prefix, _ = layer(prefix, None, cos, sin, mask[:, None], kv_buffer=(key_buffer, value_buffer), kv_offset=0)
+        mask = mask[:, None]
+        for index, (layer, key_buffer, value_buffer) in enumerate(zip(self.layers, cache.keys, cache.values)):
+            last = index == len(self.layers) - 1
+            prefix, _ = layer(prefix, None, cos, sin, mask, kv_buffer=(key_buffer, value_buffer), keys_only=last)
         return cache
 
     def suffix_attention(self, prefix_valid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -568,21 +593,33 @@ class PI0ForActionGeneration(PI0PreTrainedModel):
             back to robot units).
         """
         batch = self._check_inputs(pixel_values, image_masks, input_ids, attention_mask, state)
-        config, device = self.config, pixel_values.device
+        config = self.config
         shape = (batch, config.action_horizon, config.action_dim)
         if noise is None:
-            noise = torch.randn(shape, generator=generator, device=device, dtype=torch.float32)
+            noise = torch.randn(shape, generator=generator, device=pixel_values.device, dtype=torch.float32)
         _check_tensor("noise", noise, shape, floating=True)
-        num_steps = config.num_inference_steps if num_steps is None else num_steps
-        times = euler_times(num_steps)
-        dt = -1.0 / num_steps
+        times = euler_times(config.num_inference_steps if num_steps is None else num_steps)
+        sample = self._compiled_sample if self._compiled_sample is not None else self._sample
+        return sample(pixel_values, image_masks, input_ids, attention_mask, state, noise.float(), times)
 
+    def _sample(
+        self,
+        pixel_values: torch.Tensor,
+        image_masks: torch.Tensor,
+        input_ids: torch.Tensor,
+        attention_mask: torch.Tensor,
+        state: torch.Tensor | None,
+        noise: torch.Tensor,
+        times: list[float],
+    ) -> torch.Tensor:
+        """The sampling computation of `generate_actions` on checked inputs (what `compile_sampling` compiles)."""
+        batch = noise.shape[0]
         cache = self.cache_prefix(pixel_values, image_masks, input_ids, attention_mask)
         suffix_attention = self.suffix_attention(cache.prefix_valid)
-        conditions = self.time_conditioning(torch.tensor(times, dtype=torch.float32, device=device))  # [steps, D1]
-        modulations = self.expert_modulations(conditions) if config.pi05 else None
-
-        x_t = noise.float()
+        conditions = self.time_conditioning(torch.tensor(times, dtype=torch.float32, device=noise.device))  # [steps, D1]
+        modulations = self.expert_modulations(conditions) if self.config.pi05 else None
+        dt = -1.0 / len(times)
+        x_t = noise
         for step in range(len(times)):
             step_modulations = None
             if modulations is not None:
@@ -595,6 +632,14 @@ class PI0ForActionGeneration(PI0PreTrainedModel):
             velocity = self.denoise_step(cache, state, x_t, condition, step_modulations, suffix_attention)
             x_t = x_t + dt * velocity
         return x_t
+
+    def compile_sampling(self, **compile_kwargs: Any) -> None:
+        """Opt in to `torch.compile` for `generate_actions` (the prefix pass and the whole Euler loop).
+
+        `compile_kwargs` go to `torch.compile`; on CUDA, `mode="reduce-overhead"` captures the sampling in CUDA
+        graphs. Inputs of a new shape recompile. `compile_sampling(disable=True)` goes back to eager.
+        """
+        self._compiled_sample = None if compile_kwargs.get("disable") else torch.compile(self._sample, **compile_kwargs)
 
     # -- input checks --------------------------------------------------------------------------------------------------
 

@@ -37,8 +37,9 @@ def loss_path_errors(ref: OpenpiReference, dtype: torch.dtype = torch.float32) -
     prefix, prefix_valid = model.embed_prefix(
         inputs["pixel_values"], inputs["image_masks"], inputs["input_ids"], inputs["attention_mask"]
     )
-    errors["prefix_tokens"] = relative_error(prefix, ref[f"{mode}/loss_path/prefix_tokens"])
     assert torch.equal(prefix_valid, ref.tensor(f"{mode}/loss_path/prefix_mask"))
+    # a masked camera skips SigLIP (its tokens are never attended): compare valid tokens
+    errors["prefix_tokens (valid)"] = relative_error(prefix[prefix_valid], ref[f"{mode}/loss_path/prefix_tokens"][prefix_valid.numpy()])
 
     errors["time_emb_sincos"] = relative_error(
         sincos_time_embedding(time, config.expert_hidden_size, config.time_min_period, config.time_max_period),
@@ -87,8 +88,10 @@ def sample_path_errors(ref: OpenpiReference) -> dict[str, float]:
     # openpi: [layers, B, P, K, H]; ours: per layer [B, K, P + S, H]
     keys = torch.stack([k[:, :, :P] for k in cache.keys]).permute(0, 1, 3, 2, 4)
     values = torch.stack([v[:, :, :P] for v in cache.values]).permute(0, 1, 3, 2, 4)
-    errors["kv_cache_k"] = relative_error(keys, ref["fp32/sample_path/kv_cache_k"])
-    errors["kv_cache_v"] = relative_error(values, ref["fp32/sample_path/kv_cache_v"])
+    # masked cameras skip SigLIP (never attended): compare the cache at valid prefix tokens
+    valid = cache.prefix_valid.numpy()
+    errors["kv_cache_k (valid)"] = relative_error(keys[:, valid], ref["fp32/sample_path/kv_cache_k"][:, valid])
+    errors["kv_cache_v (valid)"] = relative_error(values[:, valid], ref["fp32/sample_path/kv_cache_v"][:, valid])
 
     mask, _, _ = suffix_attention = model.suffix_attention(cache.prefix_valid)
     assert torch.equal(mask[:, 0], ref.tensor("fp32/sample_path/step0_full_attn_mask"))
