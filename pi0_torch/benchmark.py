@@ -1,0 +1,300 @@
+"""`pi0-torch bench`: latency, memory and FLOP/s of `generate_actions`, a training step, and loading.
+
+Prints tables; nothing here is asserted. Every configuration runs in this process one after another, after
+warm-up, with the median/min/max over `--repeats` runs. Peak memory is the whole footprint, weights included: the
+CUDA allocator's peak on GPU, the process's peak resident set size (sampled every 2 ms) on CPU.
+
+    pi0-torch bench                                     # small + medium, 1 and 3 cameras, batch 1 and 8
+    pi0-torch bench --presets pi0 --dtypes bfloat16 --cameras 3 --batches 1   # full size
+    pi0-torch bench --side-by-side                      # against transformers' PI0, identical weights
+    pi0-torch bench --loading                           # peak RSS of from_pretrained on a full-size bf16 checkpoint
+"""
+
+from __future__ import annotations
+
+import argparse
+import gc
+import statistics
+import tempfile
+import threading
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+
+import psutil
+import torch
+
+from .configuration_pi0 import PI0Config, preset_names
+from .modeling_pi0 import PI0ForActionGeneration
+
+TEXT_TOKENS = 48
+
+
+# -- measuring ------------------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class Timing:
+    median: float
+    minimum: float
+    maximum: float
+    peak_bytes: int
+
+    def row(self) -> str:
+        return f"{self.median * 1e3:10.1f} {self.minimum * 1e3:10.1f} {self.maximum * 1e3:10.1f} {self.peak_bytes / 2**20:10.0f}"
+
+
+@contextmanager
+def peak_memory(device: torch.device) -> Iterator[list[int]]:
+    """Yields a one-element list that holds the peak bytes in use during the block once it ends."""
+    result = [0]
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+        torch.cuda.reset_peak_memory_stats(device)
+        yield result
+        torch.cuda.synchronize(device)
+        result[0] = torch.cuda.max_memory_allocated(device)
+        return
+    process = psutil.Process()
+    peak = process.memory_info().rss
+    done = threading.Event()
+
+    def sample() -> None:
+        nonlocal peak
+        while not done.wait(0.002):
+            peak = max(peak, process.memory_info().rss)
+
+    sampler = threading.Thread(target=sample, daemon=True)
+    sampler.start()
+    try:
+        yield result
+    finally:
+        done.set()
+        sampler.join()
+        result[0] = max(peak, process.memory_info().rss)
+
+
+def time_call(fn: Callable[[], object], device: torch.device, repeats: int, warmup: int = 1) -> Timing:
+    for _ in range(warmup):
+        fn()
+    durations = []
+    with peak_memory(device) as peak:
+        for _ in range(repeats):
+            if device.type == "cuda":
+                torch.cuda.synchronize(device)
+            start = time.perf_counter()
+            fn()
+            if device.type == "cuda":
+                torch.cuda.synchronize(device)
+            durations.append(time.perf_counter() - start)
+    return Timing(statistics.median(durations), min(durations), max(durations), peak[0])
+
+
+def matmul_throughput(device: torch.device, dtype: torch.dtype, size: int | None = None, repeats: int = 5) -> float:
+    """Measured FLOP/s of a square matmul: the machine's ceiling to compare the model against."""
+    size = size or (8192 if device.type == "cuda" else 2048)
+    a = torch.randn(size, size, device=device, dtype=dtype)
+    b = torch.randn(size, size, device=device, dtype=dtype)
+    timing = time_call(lambda: a @ b, device, repeats)
+    return 2 * size**3 / timing.minimum
+
+
+def generate_flops(config: PI0Config, cameras: int, batch: int, text_tokens: int = TEXT_TOKENS, steps: int | None = None) -> float:
+    """Multiply-add FLOPs (x2) of `generate_actions` as this implementation runs it (matmuls and attention)."""
+    steps = steps or config.num_inference_steps
+    W, M, T = config.vision_hidden_size, config.vision_intermediate_size, config.tokens_per_image
+    siglip = T * (3 * config.patch_size**2 * W + config.vision_num_layers * (4 * W * W + 2 * W * M + 2 * T * W) + W * config.vlm_hidden_size)
+    N, K, H = config.num_attention_heads, config.num_key_value_heads, config.head_dim
+
+    def layer(width: int, mlp: int, kv_len: int) -> int:  # per token
+        return width * (N + 2 * K) * H + N * H * width + 3 * width * mlp + 2 * kv_len * N * H
+
+    P = cameras * T + text_tokens
+    S = config.suffix_len
+    vlm = P * ((config.num_hidden_layers - 1) * layer(config.vlm_hidden_size, config.vlm_intermediate_size, P)
+               + config.vlm_hidden_size * (N + 2 * K) * H)  # the last layer only computes its k/v
+    suffix = S * config.num_hidden_layers * layer(config.expert_hidden_size, config.expert_intermediate_size, P + S)
+    return 2.0 * batch * (cameras * siglip + vlm + steps * suffix)
+
+
+def example_batch(config: PI0Config, cameras: int, batch: int, device: torch.device, seed: int = 0) -> dict[str, torch.Tensor]:
+    """Random inputs with the first `cameras` cameras present and the rest masked."""
+    generator = torch.Generator().manual_seed(seed)
+    size = config.image_size
+    image_masks = torch.zeros(batch, config.num_cameras, dtype=torch.bool)
+    image_masks[:, :cameras] = True
+    inputs = dict(
+        pixel_values=torch.rand(batch, config.num_cameras, 3, size, size, generator=generator) * 2 - 1,
+        image_masks=image_masks,
+        input_ids=torch.randint(1, config.vocab_size, (batch, TEXT_TOKENS), generator=generator),
+        attention_mask=torch.ones(batch, TEXT_TOKENS, dtype=torch.bool),
+        state=torch.randn(batch, config.action_dim, generator=generator),
+    )
+    return {k: v.to(device) for k, v in inputs.items()}
+
+
+def random_model(config: PI0Config, dtype: torch.dtype, device: torch.device) -> PI0ForActionGeneration:
+    torch.manual_seed(0)
+    return PI0ForActionGeneration(config).to(device=device, dtype=dtype).eval()
+
+
+# -- benchmarks -------------------------------------------------------------------------------------------------------------
+
+
+def bench_generate(args: argparse.Namespace, device: torch.device) -> None:
+    print(f"\ngenerate_actions on {device_name(device)}, {TEXT_TOKENS} text tokens, 50 actions, 10 steps"
+          f"{', torch.compile' if args.compile else ''}")
+    peaks = {dtype: matmul_throughput(device, getattr(torch, dtype)) for dtype in args.dtypes}
+    print("measured matmul ceiling: " + ", ".join(f"{d} {v / 1e9:.0f} GFLOP/s" for d, v in peaks.items()))
+    print(f"{'preset':12s} {'dtype':9s} {'cams':>4s} {'batch':>5s} {'median ms':>10s} {'min ms':>10s} {'max ms':>10s} "
+          f"{'peak MiB':>10s} {'GFLOP/s':>8s} {'% peak':>6s}")
+    for preset in args.presets:
+        config = PI0Config.from_preset(preset)
+        for dtype_name in args.dtypes:
+            model = random_model(config, getattr(torch, dtype_name), device)
+            if args.compile:
+                model.compile_sampling(mode="reduce-overhead" if device.type == "cuda" else None)
+            for cameras in args.cameras:
+                for batch in args.batches:
+                    inputs = example_batch(config, cameras, batch, device)
+                    timing = time_call(lambda: model.generate_actions(**inputs), device, args.repeats, warmup=2 if args.compile else 1)
+                    achieved = generate_flops(config, cameras, batch) / timing.median
+                    print(f"{preset:12s} {dtype_name:9s} {cameras:4d} {batch:5d} {timing.row()} "
+                          f"{achieved / 1e9:8.0f} {100 * achieved / peaks[dtype_name]:6.0f}")
+            del model
+            gc.collect()
+
+
+def bench_train_step(args: argparse.Namespace, device: torch.device) -> None:
+    print(f"\ntraining step (forward + backward + AdamW) on {device_name(device)}, 3 cameras")
+    print(f"{'preset':12s} {'dtype':9s} {'batch':>5s} {'median ms':>10s} {'min ms':>10s} {'max ms':>10s} {'peak MiB':>10s}")
+    for preset in args.presets:
+        config = PI0Config.from_preset(preset)
+        for dtype_name in args.dtypes:
+            model = random_model(config, torch.float32, device).train()
+            optimizer = torch.optim.AdamW(model.parameters(), lr=1e-5, betas=(0.9, 0.95))
+            autocast_dtype = getattr(torch, dtype_name)
+            for batch in args.batches:
+                inputs = example_batch(config, 3, batch, device)
+                actions = torch.randn(batch, config.action_horizon, config.action_dim, device=device)
+
+                def step() -> None:
+                    with torch.autocast(device.type, dtype=autocast_dtype, enabled=autocast_dtype != torch.float32):
+                        loss = model(**inputs, actions=actions).loss
+                    loss.backward()
+                    optimizer.step()
+                    optimizer.zero_grad(set_to_none=True)
+
+                timing = time_call(step, device, args.repeats)
+                print(f"{preset:12s} {dtype_name:9s} {batch:5d} {timing.row()}")
+            del model, optimizer
+            gc.collect()
+
+
+def bench_side_by_side(args: argparse.Namespace, device: torch.device) -> None:
+    """Ours vs transformers' `PI0ForConditionalGeneration` with identical weights, inputs and noise (π0)."""
+    from .conversion import export_to_transformers_pi0
+
+    preset = args.side_by_side_preset
+    config = PI0Config.from_preset(preset)
+    ours = random_model(config, torch.float32, device)
+    theirs, to_theirs_inputs = export_to_transformers_pi0(ours)
+    theirs = theirs.to(device).eval()
+    print(f"\nside by side with transformers PI0 ({preset}, float32, 3 cameras, batch 1, {TEXT_TOKENS} text tokens, "
+          f"10 steps) on {device_name(device)}")
+    inputs = example_batch(config, 3, 1, device)
+    noise = torch.randn(1, config.action_horizon, config.action_dim, generator=torch.Generator().manual_seed(1)).to(device)
+    their_inputs = to_theirs_inputs(inputs)
+    rows = []
+    for label, compiled in (("eager", False), ("compiled", True)):
+        if compiled and not args.compile:
+            continue
+        if compiled:
+            ours.compile_sampling(mode="reduce-overhead" if device.type == "cuda" else None)
+            theirs.sample_actions = torch.compile(theirs.sample_actions)  # type: ignore[method-assign]
+        ours_actions = ours.generate_actions(**inputs, noise=noise)
+        their_actions = theirs.sample_actions(**their_inputs, noise=noise)
+        difference = (ours_actions - their_actions.float()).abs().max().item()
+        ours_timing = time_call(lambda: ours.generate_actions(**inputs, noise=noise), device, args.repeats)
+        their_timing = time_call(lambda: theirs.sample_actions(**their_inputs, noise=noise), device, args.repeats)
+        rows.append((label, ours_timing, their_timing, difference))
+    print(f"{'mode':9s} {'ours ms':>9s} {'transformers ms':>16s} {'speedup':>8s} {'max |diff|':>11s}")
+    for label, ours_timing, their_timing, difference in rows:
+        print(f"{label:9s} {ours_timing.median * 1e3:9.1f} {their_timing.median * 1e3:16.1f} "
+              f"{their_timing.median / ours_timing.median:7.2f}x {difference:11.2e}")
+
+
+def bench_loading(args: argparse.Namespace, device: torch.device) -> None:
+    """Peak RSS of `from_pretrained` on a full-size bf16 π0 checkpoint (written with random weights first)."""
+    config = PI0Config.from_preset(args.loading_preset)
+    with tempfile.TemporaryDirectory(dir=args.tmp_dir) as folder:
+        with torch.device("meta"):  # no float32 copy of 3B parameters: allocate bf16 directly, fill with noise
+            model = PI0ForActionGeneration(config)
+        model = model.to_empty(device="cpu").to(torch.bfloat16)
+        with torch.no_grad():
+            for parameter in model.parameters():
+                parameter.normal_(std=0.02)
+        weight_bytes = sum(p.numel() * p.element_size() for p in model.parameters())
+        model.save_pretrained(folder)
+        del model
+        gc.collect()
+        baseline = psutil.Process().memory_info().rss
+        with peak_memory(torch.device("cpu")) as peak:
+            start = time.perf_counter()
+            loaded = PI0ForActionGeneration.from_pretrained(folder, dtype=torch.bfloat16)
+            elapsed = time.perf_counter() - start
+        assert next(loaded.parameters()).dtype == torch.bfloat16
+    print(f"\nfrom_pretrained of {args.loading_preset} (bf16, {weight_bytes / 2**30:.2f} GiB of weights): "
+          f"{elapsed:.1f} s, peak RSS increase {(peak[0] - baseline) / 2**30:.2f} GiB = "
+          f"{(peak[0] - baseline) / weight_bytes:.2f}x the weight bytes")
+
+
+def device_name(device: torch.device) -> str:
+    if device.type == "cuda":
+        return torch.cuda.get_device_name(device)
+    return f"CPU ({torch.get_num_threads()} threads)"
+
+
+# -- command line ---------------------------------------------------------------------------------------------------------
+
+
+def _csv(kind: Callable[[str], object]) -> Callable[[str], list]:
+    return lambda text: [kind(item) for item in text.split(",") if item]
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--presets", type=_csv(str), default=["pi0_small", "pi0_medium"], help=f"comma list of {preset_names()}")
+    parser.add_argument("--dtypes", type=_csv(str), default=["float32", "bfloat16"], help="comma list: float32,bfloat16")
+    parser.add_argument("--cameras", type=_csv(int), default=[1, 3])
+    parser.add_argument("--batches", type=_csv(int), default=[1, 8])
+    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--compile", action="store_true", help="also use torch.compile (CUDA graphs on GPU)")
+    parser.add_argument("--train", action="store_true", help="also time a training step")
+    parser.add_argument("--side-by-side", action="store_true", help="also compare with transformers' PI0")
+    parser.add_argument("--side-by-side-preset", default="pi0_medium")
+    parser.add_argument("--loading", action="store_true", help="also measure from_pretrained peak RSS")
+    parser.add_argument("--loading-preset", default="pi0")
+    parser.add_argument("--tmp-dir", default=None, help="where --loading writes its checkpoint")
+    parser.add_argument("--skip-generate", action="store_true")
+
+
+def run(args: argparse.Namespace) -> int:
+    device = torch.device(args.device)
+    with torch.inference_mode(False):
+        if not args.skip_generate:
+            bench_generate(args, device)
+        if args.train:
+            bench_train_step(args, device)
+        if args.side_by_side:
+            bench_side_by_side(args, device)
+        if args.loading:
+            bench_loading(args, device)
+    return 0
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(prog="bench_generate", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_arguments(parser)
+    return run(parser.parse_args())
