@@ -4,10 +4,22 @@ from transformers import AutoConfig, AutoModel
 
 from .configuration_pi0 import PI0Config
 from .modeling_pi0 import PI0ForActionGeneration, PI0Output
+from .normalization import NormStats, compute_norm_stats, load_openpi_norm_stats, save_openpi_norm_stats
+from .processing_pi0 import PI0Processor
 
 __version__ = "0.1.0"
 
 AutoConfig.register(PI0Config.model_type, PI0Config, exist_ok=True)
 AutoModel.register(PI0Config, PI0ForActionGeneration, exist_ok=True)
 
-__all__ = ["PI0Config", "PI0ForActionGeneration", "PI0Output", "__version__"]
+__all__ = [
+    "NormStats",
+    "PI0Config",
+    "PI0ForActionGeneration",
+    "PI0Output",
+    "PI0Processor",
+    "__version__",
+    "compute_norm_stats",
+    "load_openpi_norm_stats",
+    "save_openpi_norm_stats",
+]

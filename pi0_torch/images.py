@@ -1,0 +1,172 @@
+"""Camera frames -> the model's image tensors: resize-with-pad and conversion to channels-first [-1, 1].
+
+Accepted frames (one camera, one time step):
+
+- `PIL.Image.Image` of any mode (converted to RGB);
+- `numpy.ndarray` or `torch.Tensor`, channels last `[H, W, 3]` or channels first `[3, H, W]` (a frame whose first
+  and last axes are both 3 is ambiguous and rejected), with dtype
+  - `uint8`: values 0..255 (openpi's data pipeline);
+  - float: values in `float_range`, `(0, 1)` by default (LeRobot / torchvision frames, and what openpi's policy input
+    transforms assume for float frames) or `(-1, 1)` (already model range). A float frame outside its declared range
+    (by more than 1e-3) is rejected: values up to 255 mean an unconverted uint8 frame, negative values under `(0, 1)`
+    mean a frame that is already in [-1, 1].
+
+Resizing follows openpi (`openpi_client.image_tools.resize_with_pad`, used by openpi's `ResizeImages` transform):
+scale by `min(height / h, width / w)` keeping the aspect ratio (`int` truncation of the new size), bilinear with
+antialiasing when shrinking, then pad with black (0 for uint8, -1 for [-1, 1] floats); when the padding is odd the
+extra row/column goes to the bottom/right. uint8 frames are resized with PIL exactly as openpi's data pipeline does;
+float frames are resized in float32 with `torch.nn.functional.interpolate(..., antialias=True)`, which agrees with
+openpi's `jax.image.resize` version to ~1e-5 (and float frames are not quantized to uint8 first, unlike openpi's
+policy transforms, a difference of at most one gray level).
+
+```python
+>>> import numpy as np
+>>> frame = np.full((180, 320, 3), 255, np.uint8)
+>>> out = resize_with_pad(frame, 224, 224)
+>>> out.shape, out[0, 0].tolist(), out[112, 112].tolist()
+((224, 224, 3), [0, 0, 0], [255, 255, 255])
+>>> x = to_model_image(frame, 224)
+>>> x.shape, float(x.min()), float(x.max())
+((3, 224, 224), -1.0, 1.0)
+
+```
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any, TypeVar, Union
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from PIL import Image
+
+FLOAT_RANGES: tuple[tuple[float, float], ...] = ((0.0, 1.0), (-1.0, 1.0))
+RANGE_TOLERANCE = 1e-3
+
+ImageT = TypeVar("ImageT", np.ndarray, torch.Tensor)
+Frame = Union[np.ndarray, torch.Tensor, Image.Image]
+
+
+def _resized_size(height: int, width: int, target_height: int, target_width: int) -> tuple[int, int]:
+    ratio = max(width / target_width, height / target_height)
+    return int(height / ratio), int(width / ratio)
+
+
+def _padding(resized: int, target: int) -> tuple[int, int]:
+    before = (target - resized) // 2
+    return before, target - resized - before  # the odd pixel goes after (bottom / right)
+
+
+def resize_with_pad(images: ImageT, height: int, width: int) -> ImageT:
+    """Resize channels-last images `[..., h, w, c]` to `[..., height, width, c]`, keeping the aspect ratio (pad black).
+
+    uint8 images (numpy or torch) are resized with PIL's bilinear filter (openpi's data pipeline) and padded with 0;
+    float images must be in [-1, 1] (as in openpi's `image_tools.resize_with_pad`) and are padded with -1. The output
+    has the input's type and dtype. Images already at the target size are returned unchanged.
+    """
+    if images.ndim < 3:
+        raise ValueError(f"images must be [..., h, w, c], got shape {tuple(images.shape)}")
+    cur_height, cur_width = int(images.shape[-3]), int(images.shape[-2])
+    if (cur_height, cur_width) == (height, width):
+        return images
+    new_height, new_width = _resized_size(cur_height, cur_width, height, width)
+    top, bottom = _padding(new_height, height)
+    left, right = _padding(new_width, width)
+    is_torch = isinstance(images, torch.Tensor)
+
+    if images.dtype in (np.uint8, torch.uint8):
+        array = images.cpu().numpy() if is_torch else images
+        flat = array.reshape(-1, *array.shape[-3:])
+        out = np.zeros((flat.shape[0], height, width, flat.shape[-1]), np.uint8)
+        for i, image in enumerate(flat):
+            pil = Image.fromarray(np.ascontiguousarray(image[..., 0] if image.shape[-1] == 1 else image))
+            resized = np.asarray(pil.resize((new_width, new_height), resample=Image.BILINEAR))
+            out[i, top : top + new_height, left : left + new_width] = resized.reshape(new_height, new_width, -1)
+        out = out.reshape(*array.shape[:-3], height, width, array.shape[-1])
+        return torch.from_numpy(out).to(images.device) if is_torch else out
+
+    tensor = images if is_torch else torch.from_numpy(np.ascontiguousarray(images))
+    if not tensor.is_floating_point():
+        raise ValueError(f"images must be uint8 or float, got dtype {images.dtype}")
+    lead = tensor.shape[:-3]
+    nchw = tensor.reshape(-1, cur_height, cur_width, tensor.shape[-1]).permute(0, 3, 1, 2).float()
+    resized = F.interpolate(nchw, size=(new_height, new_width), mode="bilinear", align_corners=False, antialias=True)
+    padded = F.pad(resized.clamp(-1.0, 1.0), (left, right, top, bottom), value=-1.0)
+    out = padded.permute(0, 2, 3, 1).reshape(*lead, height, width, tensor.shape[-1]).to(tensor.dtype)
+    return out if is_torch else out.numpy()
+
+
+def _channels_last(array: np.ndarray | torch.Tensor, name: str) -> np.ndarray | torch.Tensor:
+    """[H, W, 3] or [3, H, W] -> [H, W, 3]."""
+    shape = tuple(array.shape)
+    if len(shape) != 3:
+        raise ValueError(f"{name}: expected one frame [H, W, 3] or [3, H, W], got shape {shape}")
+    first, last = shape[0] == 3, shape[-1] == 3
+    if first and last:
+        raise ValueError(f"{name}: shape {shape} is ambiguous (channels first or last?); pass an [H, W, 3] frame")
+    if last:
+        return array
+    if first:
+        return array.permute(1, 2, 0) if isinstance(array, torch.Tensor) else np.moveaxis(array, 0, -1)
+    raise ValueError(f"{name}: expected 3 color channels ([H, W, 3] or [3, H, W]), got shape {shape}")
+
+
+def to_model_image(
+    frame: Frame, size: int | tuple[int, int], float_range: Sequence[float] = (0.0, 1.0), name: str = "image"
+) -> np.ndarray:
+    """One camera frame (see the module docstring for what is accepted) -> float32 `[3, H, W]` in [-1, 1].
+
+    `size` is the model's image size (an int for square images, or `(height, width)`). `name` is used in errors.
+    """
+    height, width = (size, size) if isinstance(size, int) else size
+    low, high = check_float_range(float_range)
+    if isinstance(frame, Image.Image):
+        frame = np.asarray(frame.convert("RGB"))
+    elif not isinstance(frame, (np.ndarray, torch.Tensor)):
+        raise ValueError(f"{name}: expected a numpy array, torch tensor or PIL image, got {type(frame).__name__}")
+    frame = _channels_last(frame, name)
+    if isinstance(frame, torch.Tensor):
+        frame = frame.detach().cpu()
+        if frame.dtype == torch.bfloat16:
+            frame = frame.float()
+        frame = frame.numpy()
+
+    if frame.dtype == np.uint8:
+        resized = resize_with_pad(frame, height, width)
+        model = resized.astype(np.float32) / 255.0 * 2.0 - 1.0
+    elif np.issubdtype(frame.dtype, np.floating):
+        frame = frame.astype(np.float32)
+        if not np.all(np.isfinite(frame)):
+            raise ValueError(f"{name}: contains NaN or inf")
+        lo, hi = float(frame.min()), float(frame.max())
+        if lo < low - RANGE_TOLERANCE or hi > high + RANGE_TOLERANCE:
+            hint = ""
+            if hi > 1.0 + RANGE_TOLERANCE:
+                hint = " (values above 1 look like 0..255: pass a uint8 frame)"
+            elif low == 0.0 and lo >= -1.0 - RANGE_TOLERANCE:
+                hint = " (looks like a frame already in [-1, 1]: set float_image_range=(-1, 1))"
+            raise ValueError(
+                f"{name}: float frame must be in [{low:g}, {high:g}], got values in [{lo:.4g}, {hi:.4g}]{hint}"
+            )
+        frame = np.clip(frame, low, high)
+        if low == 0.0:
+            frame = frame * 2.0 - 1.0
+        model = resize_with_pad(frame, height, width)
+    else:
+        raise ValueError(f"{name}: expected dtype uint8 or float, got {frame.dtype}")
+    return np.ascontiguousarray(np.moveaxis(model, -1, 0), dtype=np.float32)
+
+
+def missing_image(size: int | tuple[int, int]) -> np.ndarray:
+    """The stand-in for an absent camera: all -1 (black), float32 `[3, H, W]` (its image mask is False)."""
+    height, width = (size, size) if isinstance(size, int) else size
+    return np.full((3, height, width), -1.0, np.float32)
+
+
+def check_float_range(float_range: Any) -> tuple[float, float]:
+    pair = tuple(float(v) for v in float_range)
+    if pair not in FLOAT_RANGES:
+        raise ValueError(f"float_image_range must be (0, 1) or (-1, 1), got {tuple(float_range)}")
+    return pair

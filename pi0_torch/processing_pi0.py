@@ -1,0 +1,553 @@
+"""`PI0Processor`: raw robot observations -> `PI0ForActionGeneration` inputs, and model actions -> robot actions.
+
+The processor reproduces openpi's data pipeline for π0 / π0.5 (`DeltaActions` -> `Normalize` -> `ResizeImages` ->
+`TokenizePrompt` -> `PadStatesAndActions`, and on the way out `Unnormalize` -> `AbsoluteActions` -> robot dims):
+
+- images: every camera of `camera_names`, in that order, resized with padding to `image_size` and mapped to
+  [-1, 1] channels first (see `pi0_torch.images` for accepted frames); an absent camera is an all -1 image with
+  mask False;
+- state: the robot's `state_dim` values, normalized (z-score for π0, quantile for π0.5, see
+  `pi0_torch.normalization`), zero-padded to `model_action_dim`;
+- prompt: cleaned and tokenized in the π0 format, or for π0.5 as `Task: ..., State: <bins>;\\nAction: ` with the
+  normalized state discretized (see `pi0_torch.tokenization`), padded to `max_token_len`;
+- actions (training only): `[horizon, action_dim_robot]`, made relative to the state on the dims of
+  `delta_action_mask`, normalized, zero-padded to `model_action_dim`.
+
+It is a plain class (not a `transformers.ProcessorMixin`, whose image-processor/tokenizer plumbing does not fit a
+robot policy's state/action statistics), registered with `AutoProcessor` for `PI0Config`:
+`PI0Processor.from_pretrained(folder)` loads any folder written by `save_pretrained`, and
+`AutoProcessor.from_pretrained(folder)` loads it from a model folder (one whose `config.json` is a `PI0Config`).
+
+```python
+>>> import numpy as np
+>>> from pi0_torch import PI0Config
+>>> from pi0_torch.normalization import NormStats
+>>> from pi0_torch.tokenization import build_test_tokenizer
+>>> seven = NormStats(mean=np.zeros(7), std=np.ones(7), q01=-np.ones(7), q99=np.ones(7))
+>>> config = PI0Config.from_preset("pi0_small")
+>>> processor = PI0Processor.from_config(config, build_test_tokenizer(), norm_stats={"state": seven, "actions": seven})
+>>> inputs = processor(
+...     images={"base_0_rgb": np.zeros((480, 640, 3), np.uint8)},
+...     prompt="pick up the fork",
+...     state=np.zeros(7),
+... )
+>>> for name, value in inputs.items():
+...     print(name, tuple(value.shape), value.dtype)
+pixel_values (1, 3, 3, 224, 224) torch.float32
+image_masks (1, 3) torch.bool
+input_ids (1, 48) torch.int64
+attention_mask (1, 48) torch.bool
+state (1, 32) torch.float32
+>>> inputs["image_masks"].tolist()
+[[True, False, False]]
+>>> processor.postprocess_actions(np.zeros((50, 32))).shape  # model actions -> robot units
+(50, 7)
+
+```
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from transformers import AutoProcessor, BatchFeature
+
+from .configuration_pi0 import DEFAULT_CAMERA_NAMES, PI0Config
+from .images import check_float_range, missing_image, to_model_image
+from .normalization import (
+    DEFAULT_MIN_SCALE,
+    NORM_MODES,
+    NormStats,
+    apply_delta,
+    load_openpi_norm_stats,
+    normalize,
+    save_openpi_norm_stats,
+    unnormalize,
+    warn_degenerate,
+)
+from .tokenization import PromptTokenizer, TokenizerSource, load_tokenizer
+
+PROCESSOR_CONFIG_FILE = "processor_config.json"
+NORM_STATS_FILE = "norm_stats.json"
+OBSERVATION_KEYS = ("images", "prompt", "state", "actions")
+_HUB_KWARGS = ("trust_remote_code", "cache_dir", "force_download", "local_files_only", "revision", "token", "subfolder")
+
+
+class PI0Processor:
+    """Camera frames + instruction + robot state -> π0 / π0.5 model inputs; model actions -> robot actions.
+
+    Args:
+        tokenizer: a [`PromptTokenizer`], a SentencePiece `.model` path (PaliGemma's), a `SentencePieceProcessor`,
+            a transformers tokenizer, or a folder holding one (see `pi0_torch.tokenization.load_tokenizer`).
+        camera_names: the model's cameras, in model order (`PI0Config.camera_names`).
+        image_size: the model's square image size (224).
+        max_token_len: prompt length in tokens (48 for π0, 200 for π0.5).
+        pi05: True for π0.5's prompt (`Task: ..., State: ...;\\nAction: ` with the discretized state).
+        norm_mode: `"zscore"`, `"quantile"` or `"none"`; default quantile for π0.5, z-score for π0 (as openpi).
+        norm_stats: `{"state": NormStats, "actions": NormStats}` at the robot's dims, or a path to openpi's
+            `norm_stats.json` (file, folder or checkpoint step folder). Required unless `norm_mode="none"`. Stats
+            longer than the robot's dims are cut to them (as openpi does).
+        state_dim: the robot's state length; default: the length of the state stats.
+        action_dim_robot: the robot's action length; default: the length of the action stats.
+        model_action_dim: the model's padded action dim (`PI0Config.action_dim`, 32).
+        action_horizon: steps per action chunk; when set, training `actions` must have this many steps.
+        delta_action_mask: openpi's `DeltaActions` mask: action dim `i` is predicted relative to `state[i]` where
+            `mask[i]` is True (may be shorter than the action dims; e.g. `[True] * 6 + [False]` for 6 joints and an
+            absolute gripper). `postprocess_actions` then needs the raw state.
+        min_norm_scale: floor of std / (q99 - q01) for near-constant dims (`pi0_torch.normalization`); 0 = openpi.
+        float_image_range: the value range of float frames: `(0, 1)` (default) or `(-1, 1)`.
+        required_cameras: cameras every observation must have (error otherwise); by default any camera may be
+            absent as long as one is present.
+        default_prompt: used when an observation has no prompt (openpi's `InjectDefaultPrompt`).
+        truncation: `"warn"` (truncate over-long prompts with a warning, openpi's behaviour) or `"error"`.
+    """
+
+    def __init__(
+        self,
+        tokenizer: TokenizerSource,
+        *,
+        camera_names: Sequence[str] = DEFAULT_CAMERA_NAMES,
+        image_size: int = 224,
+        max_token_len: int = 48,
+        pi05: bool = False,
+        norm_mode: str | None = None,
+        norm_stats: Mapping[str, NormStats] | str | Path | None = None,
+        state_dim: int | None = None,
+        action_dim_robot: int | None = None,
+        model_action_dim: int = 32,
+        action_horizon: int | None = None,
+        delta_action_mask: Sequence[bool] | None = None,
+        min_norm_scale: float = DEFAULT_MIN_SCALE,
+        float_image_range: Sequence[float] = (0.0, 1.0),
+        required_cameras: Sequence[str] | None = None,
+        default_prompt: str | None = None,
+        truncation: str = "warn",
+    ) -> None:
+        self.tokenizer = load_tokenizer(tokenizer)
+        self.camera_names = [str(name) for name in camera_names]
+        if not self.camera_names or len(set(self.camera_names)) != len(self.camera_names):
+            raise ValueError(f"camera_names must be non-empty and unique, got {self.camera_names}")
+        self.image_size = int(image_size)
+        self.max_token_len = int(max_token_len)
+        self.pi05 = bool(pi05)
+        self.norm_mode = norm_mode if norm_mode is not None else ("quantile" if self.pi05 else "zscore")
+        if self.norm_mode not in NORM_MODES:
+            raise ValueError(f"norm_mode must be one of {NORM_MODES}, got {self.norm_mode!r}")
+        if isinstance(norm_stats, (str, Path)):
+            norm_stats = load_openpi_norm_stats(norm_stats)
+        self.norm_stats: dict[str, NormStats] | None = dict(norm_stats) if norm_stats is not None else None
+        self.model_action_dim = int(model_action_dim)
+        self.action_horizon = int(action_horizon) if action_horizon is not None else None
+        self.min_norm_scale = float(min_norm_scale)
+        self.float_image_range = check_float_range(float_image_range)
+        self.default_prompt = default_prompt
+        if truncation not in ("warn", "error"):
+            raise ValueError(f"truncation must be 'warn' or 'error', got {truncation!r}")
+        self.truncation = truncation
+        if self.max_token_len < 1 or self.image_size < 1 or self.model_action_dim < 1 or self.min_norm_scale < 0:
+            raise ValueError(
+                f"max_token_len, image_size and model_action_dim must be positive and min_norm_scale >= 0, got "
+                f"{self.max_token_len}, {self.image_size}, {self.model_action_dim}, {self.min_norm_scale}"
+            )
+
+        unknown = sorted(set(required_cameras or ()) - set(self.camera_names))
+        if unknown:
+            raise ValueError(f"required_cameras {unknown} are not among camera_names {self.camera_names}")
+        self.required_cameras = list(required_cameras) if required_cameras is not None else None
+
+        self._state_stats = self._action_stats = None
+        if self.norm_mode != "none":
+            if self.norm_stats is None:
+                raise ValueError(f"norm_mode {self.norm_mode!r} needs norm_stats with 'state' and 'actions'")
+            missing = [key for key in ("state", "actions") if key not in self.norm_stats]
+            if missing:
+                raise ValueError(f"norm_stats lacks {missing}; has {sorted(self.norm_stats)}")
+            if self.norm_mode == "quantile" and not all(self.norm_stats[k].has_quantiles for k in ("state", "actions")):
+                raise ValueError("norm_mode 'quantile' needs q01/q99 in the norm stats of both state and actions")
+        self.state_dim = self._robot_dim(state_dim, "state", "state_dim")
+        self.action_dim_robot = self._robot_dim(action_dim_robot, "actions", "action_dim_robot")
+        if self.norm_mode != "none":
+            self._state_stats = self.norm_stats["state"].truncated(self.state_dim)
+            self._action_stats = self.norm_stats["actions"].truncated(self.action_dim_robot)
+            warn_degenerate(self._state_stats, self.norm_mode, "state", self.min_norm_scale)
+            warn_degenerate(self._action_stats, self.norm_mode, "actions", self.min_norm_scale)
+
+        self.delta_action_mask = [bool(m) for m in delta_action_mask] if delta_action_mask is not None else None
+        delta_dims = len(self.delta_action_mask) if self.delta_action_mask is not None else 0
+        if delta_dims > min(self.state_dim, self.action_dim_robot):
+            raise ValueError(
+                f"delta_action_mask has {len(self.delta_action_mask)} entries, more than state_dim {self.state_dim} "
+                f"or action_dim_robot {self.action_dim_robot}"
+            )
+
+    def _robot_dim(self, given: int | None, key: str, name: str) -> int:
+        stats_dim = self.norm_stats[key].dim if self.norm_stats is not None and key in self.norm_stats else None
+        if given is None:
+            if stats_dim is None:
+                raise ValueError(f"{name} is required when there are no '{key}' norm stats")
+            given = stats_dim
+        given = int(given)
+        if not 1 <= given <= self.model_action_dim:
+            raise ValueError(f"{name} must be in [1, model_action_dim={self.model_action_dim}], got {given}")
+        if self.norm_mode != "none" and stats_dim is not None and stats_dim < given:
+            raise ValueError(f"{name} is {given} but the '{key}' norm stats have only {stats_dim} dims")
+        return given
+
+    # ------------------------------------------------------------------------------------------- construction
+
+    @classmethod
+    def from_config(
+        cls,
+        config: PI0Config,
+        tokenizer: TokenizerSource,
+        norm_stats: Mapping[str, NormStats] | str | Path | None = None,
+        **kwargs: Any,
+    ) -> PI0Processor:
+        """A processor matching `config` (cameras, image size, prompt length and format, action dim and horizon).
+
+        `kwargs` are the remaining constructor arguments (`state_dim`, `delta_action_mask`, ...). Raises
+        `ValueError` when the tokenizer's vocabulary is larger than the model's embedding table.
+        """
+        settings = dict(
+            camera_names=config.camera_names,
+            image_size=config.image_size,
+            max_token_len=config.max_token_len,
+            pi05=config.pi05,
+            model_action_dim=config.action_dim,
+            action_horizon=config.action_horizon,
+        )
+        settings.update(kwargs)
+        processor = cls(tokenizer, norm_stats=norm_stats, **settings)
+        if processor.tokenizer.vocab_size > config.vocab_size:
+            raise ValueError(
+                f"tokenizer has {processor.tokenizer.vocab_size} tokens but the model's vocab_size is "
+                f"{config.vocab_size}; ids past the embedding table would crash the model"
+            )
+        return processor
+
+    def to_dict(self) -> dict[str, Any]:
+        """The settings saved in `processor_config.json` (everything but the tokenizer and the statistics)."""
+        # No "processor_class" key: transformers resolves that name to its own, unrelated `PI0Processor` (model type
+        # "pi0"); AutoProcessor finds this class through the folder's config.json (model type "pi0_torch") instead.
+        return {
+            "tokenizer_kind": self.tokenizer.kind,
+            "camera_names": list(self.camera_names),
+            "image_size": self.image_size,
+            "max_token_len": self.max_token_len,
+            "pi05": self.pi05,
+            "norm_mode": self.norm_mode,
+            "state_dim": self.state_dim,
+            "action_dim_robot": self.action_dim_robot,
+            "model_action_dim": self.model_action_dim,
+            "action_horizon": self.action_horizon,
+            "delta_action_mask": self.delta_action_mask,
+            "min_norm_scale": self.min_norm_scale,
+            "float_image_range": list(self.float_image_range),
+            "required_cameras": self.required_cameras,
+            "default_prompt": self.default_prompt,
+            "truncation": self.truncation,
+        }
+
+    def save_pretrained(self, save_directory: str | Path, **unused: Any) -> list[str]:
+        """Write `processor_config.json`, the tokenizer and (when set) openpi-layout `norm_stats.json`.
+
+        Usually the model's folder, so `from_pretrained` of both finds everything. Returns the written paths.
+        """
+        directory = Path(save_directory)
+        if directory.exists() and not directory.is_dir():
+            raise ValueError(f"save_directory {directory} exists and is not a folder")
+        directory.mkdir(parents=True, exist_ok=True)
+        self.tokenizer.save(directory)
+        written = [str(directory)]
+        if self.norm_stats is not None:
+            written.append(str(save_openpi_norm_stats(directory / NORM_STATS_FILE, self.norm_stats)))
+        config_path = directory / PROCESSOR_CONFIG_FILE
+        tmp = config_path.with_name(config_path.name + ".tmp")
+        tmp.write_text(json.dumps(self.to_dict(), indent=2, ensure_ascii=False) + "\n")
+        tmp.replace(config_path)
+        written.append(str(config_path))
+        return written
+
+    @classmethod
+    def from_pretrained(cls, pretrained_path: str | Path, **overrides: Any) -> PI0Processor:
+        """Load what [`save_pretrained`] wrote in a local folder; `overrides` replace saved settings.
+
+        The norm stats come from `norm_stats.json` in the folder (unless `norm_stats=` is given).
+        """
+        for name in list(overrides):
+            if name in _HUB_KWARGS or name.startswith("_"):  # passed along by AutoProcessor; nothing to download here
+                overrides.pop(name)
+        directory = Path(pretrained_path)
+        config_path = directory / PROCESSOR_CONFIG_FILE
+        if not config_path.is_file():
+            raise FileNotFoundError(f"{config_path} not found; is {directory} a folder written by save_pretrained?")
+        settings = json.loads(config_path.read_text())
+        kind = settings.pop("tokenizer_kind")
+        tokenizer = overrides.pop("tokenizer", None) or PromptTokenizer.load(directory, kind)
+        if "norm_stats" not in overrides and (directory / NORM_STATS_FILE).is_file():
+            overrides["norm_stats"] = load_openpi_norm_stats(directory / NORM_STATS_FILE)
+        settings.update(overrides)
+        return cls(tokenizer, **settings)
+
+    def __repr__(self) -> str:
+        fields = ", ".join(f"{k}={v!r}" for k, v in self.to_dict().items())
+        return f"{type(self).__name__}({fields}, vocab_size={self.tokenizer.vocab_size})"
+
+    # ------------------------------------------------------------------------------------------- inputs
+
+    def __call__(
+        self,
+        observations: Mapping[str, Any] | Sequence[Mapping[str, Any]] | None = None,
+        *,
+        images: Mapping[str, Any] | None = None,
+        prompt: str | Sequence[str] | None = None,
+        state: Any = None,
+        actions: Any = None,
+        return_tensors: str = "pt",
+    ) -> BatchFeature:
+        """Model inputs for one observation or a batch.
+
+        Three ways to call it:
+
+        - one observation: `processor(images={camera: frame}, prompt="...", state=[state_dim])`;
+        - a batch of arrays: `state` `[B, state_dim]` (a 2-D state means a batch), each `images[camera]` a `[B, ...]`
+          array/tensor or a list of B frames (None for an absent frame), `prompt` a list of B strings (or one string
+          for all), `actions` `[B, horizon, action_dim_robot]`;
+        - observation dicts: `processor(obs)` or `processor([obs, ...])` with keys `images`, `prompt`, `state` and
+          optionally `actions`, each as in the one-observation form.
+
+        `actions` (training) are given for all observations or none. Returns a `BatchFeature` (`.to(device)` works)
+        with `pixel_values` float32 `[B, C, 3, H, W]`, `image_masks` bool `[B, C]`, `input_ids` int64 `[B, L]`,
+        `attention_mask` bool `[B, L]`, `state` float32 `[B, model_action_dim]` and, with actions, `actions`
+        float32 `[B, horizon, model_action_dim]`; torch tensors, or numpy arrays with `return_tensors="np"`.
+        Bad input raises `ValueError` naming the field, what was expected and what came.
+        """
+        if return_tensors not in ("pt", "np"):
+            raise ValueError(f"return_tensors must be 'pt' or 'np', got {return_tensors!r}")
+        if observations is not None:
+            if any(v is not None for v in (images, prompt, state, actions)):
+                raise ValueError("pass either observation dicts or images=/prompt=/state=/actions=, not both")
+            samples = self._split_observations(observations)
+        else:
+            samples = self._split_arrays(images, prompt, state, actions)
+        encoded = [self._encode(sample, where) for where, sample in samples]
+        with_actions = {"actions" in e for e in encoded}
+        if len(with_actions) > 1:
+            raise ValueError("actions: given for some observations of the batch but not for others")
+        batch = {key: np.stack([e[key] for e in encoded]) for key in encoded[0]}
+        return BatchFeature(batch, tensor_type=return_tensors)
+
+    def _split_observations(self, observations: Any) -> list[tuple[str, dict[str, Any]]]:
+        if isinstance(observations, Mapping):
+            items, prefix = [observations], lambda i: "observation"
+        elif isinstance(observations, Sequence) and not isinstance(observations, str):
+            items, prefix = list(observations), lambda i: f"observations[{i}]"
+            if not items:
+                raise ValueError("observations: got an empty list")
+        else:
+            raise ValueError(f"observations: expected a dict or a list of dicts, got {type(observations).__name__}")
+        samples = []
+        for i, item in enumerate(items):
+            if not isinstance(item, Mapping):
+                raise ValueError(
+                    f"{prefix(i)}: expected a dict with keys {OBSERVATION_KEYS}, got {type(item).__name__}"
+                )
+            unknown = sorted(set(item) - set(OBSERVATION_KEYS))
+            if unknown:
+                raise ValueError(f"{prefix(i)}: unknown keys {unknown}; expected {OBSERVATION_KEYS}")
+            samples.append((prefix(i) + ".", dict(item)))
+        return samples
+
+    def _split_arrays(self, images: Any, prompt: Any, state: Any, actions: Any) -> list[tuple[str, dict[str, Any]]]:
+        if state is None:
+            raise ValueError(
+                f"state: required, a vector of {self.state_dim} values (or [B, {self.state_dim}] for a batch)"
+            )
+        state_array = _as_numeric(state, "state")
+        if state_array.ndim == 1:
+            return [("", {"images": images, "prompt": prompt, "state": state_array, "actions": actions})]
+        if state_array.ndim != 2:
+            raise ValueError(
+                f"state: expected [{self.state_dim}] or [B, {self.state_dim}], got shape {state_array.shape}"
+            )
+        size = state_array.shape[0]
+        if size == 0:
+            raise ValueError("state: the batch is empty")
+
+        def pick(value: Any, name: str, i: int) -> Any:
+            if value is None:
+                return None
+            if isinstance(value, (list, tuple)) or (hasattr(value, "shape") and not isinstance(value, str)):
+                if len(value) != size:
+                    raise ValueError(f"{name}: batch of {len(value)} but state has a batch of {size}")
+                return value[i]
+            raise ValueError(
+                f"{name}: expected a batch (list or array) of {size} for a batched state, got {type(value).__name__}"
+            )
+
+        if images is not None and not isinstance(images, Mapping):
+            raise ValueError(f"images: expected a dict {{camera name: frames}}, got {type(images).__name__}")
+        if isinstance(prompt, str) or prompt is None:
+            prompts = [prompt] * size
+        else:
+            prompts = [pick(prompt, "prompt", i) for i in range(size)]
+        samples = []
+        for i in range(size):
+            sample_images = {name: pick(value, f"images[{name!r}]", i) for name, value in (images or {}).items()}
+            sample = {"images": sample_images, "prompt": prompts[i], "state": state_array[i]}
+            samples.append((f"[{i}] ", {**sample, "actions": pick(actions, "actions", i)}))
+        return samples
+
+    def _encode(self, sample: Mapping[str, Any], where: str) -> dict[str, np.ndarray]:
+        """One observation -> unbatched model arrays; `where` prefixes error messages (e.g. `"[3] "`)."""
+        raw_state = self._check_vector(sample.get("state"), where + "state", self.state_dim)
+        pixel_values, image_masks = self._encode_images(sample.get("images"), where)
+        normalized_state = self._normalize(raw_state, self._state_stats)
+
+        prompt = sample.get("prompt")
+        if prompt is None:
+            if self.default_prompt is None:
+                raise ValueError(f"{where}prompt: required (a task instruction string); no default_prompt is set")
+            prompt = self.default_prompt
+        try:
+            input_ids, attention_mask = self.tokenizer.tokenize(
+                prompt, self.max_token_len, normalized_state if self.pi05 else None, self.truncation
+            )
+        except ValueError as error:
+            raise ValueError(f"{where}{error}") from None
+
+        encoded = {
+            "pixel_values": pixel_values,
+            "image_masks": image_masks,
+            "input_ids": input_ids,
+            "attention_mask": attention_mask,
+            "state": self._pad(normalized_state),
+        }
+        if sample.get("actions") is not None:
+            encoded["actions"] = self._encode_actions(sample["actions"], raw_state, where)
+        return encoded
+
+    def _encode_images(self, images: Any, where: str) -> tuple[np.ndarray, np.ndarray]:
+        if images is None:
+            images = {}
+        if not isinstance(images, Mapping):
+            raise ValueError(f"{where}images: expected a dict {{camera name: frame}}, got {type(images).__name__}")
+        unknown = sorted(set(images) - set(self.camera_names))
+        if unknown:
+            raise ValueError(
+                f"{where}images: unknown camera names {unknown}; this model's cameras are {self.camera_names}"
+            )
+        present = [name for name in self.camera_names if images.get(name) is not None]
+        missing_required = [name for name in self.required_cameras or () if name not in present]
+        if missing_required:
+            raise ValueError(f"{where}images: required cameras {missing_required} are missing; got {present}")
+        if not present:
+            raise ValueError(f"{where}images: no camera frame given; expected at least one of {self.camera_names}")
+        frames, masks = [], []
+        for name in self.camera_names:
+            if name in present:
+                field = f"{where}images[{name!r}]"
+                frames.append(to_model_image(images[name], self.image_size, self.float_image_range, field))
+            else:
+                frames.append(missing_image(self.image_size))
+            masks.append(name in present)
+        return np.stack(frames), np.asarray(masks, bool)  # [C, 3, H, W], [C]
+
+    def _encode_actions(self, actions: Any, raw_state: np.ndarray, where: str) -> np.ndarray:
+        values = _as_numeric(actions, f"{where}actions")
+        horizon = self.action_horizon if self.action_horizon is not None else "horizon"
+        if values.ndim != 2 or values.shape[1] != self.action_dim_robot or (
+            self.action_horizon is not None and values.shape[0] != self.action_horizon
+        ):
+            raise ValueError(f"{where}actions: expected shape [{horizon}, {self.action_dim_robot}], got {values.shape}")
+        if not np.all(np.isfinite(values)):
+            raise ValueError(f"{where}actions: contains NaN or inf")
+        if self.delta_action_mask is not None:
+            values = apply_delta(values, raw_state, self.delta_action_mask)
+        return self._pad(self._normalize(values, self._action_stats))
+
+    def _check_vector(self, value: Any, name: str, dim: int) -> np.ndarray:
+        if value is None:
+            raise ValueError(f"{name}: required, a vector of {dim} values")
+        array = _as_numeric(value, name)
+        if array.shape != (dim,):
+            raise ValueError(f"{name}: expected shape [{dim}], got {list(array.shape)}")
+        if not np.all(np.isfinite(array)):
+            bad = [int(i) for i in np.flatnonzero(~np.isfinite(array))]
+            raise ValueError(f"{name}: contains NaN or inf at dims {bad}")
+        return array
+
+    def _normalize(self, values: np.ndarray, stats: NormStats | None) -> np.ndarray:
+        if stats is None:
+            return values
+        return normalize(values, stats, self.norm_mode, self.min_norm_scale)
+
+    def _pad(self, values: np.ndarray) -> np.ndarray:
+        padded = np.zeros((*values.shape[:-1], self.model_action_dim), np.float32)
+        padded[..., : values.shape[-1]] = values
+        return padded
+
+    # ------------------------------------------------------------------------------------------- outputs
+
+    def postprocess_actions(self, actions: Any, state: Any = None) -> np.ndarray | torch.Tensor:
+        """Model-space actions `[horizon, D]` or `[B, horizon, D]` (D = `model_action_dim` or the robot's dims)
+        -> robot actions `[..., horizon, action_dim_robot]` in robot units, float32.
+
+        Keeps the robot's dims, unnormalizes them, and with a `delta_action_mask` adds back the raw (unnormalized)
+        `state` (`[state_dim]`, or `[B, state_dim]` for a batch), like openpi's `AbsoluteActions`. numpy in -> numpy
+        out; torch in -> torch out on the same device.
+        """
+        if not isinstance(actions, (np.ndarray, torch.Tensor)):
+            raise ValueError(f"actions: expected a numpy array or torch tensor, got {type(actions).__name__}")
+        if actions.ndim not in (2, 3) or actions.shape[-1] < self.action_dim_robot:
+            raise ValueError(
+                f"actions: expected [horizon, D] or [B, horizon, D] with D >= action_dim_robot="
+                f"{self.action_dim_robot}, got shape {tuple(actions.shape)}"
+            )
+        is_torch = isinstance(actions, torch.Tensor)
+        if not (actions.is_floating_point() if is_torch else np.issubdtype(actions.dtype, np.floating)):
+            raise ValueError(f"actions: expected a float array, got dtype {actions.dtype}")
+        robot = actions[..., : self.action_dim_robot]
+        robot = robot.float() if is_torch else robot.astype(np.float32)
+        if self._action_stats is not None:
+            robot = unnormalize(robot, self._action_stats, self.norm_mode, self.min_norm_scale)
+        if self.delta_action_mask is not None:
+            if state is None:
+                raise ValueError("state: required to undo delta actions (this processor has a delta_action_mask)")
+            raw_state = _as_numeric(state, "state")
+            expected = (*actions.shape[:-2], self.state_dim)
+            if raw_state.shape != expected:
+                raise ValueError(
+                    f"state: expected shape {list(expected)} for actions of shape {tuple(actions.shape)}, "
+                    f"got {list(raw_state.shape)}"
+                )
+            if is_torch:
+                state_values = torch.as_tensor(raw_state, dtype=torch.float32, device=robot.device)
+            else:
+                state_values = raw_state.astype(np.float32)
+            robot = apply_delta(robot, state_values, self.delta_action_mask, inverse=True)
+        return robot.float() if is_torch else robot.astype(np.float32)
+
+
+def _as_numeric(value: Any, name: str) -> np.ndarray:
+    """A float64 numpy copy of a numeric array-like (numpy, torch, lists); `ValueError` for other dtypes."""
+    if isinstance(value, torch.Tensor):
+        if value.dtype == torch.bool or value.is_complex():
+            raise ValueError(f"{name}: expected real numbers, got dtype {value.dtype}")
+        return value.detach().to("cpu", torch.float64).numpy()
+    try:
+        array = np.asarray(value)
+    except (ValueError, TypeError) as error:
+        raise ValueError(f"{name}: expected an array of numbers, got {type(value).__name__} ({error})") from None
+    real = np.issubdtype(array.dtype, np.integer) or np.issubdtype(array.dtype, np.floating)
+    if array.dtype == np.bool_ or not real:
+        raise ValueError(f"{name}: expected real numbers, got dtype {array.dtype}")
+    return array.astype(np.float64)
+
+
+AutoProcessor.register(PI0Config, PI0Processor, exist_ok=True)

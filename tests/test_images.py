@@ -1,0 +1,140 @@
+"""Image preprocessing against openpi's resize_with_pad references (tests/fixtures/openpi/*/reference.npz `preproc/*`)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from pi0_torch.images import missing_image, resize_with_pad, to_model_image
+
+from conftest import FIXTURES
+
+
+@pytest.fixture(scope="module")
+def preproc() -> dict[str, np.ndarray]:
+    with np.load(FIXTURES / "pi0_small" / "reference.npz") as reference:
+        return {k: reference[k] for k in reference.files if k.startswith("preproc/resize")}
+
+
+def test_uint8_matches_openpi_pil_pipeline(preproc: dict[str, np.ndarray]) -> None:
+    source, expected = preproc["preproc/resize_in_uint8"], preproc["preproc/resize_out_uint8_pil"]  # [2,180,320,3]
+    ours = resize_with_pad(source, 224, 224)
+    assert ours.shape == expected.shape and ours.dtype == np.uint8
+    diff = np.abs(ours.astype(int) - expected.astype(int)).max()
+    assert diff <= 1, f"max gray-level difference {diff}"
+    # torch uint8 in -> torch uint8 out, same values
+    ours_torch = resize_with_pad(torch.from_numpy(source), 224, 224)
+    assert ours_torch.dtype == torch.uint8 and np.array_equal(ours_torch.numpy(), ours)
+    # openpi's JAX uint8 version rounds differently; it stays within one gray level of the PIL one
+    assert np.abs(ours.astype(int) - preproc["preproc/resize_out_uint8_jax"].astype(int)).max() <= 1
+
+
+def test_float_matches_openpi_jax(preproc: dict[str, np.ndarray]) -> None:
+    source, expected = preproc["preproc/resize_in_float"], preproc["preproc/resize_out_float_jax"]
+    ours = resize_with_pad(source, 224, 224)
+    assert ours.shape == expected.shape and ours.dtype == np.float32
+    assert np.abs(ours - expected).max() < 1e-2
+    ours_torch = resize_with_pad(torch.from_numpy(source), 224, 224)
+    assert isinstance(ours_torch, torch.Tensor) and torch.equal(ours_torch, torch.from_numpy(ours))
+
+
+@pytest.mark.parametrize(
+    ("shape", "content", "pads"),
+    [
+        # (h, w) -> resized (h', w') inside 224x224; pads = (top, bottom, left, right): the odd pixel goes bottom/right
+        ((101, 300), (75, 224), (74, 75, 0, 0)),
+        ((300, 101), (224, 75), (0, 0, 74, 75)),
+        ((180, 320), (126, 224), (49, 49, 0, 0)),
+        ((64, 48), (224, 168), (0, 0, 28, 28)),  # upscaling
+        ((97, 97), (224, 224), (0, 0, 0, 0)),
+    ],
+)
+@pytest.mark.parametrize("kind", ["uint8", "float"])
+def test_padding_sides_for_odd_sizes(shape: tuple[int, int], content: tuple[int, int], pads: tuple[int, ...], kind: str) -> None:
+    top, bottom, left, right = pads
+    if kind == "uint8":
+        image, black, white = np.full((*shape, 3), 255, np.uint8), 0, 255
+    else:
+        image, black, white = np.ones((*shape, 3), np.float32), -1.0, 1.0
+    out = resize_with_pad(image, 224, 224)
+    assert out.shape == (224, 224, 3)
+    inside = out[top : 224 - bottom, left : 224 - right]
+    assert inside.shape[:2] == content
+    assert np.abs(inside.astype(np.float64) - white).max() < 1e-5  # antialiasing weights sum to 1 up to rounding
+    border = np.ones((224, 224), bool)
+    border[top : 224 - bottom, left : 224 - right] = False
+    assert np.all(out[border] == black)
+
+
+def test_target_size_and_batch_axes() -> None:
+    rng = np.random.default_rng(0)
+    frames = rng.integers(0, 256, size=(2, 3, 50, 80, 3), dtype=np.uint8)
+    out = resize_with_pad(frames, 32, 40)
+    assert out.shape == (2, 3, 32, 40, 3)
+    assert np.array_equal(out[1, 2], resize_with_pad(frames[1, 2], 32, 40))
+    same = rng.integers(0, 256, size=(224, 224, 3), dtype=np.uint8)
+    assert resize_with_pad(same, 224, 224) is same
+
+
+def test_to_model_image_layouts_agree(preproc: dict[str, np.ndarray]) -> None:
+    frame = preproc["preproc/resize_in_uint8"][0]  # [180, 320, 3]
+    expected = np.moveaxis(preproc["preproc/resize_out_uint8_pil"][0].astype(np.float32) / 255 * 2 - 1, -1, 0)
+    hwc = to_model_image(frame, 224)
+    assert hwc.shape == (3, 224, 224) and hwc.dtype == np.float32
+    assert np.abs(hwc - expected).max() <= 2 / 255 + 1e-6
+    for other in (
+        np.moveaxis(frame, -1, 0),  # [3, H, W]
+        torch.from_numpy(frame),
+        torch.from_numpy(frame).permute(2, 0, 1),
+        Image.fromarray(frame),
+        Image.fromarray(frame).convert("RGBA"),
+    ):
+        assert np.array_equal(to_model_image(other, 224), hwc)
+
+
+def test_float_frames_in_both_ranges() -> None:
+    rng = np.random.default_rng(1)
+    unit = rng.random((90, 160, 3), dtype=np.float32)  # [0, 1]
+    from_unit = to_model_image(unit, 224)
+    from_signed = to_model_image(unit * 2 - 1, 224, float_range=(-1, 1))
+    assert np.allclose(from_unit, from_signed, atol=1e-6)
+    assert from_unit.min() >= -1 and from_unit.max() <= 1
+    # matches the uint8 path of the same picture within quantization
+    as_uint8 = np.round(unit * 255).astype(np.uint8)
+    assert np.abs(to_model_image(as_uint8, 224) - from_unit).max() < 0.02
+    chw_torch = torch.from_numpy(unit).permute(2, 0, 1).to(torch.bfloat16)
+    assert np.abs(to_model_image(chw_torch, 224) - from_unit).max() < 0.02
+
+
+def test_missing_image() -> None:
+    blank = missing_image(224)
+    assert blank.shape == (3, 224, 224) and blank.dtype == np.float32 and np.all(blank == -1)
+
+
+@pytest.mark.parametrize(
+    ("frame", "kwargs", "message"),
+    [
+        (np.zeros((32, 32, 3), np.uint16), {}, "expected dtype uint8 or float, got uint16"),
+        (np.zeros((32, 32, 3), np.int64), {}, "expected dtype uint8 or float, got int64"),
+        (np.zeros((32, 32, 3), bool), {}, "expected dtype uint8 or float, got bool"),
+        (np.zeros((32, 32, 4), np.uint8), {}, "expected 3 color channels"),
+        (np.zeros((32, 32), np.uint8), {}, r"expected one frame \[H, W, 3\] or \[3, H, W\], got shape \(32, 32\)"),
+        (np.zeros((3, 32, 3), np.uint8), {}, "ambiguous"),
+        (np.full((32, 32, 3), np.nan, np.float32), {}, "NaN or inf"),
+        (np.full((32, 32, 3), 200.0, np.float32), {}, "pass a uint8 frame"),
+        (np.full((32, 32, 3), -0.5, np.float32), {}, r"set float_image_range=\(-1, 1\)"),
+        (np.full((32, 32, 3), -1.5, np.float32), {"float_range": (-1, 1)}, r"must be in \[-1, 1\]"),
+        (np.zeros((32, 32, 3), np.float32), {"float_range": (0, 255)}, "must be"),
+        ([[1, 2, 3]], {}, "expected a numpy array, torch tensor or PIL image, got list"),
+    ],
+)
+def test_bad_frames(frame: object, kwargs: dict, message: str) -> None:
+    with pytest.raises(ValueError, match=message):
+        to_model_image(frame, 224, name="images['base_0_rgb']", **kwargs)
+
+
+def test_error_names_the_camera() -> None:
+    with pytest.raises(ValueError, match=r"^images\['wrist'\]: "):
+        to_model_image(np.zeros((8, 8, 3), np.int32), 224, name="images['wrist']")
