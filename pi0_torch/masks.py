@@ -14,8 +14,9 @@ from elementwise index arithmetic. The same rule gives
 The module reads top to bottom: mask rules -> dense masks (causal, RoboVLMs' claw, window+chunk, openpi's prefix-LM)
 -> RoboVLMs' chunk selection of training targets -> conversions (additive, broadcast, BlockMask) -> attention.
 
-Compute: a dense mask given to SDPA costs the same as no mask (every score is still computed, then hidden); only a
-block-sparse FlexAttention kernel skips work, and only for tiles (>= 128 tokens a side) that are masked entirely.
+Compute: a dense mask given to SDPA saves nothing: every score is still computed, then hidden, so it costs what no
+mask costs (or a little more, for reading the mask). Only a block-sparse FlexAttention kernel skips work, and only
+for tiles (128 tokens a side by default) that are masked entirely.
 See `docs/masks.md` and `benchmarks/bench_masks.py`.
 """
 
@@ -46,6 +47,25 @@ MaskMod = Callable[[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor], tor
 def _check_count(name: str, value: int, minimum: int) -> None:
     if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
         raise ValueError(f"{name} must be an int >= {minimum}, got {value!r}")
+
+
+def _as_4d(mask: torch.Tensor, name: str) -> torch.Tensor:
+    """`[L, S]` -> `[1, 1, L, S]`, `[B, L, S]` -> `[B, 1, L, S]`, `[B, heads, L, S]` unchanged (views)."""
+    if mask.dim() == 2:
+        return mask[None, None]
+    if mask.dim() == 3:
+        return mask[:, None]
+    if mask.dim() == 4:
+        return mask
+    raise ValueError(f"{name} must be [L, S], [B, L, S] or [B, heads, L, S], got shape {tuple(mask.shape)}")
+
+
+def _require_bool(mask: torch.Tensor, name: str) -> None:
+    if mask.dtype != torch.bool:
+        raise TypeError(
+            f"{name} must be a bool mask (True = attend), got dtype {mask.dtype}; convert a 0/1 mask with "
+            f"`.bool()` (an additive 0/-inf mask would be inverted by that, so build the bool mask instead)"
+        )
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -95,9 +115,14 @@ def prefix_lm_mask_mod(valid: torch.Tensor, block_flags: torch.Tensor) -> MaskMo
     """
     if valid.dim() != 2:
         raise ValueError(f"valid must be [B, L], got shape {tuple(valid.shape)}")
-    if block_flags.shape not in (valid.shape[1:], valid.shape):
+    batch_size, length = valid.shape
+    if (
+        block_flags.dim() not in (1, 2)
+        or block_flags.shape[-1] != length
+        or (block_flags.dim() == 2 and block_flags.shape[0] not in (1, batch_size))
+    ):
         raise ValueError(
-            f"block_flags must be [L] or [B, L] = {list(valid.shape[1:])} or {list(valid.shape)} to match valid, "
+            f"block_flags must be [L] or [B, L] = [{length}] or [{batch_size}, {length}] to match valid, "
             f"got shape {tuple(block_flags.shape)}"
         )
     valid = valid.bool()
@@ -115,10 +140,12 @@ def dense_mask_mod(mask: torch.Tensor) -> MaskMod:
 
     Use it only for masks with no index formula; an analytic rule lets FlexAttention skip the table entirely.
     """
-    table = _as_4d(mask, "mask").bool()  # [B, heads, L, S]
+    _require_bool(mask, "mask")
+    table = _as_4d(mask, "mask")  # [B, heads, L, S]
+    per_batch, per_head = table.shape[0] > 1, table.shape[1] > 1  # a size-1 dim serves every batch / head
 
     def lookup(b: torch.Tensor, h: torch.Tensor, q_idx: torch.Tensor, kv_idx: torch.Tensor) -> torch.Tensor:
-        return table[b, h, q_idx, kv_idx]
+        return table[b if per_batch else 0, h if per_head else 0, q_idx, kv_idx]
 
     return lookup
 
@@ -298,25 +325,6 @@ def generate_chunk_data(data: torch.Tensor, window_size: int, chunk_size: int) -
 # ----------------------------------------------------------------------------------------------------------------
 
 
-def _as_4d(mask: torch.Tensor, name: str) -> torch.Tensor:
-    """`[L, S]` -> `[1, 1, L, S]`, `[B, L, S]` -> `[B, 1, L, S]`, `[B, heads, L, S]` unchanged (views)."""
-    if mask.dim() == 2:
-        return mask[None, None]
-    if mask.dim() == 3:
-        return mask[:, None]
-    if mask.dim() == 4:
-        return mask
-    raise ValueError(f"{name} must be [L, S], [B, L, S] or [B, heads, L, S], got shape {tuple(mask.shape)}")
-
-
-def _require_bool(mask: torch.Tensor, name: str) -> None:
-    if mask.dtype != torch.bool:
-        raise TypeError(
-            f"{name} must be a bool mask (True = attend), got dtype {mask.dtype}; convert a 0/1 mask with "
-            f"`.bool()` (an additive 0/-inf mask would be inverted by that, so build the bool mask instead)"
-        )
-
-
 def to_additive_mask(mask: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
     """Bool mask -> additive float mask for SDPA: 0 where allowed, a large finite negative where masked.
 
@@ -414,20 +422,28 @@ def block_mask_from_dense(mask: torch.Tensor, block_size: int = BLOCK_SIZE) -> B
 
 
 def masked_attention(
-    query: torch.Tensor, key: torch.Tensor, value: torch.Tensor, mask: torch.Tensor, scale: float | None = None
+    query: torch.Tensor,
+    key: torch.Tensor,
+    value: torch.Tensor,
+    mask: torch.Tensor,
+    scale: float | None = None,
+    *,
+    additive: bool = False,
 ) -> torch.Tensor:
-    """Grouped-query attention with a boolean mask through `scaled_dot_product_attention`.
+    """Grouped-query attention with a mask through `scaled_dot_product_attention`.
 
     Args:
         query: `[B, N, L, H]`; key, value: `[B, K, S, H]` with N a multiple of K (query head n uses kv head
             n // (N / K); k/v are not materialised N/K times).
         mask: bool `[B, L, S]` or `[B, 1, L, S]`, True = attend.
         scale: logit scale, default `H ** -0.5`.
+        additive: `mask` is already `to_additive_mask(mask, query.dtype)` (convert once when many layers share
+            one mask).
 
     Returns:
         `[B, N, L, H]`. A query row with every key masked returns the mean of the values (finite), as openpi
-        (float32/bfloat16; see `to_additive_mask` for float16). SDPA given the bool mask itself would return 0
-        there instead.
+        (float32/bfloat16; see `to_additive_mask` for float16). SDPA given the bool mask itself gives 0 there
+        (recent torch) or NaN (older torch), and FlexAttention gives 0.
 
     >>> q = k = v = torch.arange(4.0).view(1, 1, 2, 2)  # tokens (0, 1) and (2, 3)
     >>> mask = torch.tensor([[[False, False], [True, False]]])  # token 0 sees nothing, token 1 sees token 0
@@ -435,7 +451,10 @@ def masked_attention(
     tensor([[[[1., 2.],
               [0., 1.]]]])
     """
-    _require_bool(mask, "mask")
+    if not additive:
+        _require_bool(mask, "mask")
+    elif mask.dtype != query.dtype:
+        raise TypeError(f"an additive mask must have the query's dtype {query.dtype}, got {mask.dtype}")
     if query.dim() != 4 or key.dim() != 4 or value.dim() != 4 or value.shape[:3] != key.shape[:3]:
         raise ValueError(
             f"query must be [B, N, L, H] and key, value [B, K, S, H]; got query {tuple(query.shape)}, "
@@ -443,14 +462,13 @@ def masked_attention(
         )
     if query.shape[1] % key.shape[1]:
         raise ValueError(f"query heads ({query.shape[1]}) must be a multiple of key/value heads ({key.shape[1]})")
-    if mask.dim() == 3:
-        mask = mask[:, None]
-    if mask.dim() != 4 or mask.shape[1] != 1 or mask.shape[2:] != (query.shape[2], key.shape[2]):
+    mask4 = mask[:, None] if mask.dim() == 3 else mask  # [B, 1, L, S]
+    if mask4.dim() != 4 or mask4.shape[1] != 1 or mask4.shape[2:] != (query.shape[2], key.shape[2]):
         raise ValueError(
             f"mask must be [B, L, S] or [B, 1, L, S] with L={query.shape[2]}, S={key.shape[2]}, "
             f"got shape {tuple(mask.shape)}"
         )
-    additive = to_additive_mask(mask, query.dtype)
+    attn_mask = mask4 if additive else to_additive_mask(mask4, query.dtype)
     return F.scaled_dot_product_attention(
-        query, key, value, attn_mask=additive, scale=scale, enable_gqa=query.shape[1] != key.shape[1]
+        query, key, value, attn_mask=attn_mask, scale=scale, enable_gqa=query.shape[1] != key.shape[1]
     )

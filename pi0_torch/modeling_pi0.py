@@ -20,7 +20,7 @@ from transformers.utils import ModelOutput
 
 from .configuration_pi0 import PI0Config
 from .flow_matching import euler_times, interpolate, sample_flow_time, sincos_time_embedding
-from .masks import masked_attention, prefix_lm_mask
+from .masks import masked_attention, prefix_lm_mask, to_additive_mask
 
 # ----------------------------------------------------------------------------------------------------------------------
 # Normalisation and rotary position embedding
@@ -130,7 +130,7 @@ class JointDecoderLayer(GradientCheckpointingLayer):
         suffix: torch.Tensor | None,  # [B, S, D1]
         cos: torch.Tensor,  # [B, 1, T, H/2] for the tokens passed (T = P + S of the streams present)
         sin: torch.Tensor,
-        mask: torch.Tensor,  # bool [B, 1, T, T_kv]
+        mask: torch.Tensor,  # additive float [B, 1, T, T_kv] from `to_additive_mask` (built once per pass)
         expert_modulation: tuple[torch.Tensor, torch.Tensor] | None = None,  # adaRMS (attn, mlp) [B, 3*D1] each
         kv_buffer: tuple[torch.Tensor, torch.Tensor] | None = None,  # [B, K, P + S, H] each
         kv_offset: int = 0,
@@ -168,7 +168,7 @@ class JointDecoderLayer(GradientCheckpointingLayer):
             k, v = key_buffer[:, :, :end], value_buffer[:, :, :end]
         if keys_only:
             return None, None
-        attended = masked_attention(q, k, v, mask, scale=q.shape[-1] ** -0.5)  # [B, N, T, H]
+        attended = masked_attention(q, k, v, mask, scale=q.shape[-1] ** -0.5, additive=True)  # [B, N, T, H]
         attended = attended.transpose(1, 2).flatten(2)  # [B, T, N*H]
 
         outputs: list[torch.Tensor | None] = [None, None]
@@ -493,7 +493,7 @@ class PI0ForActionGeneration(PI0PreTrainedModel):
         `mask` bool [B, P+S, P+S], `positions` [B, P+S], `condition` the time conditioning [B, D1].
         """
         cos, sin = rope_cos_sin(positions, self.config.head_dim, self.config.rope_theta)
-        mask = mask[:, None]
+        mask = to_additive_mask(mask[:, None], prefix.dtype)  # once for all layers
         if self.config.pi05:
             layer_modulations, final_modulation = self.expert_modulations(condition)
         else:
@@ -525,7 +525,7 @@ class PI0ForActionGeneration(PI0PreTrainedModel):
         )
         mask, positions = prefix_lm_mask(prefix_valid, torch.zeros(prefix_len, dtype=torch.bool, device=prefix.device))
         cos, sin = rope_cos_sin(positions, config.head_dim, config.rope_theta)
-        mask = mask[:, None]
+        mask = to_additive_mask(mask[:, None], prefix.dtype)
         for index, (layer, key_buffer, value_buffer) in enumerate(zip(self.layers, cache.keys, cache.values)):
             last = index == len(self.layers) - 1
             prefix, _ = layer(prefix, None, cos, sin, mask, kv_buffer=(key_buffer, value_buffer), keys_only=last)
@@ -560,6 +560,7 @@ class PI0ForActionGeneration(PI0PreTrainedModel):
         """
         mask, cos, sin = suffix_attention
         suffix = self.embed_suffix(state, x_t, condition)
+        mask = to_additive_mask(mask, suffix.dtype)
         layer_modulations, final_modulation = modulations if modulations is not None else ([None] * len(self.layers), None)
         for layer, key_buffer, value_buffer, modulation in zip(self.layers, cache.keys, cache.values, layer_modulations):
             _, suffix = layer(
