@@ -1,0 +1,179 @@
+"""`PI0Policy`: one observation in, one action chunk in robot units out (the model and its processor together).
+
+This is the object a policy server wraps, and the shortest way to run a saved model from Python. Usually
+`PI0Policy.from_pretrained(folder)` on a converted checkpoint; here a tiny random model:
+
+```python
+>>> import numpy as np
+>>> from pi0_torch import PI0Config, PI0ForActionGeneration
+>>> from pi0_torch.normalization import NormStats
+>>> from pi0_torch.tokenization import build_test_tokenizer
+>>> config = PI0Config.from_preset("pi0_small")
+>>> stats = {key: NormStats(mean=np.zeros(dim), std=np.ones(dim)) for key, dim in (("state", 8), ("actions", 7))}
+>>> processor = PI0Processor.from_config(config, tokenizer=build_test_tokenizer(), norm_stats=stats)
+>>> policy = PI0Policy(PI0ForActionGeneration(config), processor, num_steps=2, seed=0)
+>>> out = policy.infer({
+...     "images": {"base_0_rgb": np.zeros((480, 640, 3), np.uint8)},
+...     "state": np.zeros(8),
+...     "prompt": "pick up the fork",
+... })
+>>> out["actions"].shape, out["actions"].dtype  # [action_horizon, robot action dims]
+((50, 7), dtype('float32'))
+
+```
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from . import __version__
+from .modeling_pi0 import PI0ForActionGeneration
+from .observation_formats import ObservationError
+from .processing_pi0 import PI0Processor
+
+_DTYPES = {"float32": torch.float32, "bfloat16": torch.bfloat16}
+
+
+@dataclasses.dataclass
+class PreparedObservation:
+    """A checked observation turned into model inputs (batch of one, on the CPU) plus the raw robot state."""
+
+    inputs: dict[str, torch.Tensor]
+    state: np.ndarray  # [robot state dims], for the processor's delta-action inverse
+
+
+class PI0Policy:
+    """[`PI0ForActionGeneration`] + [`PI0Processor`] behind openpi's policy interface (`infer(obs) -> dict`).
+
+    Observations use the default layout `{"images": {camera_name: frame}, "state": [...], "prompt": str}` (see
+    [`pi0_torch.observation_formats`] for other layouts). `infer` returns `{"actions": float32 [action_horizon,
+    robot action dims], "policy_timing": {"infer_ms": model time, "batch_size": observations run together}}`,
+    actions unnormalized by the processor.
+
+    Args:
+        model: the model, already on its device and dtype.
+        processor: its processor.
+        num_steps: Euler steps per chunk (default: `model.config.num_inference_steps`).
+        seed: seeds the sampling noise, so a fresh policy gives the same chunks for the same requests.
+    """
+
+    def __init__(
+        self,
+        model: PI0ForActionGeneration,
+        processor: PI0Processor,
+        num_steps: int | None = None,
+        seed: int | None = None,
+    ) -> None:
+        self.model = model.eval()
+        self.processor = processor
+        self.num_steps = num_steps if num_steps is not None else model.config.num_inference_steps
+        if self.num_steps < 1:
+            raise ValueError(f"num_steps must be >= 1, got {self.num_steps}")
+        self.device = next(model.parameters()).device
+        self.generator = torch.Generator(self.device).manual_seed(seed) if seed is not None else None
+        if list(processor.camera_names) != list(model.config.camera_names):
+            raise ValueError(f"processor cameras {list(processor.camera_names)} differ from the model's "
+                             f"{list(model.config.camera_names)}")
+
+    @classmethod
+    def from_pretrained(
+        cls,
+        directory: str | Path,
+        device: str | torch.device | None = None,
+        dtype: str | torch.dtype | None = None,
+        num_steps: int | None = None,
+        seed: int | None = None,
+        default_prompt: str | None = None,
+    ) -> PI0Policy:
+        """Load the model and processor saved in `directory` (by `save_pretrained` or the converter).
+
+        `device` defaults to CUDA when available, else CPU; `dtype` ("float32" / "bfloat16" or a torch dtype)
+        defaults to bfloat16 on CUDA and float32 on CPU. `default_prompt` replaces the processor's (used for
+        observations without a prompt).
+        """
+        if not Path(directory).is_dir():
+            raise FileNotFoundError(f"model folder not found: {directory} (a folder written by save_pretrained or "
+                                    "the openpi converter)")
+        device = torch.device(device if device is not None else ("cuda" if torch.cuda.is_available() else "cpu"))
+        if dtype is None:
+            dtype = torch.bfloat16 if device.type == "cuda" else torch.float32
+        elif isinstance(dtype, str):
+            if dtype not in _DTYPES:
+                raise ValueError(f"dtype must be one of {', '.join(_DTYPES)}, got {dtype!r}")
+            dtype = _DTYPES[dtype]
+        model = PI0ForActionGeneration.from_pretrained(directory, dtype=dtype).to(device)
+        overrides = {"default_prompt": default_prompt} if default_prompt is not None else {}
+        processor = PI0Processor.from_pretrained(directory, **overrides)
+        return cls(model, processor, num_steps=num_steps, seed=seed)
+
+    @property
+    def camera_names(self) -> list[str]:
+        return list(self.model.config.camera_names)
+
+    @property
+    def metadata(self) -> dict[str, Any]:
+        """What a client may want to know before sending observations (sent first by the policy server)."""
+        config = self.model.config
+        return {
+            "policy": f"pi0-torch {__version__}",
+            "model_type": "pi05" if config.pi05 else "pi0",
+            "camera_names": self.camera_names,
+            "state_dim": self.processor.state_dim,
+            "action_dim": self.processor.action_dim_robot,
+            "action_horizon": config.action_horizon,
+            "num_steps": self.num_steps,
+            "default_prompt": self.processor.default_prompt,
+            "device": str(self.device),
+            "dtype": str(self.model.dtype).removeprefix("torch."),
+        }
+
+    def prepare(self, observation: Mapping[str, Any]) -> PreparedObservation:
+        """Check one default-layout observation and build its model inputs; raises [`ObservationError`].
+
+        The processor checks every field (cameras, frame shapes and ranges, state length, NaN/inf, prompt) and its
+        message names the field, what was expected and what came.
+        """
+        if not isinstance(observation, Mapping):
+            raise ObservationError(f"observation must be a dict, got {type(observation).__name__}")
+        state = observation.get("state")
+        if state is not None and np.ndim(state) != 1:  # a 2-D state would mean a batch to the processor
+            raise ObservationError(f"observation.state: expected shape [{self.processor.state_dim}], "
+                                   f"got {list(np.shape(state))}")
+        sample = {"images": observation.get("images"), "state": state, "prompt": observation.get("prompt")}
+        try:
+            inputs = self.processor(sample, return_tensors="pt")
+            raw_state = np.asarray(state, dtype=np.float32)
+        except (ValueError, TypeError) as error:
+            raise ObservationError(str(error)) from None
+        return PreparedObservation(inputs=dict(inputs), state=raw_state)
+
+    @torch.inference_mode()
+    def infer_prepared(self, prepared: Sequence[PreparedObservation]) -> list[dict[str, Any]]:
+        """Run the model once on a batch of prepared observations; one action dict per observation."""
+        start = time.monotonic()
+        batch = {
+            name: torch.cat([p.inputs[name] for p in prepared]).to(self.device)
+            for name in prepared[0].inputs
+        }
+        actions = self.model.generate_actions(**batch, num_steps=self.num_steps, generator=self.generator)
+        actions = actions.float().cpu().numpy()  # [B, horizon, action_dim]; waits for the device
+        model_ms = (time.monotonic() - start) * 1000
+        return [
+            {
+                "actions": np.asarray(self.processor.postprocess_actions(chunk, state=p.state), dtype=np.float32),
+                "policy_timing": {"infer_ms": model_ms, "batch_size": len(prepared)},
+            }
+            for chunk, p in zip(actions, prepared)
+        ]
+
+    def infer(self, observation: Mapping[str, Any]) -> dict[str, Any]:
+        """Actions for one observation: `{"actions": float32 [horizon, robot action dims], "policy_timing": ...}`."""
+        return self.infer_prepared([self.prepare(observation)])[0]

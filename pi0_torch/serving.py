@@ -1,0 +1,493 @@
+"""`pi0-torch serve`: a websocket policy server that speaks openpi's protocol.
+
+Robot code written against openpi's client (`openpi-client`, `WebsocketClientPolicy`) talks to this server
+unchanged:
+
+- Frames are msgpack; numpy arrays travel as maps `{b"__ndarray__": True, b"data": raw bytes, b"dtype": dtype.str,
+  b"shape": [...]}` and numpy scalars as `{b"__npgeneric__": True, b"data": item, b"dtype": dtype.str}`, exactly as
+  `openpi_client.msgpack_numpy` packs them ([`pack_message`], [`unpack_message`]).
+- On connect the server sends one binary frame: the metadata dict. Then each binary frame in (an observation dict)
+  gets one binary frame out: `{"actions": float32 [horizon, robot action dims], "policy_timing": {"infer_ms"},
+  "server_timing": {"infer_ms", "prev_total_ms"}}`.
+- A request that fails gets one *text* frame instead: `WebsocketClientPolicy.infer` raises
+  `RuntimeError("Error in inference server:\\n<text>")` on text frames. Bad requests (undecodable msgpack, missing
+  fields, wrong shapes or dtypes, NaN/inf) get a one-line reason; unexpected server errors get the traceback, as
+  openpi's server sends. Unlike openpi's server, the connection then stays open, so the same client may send its
+  next observation; other clients are never affected.
+- `GET /healthz` answers `200 OK`, like openpi's server.
+
+Concurrency: any number of clients may connect. Decoding and preprocessing run in a small thread pool; the model
+runs on one dedicated thread, so inference is serialized and the event loop keeps answering pings, health checks and
+new connections meanwhile. With `max_batch_size > 1` the observations that queued up while the model was busy are
+run together as one batch (each gets its own noise); the default 1 runs them one by one in arrival order. A client
+that disconnects while its request is queued is dropped from the queue; one that disconnects while its request runs
+just never gets the reply. SIGINT/SIGTERM close the listener and all connections (close code 1001), fail requests
+still queued, let a running inference finish, and exit with status 0.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import concurrent.futures
+import contextlib
+import dataclasses
+import http
+import json
+import logging
+import math
+import signal
+import threading
+import time
+import traceback
+from collections.abc import Callable, Iterator, Sequence
+from typing import Any, Protocol
+
+import msgpack
+import numpy as np
+import websockets
+from websockets.asyncio.server import Request, Response, ServerConnection, serve
+
+from .observation_formats import ObservationError, ObservationFormat
+
+logger = logging.getLogger(__name__)
+
+DEFAULT_MAX_MESSAGE_BYTES = 256 * 2**20
+_ARRAY_KINDS = "biufUS"  # bool, ints, floats, strings; object/void/complex arrays are refused both ways
+
+
+# --- wire format -------------------------------------------------------------------------------------------------
+
+
+class MessageError(ValueError):
+    """A frame that is not a msgpack message in openpi-client's format."""
+
+
+def _pack_numpy(obj: Any) -> Any:
+    if isinstance(obj, (np.ndarray, np.generic)) and obj.dtype.kind not in _ARRAY_KINDS:
+        raise TypeError(f"cannot send numpy dtype {obj.dtype}")
+    if isinstance(obj, np.ndarray):
+        return {b"__ndarray__": True, b"data": obj.tobytes(), b"dtype": obj.dtype.str, b"shape": obj.shape}
+    if isinstance(obj, np.generic):
+        return {b"__npgeneric__": True, b"data": obj.item(), b"dtype": obj.dtype.str}
+    raise TypeError(f"cannot pack {type(obj).__name__}")
+
+
+def _unpack_numpy(obj: dict[Any, Any]) -> Any:
+    if b"__ndarray__" in obj:
+        dtype = _wire_dtype(obj.get(b"dtype"))
+        shape = obj.get(b"shape")
+        data = obj.get(b"data")
+        if not isinstance(shape, (list, tuple)) or not all(isinstance(n, int) and n >= 0 for n in shape):
+            raise MessageError(f"array shape must be a list of non-negative ints, got {shape!r}")
+        if not isinstance(data, bytes):
+            raise MessageError(f"array data must be bytes, got {type(data).__name__}")
+        expected = math.prod(shape) * dtype.itemsize
+        if len(data) != expected:
+            raise MessageError(f"array of shape {tuple(shape)} and dtype {dtype.str} needs {expected} bytes, "
+                               f"got {len(data)}")
+        return np.frombuffer(data, dtype=dtype).reshape(shape)
+    if b"__npgeneric__" in obj:
+        dtype = _wire_dtype(obj.get(b"dtype"))
+        try:
+            return dtype.type(obj.get(b"data"))
+        except (TypeError, ValueError) as error:
+            raise MessageError(f"bad numpy scalar of dtype {dtype.str}: {error}") from None
+    return obj
+
+
+def _wire_dtype(spec: Any) -> np.dtype:
+    try:
+        dtype = np.dtype(spec) if isinstance(spec, str) else None
+    except TypeError:
+        dtype = None
+    if dtype is None or dtype.kind not in _ARRAY_KINDS:
+        raise MessageError(f"unsupported array dtype {spec!r}")
+    return dtype
+
+
+def pack_message(obj: Any) -> bytes:
+    """Encode `obj` (dicts, lists, scalars, strings, numpy arrays) as openpi-client's `msgpack_numpy.packb` does.
+
+    ```python
+    >>> import numpy as np
+    >>> message = unpack_message(pack_message({"actions": np.arange(6, dtype=np.float32).reshape(2, 3)}))
+    >>> message["actions"].dtype, message["actions"].shape
+    (dtype('float32'), (2, 3))
+
+    ```
+    """
+    return msgpack.packb(obj, default=_pack_numpy)
+
+
+def unpack_message(data: bytes) -> Any:
+    """Decode a frame packed by openpi-client (or [`pack_message`]); raises [`MessageError`] if it is malformed.
+
+    Arrays come back read-only, backed by the frame's bytes. Object, void and complex dtypes are refused.
+    """
+    if not isinstance(data, (bytes, bytearray, memoryview)):
+        raise MessageError(f"expected a binary frame, got {type(data).__name__}")
+    try:
+        return msgpack.unpackb(data, object_hook=_unpack_numpy)
+    except MessageError:
+        raise
+    except Exception as error:  # msgpack raises several unrelated types for corrupt input
+        detail = f"{type(error).__name__}: {error}" if str(error) else type(error).__name__
+        raise MessageError(f"not a valid msgpack message ({detail})") from None
+
+
+# --- the server --------------------------------------------------------------------------------------------------
+
+
+class ServedPolicy(Protocol):
+    """What the server needs from a policy ([`pi0_torch.policy.PI0Policy`] is one)."""
+
+    @property
+    def metadata(self) -> dict[str, Any]: ...
+
+    @property
+    def camera_names(self) -> Sequence[str]: ...
+
+    def prepare(self, observation: dict[str, Any]) -> Any:
+        """Validate one default-layout observation and turn it into model inputs; raises ObservationError."""
+
+    def infer_prepared(self, prepared: Sequence[Any]) -> list[dict[str, Any]]:
+        """Run the model on prepared observations (a batch) and return one action dict per observation."""
+
+
+class _ShuttingDown(RuntimeError):
+    pass
+
+
+@dataclasses.dataclass
+class _Job:
+    prepared: Any
+    future: asyncio.Future[dict[str, Any]]
+    started: float = 0.0
+    finished: float = 0.0
+    batch_size: int = 0
+
+
+class PolicyServer:
+    """Serves a policy over openpi's websocket protocol (see the module docstring for the protocol).
+
+    Args:
+        policy: what to serve, e.g. a [`PI0Policy`].
+        host, port: where to listen (port 0 picks a free port).
+        obs_format: the observation layout clients send (default: pi0-torch's own).
+        max_batch_size: run up to this many queued observations as one batch (1: strictly one at a time).
+        max_message_bytes: larger frames close the connection with code 1009 (message too big).
+        extra_metadata: merged into the metadata sent on connect (openpi's ALOHA client reads `reset_pose`).
+
+    ```python
+    server = PolicyServer(PI0Policy.from_pretrained("converted/pi0_libero"),
+                          obs_format=ObservationFormat.from_preset("libero"))
+    server.serve_forever()  # until SIGINT/SIGTERM
+    ```
+    """
+
+    def __init__(
+        self,
+        policy: ServedPolicy,
+        host: str = "127.0.0.1",
+        port: int = 8000,
+        obs_format: ObservationFormat | None = None,
+        max_batch_size: int = 1,
+        max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES,
+        extra_metadata: dict[str, Any] | None = None,
+    ) -> None:
+        if max_batch_size < 1:
+            raise ValueError(f"max_batch_size must be >= 1, got {max_batch_size}")
+        self.policy = policy
+        self.host = host
+        self.port = port
+        self.obs_format = obs_format or ObservationFormat.from_preset("default")
+        self.obs_format.check_cameras(policy.camera_names)
+        self.max_batch_size = max_batch_size
+        self.max_message_bytes = max_message_bytes
+        self.metadata = {
+            **policy.metadata,
+            "observation_format": self.obs_format.describe(),
+            "max_batch_size": max_batch_size,
+            **(extra_metadata or {}),
+        }
+        self._packed_metadata = pack_message(self.metadata)
+        self._queue: asyncio.Queue[_Job] | None = None
+        self._stopping = False
+        self._requests_served = 0
+
+    @contextlib.contextmanager
+    def serve_in_thread(self, timeout: float = 60.0) -> Iterator[int]:
+        """Serve from a background thread while the `with` block runs; yields the bound port (use port 0 for a free
+        one). For notebooks, tests and benchmarks; signals are left to the caller.
+
+        ```python
+        with PolicyServer(policy, port=0).serve_in_thread() as port:
+            client = WebsocketClientPolicy("127.0.0.1", port)
+        ```
+        """
+        loop = asyncio.new_event_loop()
+        stop = asyncio.Event()
+        ready = threading.Event()
+        bound: list[int] = []
+        failure: list[BaseException] = []
+
+        def on_ready(port: int) -> None:
+            bound.append(port)
+            ready.set()
+
+        def target() -> None:
+            try:
+                loop.run_until_complete(self.serve(stop, on_ready))
+            except BaseException as error:  # surfaced in the caller's thread below
+                failure.append(error)
+                ready.set()
+
+        thread = threading.Thread(target=target, name="pi0-policy-server", daemon=True)
+        thread.start()
+        if not ready.wait(timeout) or failure:
+            raise RuntimeError(f"policy server did not start on {self.host}:{self.port}") from (failure or [None])[0]
+        try:
+            yield bound[0]
+        finally:
+            loop.call_soon_threadsafe(stop.set)
+            thread.join(timeout)
+            if not thread.is_alive():
+                loop.close()
+
+    def serve_forever(self) -> int:
+        """Serve until SIGINT or SIGTERM, then shut down cleanly; returns the exit status (0)."""
+        return asyncio.run(self._serve_until_signal())
+
+    async def _serve_until_signal(self) -> int:
+        stop = asyncio.Event()
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.add_signal_handler(sig, stop.set)
+        await self.serve(stop)
+        return 0
+
+    async def serve(self, stop: asyncio.Event, on_ready: Callable[[int], None] | None = None) -> None:
+        """Serve until `stop` is set. `on_ready(port)` is called once the socket listens (useful with port 0)."""
+        self._queue = asyncio.Queue()
+        self._stopping = False
+        prepare_pool = concurrent.futures.ThreadPoolExecutor(max_workers=2, thread_name_prefix="pi0-prepare")
+        model_thread = concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix="pi0-model")
+        worker = asyncio.create_task(self._run_model(model_thread))
+        try:
+            async with serve(
+                lambda ws: self._handle(ws, prepare_pool),
+                self.host,
+                self.port,
+                compression=None,
+                max_size=self.max_message_bytes,
+                process_request=_health_check,
+            ) as server:
+                port = next(iter(server.sockets)).getsockname()[1]
+                logger.info("serving %s on ws://%s:%d (health check: http://%s:%d/healthz)",
+                            self.metadata.get("model_type", "policy"), self.host, port, self.host, port)
+                if on_ready is not None:
+                    on_ready(port)
+                await stop.wait()
+                logger.info("shutting down: closing connections")
+                self._stopping = True
+                self._fail_queued(_ShuttingDown("server is shutting down"))
+                server.close()
+                await server.wait_closed()
+        finally:
+            worker.cancel()
+            await asyncio.gather(worker, return_exceptions=True)
+            model_thread.shutdown(wait=True)  # a running inference finishes before we return
+            prepare_pool.shutdown(wait=True)
+            logger.info("server stopped after %d requests", self._requests_served)
+
+    async def _handle(self, ws: ServerConnection, prepare_pool: concurrent.futures.Executor) -> None:
+        peer = "%s:%s" % ws.remote_address[:2] if ws.remote_address else "?"
+        logger.info("connection from %s opened", peer)
+        prev_total_ms: float | None = None
+        try:
+            await ws.send(self._packed_metadata)
+            async for frame in ws:
+                received = time.monotonic()
+                reply = await self._answer(frame, ws, peer, prepare_pool)
+                if reply is None:  # the client went away while its request waited
+                    break
+                if isinstance(reply, dict):
+                    reply["server_timing"] = {"infer_ms": (time.monotonic() - received) * 1000}
+                    if prev_total_ms is not None:
+                        reply["server_timing"]["prev_total_ms"] = prev_total_ms
+                    await ws.send(pack_message(reply))
+                else:
+                    await ws.send(reply)
+                prev_total_ms = (time.monotonic() - received) * 1000
+        except websockets.ConnectionClosed:
+            pass
+        logger.info("connection from %s closed", peer)
+
+    async def _answer(
+        self, frame: Any, ws: ServerConnection, peer: str, prepare_pool: concurrent.futures.Executor
+    ) -> dict[str, Any] | str | None:
+        """The reply to one frame: an action dict, an error text, or None when the client disconnected meanwhile."""
+        received = time.monotonic()
+        loop = asyncio.get_running_loop()
+        try:
+            prepared = await loop.run_in_executor(prepare_pool, self._prepare, frame)
+            prepared_at = time.monotonic()
+            if self._stopping or self._queue is None:
+                raise _ShuttingDown("server is shutting down")
+            job = _Job(prepared, loop.create_future())
+            self._queue.put_nowait(job)
+            closed = asyncio.ensure_future(ws.wait_closed())
+            await asyncio.wait({job.future, closed}, return_when=asyncio.FIRST_COMPLETED)
+            closed.cancel()
+            if not job.future.done():
+                job.future.cancel()  # still queued: the model worker skips it
+                logger.info("%s: disconnected before its actions were ready", peer)
+                return None
+            reply = job.future.result()
+        except (MessageError, ObservationError) as error:
+            logger.warning("%s: bad request: %s", peer, error)
+            return f"invalid request: {error}"
+        except _ShuttingDown as error:
+            return str(error)
+        except Exception as error:
+            logger.exception("%s: inference failed", peer)
+            return "".join(traceback.format_exception(type(error), error, error.__traceback__))
+        self._requests_served += 1
+        logger.info(
+            "%s: actions %s in %.1f ms (prepare %.1f ms, queued %.1f ms, model %.1f ms, batch %d)",
+            peer, "x".join(map(str, np.shape(reply.get("actions")))), (job.finished - received) * 1000,
+            (prepared_at - received) * 1000, (job.started - prepared_at) * 1000,
+            (job.finished - job.started) * 1000, job.batch_size,
+        )
+        return reply
+
+    def _prepare(self, frame: Any) -> Any:
+        if isinstance(frame, str):
+            raise MessageError("expected a binary msgpack frame, got a text frame")
+        message = unpack_message(frame)
+        observation = self.obs_format.to_default(message)
+        return self.policy.prepare(observation)
+
+    async def _run_model(self, model_thread: concurrent.futures.Executor) -> None:
+        """The only place the model runs: takes queued jobs (up to max_batch_size at once) in arrival order."""
+        assert self._queue is not None
+        loop = asyncio.get_running_loop()
+        while True:
+            jobs = [await self._queue.get()]
+            while len(jobs) < self.max_batch_size and not self._queue.empty():
+                jobs.append(self._queue.get_nowait())
+            jobs = [job for job in jobs if not job.future.done()]  # their clients went away
+            if not jobs:
+                continue
+            started = time.monotonic()
+            try:
+                replies = await loop.run_in_executor(
+                    model_thread, self.policy.infer_prepared, [job.prepared for job in jobs]
+                )
+            except Exception as error:
+                outcome: list[dict[str, Any]] | BaseException = error
+            else:
+                outcome = replies
+            finished = time.monotonic()
+            for i, job in enumerate(jobs):
+                job.started, job.finished, job.batch_size = started, finished, len(jobs)
+                if job.future.done():
+                    continue
+                if isinstance(outcome, BaseException):
+                    job.future.set_exception(outcome)
+                else:
+                    job.future.set_result(outcome[i])
+
+    def _fail_queued(self, error: BaseException) -> None:
+        assert self._queue is not None
+        while not self._queue.empty():
+            job = self._queue.get_nowait()
+            if not job.future.done():
+                job.future.set_exception(error)
+
+
+def _health_check(connection: ServerConnection, request: Request) -> Response | None:
+    """`GET /healthz` -> 200 OK (as openpi's server); every other path goes on to the websocket handshake."""
+    if request.path == "/healthz":
+        return connection.respond(http.HTTPStatus.OK, "OK\n")
+    return None
+
+
+# --- the `pi0-torch serve` command -------------------------------------------------------------------------------
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--model", required=True, help="folder written by save_pretrained / the converter "
+                        "(model weights, config and processor files)")
+    parser.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1; 0.0.0.0 for all)")
+    parser.add_argument("--port", type=int, default=8000, help="TCP port (default 8000; 0 picks a free one)")
+    parser.add_argument("--device", default=None, help="torch device (default: cuda if available, else cpu)")
+    parser.add_argument("--dtype", default=None, choices=("float32", "bfloat16"),
+                        help="weights dtype (default: bfloat16 on cuda, float32 on cpu)")
+    parser.add_argument("--num-steps", type=int, default=None, help="Euler steps per action chunk "
+                        "(default: the model config's num_inference_steps)")
+    parser.add_argument("--obs-format", type=_observation_format, default="default", metavar="default|libero|droid|aloha|PATH.json",
+                        help="observation layout the robot sends (default: the pi0-torch layout)")
+    parser.add_argument("--default-prompt", default=None, help="prompt used when an observation has none "
+                        "(default: the processor's, if it was saved with one)")
+    parser.add_argument("--max-batch-size", type=int, default=1, help="run up to this many queued observations "
+                        "as one batch (default 1: one at a time)")
+    parser.add_argument("--metadata", type=_json_object, default=None, metavar="JSON",
+                        help="extra metadata sent to clients, a JSON object (openpi's ALOHA client reads "
+                        "'reset_pose' from it)")
+    parser.add_argument("--seed", type=int, default=None, help="seed the sampling noise (reproducible actions)")
+    parser.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
+
+
+def _json_object(text: str) -> dict[str, Any]:
+    try:
+        value = json.loads(text)
+    except json.JSONDecodeError as error:
+        raise argparse.ArgumentTypeError(f"not valid JSON: {error}") from None
+    if not isinstance(value, dict):
+        raise argparse.ArgumentTypeError(f"expected a JSON object, got {type(value).__name__}")
+    return value
+
+
+def _observation_format(name_or_path: str) -> ObservationFormat:
+    try:
+        return ObservationFormat.resolve(name_or_path)
+    except (ValueError, OSError) as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
+
+
+def run(args: argparse.Namespace) -> int:
+    logging.basicConfig(level=args.log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    logging.getLogger("websockets").setLevel(max(logging.WARNING, logging.getLevelName(args.log_level)))  # we log connections
+    from .policy import PI0Policy  # imports torch: only when the command runs
+
+    try:
+        logger.info("loading %s", args.model)
+        policy = PI0Policy.from_pretrained(
+            args.model, device=args.device, dtype=args.dtype, num_steps=args.num_steps, seed=args.seed,
+            default_prompt=args.default_prompt,
+        )
+        server = PolicyServer(
+            policy,
+            host=args.host,
+            port=args.port,
+            obs_format=args.obs_format,
+            max_batch_size=args.max_batch_size,
+            extra_metadata=args.metadata,
+        )
+        return server.serve_forever()
+    except (ValueError, OSError) as error:  # bad model folder, cameras the format cannot map, port in use
+        logger.error("%s", error)
+        return 1
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """`python -m pi0_torch.serving ...`: the same as `pi0-torch serve ...`."""
+    parser = argparse.ArgumentParser(prog="pi0-torch serve", description=__doc__.splitlines()[0])
+    add_arguments(parser)
+    return run(parser.parse_args(argv))
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
