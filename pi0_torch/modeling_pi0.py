@@ -202,6 +202,14 @@ class PI0Output(ModelOutput):
 
 
 @dataclass
+class StepConditioning:
+    """What one sampling step's flow time contributes (see `PI0ForActionGeneration.step_conditioning`)."""
+
+    condition: torch.Tensor  # [B, D1] time half of action_time_mlp_in (π0) or adaRMS condition (π0.5)
+    modulations: tuple[list[tuple[torch.Tensor, torch.Tensor]], torch.Tensor] | None  # π0.5: per layer, final
+
+
+@dataclass
 class PrefixCache:
     """Post-RoPE keys and values of the prefix for every layer, in static buffers with room for the suffix."""
 
@@ -394,6 +402,21 @@ class PI0ForActionGeneration(PI0PreTrainedModel):
         width = config.expert_hidden_size
         return F.linear(embedding, self.action_time_mlp_in.weight[:, width:], self.action_time_mlp_in.bias)
 
+    def step_conditioning(self, times: list[float], batch: int) -> list[StepConditioning]:
+        """Everything that depends only on the flow time, for all sampling steps at once: per step the time
+        conditioning `[B, D1]` and (π0.5) the adaRMS modulations of every expert norm."""
+        conditions = self.time_conditioning(torch.tensor(times, dtype=torch.float32, device=self.device))  # [steps, D1]
+        if not self.config.pi05:
+            return [StepConditioning(condition.expand(batch, -1), None) for condition in conditions]
+        per_layer, final = self.expert_modulations(conditions)
+        return [
+            StepConditioning(
+                conditions[step].expand(batch, -1),
+                ([(attn[step].expand(batch, -1), mlp[step].expand(batch, -1)) for attn, mlp in per_layer], final[step].expand(batch, -1)),
+            )
+            for step in range(len(times))
+        ]
+
     def expert_modulations(self, condition: torch.Tensor) -> tuple[list[tuple[torch.Tensor, torch.Tensor]], torch.Tensor]:
         """π0.5 adaRMS modulations `[..., 3*D1]` of every expert norm for `condition` `[..., D1]`: per layer
         (attention norm, MLP norm), and the final norm."""
@@ -549,18 +572,15 @@ class PI0ForActionGeneration(PI0PreTrainedModel):
         cache: PrefixCache,
         state: torch.Tensor | None,
         x_t: torch.Tensor,
-        condition: torch.Tensor,
-        modulations: tuple[list[tuple[torch.Tensor, torch.Tensor]], torch.Tensor] | None,
+        conditioning: StepConditioning,
         suffix_attention: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
     ) -> torch.Tensor:
-        """Velocity `[B, horizon, action_dim]` (float32) at `x_t` given the cached prefix.
-
-        `condition` is `time_conditioning(t)` broadcast to `[B, D1]`; `modulations` the π0.5 adaRMS modulations
-        for this step (None for π0); `suffix_attention` from `suffix_attention(cache.prefix_valid)`.
-        """
+        """Velocity `[B, horizon, action_dim]` (float32) at `x_t` given the cached prefix, this step's
+        `conditioning` (from `step_conditioning`) and `suffix_attention(cache.prefix_valid)`."""
         mask, cos, sin = suffix_attention
-        suffix = self.embed_suffix(state, x_t, condition)
+        suffix = self.embed_suffix(state, x_t, conditioning.condition)
         mask = to_additive_mask(mask, suffix.dtype)
+        modulations = conditioning.modulations
         layer_modulations, final_modulation = modulations if modulations is not None else ([None] * len(self.layers), None)
         for layer, key_buffer, value_buffer, modulation in zip(self.layers, cache.keys, cache.values, layer_modulations):
             _, suffix = layer(
@@ -614,24 +634,12 @@ class PI0ForActionGeneration(PI0PreTrainedModel):
         times: list[float],
     ) -> torch.Tensor:
         """The sampling computation of `generate_actions` on checked inputs (what `compile_sampling` compiles)."""
-        batch = noise.shape[0]
         cache = self.cache_prefix(pixel_values, image_masks, input_ids, attention_mask)
         suffix_attention = self.suffix_attention(cache.prefix_valid)
-        conditions = self.time_conditioning(torch.tensor(times, dtype=torch.float32, device=noise.device))  # [steps, D1]
-        modulations = self.expert_modulations(conditions) if self.config.pi05 else None
         dt = -1.0 / len(times)
         x_t = noise
-        for step in range(len(times)):
-            step_modulations = None
-            if modulations is not None:
-                layer_modulations, final_modulation = modulations
-                step_modulations = (
-                    [(attn[step].expand(batch, -1), mlp[step].expand(batch, -1)) for attn, mlp in layer_modulations],
-                    final_modulation[step].expand(batch, -1),
-                )
-            condition = conditions[step].expand(batch, -1)
-            velocity = self.denoise_step(cache, state, x_t, condition, step_modulations, suffix_attention)
-            x_t = x_t + dt * velocity
+        for conditioning in self.step_conditioning(times, noise.shape[0]):
+            x_t = x_t + dt * self.denoise_step(cache, state, x_t, conditioning, suffix_attention)
         return x_t
 
     def compile_sampling(self, **compile_kwargs: Any) -> None:

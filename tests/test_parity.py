@@ -100,19 +100,14 @@ def sample_path_errors(ref: OpenpiReference) -> dict[str, float]:
 
     times = euler_times(int(ref["inputs/num_steps"]))
     np.testing.assert_array_equal(np.array(times, dtype=np.float32), ref["fp32/sample_path/traj_time"])
-    conditions = model.time_conditioning(torch.tensor(times))
-    modulations = model.expert_modulations(conditions) if config.pi05 else None
     batch = inputs["state"].shape[0]
     x_t = ref.tensor("inputs/sample_noise")
-    step0_tokens = model.embed_suffix(inputs["state"], x_t, conditions[0].expand(batch, -1))
+    steps = model.step_conditioning(times, batch)
+    step0_tokens = model.embed_suffix(inputs["state"], x_t, steps[0].condition)
     errors["step0_suffix_tokens"] = relative_error(step0_tokens, ref["fp32/sample_path/step0_suffix_tokens"])
     velocity_errors, state_errors = [], []
-    for step in range(len(times)):
-        step_modulations = None
-        if modulations is not None:
-            per_layer, final = modulations
-            step_modulations = ([(a[step].expand(batch, -1), m[step].expand(batch, -1)) for a, m in per_layer], final[step].expand(batch, -1))
-        velocity = model.denoise_step(cache, inputs["state"], x_t, conditions[step].expand(batch, -1), step_modulations, suffix_attention)
+    for step, conditioning in enumerate(steps):
+        velocity = model.denoise_step(cache, inputs["state"], x_t, conditioning, suffix_attention)
         x_t = x_t + (-1.0 / len(times)) * velocity
         velocity_errors.append(relative_error(velocity, ref["fp32/sample_path/traj_v"][step]))
         state_errors.append(relative_error(x_t, ref["fp32/sample_path/traj_x"][step]))
