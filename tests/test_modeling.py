@@ -217,3 +217,16 @@ def test_bad_noise_and_actions_raise_clear_errors(tiny_pi0: PI0ForActionGenerati
         tiny_pi0(**batch, actions=torch.zeros(2, 10, 32))
     with pytest.raises(ValueError, match="num_steps must be >= 1"):
         tiny_pi0.generate_actions(**batch, num_steps=0)
+
+
+@pytest.mark.slow
+def test_compiled_sampling_matches_eager(references: dict[str, OpenpiReference]) -> None:
+    """`compile_sampling` (torch.compile of the prefix pass and the Euler loop) keeps the numbers."""
+    for ref in references.values():
+        model, inputs = ref.model(), ref.model_inputs()
+        noise = ref.tensor("inputs/sample_noise")
+        eager = model.generate_actions(**inputs, noise=noise)
+        model.compile_sampling()
+        compiled = model.generate_actions(**inputs, noise=noise)
+        model.compile_sampling(disable=True)
+        torch.testing.assert_close(compiled, eager, rtol=1e-4, atol=1e-5)
