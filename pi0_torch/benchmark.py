@@ -194,18 +194,22 @@ def bench_train_step(args: argparse.Namespace, device: torch.device) -> None:
 
 def bench_side_by_side(args: argparse.Namespace, device: torch.device) -> None:
     """Ours vs transformers' `PI0ForConditionalGeneration` with identical weights, inputs and noise (π0)."""
-    from .conversion import export_to_transformers_pi0
+    from transformers import PI0ForConditionalGeneration
+
+    from .conversion import export_to_transformers, transformers_pi0_inputs
 
     preset = args.side_by_side_preset
     config = PI0Config.from_preset(preset)
     ours = random_model(config, torch.float32, device)
-    theirs, to_theirs_inputs = export_to_transformers_pi0(ours)
-    theirs = theirs.to(device).eval()
+    with tempfile.TemporaryDirectory(dir=args.tmp_dir) as folder:
+        ours.save_pretrained(f"{folder}/ours")
+        export_to_transformers(f"{folder}/ours", f"{folder}/transformers")
+        theirs = PI0ForConditionalGeneration.from_pretrained(f"{folder}/transformers").to(device).eval()
     print(f"\nside by side with transformers PI0 ({preset}, float32, 3 cameras, batch 1, {TEXT_TOKENS} text tokens, "
           f"10 steps) on {device_name(device)}")
     inputs = example_batch(config, 3, 1, device)
     noise = torch.randn(1, config.action_horizon, config.action_dim, generator=torch.Generator().manual_seed(1)).to(device)
-    their_inputs = to_theirs_inputs(inputs)
+    their_inputs = transformers_pi0_inputs(inputs, config)
     rows = []
     for label, compiled in (("eager", False), ("compiled", True)):
         if compiled and not args.compile:

@@ -12,6 +12,7 @@ import sys
 
 # subcommand -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
+    "convert": ("pi0_torch.conversion", "Convert openpi / LeRobot / transformers checkpoints to pi0-torch folders (and π0 to transformers)."),
     "serve": ("pi0_torch.serving", "Serve a policy over openpi's websocket protocol (openpi-client compatible)."),
     "bench": ("pi0_torch.benchmark", "Time generate_actions, a training step and loading; compare with transformers' PI0."),
 }
