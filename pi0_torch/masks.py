@@ -437,8 +437,8 @@ def masked_attention(
             n // (N / K); k/v are not materialised N/K times).
         mask: bool `[B, L, S]` or `[B, 1, L, S]`, True = attend.
         scale: logit scale, default `H ** -0.5`.
-        additive: `mask` is already `to_additive_mask(mask, query.dtype)` (convert once when many layers share
-            one mask).
+        additive: `mask` is already additive (`to_additive_mask`; convert once when many layers share one mask);
+            it is cast to the query's dtype.
 
     Returns:
         `[B, N, L, H]`. A query row with every key masked returns the mean of the values (finite), as openpi
@@ -453,8 +453,8 @@ def masked_attention(
     """
     if not additive:
         _require_bool(mask, "mask")
-    elif mask.dtype != query.dtype:
-        raise TypeError(f"an additive mask must have the query's dtype {query.dtype}, got {mask.dtype}")
+    elif not mask.is_floating_point():
+        raise TypeError(f"an additive mask must be floating point (from `to_additive_mask`), got {mask.dtype}")
     if query.dim() != 4 or key.dim() != 4 or value.dim() != 4 or value.shape[:3] != key.shape[:3]:
         raise ValueError(
             f"query must be [B, N, L, H] and key, value [B, K, S, H]; got query {tuple(query.shape)}, "
@@ -468,7 +468,8 @@ def masked_attention(
             f"mask must be [B, L, S] or [B, 1, L, S] with L={query.shape[2]}, S={key.shape[2]}, "
             f"got shape {tuple(mask.shape)}"
         )
-    attn_mask = mask4 if additive else to_additive_mask(mask4, query.dtype)
+    # an additive mask built in the residual stream's dtype meets bf16 queries under autocast: cast it (no-op otherwise)
+    attn_mask = mask4.to(query.dtype) if additive else to_additive_mask(mask4, query.dtype)
     return F.scaled_dot_product_attention(
         query, key, value, attn_mask=attn_mask, scale=scale, enable_gqa=query.shape[1] != key.shape[1]
     )

@@ -355,10 +355,10 @@ class PI0ForActionGeneration(PI0PreTrainedModel):
         images = pixel_values.flatten(0, 1).to(self.image_projection.weight.dtype)  # [B*C, 3, H, W]
         if image_masks is not None and not torch.compiler.is_compiling():
             keep = image_masks.flatten().bool()
-            if not keep.all():
-                tokens = images.new_zeros(batch * cameras, self.config.tokens_per_image, self.config.vlm_hidden_size)
-                if keep.any():
-                    tokens[keep] = self._encode_images(images[keep])
+            if not keep.all() and keep.any():
+                encoded = self._encode_images(images[keep])  # dtype as the tower runs (autocast may change it)
+                tokens = encoded.new_zeros(batch * cameras, *encoded.shape[1:])
+                tokens[keep] = encoded
                 return tokens.unflatten(0, (batch, cameras))
         return self._encode_images(images).unflatten(0, (batch, cameras))
 

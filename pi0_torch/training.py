@@ -1,0 +1,753 @@
+"""Fine-tune π0 / π0.5 on LeRobot episode datasets with the Hugging Face `Trainer` (and `accelerate`).
+
+Pieces, usable on their own or through [`train_policy`] / `pi0-torch train`:
+
+- [`PI0DataCollator`]: dataset samples -> `PI0ForActionGeneration.forward` inputs through `PI0Processor`.
+- [`PI0Trainer`]: a `Trainer` whose flow-matching noise and time are drawn per sample from a generator keyed by
+  (seed, optimizer step, position of the sample in the global batch), so a run gives the same losses on one process
+  or several with the same global batch, and after a resume; and whose learning-rate schedule is openpi's.
+- openpi's optimizer recipe (`src/openpi/training/optimizer.py`): AdamW b1 0.9, b2 0.95, eps 1e-8, weight decay
+  1e-10 (the Trainer leaves biases and norms undecayed, openpi decays all: immaterial at 1e-10), global-norm
+  clipping 1.0, and `optax.warmup_cosine_decay_schedule` from peak/(warmup+1) up to the peak
+  2.5e-5 over 1,000 steps, cosine down to 2.5e-6 at `decay_steps` (openpi: 30,000 = its run length; here the run
+  length by default) ([`openpi_learning_rate`]).
+- [`EMACallback`]: exponential moving average of the weights (openpi's `ema_decay` 0.99); the final model is the
+  average, as openpi saves its EMA parameters for inference.
+- [`SaveProcessorCallback`]: writes the processor (tokenizer, norm stats, settings) into every checkpoint folder,
+  so `checkpoint-N/` loads with `from_pretrained` like the final folder.
+- [`freeze`] (`vision`: SigLIP + its projection; `vlm`: the whole PaliGemma side) and [`apply_lora`] (openpi's
+  LoRA fine-tune: rank 16 on the VLM Gemma, 32 on the action expert, the rest of the Gemma frozen; the vision
+  tower and the action/state/time heads keep training).
+
+Parameters that can never influence the loss (the VLM's final norm and the last layer's VLM o-projection and MLP:
+the prefix output of the last layer is never read, only its keys/values) are frozen in every run
+([`loss_free_parameter_names`]); they would get no gradient anyway, and freezing them keeps DDP's set of
+gradient-carrying parameters static.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from safetensors.torch import load_file, save_file
+from torch import nn
+from transformers import Trainer, TrainerCallback, TrainerControl, TrainerState, TrainingArguments
+
+from .configuration_pi0 import PI0Config, preset_names
+from .lerobot_dataset import LeRobotEpisodeDataset, split_episodes
+from .modeling_pi0 import PI0ForActionGeneration
+from .normalization import compute_norm_stats, load_openpi_norm_stats
+from .processing_pi0 import PI0Processor
+from .tokenization import build_test_tokenizer
+
+logger = logging.getLogger(__name__)
+
+# openpi defaults (src/openpi/training/optimizer.py: AdamW, CosineDecaySchedule; config.py: TrainConfig.ema_decay)
+OPENPI_PEAK_LR = 2.5e-5
+OPENPI_END_LR = 2.5e-6
+OPENPI_WARMUP_STEPS = 1_000
+OPENPI_BETAS = (0.9, 0.95)
+OPENPI_EPS = 1e-8
+OPENPI_WEIGHT_DECAY = 1e-10
+OPENPI_CLIP_NORM = 1.0
+OPENPI_EMA_DECAY = 0.99
+# openpi's LoRA variants (src/openpi/models/gemma.py): gemma_2b_lora rank 16 / alpha 16, gemma_300m_lora 32 / 32
+LORA_RANK_VLM = 16
+LORA_RANK_EXPERT = 32
+LORA_TARGETS = ("qkv_proj", "o_proj", "gate_up_proj", "down_proj")
+EMA_FILE = "ema_weights.safetensors"
+TRAIN_SETTINGS_FILE = "pi0_train_settings.json"
+_CHECKPOINTING_ARGUMENT = (
+    "activation_checkpointing" if "activation_checkpointing" in TrainingArguments.__dataclass_fields__ else "gradient_checkpointing"
+)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Batches.
+# ----------------------------------------------------------------------------------------------------------------
+
+
+def default_camera_map(dataset_cameras: Sequence[str], model_cameras: Sequence[str], overrides: Mapping[str, str] | None = None) -> dict[str, str]:
+    """dataset camera key -> model camera name. Default: the dataset's cameras in order onto the model's.
+
+    `overrides` maps model camera name -> dataset key (the CLI's `--camera base_0_rgb=observation.images.top`);
+    when given it is the whole map. Model cameras left without a dataset camera are fed as absent (mask False).
+    """
+    if overrides:
+        unknown_model = sorted(set(overrides) - set(model_cameras))
+        unknown_data = sorted(set(overrides.values()) - set(dataset_cameras))
+        if unknown_model or unknown_data:
+            raise ValueError(
+                f"camera map: model cameras {unknown_model} not in {list(model_cameras)}; dataset cameras "
+                f"{unknown_data} not in {list(dataset_cameras)}"
+            )
+        return {data_key: model_name for model_name, data_key in overrides.items()}
+    if len(dataset_cameras) > len(model_cameras):
+        raise ValueError(
+            f"the dataset has {len(dataset_cameras)} cameras {list(dataset_cameras)} but the model only "
+            f"{len(model_cameras)} {list(model_cameras)}; choose them with a camera map (--camera MODEL=DATASET)"
+        )
+    return dict(zip(dataset_cameras, model_cameras))
+
+
+@dataclass
+class PI0DataCollator:
+    """`LeRobotEpisodeDataset` samples -> a batch of `PI0ForActionGeneration.forward` inputs (torch tensors).
+
+    Cameras are renamed with `camera_map` (dataset key -> model camera name; unmapped dataset cameras are dropped).
+    The batch also holds `sample_index` (the samples' dataset indices, used by [`PI0Trainer`] for evaluation draws).
+    """
+
+    processor: PI0Processor
+    camera_map: dict[str, str]
+
+    def __call__(self, samples: Sequence[Mapping[str, Any]]) -> dict[str, torch.Tensor]:
+        observations = [
+            {
+                "images": {self.camera_map[key]: frame for key, frame in sample["images"].items() if key in self.camera_map},
+                "prompt": sample["prompt"],
+                "state": sample["state"],
+                "actions": sample["actions"],
+            }
+            for sample in samples
+        ]
+        batch = dict(self.processor(observations, return_tensors="pt"))
+        batch["sample_index"] = torch.tensor([int(sample["index"]) for sample in samples], dtype=torch.long)
+        return batch
+
+
+def flow_draws(config: PI0Config, keys: Sequence[Sequence[int]]) -> tuple[torch.Tensor, torch.Tensor]:
+    """Flow-matching noise `[B, horizon, action_dim]` and times `[B]` (Beta(a, b) * scale + offset, as the model's own
+    sampler), one independent numpy generator per sample seeded with that sample's key (a tuple of ints)."""
+    noise, time = [], []
+    for key in keys:
+        rng = np.random.default_rng([int(k) for k in key])
+        noise.append(rng.standard_normal((config.action_horizon, config.action_dim)))
+        time.append(rng.beta(config.time_beta_alpha, config.time_beta_beta) * config.time_scale + config.time_offset)
+    return torch.tensor(np.stack(noise), dtype=torch.float32), torch.tensor(time, dtype=torch.float32)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Optimizer schedule and the Trainer.
+# ----------------------------------------------------------------------------------------------------------------
+
+
+def openpi_learning_rate(step: int, peak_lr: float, warmup_steps: int, decay_steps: int, end_lr: float) -> float:
+    """openpi's `CosineDecaySchedule` (`optax.warmup_cosine_decay_schedule`) at optimizer step `step` (0-based).
+
+    Linear from `peak_lr / (warmup_steps + 1)` to `peak_lr` over `warmup_steps`, then cosine from `peak_lr` to
+    `end_lr` until `decay_steps` (counted from step 0, warmup included), then constant `end_lr`.
+
+    >>> [round(openpi_learning_rate(s, 1.0, 4, 8, 0.1), 4) for s in (0, 2, 4, 6, 8, 20)]
+    [0.2, 0.6, 1.0, 0.55, 0.1, 0.1]
+    """
+    if step < warmup_steps:
+        start = peak_lr / (warmup_steps + 1)
+        return start + (peak_lr - start) * step / warmup_steps
+    span = max(decay_steps - warmup_steps, 1)
+    progress = min(step - warmup_steps, span) / span
+    return end_lr + (peak_lr - end_lr) * 0.5 * (1 + math.cos(math.pi * progress))
+
+
+class PI0Trainer(Trainer):
+    """`Trainer` with per-sample seeded flow-matching draws and openpi's learning-rate schedule.
+
+    Training draws are keyed by `(seed, optimizer step, position in the global batch)`, where a process's micro
+    batch m of an optimizer step covers positions `(m * world_size + process_index) * per_device_batch + j`, which
+    is exactly the order `accelerate` shards a global batch in. Evaluation draws are keyed by the sample's dataset
+    index, so every evaluation of a checkpoint sees the same noise.
+    """
+
+    def __init__(self, *args: Any, lr_schedule: dict[str, float] | None = None, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.lr_schedule = lr_schedule
+        self._draw_step = -1
+        self._micro_batch = 0
+
+    def create_scheduler(self, num_training_steps: int, optimizer: torch.optim.Optimizer | None = None) -> Any:
+        if self.lr_schedule is None:
+            return super().create_scheduler(num_training_steps, optimizer)
+        if self.lr_scheduler is None:
+            settings = dict(self.lr_schedule)
+            peak = self.args.learning_rate
+            settings["decay_steps"] = settings.get("decay_steps") or num_training_steps
+            self.lr_scheduler = torch.optim.lr_scheduler.LambdaLR(
+                optimizer or self.optimizer,
+                lambda step: openpi_learning_rate(step, peak, **settings) / peak,
+            )
+            self._created_lr_scheduler = True
+        return self.lr_scheduler
+
+    def _flow_keys(self, inputs: Mapping[str, torch.Tensor], training: bool) -> list[tuple[int, ...]]:
+        size = inputs["input_ids"].shape[0]
+        if not training:
+            return [(self.args.seed, 1, int(i)) for i in inputs["sample_index"]]
+        step = self.state.global_step
+        if step != self._draw_step:
+            self._draw_step, self._micro_batch = step, 0
+        first = (self._micro_batch * self.args.world_size + self.args.process_index) * self.args.per_device_train_batch_size
+        self._micro_batch += 1
+        return [(self.args.seed, 0, step, first + j) for j in range(size)]
+
+    def compute_loss(self, model: nn.Module, inputs: dict[str, Any], return_outputs: bool = False, num_items_in_batch: Any = None) -> Any:
+        inputs = dict(inputs)
+        sample_index = inputs.pop("sample_index", None)
+        if "noise" not in inputs and sample_index is not None:
+            config = self.accelerator.unwrap_model(model).config
+            noise, time = flow_draws(config, self._flow_keys({**inputs, "sample_index": sample_index}, model.training))
+            device = inputs["input_ids"].device
+            inputs["noise"], inputs["time"] = noise.to(device), time.to(device)
+        outputs = model(**inputs)
+        return (outputs.loss, outputs) if return_outputs else outputs.loss
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Callbacks.
+# ----------------------------------------------------------------------------------------------------------------
+
+
+class EMACallback(TrainerCallback):
+    """Exponential moving average of the trainable weights: `ema = decay * ema + (1 - decay) * weights` after every
+    optimizer step (openpi's `ema_decay`, default 0.99).
+
+    Each checkpoint folder gets `ema_weights.safetensors` (the averages, restored on resume); at the end of training
+    the averages are copied into the model, so the final `save_model` writes them (openpi also saves its EMA
+    parameters for inference).
+    """
+
+    def __init__(self, decay: float = OPENPI_EMA_DECAY, resume_from: str | Path | None = None) -> None:
+        if not 0.0 < decay < 1.0:
+            raise ValueError(f"EMA decay must be in (0, 1), got {decay}")
+        self.decay = decay
+        self.resume_from = Path(resume_from) if resume_from else None
+        self.shadow: dict[str, torch.Tensor] = {}
+
+    @staticmethod
+    def _trainable(model: nn.Module) -> dict[str, nn.Parameter]:
+        return {name: p for name, p in model.named_parameters() if p.requires_grad}
+
+    def on_train_begin(self, args: TrainingArguments, state: TrainerState, control: TrainerControl, model: nn.Module | None = None, **kwargs: Any) -> None:
+        params = self._trainable(model)
+        self.shadow = {name: p.detach().float().clone() for name, p in params.items()}
+        if self.resume_from is not None and (self.resume_from / EMA_FILE).is_file():
+            saved = load_file(str(self.resume_from / EMA_FILE))
+            if set(saved) != set(self.shadow):
+                raise ValueError(f"{self.resume_from / EMA_FILE} does not match the trainable parameters of this run")
+            self.shadow = {name: tensor.float() for name, tensor in saved.items()}
+
+    @torch.no_grad()
+    def on_step_end(self, args: TrainingArguments, state: TrainerState, control: TrainerControl, model: nn.Module | None = None, **kwargs: Any) -> None:
+        for name, param in self._trainable(model).items():
+            self.shadow[name].lerp_(param.detach().float(), 1.0 - self.decay)
+
+    def on_save(self, args: TrainingArguments, state: TrainerState, control: TrainerControl, **kwargs: Any) -> None:
+        if state.is_world_process_zero:
+            folder = Path(args.output_dir) / f"checkpoint-{state.global_step}"
+            save_file({name: t.contiguous() for name, t in self.shadow.items()}, str(folder / EMA_FILE))
+
+    @torch.no_grad()
+    def on_train_end(self, args: TrainingArguments, state: TrainerState, control: TrainerControl, model: nn.Module | None = None, **kwargs: Any) -> None:
+        for name, param in self._trainable(model).items():
+            param.copy_(self.shadow[name].to(param.dtype))
+
+
+class SaveProcessorCallback(TrainerCallback):
+    """Saves the processor into every `checkpoint-N` folder, next to the weights."""
+
+    def __init__(self, processor: PI0Processor) -> None:
+        self.processor = processor
+
+    def on_save(self, args: TrainingArguments, state: TrainerState, control: TrainerControl, **kwargs: Any) -> None:
+        if state.is_world_process_zero:
+            self.processor.save_pretrained(Path(args.output_dir) / f"checkpoint-{state.global_step}")
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# What trains: freezing and LoRA.
+# ----------------------------------------------------------------------------------------------------------------
+
+FREEZE_GROUPS = ("vision", "vlm")
+
+
+def _group_prefixes(model: PI0ForActionGeneration, group: str) -> tuple[str, ...]:
+    vision = ("vision_tower.", "image_projection.")
+    if group == "vision":
+        return vision
+    if group == "vlm":
+        layers = tuple(f"layers.{i}.vlm." for i in range(len(model.layers)))
+        return vision + ("embed_tokens.", "vlm_final_norm.") + layers
+    raise ValueError(f"unknown freeze group {group!r}; expected one of {FREEZE_GROUPS}")
+
+
+def loss_free_parameter_names(model: PI0ForActionGeneration) -> list[str]:
+    """Parameters that cannot influence the flow-matching loss: the VLM's final norm, and in the last layer the VLM
+    o-projection, MLP norm and MLP (the last layer's prefix output is never read; its keys/values are)."""
+    last = f"layers.{len(model.layers) - 1}.vlm."
+    unused = ("vlm_final_norm.", last + "o_proj.", last + "mlp_norm.", last + "gate_up_proj.", last + "down_proj.")
+    return [name for name, _ in model.named_parameters() if name.startswith(unused)]
+
+
+def freeze(model: PI0ForActionGeneration, groups: Sequence[str] = ()) -> int:
+    """Set `requires_grad=False` on the parameters of `groups` ("vision", "vlm") and on the loss-free parameters.
+
+    Returns the number of trainable parameters left.
+    """
+    prefixes = tuple(prefix for group in groups for prefix in _group_prefixes(model, group))
+    unused = set(loss_free_parameter_names(model))
+    for name, param in model.named_parameters():
+        if name in unused or (prefixes and name.startswith(prefixes)):
+            param.requires_grad_(False)
+    return count_trainable(model)
+
+
+def count_trainable(model: nn.Module) -> int:
+    return sum(p.numel() for p in model.parameters() if p.requires_grad)
+
+
+def apply_lora(
+    model: PI0ForActionGeneration,
+    rank_vlm: int = LORA_RANK_VLM,
+    rank_expert: int = LORA_RANK_EXPERT,
+    freeze_groups: Sequence[str] = (),
+) -> nn.Module:
+    """openpi-style LoRA through `peft`: adapters of rank `rank_vlm` (alpha = rank) on every VLM Gemma projection and
+    of rank `rank_expert` on every action-expert projection; the Gemma base weights, norms and text embedding are
+    frozen; the vision tower, its projection and the action/state/time heads keep training in full (peft
+    `modules_to_save`), unless `freeze_groups` freezes them too.
+
+    Returns the `peft.PeftModel`; `merge_lora` turns it back into a plain `PI0ForActionGeneration`.
+    """
+    from peft import LoraConfig, get_peft_model
+
+    frozen_prefixes = tuple(prefix for group in freeze_groups for prefix in _group_prefixes(model, group))
+    unused = set(loss_free_parameter_names(model))
+    full_modules = [
+        name for name, module in model.named_children()
+        if name not in ("layers", "embed_tokens", "vlm_final_norm", "expert_final_norm")
+        and not f"{name}.".startswith(frozen_prefixes)
+        and any(True for _ in module.parameters())
+    ]
+    targets = "|".join(LORA_TARGETS)
+    layer_kinds = "expert" if "vlm" in freeze_groups else "vlm|expert"  # a frozen VLM gets no adapters either
+    config = LoraConfig(
+        r=rank_vlm,
+        lora_alpha=rank_vlm,
+        target_modules=rf"layers\.\d+\.({layer_kinds})\.({targets})",
+        rank_pattern={r"layers\.\d+\.expert\..*": rank_expert},
+        alpha_pattern={r"layers\.\d+\.expert\..*": rank_expert},
+        modules_to_save=full_modules,
+        exclude_modules=[name.rsplit(".", 1)[0] for name in unused],
+    )
+    return get_peft_model(model, config)
+
+
+def merge_lora(model: nn.Module) -> PI0ForActionGeneration:
+    """A `peft` LoRA model -> the plain model with the adapters merged into the weights (others returned as is)."""
+    from peft import PeftModel
+
+    return model.merge_and_unload() if isinstance(model, PeftModel) else model  # type: ignore[return-value]
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Evaluation against ground truth.
+# ----------------------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class PolicyEvaluation:
+    """Predicted vs true action chunks of every frame of a dataset, in robot units, and the mean-action baseline."""
+
+    predictions: np.ndarray  # [N, horizon, A]
+    targets: np.ndarray  # [N, horizon, A]
+    baseline: np.ndarray  # [N, horizon, A]: the training data's mean action at every step
+    prompts: list[str]
+    episode_index: np.ndarray  # [N]
+
+    @property
+    def mse(self) -> float:
+        return float(np.mean((self.predictions - self.targets) ** 2))
+
+    @property
+    def baseline_mse(self) -> float:
+        return float(np.mean((self.baseline - self.targets) ** 2))
+
+    @property
+    def error_ratio(self) -> float:
+        """Policy MSE / baseline MSE (0 = perfect, 1 = no better than always predicting the mean action)."""
+        return self.mse / self.baseline_mse
+
+    def summary(self) -> str:
+        return (
+            f"{len(self.targets)} frames: policy MSE {self.mse:.3g}, mean-action baseline MSE {self.baseline_mse:.3g}, "
+            f"ratio {self.error_ratio:.3f}"
+        )
+
+
+@torch.no_grad()
+def evaluate_policy(
+    model: PI0ForActionGeneration,
+    processor: PI0Processor,
+    dataset: LeRobotEpisodeDataset,
+    camera_map: Mapping[str, str] | None = None,
+    *,
+    batch_size: int = 64,
+    seed: int = 0,
+    num_steps: int | None = None,
+    progress: bool = True,
+) -> PolicyEvaluation:
+    """Run `generate_actions` through the processor on every frame of `dataset` and compare with its action chunks.
+
+    The noise of batch k comes from `torch.Generator().manual_seed(seed + k)`, so the result is reproducible. The
+    baseline predicts the mean action of the processor's statistics (the training data) at every step.
+    """
+    from tqdm.auto import tqdm
+
+    model.eval()
+    camera_map = dict(camera_map) if camera_map is not None else default_camera_map(dataset.camera_keys, model.config.camera_names)
+    collator = PI0DataCollator(processor, camera_map)
+    action_stats = processor.norm_stats["actions"] if processor.norm_stats else None
+    predictions, targets, baselines, prompts, episodes = [], [], [], [], []
+    starts = range(0, len(dataset), batch_size)
+    for number, start in enumerate(tqdm(starts, desc="evaluating", disable=not progress)):
+        samples = [dataset[i] for i in range(start, min(start + batch_size, len(dataset)))]
+        batch = collator(samples)
+        generator = torch.Generator().manual_seed(seed + number)
+        inputs = {k: batch[k].to(model.device) for k in ("pixel_values", "image_masks", "input_ids", "attention_mask", "state")}
+        actions = model.generate_actions(**inputs, num_steps=num_steps, generator=generator).cpu()
+        raw_state = np.stack([s["state"] for s in samples])
+        predictions.append(processor.postprocess_actions(actions.numpy(), state=raw_state if processor.delta_action_mask else None))
+        targets.append(np.stack([s["actions"] for s in samples]))
+        mean = np.zeros(processor.action_dim_robot) if action_stats is None else action_stats.mean[: processor.action_dim_robot]
+        baselines.append(np.broadcast_to(mean, targets[-1].shape).astype(np.float32))
+        prompts += [s["prompt"] for s in samples]
+        episodes += [s["episode_index"] for s in samples]
+    return PolicyEvaluation(
+        np.concatenate(predictions), np.concatenate(targets), np.concatenate(baselines), prompts, np.asarray(episodes)
+    )
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# A whole run.
+# ----------------------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class TrainSettings:
+    """Everything a fine-tuning run needs; the fields mirror `pi0-torch train`'s options (see `add_arguments`)."""
+
+    dataset: str
+    model: str
+    output_dir: str
+    config_overrides: dict[str, Any] = field(default_factory=dict)
+    tokenizer: str | None = None
+    norm_stats: str = "dataset"
+    camera_map: dict[str, str] = field(default_factory=dict)
+    state_key: str = "observation.state"
+    action_key: str = "action"
+    train_split: str | None = None
+    eval_split: str | None = None
+    short_episodes: str = "pad"
+    delta_action_mask: list[bool] | None = None
+    max_steps: int = 30_000
+    batch_size: int = 32
+    gradient_accumulation_steps: int = 1
+    learning_rate: float = OPENPI_PEAK_LR
+    end_learning_rate: float = OPENPI_END_LR
+    warmup_steps: int = OPENPI_WARMUP_STEPS
+    decay_steps: int | None = None
+    weight_decay: float = OPENPI_WEIGHT_DECAY
+    max_grad_norm: float = OPENPI_CLIP_NORM
+    ema_decay: float | None = None
+    lora: bool = False
+    lora_rank_vlm: int = LORA_RANK_VLM
+    lora_rank_expert: int = LORA_RANK_EXPERT
+    freeze: list[str] = field(default_factory=list)
+    bf16: bool = False
+    gradient_checkpointing: bool = False
+    seed: int = 42
+    logging_steps: int = 10
+    save_steps: int = 1_000
+    save_total_limit: int | None = None
+    eval_steps: int | None = None
+    num_workers: int = 0
+    resume_from_checkpoint: str | None = None
+    cpu: bool = False
+    report_to: str = "none"
+    progress: bool = True
+
+
+def _is_model_folder(model: str) -> bool:
+    return (Path(model) / "config.json").is_file()
+
+
+def load_config(settings: TrainSettings) -> PI0Config:
+    """The model config: a checkpoint folder's `config.json`, or a preset with `config_overrides`."""
+    if _is_model_folder(settings.model):
+        if settings.config_overrides:
+            raise ValueError("config_overrides apply to presets only; a checkpoint folder keeps its own config")
+        return PI0Config.from_pretrained(settings.model)
+    if settings.model not in preset_names():
+        raise ValueError(f"--model {settings.model!r} is neither a checkpoint folder (with config.json) nor a preset {preset_names()}")
+    return PI0Config.from_preset(settings.model, **settings.config_overrides)
+
+
+def build_processor(settings: TrainSettings, config: PI0Config, dataset: LeRobotEpisodeDataset) -> PI0Processor:
+    """The processor of a run: tokenizer from `--tokenizer` (or the model folder), norm stats from the dataset (or
+    the model folder's processor, or an openpi `norm_stats.json`), robot dims from the dataset."""
+    if settings.resume_from_checkpoint and (Path(settings.resume_from_checkpoint) / "processor_config.json").is_file():
+        return PI0Processor.from_pretrained(settings.resume_from_checkpoint)
+    model_has_processor = _is_model_folder(settings.model) and (Path(settings.model) / "processor_config.json").is_file()
+    if settings.tokenizer == "test":
+        prompts = sorted(set(dataset.tasks.values()))
+        tokenizer: Any = build_test_tokenizer(vocab_size=min(512, config.vocab_size), extra_sentences=prompts)
+    elif settings.tokenizer:
+        tokenizer = settings.tokenizer
+    elif model_has_processor:
+        tokenizer = PI0Processor.from_pretrained(settings.model).tokenizer
+    else:
+        raise ValueError("no tokenizer: pass --tokenizer PATH (PaliGemma's SentencePiece model), or --tokenizer test for a tiny demo model")
+
+    if settings.norm_stats == "dataset":
+        norm_stats = compute_norm_stats(
+            dataset.iter_state_action_chunks(), delta_action_mask=settings.delta_action_mask,
+            total=len(dataset.episodes), progress=settings.progress,
+        )
+    elif settings.norm_stats == "model":
+        if not model_has_processor:
+            raise ValueError(f"--norm-stats model: {settings.model} has no processor with norm stats")
+        norm_stats = PI0Processor.from_pretrained(settings.model).norm_stats
+    else:
+        norm_stats = load_openpi_norm_stats(settings.norm_stats)
+    return PI0Processor.from_config(
+        config, tokenizer, norm_stats,
+        state_dim=dataset.state_dim, action_dim_robot=dataset.action_dim, delta_action_mask=settings.delta_action_mask,
+    )
+
+
+def build_model(settings: TrainSettings, config: PI0Config) -> nn.Module:
+    """The model with its frozen parts set, wrapped in LoRA when asked."""
+    if _is_model_folder(settings.model):
+        model = PI0ForActionGeneration.from_pretrained(settings.model, dtype=torch.float32)
+    else:
+        torch.manual_seed(settings.seed)
+        model = PI0ForActionGeneration(config)
+    for group in settings.freeze:
+        if group not in FREEZE_GROUPS:
+            raise ValueError(f"--freeze {group!r}: expected one of {FREEZE_GROUPS}")
+    freeze(model, settings.freeze)
+    if settings.lora:
+        return apply_lora(model, settings.lora_rank_vlm, settings.lora_rank_expert, settings.freeze)
+    return model
+
+
+def _has_accelerator() -> bool:
+    xpu = getattr(torch, "xpu", None)
+    return torch.cuda.is_available() or torch.backends.mps.is_available() or bool(xpu and xpu.is_available())
+
+
+def _episodes(root: str, split: str | None) -> list[int] | None:
+    return split_episodes(root, split) if split else None
+
+
+def train_policy(settings: TrainSettings) -> dict[str, Any]:
+    """Fine-tune on a LeRobot dataset with `PI0Trainer`; writes `checkpoint-N/` folders (model + processor, + EMA)
+    and the final model + processor into `settings.output_dir`. Returns `{"output_dir", "log_history",
+    "trainable_parameters"}`. Runs under `accelerate launch` unchanged (the global batch is split over processes).
+    """
+    from transformers import set_seed
+
+    set_seed(settings.seed)
+    config = load_config(settings)
+    dataset_options = dict(
+        state_key=settings.state_key, action_key=settings.action_key, short_episodes=settings.short_episodes,
+        progress=settings.progress,
+    )
+    train_dataset = LeRobotEpisodeDataset(
+        settings.dataset, config.action_horizon, episodes=_episodes(settings.dataset, settings.train_split), **dataset_options
+    )
+    eval_dataset = (
+        LeRobotEpisodeDataset(settings.dataset, config.action_horizon, episodes=_episodes(settings.dataset, settings.eval_split), **dataset_options)
+        if settings.eval_split
+        else None
+    )
+    processor = build_processor(settings, config, train_dataset)
+    camera_map = default_camera_map(train_dataset.camera_keys, config.camera_names, settings.camera_map)
+    model = build_model(settings, config)
+
+    args = TrainingArguments(
+        output_dir=settings.output_dir,
+        max_steps=settings.max_steps,
+        per_device_train_batch_size=1,  # set below from the global batch once the world size is known
+        per_device_eval_batch_size=1,
+        gradient_accumulation_steps=settings.gradient_accumulation_steps,
+        learning_rate=settings.learning_rate,
+        adam_beta1=OPENPI_BETAS[0],
+        adam_beta2=OPENPI_BETAS[1],
+        adam_epsilon=OPENPI_EPS,
+        weight_decay=settings.weight_decay,
+        max_grad_norm=settings.max_grad_norm,
+        logging_steps=settings.logging_steps,
+        save_steps=settings.save_steps,
+        save_total_limit=settings.save_total_limit,
+        eval_strategy="steps" if eval_dataset is not None else "no",
+        eval_steps=settings.eval_steps or settings.save_steps,
+        seed=settings.seed,
+        data_seed=settings.seed,
+        bf16=settings.bf16,
+        dataloader_num_workers=settings.num_workers,
+        dataloader_persistent_workers=settings.num_workers > 0,  # workers keep their decoded-frame caches
+        dataloader_pin_memory=_has_accelerator() and not settings.cpu,
+        remove_unused_columns=False,
+        label_names=["actions"],
+        use_cpu=settings.cpu or not _has_accelerator(),  # (bf16 autocast on CPU needs it said explicitly)
+        report_to=settings.report_to,
+        disable_tqdm=not settings.progress,
+        # transformers >= 5.x renamed gradient_checkpointing to activation_checkpointing (the old name warns)
+        **{_CHECKPOINTING_ARGUMENT: settings.gradient_checkpointing},
+    )
+    per_step = args.world_size * settings.gradient_accumulation_steps
+    if settings.batch_size % per_step:
+        raise ValueError(
+            f"--batch-size {settings.batch_size} (global) must be divisible by processes x accumulation steps = {per_step}"
+        )
+    args.per_device_train_batch_size = args.per_device_eval_batch_size = settings.batch_size // per_step
+    if settings.warmup_steps >= settings.max_steps:
+        logger.warning("warmup_steps %d >= max_steps %d: the learning rate never reaches its peak", settings.warmup_steps, settings.max_steps)
+
+    callbacks: list[TrainerCallback] = [SaveProcessorCallback(processor)]
+    if settings.ema_decay is not None:
+        callbacks.append(EMACallback(settings.ema_decay, resume_from=settings.resume_from_checkpoint))
+    trainer = PI0Trainer(
+        model=model,
+        args=args,
+        train_dataset=train_dataset,
+        eval_dataset=eval_dataset,
+        data_collator=PI0DataCollator(processor, camera_map),
+        callbacks=callbacks,
+        lr_schedule=dict(warmup_steps=settings.warmup_steps, decay_steps=settings.decay_steps, end_lr=settings.end_learning_rate),
+    )
+    trainable = count_trainable(model)
+    logger.info("trainable parameters: %d of %d", trainable, sum(p.numel() for p in model.parameters()))
+    trainer.train(resume_from_checkpoint=settings.resume_from_checkpoint)
+
+    if trainer.is_world_process_zero():
+        _save_final(merge_lora(trainer.model), processor, settings)
+    trainer.accelerator.wait_for_everyone()
+    return {"output_dir": settings.output_dir, "log_history": trainer.state.log_history, "trainable_parameters": trainable}
+
+
+def _save_final(model: PI0ForActionGeneration, processor: PI0Processor, settings: TrainSettings) -> None:
+    """Model + processor + the run's settings into `output_dir` (next to the checkpoint folders)."""
+    output = Path(settings.output_dir)
+    model.save_pretrained(output)
+    processor.save_pretrained(output)
+    (output / TRAIN_SETTINGS_FILE).write_text(json.dumps(vars(settings), indent=2, default=str) + "\n")
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# `pi0-torch train`.
+# ----------------------------------------------------------------------------------------------------------------
+
+
+def _key_value(text: str) -> tuple[str, str]:
+    name, sep, value = text.partition("=")
+    if not sep or not name or not value:
+        raise argparse.ArgumentTypeError(f"expected MODEL_CAMERA=DATASET_KEY, got {text!r}")
+    return name, value
+
+
+def _bool_mask(text: str) -> list[bool]:
+    try:
+        return [bool(int(v)) for v in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated 0/1 values, got {text!r}") from None
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of `pi0-torch train` (openpi's recipe by default)."""
+    data = parser.add_argument_group("data")
+    data.add_argument("--dataset", required=True, help="LeRobot dataset folder (v3.0 or v2.x, holding meta/info.json)")
+    data.add_argument("--train-split", help="split of meta/info.json 'splits' to train on (default: every episode)")
+    data.add_argument("--eval-split", help="split to evaluate the loss on every --eval-steps")
+    data.add_argument("--camera", action="append", type=_key_value, default=[], metavar="MODEL_CAMERA=DATASET_KEY",
+                      help="feed dataset camera DATASET_KEY as MODEL_CAMERA (repeatable; default: dataset cameras in order)")
+    data.add_argument("--state-key", default="observation.state")
+    data.add_argument("--action-key", default="action")
+    data.add_argument("--short-episodes", choices=("pad", "skip", "error"), default="pad",
+                      help="episodes shorter than the action horizon: pad with the last action (default), skip, or fail")
+    data.add_argument("--delta-action-mask", type=_bool_mask, metavar="1,1,...,0",
+                      help="action dims predicted relative to the state (openpi DeltaActions)")
+    data.add_argument("--num-workers", type=int, default=0, help="DataLoader workers per process")
+
+    model = parser.add_argument_group("model")
+    model.add_argument("--model", required=True, help=f"checkpoint folder, or a preset: {', '.join(preset_names())}")
+    model.add_argument("--config-overrides", type=json.loads, default={}, metavar="JSON",
+                       help='preset overrides, e.g. \'{"image_size": 56, "action_horizon": 8}\'')
+    model.add_argument("--tokenizer", help="PaliGemma SentencePiece model (file/folder); 'test' trains a tiny one (demos)")
+    model.add_argument("--norm-stats", default="dataset",
+                       help="'dataset' (compute from the training episodes), 'model' (the model folder's), or a norm_stats.json")
+
+    recipe = parser.add_argument_group("optimization (openpi defaults)")
+    recipe.add_argument("--output-dir", required=True)
+    recipe.add_argument("--max-steps", type=int, default=30_000)
+    recipe.add_argument("--batch-size", type=int, default=32, help="global batch, split over processes and accumulation")
+    recipe.add_argument("--gradient-accumulation-steps", type=int, default=1)
+    recipe.add_argument("--learning-rate", type=float, default=OPENPI_PEAK_LR, help="peak learning rate")
+    recipe.add_argument("--end-learning-rate", type=float, default=OPENPI_END_LR)
+    recipe.add_argument("--warmup-steps", type=int, default=OPENPI_WARMUP_STEPS)
+    recipe.add_argument("--decay-steps", type=int, help="end of the cosine decay (default: --max-steps)")
+    recipe.add_argument("--weight-decay", type=float, default=OPENPI_WEIGHT_DECAY)
+    recipe.add_argument("--max-grad-norm", type=float, default=OPENPI_CLIP_NORM)
+    recipe.add_argument("--ema-decay", type=float, nargs="?", const=OPENPI_EMA_DECAY,
+                        help=f"keep an EMA of the weights (bare flag: openpi's {OPENPI_EMA_DECAY}); the final model is the EMA")
+    recipe.add_argument("--lora", action="store_true", help="LoRA on the Gemma experts (openpi's low-memory fine-tune)")
+    recipe.add_argument("--lora-rank-vlm", type=int, default=LORA_RANK_VLM)
+    recipe.add_argument("--lora-rank-expert", type=int, default=LORA_RANK_EXPERT)
+    recipe.add_argument("--freeze", action="append", choices=FREEZE_GROUPS, default=[],
+                        help="freeze the vision tower, or the whole VLM side (vision + Gemma 2B); repeatable")
+    recipe.add_argument("--bf16", action="store_true", help="bf16 mixed precision (autocast)")
+    recipe.add_argument("--gradient-checkpointing", action="store_true")
+    recipe.add_argument("--seed", type=int, default=42)
+
+    run_group = parser.add_argument_group("run")
+    run_group.add_argument("--logging-steps", type=int, default=10)
+    run_group.add_argument("--save-steps", type=int, default=1_000)
+    run_group.add_argument("--save-total-limit", type=int)
+    run_group.add_argument("--eval-steps", type=int)
+    run_group.add_argument("--resume-from-checkpoint", help="a checkpoint-N folder of an earlier run with the same settings")
+    run_group.add_argument("--cpu", action="store_true", help="train on CPU even when a GPU is present")
+    run_group.add_argument("--report-to", default="none", help="Trainer integrations (tensorboard, wandb, ...)")
+
+
+def settings_from_args(args: argparse.Namespace) -> TrainSettings:
+    names = {f for f in TrainSettings.__dataclass_fields__}
+    values = {name: getattr(args, name) for name in names if hasattr(args, name)}
+    values["camera_map"] = dict(args.camera)
+    return TrainSettings(**values)
+
+
+def run(args: argparse.Namespace) -> int:
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    result = train_policy(settings_from_args(args))
+    print(f"saved the fine-tuned policy to {result['output_dir']}")
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """`python -m pi0_torch.training ...` (the same as `pi0-torch train ...`; handy after `accelerate launch -m`)."""
+    parser = argparse.ArgumentParser(prog="pi0_torch.training", description="Fine-tune π0 / π0.5 on a LeRobot dataset.")
+    add_arguments(parser)
+    return run(parser.parse_args(argv))
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
