@@ -12,6 +12,7 @@ import sys
 
 # subcommand -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
+    "demo": ("pi0_torch.demo", "Run the committed demo policy on held-out synthetic scenes and plot its action chunks."),
     "convert": ("pi0_torch.conversion", "Convert openpi / LeRobot / transformers checkpoints to pi0-torch folders (and π0 to transformers)."),
     "train": ("pi0_torch.training", "Fine-tune π0 / π0.5 on a LeRobot dataset with the Hugging Face Trainer (openpi's recipe)."),
     "serve": ("pi0_torch.serving", "Serve a policy over openpi's websocket protocol (openpi-client compatible)."),
@@ -19,21 +20,20 @@ COMMANDS: dict[str, tuple[str, str]] = {
 }
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(argv: list[str]) -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="pi0-torch", description="π0 / π0.5 in PyTorch: everyday jobs.")
     subparsers = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name, (module_name, help_text) in COMMANDS.items():
         sub = subparsers.add_parser(name, help=help_text, description=help_text)
         sub.set_defaults(_module=module_name)
-        if name in sys.argv[1:2]:  # only the chosen command's module is imported
+        if argv[:1] == [name]:  # only the chosen command's module is imported
             importlib.import_module(module_name).add_arguments(sub)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
-    if argv is not None:
-        sys.argv = [sys.argv[0], *argv]
-    args = build_parser().parse_args()
+    argv = sys.argv[1:] if argv is None else argv
+    args = build_parser(argv).parse_args(argv)
     return int(importlib.import_module(args._module).run(args) or 0)
 
 

@@ -535,9 +535,12 @@ class PI0ForActionGeneration(PI0PreTrainedModel):
         """Run the prefix once through the VLM expert and keep every layer's post-RoPE k/v.
 
         Exact for sampling because the prefix never attends to the suffix. The buffers have room for the suffix,
-        whose k/v each denoising step writes in place (no per-step copy of the prefix).
+        whose k/v each denoising step writes in place (no per-step copy of the prefix). In eager mode, tokens that
+        nothing attends to (masked cameras, text padding) are dropped first, so they cost no compute.
         """
         prefix, prefix_valid = self.embed_prefix(pixel_values, image_masks, input_ids, attention_mask)
+        if not torch.compiler.is_compiling():
+            prefix, prefix_valid = _drop_invalid_tokens(prefix, prefix_valid)
         batch, prefix_len = prefix_valid.shape
         config = self.config
         buffer_shape = (batch, config.num_key_value_heads, prefix_len + config.suffix_len, config.head_dim)
@@ -687,6 +690,20 @@ class PI0ForActionGeneration(PI0PreTrainedModel):
                 raise ValueError(f"state is required by pi0: a float tensor [B={batch}, action_dim={config.action_dim}]")
             _check_tensor("state", state, (batch, config.action_dim), floating=True)
         return batch
+
+
+def _drop_invalid_tokens(tokens: torch.Tensor, valid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Move each row's valid tokens to the front, in order, and cut the columns no row needs.
+
+    Exact for the valid tokens: the prefix-LM mask and the positions (`cumsum(valid) - 1`) only depend on which
+    tokens are valid and their order, and invalid tokens are never attended to.
+    """
+    kept = int(valid.sum(dim=1).max())
+    if kept == valid.shape[1]:
+        return tokens, valid
+    order = torch.sort((~valid).to(torch.uint8), dim=1, stable=True).indices[:, :kept]  # valid first, in order
+    tokens = tokens.gather(1, order[..., None].expand(-1, -1, tokens.shape[-1]))
+    return tokens, valid.gather(1, order)
 
 
 def _describe(value: Any) -> str:

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import pytest
 import torch
 
 from pi0_torch import PI0ForActionGeneration
@@ -22,7 +21,6 @@ from pi0_torch.training import evaluate_policy, train_policy
 STEPS = 2500  # the first 2,500 of the demo policy's 6,000 steps (same data, seed and learning-rate schedule)
 
 
-@pytest.mark.slow
 def test_tiny_policy_learns_to_reach_the_named_object(tmp_path: Path) -> None:
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # the model is tiny; a DataLoader worker prepares batches on the other core

@@ -88,13 +88,19 @@ def sample_path_errors(ref: OpenpiReference) -> dict[str, float]:
     # openpi: [layers, B, P, K, H]; ours: per layer [B, K, P + S, H]
     keys = torch.stack([k[:, :, :P] for k in cache.keys]).permute(0, 1, 3, 2, 4)
     values = torch.stack([v[:, :, :P] for v in cache.values]).permute(0, 1, 3, 2, 4)
-    # masked cameras skip SigLIP (never attended): compare the cache at valid prefix tokens
-    valid = cache.prefix_valid.numpy()
-    errors["kv_cache_k (valid)"] = relative_error(keys[:, valid], ref["fp32/sample_path/kv_cache_k"][:, valid])
-    errors["kv_cache_v (valid)"] = relative_error(values[:, valid], ref["fp32/sample_path/kv_cache_v"][:, valid])
+    # the cache holds only tokens something attends to (masked cameras and padding are dropped): compare each
+    # sample's valid tokens, in order, with openpi's cache at its valid positions
+    ours_valid, ref_valid = cache.prefix_valid.numpy(), ref["fp32/loss_path/prefix_mask"]  # same inputs
+    for name, ours in (("k", keys), ("v", values)):
+        reference = ref[f"fp32/sample_path/kv_cache_{name}"]
+        errors[f"kv_cache_{name} (valid)"] = max(
+            relative_error(ours[:, b, ours_valid[b]], reference[:, b, ref_valid[b]]) for b in range(len(ours_valid))
+        )
 
-    mask, _, _ = suffix_attention = model.suffix_attention(cache.prefix_valid)
-    assert torch.equal(mask[:, 0], ref.tensor("fp32/sample_path/step0_full_attn_mask"))
+    suffix_attention = model.suffix_attention(cache.prefix_valid)
+    # the same rule over the full (not compacted) prefix gives openpi's mask
+    full_mask = model.suffix_attention(torch.from_numpy(ref_valid))[0]
+    assert torch.equal(full_mask[:, 0], ref.tensor("fp32/sample_path/step0_full_attn_mask"))
     suffix_positions = cache.prefix_valid.sum(1, keepdim=True) + torch.arange(config.suffix_len)
     assert torch.equal(suffix_positions, ref.tensor("fp32/sample_path/step0_suffix_positions").long())
 
