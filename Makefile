@@ -21,10 +21,10 @@ demo: $(STAMP)
 	$(PY) examples/demo.py
 
 test: $(STAMP)
-	$(PY) -m pytest -q -m "not slow and not gpu"
+	$(PY) -m pytest -q -m "not slow and not gpu" --doctest-modules pi0_torch tests
 
 test-slow: $(STAMP)
-	$(PY) -m pytest -q -m "slow"
+	$(PY) -m pytest -q -m "slow" tests
 
 bench: $(STAMP)
 	$(PY) -m pi0_torch.cli bench

@@ -52,6 +52,7 @@ class PI0Config(PretrainedConfig):
     (2048, 200)
     >>> PI0Config.from_preset("pi05_small").expert_hidden_size
     48
+
     ```
     """
 

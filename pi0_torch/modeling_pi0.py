@@ -307,6 +307,7 @@ class PI0ForActionGeneration(PI0PreTrainedModel):
     torch.Size([1, 50, 32])
     >>> model(**batch, actions=torch.zeros(1, 50, 32)).loss.shape
     torch.Size([])
+
     ```
     """
 

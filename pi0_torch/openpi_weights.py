@@ -11,6 +11,7 @@ so a converter can stream a 12 GB checkpoint with bounded memory.
 >>> arrays = dict(np.load("tests/fixtures/openpi/pi0_small/params_flat.npz"))
 >>> model = PI0ForActionGeneration(config_from_openpi_shapes({k: v.shape for k, v in arrays.items()}))
 >>> load_openpi_params(model, arrays)
+
 ```
 """
 
@@ -166,7 +167,7 @@ def iter_openpi_state_dict(read: LeafReader, config: PI0Config) -> Iterator[tupl
     Reads stacked leaves one layer at a time through `read(path, layer)`, so at most one layer's worth of arrays is
     alive at once. Tensors keep the dtype `read` returns.
     """
-    W, heads = config.vision_hidden_size, config.vision_num_heads
+    W = config.vision_hidden_size
     N, K, H = config.num_attention_heads, config.num_key_value_heads, config.head_dim
 
     def linear(kernel: np.ndarray) -> torch.Tensor:  # (in, out) -> (out, in)

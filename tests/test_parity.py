@@ -7,7 +7,6 @@ Relative error = max|ours - ref| / max|ref|. Float32 must agree to 1e-4 (measure
 from __future__ import annotations
 
 import numpy as np
-import pytest
 import torch
 
 from pi0_torch.flow_matching import euler_times, interpolate, sincos_time_embedding
