@@ -58,7 +58,7 @@ from .configuration_pi0 import PI0Config
 from .modeling_pi0 import PI0ForActionGeneration
 from .normalization import NormStats, load_openpi_norm_stats, save_openpi_norm_stats
 from .openpi_weights import check_openpi_shapes, config_from_openpi_shapes, iter_openpi_state_dict
-from .orbax_reader import CheckpointError, LeafInfo, OrbaxCheckpoint
+from .orbax_reader import CheckpointError, LeafInfo, OrbaxCheckpoint, first_line
 from .processing_pi0 import NORM_STATS_FILE, PI0Processor
 
 logger = logging.getLogger(__name__)
@@ -341,7 +341,7 @@ def lerobot_norm_stats(folder: Path) -> tuple[Path, dict[str, NormStats]] | None
         with safe_open(found[0], framework="np") as handle:
             values = {key: handle.get_tensor(key) for key in handle.keys()}
     except Exception as error:  # safetensors raises its own SafetensorError on malformed files
-        raise ConversionError(f"cannot read {found[0]}: {_first_line(error)}") from None
+        raise ConversionError(f"cannot read {found[0]}: {first_line(error)}") from None
     stats = {}
     for ours, theirs in (("state", "observation.state"), ("actions", "action")):
         entry = {name: values.get(f"{theirs}.{name}") for name in ("mean", "std", "q01", "q99")}
@@ -643,7 +643,7 @@ class _HFWeights:
                         files[key] = path
                         shapes[key] = tuple(handle.get_slice(key).get_shape())
             except Exception as error:  # safetensors raises its own SafetensorError on malformed files
-                raise ConversionError(f"cannot read {path}: {_first_line(error)}") from None
+                raise ConversionError(f"cannot read {path}: {first_line(error)}") from None
         sources: dict[str, list[str | None]] = {}
         dropped, unknown, tied = [], [], []
         for key in files:
@@ -676,11 +676,6 @@ class _HFWeights:
     def tensor(self, name: str, handles: Mapping[Path, Any]) -> torch.Tensor:
         parts = [handles[self.files[key]].get_tensor(key) for key in self.sources[name] if key is not None]
         return parts[0] if len(parts) == 1 else torch.cat(parts, dim=0)
-
-
-def _first_line(error: BaseException) -> str:
-    text = str(error).strip()
-    return text.splitlines()[0] if text else type(error).__name__
 
 
 # Released Gemma variants, as LeRobot names them in its config (heads, kv heads, head dim).
@@ -921,7 +916,7 @@ def export_to_transformers(
     try:
         config = PI0Config.from_pretrained(source)
     except (OSError, ValueError) as error:
-        raise ConversionError(f"{source} is not a pi0-torch model folder: {_first_line(error)}") from None
+        raise ConversionError(f"{source} is not a pi0-torch model folder: {first_line(error)}") from None
     if config.pi05:
         raise ConversionError("transformers' PI0ForConditionalGeneration has no π0.5 (adaRMS) variant; only π0 exports")
     files = _safetensors_files(source)
@@ -942,7 +937,7 @@ def export_to_transformers(
     try:
         model.load_state_dict(state, strict=True, assign=True)
     except RuntimeError as error:
-        raise ConversionError(f"{source} does not fill transformers' PI0: {_first_line(error)}") from None
+        raise ConversionError(f"{source} does not fill transformers' PI0: {first_line(error)}") from None
     with atomic_output_dir(output, overwrite) as folder:
         model.save_pretrained(folder)
     return output
@@ -1012,7 +1007,7 @@ def run(args: argparse.Namespace) -> int:
         else:
             raise ConversionError("--from pi0-torch needs --to transformers")
     except (CheckpointError, OSError) as error:
-        print(f"error: {_first_line(error)}", file=sys.stderr)
+        print(f"error: {first_line(error)}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
         print("error: interrupted; nothing was written", file=sys.stderr)

@@ -34,6 +34,8 @@ from typing import Any
 import numpy as np
 import tensorstore as ts
 
+from .openpi_weights import strip_value_suffix
+
 try:
     import zstandard
 except ImportError:  # optional: without it a chunk is decoded whole by tensorstore (peak memory: 2x the chunk)
@@ -155,7 +157,7 @@ class OrbaxCheckpoint:
         try:
             return np.asarray(store.read().result())
         except ValueError as error:  # tensorstore reports unreadable data as ValueError
-            raise CheckpointError(f"cannot read leaf {info.path} from {self.params_dir}: {_first_line(error)}") from None
+            raise CheckpointError(f"cannot read leaf {info.path} from {self.params_dir}: {first_line(error)}") from None
 
     def iter_rows(self, path: str, start: int = 0, stop: int | None = None) -> Iterator[np.ndarray]:
         """Yield `array[i]` for `start <= i < stop` along axis 0 (openpi's stacked-layer axis), in order.
@@ -212,7 +214,7 @@ class OrbaxCheckpoint:
             source = _KvStoreValueReader(self._kvstore_store(), key)
             return source if source.exists() else None  # an absent chunk means "fill value": leave it to tensorstore
         except ValueError as error:
-            raise CheckpointError(f"cannot read leaf {info.path} from {self.params_dir}: {_first_line(error)}") from None
+            raise CheckpointError(f"cannot read leaf {info.path} from {self.params_dir}: {first_line(error)}") from None
 
     @contextmanager
     def _decompressing(self, info: LeafInfo, source: _KvStoreValueReader) -> Iterator[Any]:
@@ -223,7 +225,7 @@ class OrbaxCheckpoint:
         except (ValueError, zstandard.ZstdError) as error:
             if isinstance(error, CheckpointError):
                 raise
-            raise CheckpointError(f"cannot read leaf {info.path} from {self.params_dir}: {_first_line(error)}") from None
+            raise CheckpointError(f"cannot read leaf {info.path} from {self.params_dir}: {first_line(error)}") from None
 
     def _zarr_metadata(self, key: str) -> dict | None:
         if self._use_zarr3:
@@ -249,7 +251,7 @@ class OrbaxCheckpoint:
         try:
             return ts.open(self._spec(key), open=True, read=True, context=self._context).result()
         except ValueError as error:
-            raise CheckpointError(f"cannot open array {key!r} in {self.params_dir}: {_first_line(error)}") from None
+            raise CheckpointError(f"cannot open array {key!r} in {self.params_dir}: {first_line(error)}") from None
 
     def _open_info(self, keys: tuple[str, ...], path: str) -> LeafInfo:
         store = self._open(".".join(keys))
@@ -267,7 +269,7 @@ class OrbaxCheckpoint:
         try:
             listed = self._kvstore_store().list().result()
         except ValueError as error:
-            raise CheckpointError(f"cannot list the data of {self.params_dir}: {_first_line(error)}") from None
+            raise CheckpointError(f"cannot list the data of {self.params_dir}: {first_line(error)}") from None
         counts: dict[str, int] = {}
         for raw in listed:  # "<array key>/<chunk key>"; array keys hold no "/"
             key, _, chunk = raw.decode("utf-8", "replace").partition("/")
@@ -316,13 +318,14 @@ class _KvStoreValueReader:
         return value
 
 
-def _first_line(error: BaseException) -> str:
-    return str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
+def first_line(error: BaseException) -> str:
+    """The first line of an error's message (its type when it has none): for one-line error reports."""
+    text = str(error).strip()
+    return text.splitlines()[0] if text else type(error).__name__
 
 
 def _normalize(path: str) -> str:
-    path = path.strip("/")
-    return path[: -len(VALUE_SUFFIX) - 1] if path.endswith("/" + VALUE_SUFFIX) else path
+    return strip_value_suffix(path.strip("/"))
 
 
 def _load_metadata(params_dir: Path) -> dict:
@@ -330,7 +333,7 @@ def _load_metadata(params_dir: Path) -> dict:
     try:
         metadata = json.loads(file.read_text())
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
-        raise CheckpointError(f"{file} is not a readable orbax metadata file: {_first_line(error)}") from None
+        raise CheckpointError(f"{file} is not a readable orbax metadata file: {first_line(error)}") from None
     if not isinstance(metadata, dict) or not isinstance(metadata.get("tree_metadata"), dict):
         raise CheckpointError(f"{file} has no 'tree_metadata': not an orbax PyTree checkpoint")
     return metadata
