@@ -20,8 +20,12 @@ install: $(STAMP)
 demo: $(STAMP)
 	$(PY) examples/demo.py
 
+# The serving tests run in a process of their own: after the rest of the suite, a server thread in the same process
+# was once seen stuck in torch's CPU thread pool (not reproduced in isolation; under investigation). The timeout
+# turns any hang into a failure within minutes.
 test: $(STAMP)
-	$(PY) -m pytest -q -m "not slow and not gpu" --doctest-modules pi0_torch tests
+	$(PY) -m pytest -q -m "not slow and not gpu" --timeout 900 --doctest-modules pi0_torch tests --ignore tests/test_serving.py
+	$(PY) -m pytest -q -m "not slow and not gpu" --timeout 300 tests/test_serving.py
 
 test-slow: $(STAMP)
 	$(PY) -m pytest -q -m "slow" tests
