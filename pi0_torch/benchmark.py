@@ -18,7 +18,7 @@ import statistics
 import tempfile
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 
@@ -89,6 +89,25 @@ def time_call(fn: Callable[[], object], device: torch.device, repeats: int, warm
                 torch.cuda.synchronize(device)
             durations.append(time.perf_counter() - start)
     return Timing(statistics.median(durations), min(durations), max(durations), peak[0])
+
+
+def time_alternating(fns: Sequence[Callable[[], object]], device: torch.device, repeats: int) -> list[list[float]]:
+    """Seconds of each of `fns` over `repeats` rounds, run in turn (order reversed every other round) so that a
+    slower or faster stretch of a shared machine falls on all of them alike."""
+    for fn in fns:
+        fn()
+    durations: list[list[float]] = [[] for _ in fns]
+    for round_ in range(repeats):
+        order = range(len(fns)) if round_ % 2 == 0 else reversed(range(len(fns)))
+        for index in order:
+            if device.type == "cuda":
+                torch.cuda.synchronize(device)
+            start = time.perf_counter()
+            fns[index]()
+            if device.type == "cuda":
+                torch.cuda.synchronize(device)
+            durations[index].append(time.perf_counter() - start)
+    return durations
 
 
 def matmul_throughput(device: torch.device, dtype: torch.dtype, size: int | None = None, repeats: int = 5) -> float:
@@ -205,28 +224,33 @@ def bench_side_by_side(args: argparse.Namespace, device: torch.device) -> None:
         ours.save_pretrained(f"{folder}/ours")
         export_to_transformers(f"{folder}/ours", f"{folder}/transformers")
         theirs = PI0ForConditionalGeneration.from_pretrained(f"{folder}/transformers").to(device).eval()
-    print(f"\nside by side with transformers PI0 ({preset}, float32, 3 cameras, batch 1, {TEXT_TOKENS} text tokens, "
-          f"10 steps) on {device_name(device)}")
+    print(f"\nside by side with transformers PI0 ({preset}, 3 cameras, batch 1, {TEXT_TOKENS} text tokens, 10 steps) "
+          f"on {device_name(device)}; median (min) of {args.repeats} alternating runs")
     inputs = example_batch(config, 3, 1, device)
     noise = torch.randn(1, config.action_horizon, config.action_dim, generator=torch.Generator().manual_seed(1)).to(device)
     their_inputs = transformers_pi0_inputs(inputs, config)
-    rows = []
-    for label, compiled in (("eager", False), ("compiled", True)):
-        if compiled and not args.compile:
-            continue
-        if compiled:
-            ours.compile_sampling(mode="reduce-overhead" if device.type == "cuda" else None)
-            theirs.sample_actions = torch.compile(theirs.sample_actions)  # type: ignore[method-assign]
+    eager_sample = theirs.sample_actions
+    modes = [("eager", torch.float32, False)] + ([("compiled", torch.float32, True)] if args.compile else [])
+    modes.append(("eager", torch.bfloat16, False))  # last: the weights are rounded to bf16 in place
+    print(f"{'mode':9s} {'dtype':9s} {'ours ms':>15s} {'transformers ms':>17s} {'speedup':>8s} {'max |diff|':>11s}")
+    for label, dtype, compiled in modes:
+        ours.compile_sampling(**({"mode": "reduce-overhead"} if device.type == "cuda" else {}), disable=not compiled)
+        theirs.sample_actions = torch.compile(eager_sample) if compiled else eager_sample  # type: ignore[method-assign]
+        ours.to(dtype)
+        theirs.to(dtype)
+        # transformers' PI0 takes floating inputs in its weights' dtype
+        their_dtype_inputs = {k: v.to(dtype) if v.is_floating_point() else v for k, v in their_inputs.items()}
         ours_actions = ours.generate_actions(**inputs, noise=noise)
-        their_actions = theirs.sample_actions(**their_inputs, noise=noise)
+        their_actions = theirs.sample_actions(**their_dtype_inputs, noise=noise.to(dtype))
         difference = (ours_actions - their_actions.float()).abs().max().item()
-        ours_timing = time_call(lambda: ours.generate_actions(**inputs, noise=noise), device, args.repeats)
-        their_timing = time_call(lambda: theirs.sample_actions(**their_inputs, noise=noise), device, args.repeats)
-        rows.append((label, ours_timing, their_timing, difference))
-    print(f"{'mode':9s} {'ours ms':>9s} {'transformers ms':>16s} {'speedup':>8s} {'max |diff|':>11s}")
-    for label, ours_timing, their_timing, difference in rows:
-        print(f"{label:9s} {ours_timing.median * 1e3:9.1f} {their_timing.median * 1e3:16.1f} "
-              f"{their_timing.median / ours_timing.median:7.2f}x {difference:11.2e}")
+        ours_times, their_times = time_alternating(
+            [lambda: ours.generate_actions(**inputs, noise=noise),
+             lambda: theirs.sample_actions(**their_dtype_inputs, noise=noise.to(dtype))],
+            device, args.repeats,
+        )
+        ours_median, their_median = statistics.median(ours_times), statistics.median(their_times)
+        print(f"{label:9s} {str(dtype).removeprefix('torch.'):9s} {ours_median * 1e3:7.1f} ({min(ours_times) * 1e3:5.1f}) "
+              f"{their_median * 1e3:9.1f} ({min(their_times) * 1e3:5.1f}) {their_median / ours_median:7.2f}x {difference:11.2e}")
 
 
 def bench_loading(args: argparse.Namespace, device: torch.device) -> None:

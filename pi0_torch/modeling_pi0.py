@@ -624,8 +624,10 @@ class PI0ForActionGeneration(PI0PreTrainedModel):
             noise = torch.randn(shape, generator=generator, device=pixel_values.device, dtype=torch.float32)
         _check_tensor("noise", noise, shape, floating=True)
         times = euler_times(config.num_inference_steps if num_steps is None else num_steps)
-        sample = self._compiled_sample if self._compiled_sample is not None else self._sample
-        return sample(pixel_values, image_masks, input_ids, attention_mask, state, noise.float(), times)
+        if self._compiled_sample is None:
+            return self._sample(pixel_values, image_masks, input_ids, attention_mask, state, noise.float(), times)
+        actions = self._compiled_sample(pixel_values, image_masks, input_ids, attention_mask, state, noise.float(), times)
+        return actions.clone()  # a CUDA graph's output is overwritten by its next replay; the caller's copy is not
 
     def _sample(
         self,
@@ -647,12 +649,18 @@ class PI0ForActionGeneration(PI0PreTrainedModel):
         return x_t
 
     def compile_sampling(self, **compile_kwargs: Any) -> None:
-        """Opt in to `torch.compile` for `generate_actions` (the prefix pass and the whole Euler loop).
+        """Opt in to `torch.compile` for `generate_actions`: the prefix pass and the whole Euler loop as one graph.
 
-        `compile_kwargs` go to `torch.compile`; on CUDA, `mode="reduce-overhead"` captures the sampling in CUDA
-        graphs. Inputs of a new shape recompile. `compile_sampling(disable=True)` goes back to eager.
+        `compile_kwargs` go to `torch.compile`, with `fullgraph=True` unless given (a graph break would split the
+        sampling, and on CUDA its graph capture, in pieces). On CUDA, `mode="reduce-overhead"` captures the whole
+        sampling in one CUDA graph. Inputs of a new shape, or another `num_steps`, compile again.
+        `compile_sampling(disable=True)` goes back to eager.
         """
-        self._compiled_sample = None if compile_kwargs.get("disable") else torch.compile(self._sample, **compile_kwargs)
+        if compile_kwargs.get("disable"):
+            self._compiled_sample = None
+            return
+        compile_kwargs.setdefault("fullgraph", True)
+        self._compiled_sample = torch.compile(self._sample, **compile_kwargs)
 
     # -- input checks --------------------------------------------------------------------------------------------------
 

@@ -63,6 +63,8 @@ class PI0Policy:
         processor: its processor.
         num_steps: Euler steps per chunk (default: `model.config.num_inference_steps`).
         seed: seeds the sampling noise, so a fresh policy gives the same chunks for the same requests.
+        compile: run sampling through `torch.compile` ([`PI0ForActionGeneration.compile_sampling`]), as one CUDA
+            graph on CUDA. The first chunk of each batch size compiles (tens of seconds): call [`warmup`] first.
     """
 
     def __init__(
@@ -71,6 +73,7 @@ class PI0Policy:
         processor: PI0Processor,
         num_steps: int | None = None,
         seed: int | None = None,
+        compile: bool = False,
     ) -> None:
         self.model = model.eval()
         self.processor = processor
@@ -82,6 +85,8 @@ class PI0Policy:
         if list(processor.camera_names) != list(model.config.camera_names):
             raise ValueError(f"processor cameras {list(processor.camera_names)} differ from the model's "
                              f"{list(model.config.camera_names)}")
+        if compile:
+            model.compile_sampling(**({"mode": "reduce-overhead"} if self.device.type == "cuda" else {}))
 
     @classmethod
     def from_pretrained(
@@ -92,12 +97,13 @@ class PI0Policy:
         num_steps: int | None = None,
         seed: int | None = None,
         default_prompt: str | None = None,
+        compile: bool = False,
     ) -> PI0Policy:
         """Load the model and processor saved in `directory` (by `save_pretrained` or the converter).
 
         `device` defaults to CUDA when available, else CPU; `dtype` ("float32" / "bfloat16" or a torch dtype)
         defaults to bfloat16 on CUDA and float32 on CPU. `default_prompt` replaces the processor's (used for
-        observations without a prompt).
+        observations without a prompt). `compile` as in the class.
         """
         if not Path(directory).is_dir():
             raise FileNotFoundError(f"model folder not found: {directory} (a folder written by save_pretrained or "
@@ -112,7 +118,7 @@ class PI0Policy:
         model = PI0ForActionGeneration.from_pretrained(directory, dtype=dtype).to(device)
         overrides = {"default_prompt": default_prompt} if default_prompt is not None else {}
         processor = PI0Processor.from_pretrained(directory, **overrides)
-        return cls(model, processor, num_steps=num_steps, seed=seed)
+        return cls(model, processor, num_steps=num_steps, seed=seed, compile=compile)
 
     @property
     def camera_names(self) -> list[str]:
@@ -173,6 +179,24 @@ class PI0Policy:
             }
             for chunk, p in zip(actions, prepared)
         ]
+
+    @torch.inference_mode()
+    def warmup(self) -> float:
+        """Run one chunk on a blank observation (black frames, zero state) so the first real request does not pay
+        for compilation, CUDA graph capture or first allocations; returns its seconds. The policy's seeded noise is
+        left untouched."""
+        start = time.monotonic()
+        size = self.processor.image_size
+        blank = {
+            "images": {name: np.zeros((size, size, 3), np.uint8) for name in self.camera_names},
+            "state": np.zeros(self.processor.state_dim, np.float32),
+            "prompt": self.processor.default_prompt or "warm-up",
+        }
+        inputs = {name: tensor.to(self.device) for name, tensor in self.prepare(blank).inputs.items()}
+        config = self.model.config
+        noise = torch.zeros(1, config.action_horizon, config.action_dim, device=self.device)
+        self.model.generate_actions(**inputs, noise=noise, num_steps=self.num_steps).cpu()
+        return time.monotonic() - start
 
     def infer(self, observation: Mapping[str, Any]) -> dict[str, Any]:
         """Actions for one observation: `{"actions": float32 [horizon, robot action dims], "policy_timing": ...}`."""

@@ -16,6 +16,9 @@ unchanged:
   next observation; other clients are never affected.
 - `GET /healthz` answers `200 OK`, like openpi's server.
 
+Before it listens, the server runs one warm-up chunk on a blank observation, on the thread that will run the model
+(with `--compile`, this is when compilation and CUDA graph capture happen), so the robot's first request is not slow.
+
 Concurrency: any number of clients may connect. Decoding and preprocessing run in a small thread pool; the model
 runs on one dedicated thread, so inference is serialized and the event loop keeps answering pings, health checks and
 new connections meanwhile. With `max_batch_size > 1` the observations that queued up while the model was busy are
@@ -154,6 +157,9 @@ class ServedPolicy(Protocol):
     def infer_prepared(self, prepared: Sequence[Any]) -> list[dict[str, Any]]:
         """Run the model on prepared observations (a batch) and return one action dict per observation."""
 
+    def warmup(self) -> float:
+        """Run once on a blank observation (compilation, first allocations); returns its seconds."""
+
 
 class _ShuttingDown(RuntimeError):
     pass
@@ -202,7 +208,7 @@ class PolicyServer:
         self.host = host
         self.port = port
         self.obs_format = obs_format or ObservationFormat.from_preset("default")
-        self.obs_format.check_cameras(policy.camera_names)
+        self.obs_format.check_policy(policy.camera_names, policy.metadata.get("state_dim"), policy.metadata.get("action_dim"))
         self.max_batch_size = max_batch_size
         self.max_message_bytes = max_message_bytes
         self.metadata = {
@@ -217,9 +223,10 @@ class PolicyServer:
         self._requests_served = 0
 
     @contextlib.contextmanager
-    def serve_in_thread(self, timeout: float = 60.0) -> Iterator[int]:
+    def serve_in_thread(self, timeout: float = 600.0) -> Iterator[int]:
         """Serve from a background thread while the `with` block runs; yields the bound port (use port 0 for a free
-        one). For notebooks, tests and benchmarks; signals are left to the caller.
+        one) once the policy's warm-up ran and the socket listens, waiting at most `timeout` seconds for that. For
+        notebooks, tests and benchmarks; signals are left to the caller.
 
         ```python
         with PolicyServer(policy, port=0).serve_in_thread() as port:
@@ -273,8 +280,12 @@ class PolicyServer:
         self._stopping = False
         prepare_pool = concurrent.futures.ThreadPoolExecutor(max_workers=2, thread_name_prefix="pi0-prepare")
         model_thread = concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix="pi0-model")
-        worker = asyncio.create_task(self._run_model(model_thread))
+        worker: asyncio.Task[None] | None = None
         try:
+            # on the model thread, where every later inference runs (CUDA graphs are recorded per thread)
+            seconds = await asyncio.get_running_loop().run_in_executor(model_thread, self.policy.warmup)
+            logger.info("warm-up chunk in %.1f s", seconds)
+            worker = asyncio.create_task(self._run_model(model_thread))
             async with serve(
                 lambda ws: self._handle(ws, prepare_pool),
                 self.host,
@@ -295,8 +306,9 @@ class PolicyServer:
                 server.close()
                 await server.wait_closed()
         finally:
-            worker.cancel()
-            await asyncio.gather(worker, return_exceptions=True)
+            if worker is not None:
+                worker.cancel()
+                await asyncio.gather(worker, return_exceptions=True)
             model_thread.shutdown(wait=True)  # a running inference finishes before we return
             prepare_pool.shutdown(wait=True)
             logger.info("server stopped after %d requests", self._requests_served)
@@ -345,6 +357,7 @@ class PolicyServer:
                 logger.info("%s: disconnected before its actions were ready", peer)
                 return None
             reply = job.future.result()
+            reply["actions"] = self.obs_format.actions_to_robot(reply["actions"])
         except (MessageError, ObservationError) as error:
             logger.warning("%s: bad request: %s", peer, error)
             return f"invalid request: {error}"
@@ -437,6 +450,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="extra metadata sent to clients, a JSON object (openpi's ALOHA client reads "
                         "'reset_pose' from it)")
     parser.add_argument("--seed", type=int, default=None, help="seed the sampling noise (reproducible actions)")
+    parser.add_argument("--compile", action="store_true", help="torch.compile the sampling (one CUDA graph on "
+                        "cuda); compiled during the warm-up, before the server listens")
     parser.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
 
 
@@ -466,7 +481,7 @@ def run(args: argparse.Namespace) -> int:
         logger.info("loading %s", args.model)
         policy = PI0Policy.from_pretrained(
             args.model, device=args.device, dtype=args.dtype, num_steps=args.num_steps, seed=args.seed,
-            default_prompt=args.default_prompt,
+            default_prompt=args.default_prompt, compile=args.compile,
         )
         server = PolicyServer(
             policy,

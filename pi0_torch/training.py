@@ -565,6 +565,9 @@ def train_policy(settings: TrainSettings) -> dict[str, Any]:
     """
     from transformers import set_seed
 
+    if settings.lora and settings.ema_decay is not None:
+        raise ValueError("--ema-decay with --lora: an average of the LoRA factors A and B is not the average of the "
+                         "weight update B @ A, so openpi turns EMA off for LoRA fine-tuning; drop one of the two")
     set_seed(settings.seed)
     config = load_config(settings)
     dataset_options = dict(

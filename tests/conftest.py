@@ -71,3 +71,13 @@ def reference(request: pytest.FixtureRequest) -> OpenpiReference:
 @pytest.fixture(scope="session")
 def references() -> dict[str, OpenpiReference]:
     return {variant: OpenpiReference(variant) for variant in VARIANTS}
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Tests marked `gpu` need CUDA: skipped (with the reason) where there is none."""
+    if torch.cuda.is_available():
+        return
+    skip = pytest.mark.skip(reason="needs a CUDA GPU")
+    for item in items:
+        if "gpu" in item.keywords:
+            item.add_marker(skip)

@@ -271,6 +271,26 @@ def test_lora_trains_adapters_vision_and_heads_only(dataset_root: Path, tmp_path
     assert not torch.equal(merged["action_out_proj.weight"], initial["action_out_proj.weight"])
 
 
+def test_lora_resume_continues_the_same_run_and_ema_is_refused(dataset_root: Path, tmp_path: Path) -> None:
+    """A LoRA checkpoint holds the adapters, optimizer and trainer state: resuming gives the uninterrupted run."""
+    lora = dict(lora=True, lora_rank_vlm=2, lora_rank_expert=4, max_steps=4, save_steps=2, learning_rate=1e-2)
+    whole = train_policy(settings(dataset_root, tmp_path / "whole", **lora))
+    assert (tmp_path / "whole" / "checkpoint-2" / "adapter_model.safetensors").is_file()
+    resumed = train_policy(settings(dataset_root, tmp_path / "resumed", **lora,
+                                    resume_from_checkpoint=str(tmp_path / "whole" / "checkpoint-2")))
+    expected, got = losses(whole["log_history"]), losses(resumed["log_history"])
+    assert sorted(got) == [1, 2, 3, 4]
+    for step in (3, 4):
+        assert got[step] == pytest.approx(expected[step], rel=1e-6, abs=1e-7)
+    a = PI0ForActionGeneration.from_pretrained(tmp_path / "whole").state_dict()
+    b = PI0ForActionGeneration.from_pretrained(tmp_path / "resumed").state_dict()
+    for name in a:
+        torch.testing.assert_close(a[name], b[name], rtol=1e-5, atol=1e-6)
+    with pytest.raises(ValueError, match="--ema-decay with --lora"):
+        train_policy(settings(dataset_root, tmp_path / "ema", **lora, ema_decay=0.9))
+    assert not (tmp_path / "ema").exists()
+
+
 def test_merged_lora_model_matches_the_adapted_model() -> None:
     model = tiny_model()
     freeze(model)

@@ -1,0 +1,33 @@
+"""`pi0-torch bench` runs end to end on small presets and prints its tables (timings are printed, never asserted)."""
+
+from __future__ import annotations
+
+import argparse
+import re
+
+import pytest
+
+from pi0_torch import benchmark
+
+
+def bench(capsys: pytest.CaptureFixture[str], *argv: str) -> str:
+    parser = argparse.ArgumentParser()
+    benchmark.add_arguments(parser)
+    assert benchmark.run(parser.parse_args(["--repeats", "2", *argv])) == 0
+    return capsys.readouterr().out
+
+
+def test_generate_and_train_tables(capsys: pytest.CaptureFixture[str]) -> None:
+    out = bench(capsys, "--presets", "pi0_small", "--dtypes", "float32", "--cameras", "1,3", "--batches", "1", "--train")
+    assert re.search(r"measured matmul ceiling: float32 \d+ GFLOP/s", out)
+    rows = re.findall(r"^pi0_small\s+float32\s+(\d)\s+1\s+[\d.]+\s+[\d.]+\s+[\d.]+\s+\d+\s+\d+\s+\d+$", out, re.MULTILINE)
+    assert rows == ["1", "3"], out
+    assert re.search(r"^pi0_small\s+float32\s+1\s+[\d.]+", out.split("training step")[1], re.MULTILINE), out
+
+
+def test_side_by_side_with_transformers_agrees(capsys: pytest.CaptureFixture[str]) -> None:
+    out = bench(capsys, "--skip-generate", "--side-by-side", "--side-by-side-preset", "pi0_small")
+    rows = dict(re.findall(r"^eager\s+(float32|bfloat16)\s.*x\s+(\S+)$", out, re.MULTILINE))
+    assert sorted(rows) == ["bfloat16", "float32"], out
+    assert float(rows["float32"]) <= 1e-4  # identical weights, inputs and noise
+    assert float(rows["bfloat16"]) <= 0.5  # both in bf16, each with its own rounding
