@@ -20,6 +20,14 @@ COMMANDS: dict[str, tuple[str, str]] = {
 }
 
 
+def bool_mask(text: str) -> list[bool]:
+    """Argument type shared by subcommands: `"1,1,0"` -> `[True, True, False]` (e.g. `--delta-action-mask`)."""
+    try:
+        return [bool(int(v)) for v in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated 0/1 values, got {text!r}") from None
+
+
 def build_parser(argv: list[str]) -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="pi0-torch", description="π0 / π0.5 in PyTorch: everyday jobs.")
     subparsers = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")

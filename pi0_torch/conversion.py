@@ -54,12 +54,14 @@ import torch
 from safetensors import safe_open
 from tqdm.auto import tqdm
 
+from .cli import bool_mask
 from .configuration_pi0 import PI0Config
 from .modeling_pi0 import PI0ForActionGeneration
 from .normalization import NormStats, load_openpi_norm_stats, save_openpi_norm_stats
 from .openpi_weights import check_openpi_shapes, config_from_openpi_shapes, iter_openpi_state_dict
 from .orbax_reader import CheckpointError, LeafInfo, OrbaxCheckpoint, first_line
 from .processing_pi0 import NORM_STATS_FILE, PI0Processor
+from .robot_spaces import CONVERSIONS
 
 logger = logging.getLogger(__name__)
 
@@ -309,13 +311,29 @@ def _read_norm_stats(path: Path) -> dict[str, NormStats]:
     return stats
 
 
-def _write_processor_files(folder: Path, config: PI0Config, norm_stats: Mapping[str, NormStats] | None, tokenizer: str | Path | None) -> None:
-    """norm_stats.json always (when known); processor_config.json + tokenizer when a tokenizer is given."""
-    if tokenizer is not None and norm_stats is not None:
-        try:
-            processor = PI0Processor.from_config(config, tokenizer=tokenizer, norm_stats=norm_stats)
-        except (ValueError, OSError, TypeError) as error:
-            raise ConversionError(f"cannot build the processor with tokenizer {tokenizer}: {error}") from None
+def _build_processor(
+    config: PI0Config,
+    norm_stats: Mapping[str, NormStats] | None,
+    tokenizer: str | Path | None,
+    processor_options: Mapping[str, Any] | None,
+) -> PI0Processor | None:
+    """The output's processor when there are a tokenizer and norm stats, built before any weight is written so that a
+    bad setting fails fast. `processor_options` (`delta_action_mask`, `value_conversion`) need both."""
+    if tokenizer is None or norm_stats is None:
+        if processor_options:
+            raise ConversionError(f"processor settings {sorted(processor_options)} need --tokenizer and norm stats")
+        return None
+    try:
+        return PI0Processor.from_config(config, tokenizer=tokenizer, norm_stats=norm_stats, **(processor_options or {}))
+    except (ValueError, OSError, TypeError) as error:
+        raise ConversionError(f"cannot build the processor with tokenizer {tokenizer}: {error}") from None
+
+
+def _write_processor_files(
+    folder: Path, processor: PI0Processor | None, norm_stats: Mapping[str, NormStats] | None, tokenizer: str | Path | None
+) -> None:
+    """The processor (settings, tokenizer, norm_stats.json) when there is one, else norm_stats.json when known."""
+    if processor is not None:
         processor.save_pretrained(folder)
         return
     if norm_stats is not None:
@@ -472,6 +490,7 @@ def convert_openpi_checkpoint(
     dtype: str = "float32",
     asset_id: str | None = None,
     tokenizer: str | os.PathLike[str] | None = None,
+    processor_options: Mapping[str, Any] | None = None,
     overwrite: bool = False,
     max_shard_bytes: int | str = DEFAULT_MAX_SHARD_BYTES,
     progress: bool = True,
@@ -481,8 +500,10 @@ def convert_openpi_checkpoint(
 
     π0 vs π0.5 and every dimension are inferred from the parameter tree; `config_overrides` set what the weights
     do not store (`action_horizon`, `max_token_len`, `camera_names`, `num_inference_steps`). Norm stats come from
-    `<step>/assets/<asset_id>/norm_stats.json` (`asset_id` may be omitted when there is one). Raises
-    `CheckpointError` (one line; nothing is written) for any problem with the input or the output location.
+    `<step>/assets/<asset_id>/norm_stats.json` (`asset_id` may be omitted when there is one). `processor_options`
+    go to the processor (e.g. openpi's ALOHA configs: `delta_action_mask` for the joints and
+    `value_conversion="aloha"`). Raises `CheckpointError` (one line; nothing is written) for any problem with the
+    input or the output location.
     """
     torch_dtype, max_shard_bytes, output_dir = _common_arguments(dtype, max_shard_bytes, output_dir, overwrite)
     checkpoint = OrbaxCheckpoint(checkpoint_dir)
@@ -499,6 +520,7 @@ def convert_openpi_checkpoint(
     if norm_stats is None:
         logger.warning(f"no assets/<asset_id>/norm_stats.json in {checkpoint.step_dir}: the output has no norm stats")
     tokenizer = _check_tokenizer(tokenizer)
+    processor = _build_processor(config, norm_stats, tokenizer, processor_options)
     plan = planned_shapes(config)
     itemsize = torch.empty((), dtype=torch_dtype).element_size()
     _check_disk_space(output_dir, sum(math.prod(s) for s in plan.values()) * itemsize + _OpenpiLeafSource.spill_bytes(checkpoint))
@@ -518,7 +540,7 @@ def convert_openpi_checkpoint(
         if unused:
             raise ConversionError(f"checkpoint leaves not used by the conversion: {_names(unused)}")
         _save_config(config, torch_dtype, folder)
-        _write_processor_files(folder, config, norm_stats, tokenizer)
+        _write_processor_files(folder, processor, norm_stats, tokenizer)
     return ConversionResult(output_dir, config, torch_dtype, [output_dir / n for n in writer.filenames], writer.total_bytes, norm_stats_path)
 
 
@@ -779,6 +801,7 @@ def convert_hf_checkpoint(
     dtype: str = "float32",
     tokenizer: str | os.PathLike[str] | None = None,
     norm_stats: str | os.PathLike[str] | None = None,
+    processor_options: Mapping[str, Any] | None = None,
     overwrite: bool = False,
     max_shard_bytes: int | str = DEFAULT_MAX_SHARD_BYTES,
     progress: bool = True,
@@ -814,6 +837,7 @@ def convert_hf_checkpoint(
     else:
         stats_path, stats = lerobot_norm_stats(folder) or (None, None)
     tokenizer = _check_tokenizer(tokenizer)
+    processor = _build_processor(config, stats, tokenizer, processor_options)
     itemsize = torch.empty((), dtype=torch_dtype).element_size()
     _check_disk_space(output_dir, sum(math.prod(s) for s in plan.values()) * itemsize)
 
@@ -834,7 +858,7 @@ def convert_hf_checkpoint(
         finally:
             handles.clear()
         _save_config(config, torch_dtype, out)
-        _write_processor_files(out, config, stats, tokenizer)
+        _write_processor_files(out, processor, stats, tokenizer)
     return ConversionResult(output_dir, config, torch_dtype, [output_dir / n for n in writer.filenames], writer.total_bytes, stats_path, weights.dropped)
 
 
@@ -982,6 +1006,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--norm-stats", help="lerobot/transformers: an openpi norm_stats.json for the processor files (default for a LeRobot "
                         "folder: its policy_preprocessor_step_*_normalizer_processor.safetensors)")
     parser.add_argument("--tokenizer", help="PaliGemma SentencePiece model (e.g. paligemma_tokenizer.model) to save with the processor")
+    parser.add_argument("--delta-action-mask", type=bool_mask, metavar="1,1,...,0", help="processor: action dims the "
+                        "checkpoint predicts relative to the state (openpi's DeltaActions; ALOHA: 1,1,1,1,1,1,0,1,1,1,1,1,1,0)")
+    parser.add_argument("--value-conversion", choices=sorted(CONVERSIONS), help="processor: the robot's value "
+                        "conversion the checkpoint was trained with (aloha: openpi's adapt_to_pi)")
     parser.add_argument("--max-shard-size", default="5GB", help="largest weight file before sharding (default: 5GB)")
     parser.add_argument("--overwrite", action="store_true", help="replace a non-empty output folder")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -994,8 +1022,10 @@ def run(args: argparse.Namespace) -> int:
                 raise ConversionError("--to transformers exports a pi0-torch folder: convert first, then use --from pi0-torch")
             print(f"wrote {export_to_transformers(args.input, args.output_dir, dtype=args.dtype, overwrite=args.overwrite)}")
             return 0
+        options = {"delta_action_mask": args.delta_action_mask, "value_conversion": args.value_conversion}
         common = dict(dtype=args.dtype or "float32", tokenizer=args.tokenizer, overwrite=args.overwrite,
-                      max_shard_bytes=args.max_shard_size, progress=not args.no_progress)
+                      max_shard_bytes=args.max_shard_size, progress=not args.no_progress,
+                      processor_options={k: v for k, v in options.items() if v is not None})
         if args.source == "openpi":
             if args.norm_stats:
                 raise ConversionError("--norm-stats is for lerobot/transformers inputs; openpi's come from assets/ (--asset-id)")

@@ -22,10 +22,6 @@ message. As a JSON file (`pi0-torch serve --obs-format my_robot.json`):
   `optional_images`; a model camera that is not mapped, or optional and absent, is fed as a missing (masked) camera.
 - `state` is a list of sources; their 1-D values are concatenated in order (DROID: joints, then gripper).
 - `prompt` is a source; a message without it gets the processor's default prompt (`--default-prompt`), if any.
-- `conversion` (optional) names a value conversion between the robot's units and the checkpoint's: `"aloha"` is
-  openpi's `adapt_to_pi` for ALOHA (joint signs and gripper units; see [`ALOHA_TO_PI`]). The state is converted
-  before the processor sees it, the actions after the processor returns them. The `aloha` preset uses it, as
-  openpi's ALOHA policies do by default; `"conversion": null` in a JSON format maps keys only.
 
 Frames are passed on as they come; [`PI0Processor`] accepts what openpi's input transforms accept (HxWx3 or 3xHxW,
 uint8 or float in [0, 1]) and checks them. Keys of a message that the format does not name are ignored, as openpi
@@ -52,7 +48,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any, Union
 
@@ -74,7 +70,6 @@ class ObservationFormat:
     state: tuple[Source, ...]
     prompt: Source = "prompt"
     optional_images: frozenset[str] = frozenset()
-    conversion: ValueConversion | None = None
 
     @classmethod
     def from_preset(cls, name: str) -> ObservationFormat:
@@ -85,9 +80,8 @@ class ObservationFormat:
 
     @classmethod
     def from_dict(cls, spec: Mapping[str, Any], name: str = "custom") -> ObservationFormat:
-        """Build a format from its JSON form (keys `images`, `state`, optional `prompt`, `optional_images`,
-        `conversion`)."""
-        unknown = set(spec) - {"images", "state", "prompt", "optional_images", "conversion"}
+        """Build a format from its JSON form (keys `images`, `state`, optional `prompt`, `optional_images`)."""
+        unknown = set(spec) - {"images", "state", "prompt", "optional_images"}
         if unknown:
             raise ValueError(f"observation format {name!r}: unknown keys {sorted(unknown)}")
         for required in ("images", "state"):
@@ -109,17 +103,12 @@ class ObservationFormat:
         if isinstance(images, Mapping) and set(optional) - set(images):
             raise ValueError(f"observation format {name!r}: optional_images {sorted(set(optional) - set(images))} "
                              "are not mapped in 'images'")
-        conversion = spec.get("conversion")
-        if conversion is not None and conversion not in CONVERSIONS:
-            raise ValueError(f"observation format {name!r}: unknown conversion {conversion!r}; expected one of "
-                             f"{', '.join(CONVERSIONS)} or null")
         return cls(
             name=name,
             images=images,
             state=tuple(_source(s, f"state[{i}]") for i, s in enumerate(state)),
             prompt=_source(spec.get("prompt", "prompt"), "prompt"),
             optional_images=frozenset(str(c) for c in optional),
-            conversion=CONVERSIONS[conversion] if conversion is not None else None,
         )
 
     @classmethod
@@ -136,22 +125,13 @@ class ObservationFormat:
             return cls.from_json(name_or_path)
         return cls.from_preset(name_or_path)
 
-    def check_policy(self, camera_names: Sequence[str], state_dim: int, action_dim: int) -> None:
-        """Fail early when the format maps a camera the model does not have, or its value conversion expects other
-        state / action lengths than the policy's."""
+    def check_cameras(self, camera_names: Sequence[str]) -> None:
+        """Fail early when the format maps a camera the model does not have."""
         if isinstance(self.images, Mapping):
             unknown = set(self.images) - set(camera_names)
             if unknown:
                 raise ValueError(f"observation format {self.name!r} maps cameras {sorted(unknown)} that the model does "
                                  f"not have; model cameras: {list(camera_names)}")
-        if self.conversion is not None and (state_dim, action_dim) != (self.conversion.dim, self.conversion.dim):
-            raise ValueError(f"observation format {self.name!r}: the {self.conversion.name!r} conversion needs a state "
-                             f"and actions of {self.conversion.dim} values, the policy has state_dim {state_dim} and "
-                             f"action_dim {action_dim}")
-
-    def actions_to_robot(self, actions: np.ndarray) -> np.ndarray:
-        """The policy's actions `[horizon, action_dim]` in the robot's units (unchanged without a conversion)."""
-        return actions if self.conversion is None else self.conversion.actions_to_robot(actions)
 
     def describe(self) -> dict[str, Any]:
         """The format as plain JSON-able data (sent to clients in the server metadata)."""
@@ -165,22 +145,20 @@ class ObservationFormat:
             "optional_images": sorted(self.optional_images),
             "state": [plain(s) for s in self.state],
             "prompt": plain(self.prompt),
-            "conversion": self.conversion.name if self.conversion is not None else None,
         }
 
     def to_default(self, message: Mapping[str, Any]) -> dict[str, Any]:
         """Pick images, state and prompt out of `message` into the default layout.
 
-        Frames are passed through; the state comes out as one 1-D float32 array (the policy checks values and sizes),
-        in the checkpoint's units when the format has a conversion; an absent prompt comes out as None.
+        Frames are passed through; the state comes out as one 1-D float32 array (the policy checks values and sizes);
+        an absent prompt comes out as None.
         Raises [`ObservationError`] naming the missing or malformed field.
         """
         if not isinstance(message, Mapping):
             raise ObservationError(f"observation must be a dict, got {type(message).__name__}")
-        state = self._state(message)
         return {
             "images": self._images(message),
-            "state": state if self.conversion is None else self.conversion.state_to_model(state),
+            "state": self._state(message),
             "prompt": self._prompt(message),
         }
 
@@ -231,59 +209,6 @@ class ObservationFormat:
         if not isinstance(value, str):
             raise ObservationError(f"prompt {_name(self.prompt)!r} must be a string, got {type(value).__name__}")
         return value
-
-
-# --- value conversions ---------------------------------------------------------------------------------------------
-
-
-@dataclasses.dataclass(frozen=True)
-class ValueConversion:
-    """Maps a robot's state into the units a checkpoint was trained in, and the checkpoint's actions back."""
-
-    name: str
-    dim: int  # state and action length it applies to
-    state_to_model: Callable[[np.ndarray], np.ndarray]  # [dim] -> [dim]
-    actions_to_robot: Callable[[np.ndarray], np.ndarray]  # [horizon, dim] -> [horizon, dim]
-
-
-# ALOHA (two arms of 6 joints + 1 gripper). openpi's base models were trained in PI's own runtime space: two joints
-# per arm turn the other way, and the gripper is an angle rather than ALOHA's linearised opening.
-_ALOHA_JOINT_SIGNS = np.array([1, -1, -1, 1, 1, 1, 1] * 2, dtype=np.float64)
-_ALOHA_GRIPPERS = [6, 13]
-_ALOHA_GRIPPER_OPENING = (0.01844, 0.05800)  # metres, ALOHA's PUPPET_GRIPPER_POSITION_CLOSE / _OPEN
-_ALOHA_GRIPPER_JOINT = (-0.6213, 1.4910)  # radians, ALOHA's PUPPET_GRIPPER_JOINT_CLOSE / _OPEN
-_PI_GRIPPER_ANGLE = (0.5476, 1.6296)  # radians, the range of PI's gripper angle
-_GRIPPER_ARM, _GRIPPER_HORN = 0.036, 0.022  # metres, the Interbotix gripper linkage
-
-
-def _to_unit(x: np.ndarray, bounds: tuple[float, float]) -> np.ndarray:
-    return (x - bounds[0]) / (bounds[1] - bounds[0])
-
-
-def _from_unit(x: np.ndarray, bounds: tuple[float, float]) -> np.ndarray:
-    return x * (bounds[1] - bounds[0]) + bounds[0]
-
-
-def _aloha_state_to_pi(state: np.ndarray) -> np.ndarray:
-    """ALOHA state -> PI space: flip joint signs; undo ALOHA's gripper linearisation (opening -> horn angle)."""
-    converted = np.asarray(state, np.float64) * _ALOHA_JOINT_SIGNS
-    opening = _from_unit(converted[_ALOHA_GRIPPERS], _ALOHA_GRIPPER_OPENING)
-    cosine = (_GRIPPER_HORN**2 + opening**2 - _GRIPPER_ARM**2) / (2 * _GRIPPER_HORN * opening)
-    converted[_ALOHA_GRIPPERS] = _to_unit(np.arcsin(np.clip(cosine, -1.0, 1.0)), _PI_GRIPPER_ANGLE)
-    return converted.astype(np.float32)
-
-
-def _aloha_actions_from_pi(actions: np.ndarray) -> np.ndarray:
-    """PI-space actions -> ALOHA: flip joint signs; gripper angle -> ALOHA's normalised gripper joint."""
-    converted = np.asarray(actions, np.float64) * _ALOHA_JOINT_SIGNS
-    converted[:, _ALOHA_GRIPPERS] = _to_unit(converted[:, _ALOHA_GRIPPERS] + _PI_GRIPPER_ANGLE[0], _ALOHA_GRIPPER_JOINT)
-    return converted.astype(np.float32)
-
-
-ALOHA_TO_PI = ValueConversion("aloha", 14, _aloha_state_to_pi, _aloha_actions_from_pi)
-"""openpi's `adapt_to_pi` for ALOHA (`policies/aloha_policy.py`), applied by its ALOHA policies by default."""
-
-CONVERSIONS: dict[str, ValueConversion] = {"aloha": ALOHA_TO_PI}
 
 
 class _Missing:
@@ -340,6 +265,5 @@ PRESETS: dict[str, ObservationFormat] = {
         },
         optional_images=frozenset({"left_wrist_0_rgb", "right_wrist_0_rgb"}),
         state=("state",),
-        conversion=ALOHA_TO_PI,
     ),
 }

@@ -181,10 +181,11 @@ class PI0Policy:
         ]
 
     @torch.inference_mode()
-    def warmup(self) -> float:
-        """Run one chunk on a blank observation (black frames, zero state) so the first real request does not pay
-        for compilation, CUDA graph capture or first allocations; returns its seconds. The policy's seeded noise is
-        left untouched."""
+    def warmup(self, max_batch_size: int = 1) -> float:
+        """Run chunks on a blank observation (black frames, zero state) so that real requests do not pay for
+        compilation, CUDA graph capture or first allocations; returns the seconds it took. A compiled policy runs
+        every batch size up to `max_batch_size` (each is its own graph), an eager one batch 1. The policy's seeded
+        noise is left untouched."""
         start = time.monotonic()
         size = self.processor.image_size
         blank = {
@@ -192,11 +193,18 @@ class PI0Policy:
             "state": np.zeros(self.processor.state_dim, np.float32),
             "prompt": self.processor.default_prompt or "warm-up",
         }
-        inputs = {name: tensor.to(self.device) for name, tensor in self.prepare(blank).inputs.items()}
+        one = {name: tensor.to(self.device) for name, tensor in self.prepare(blank).inputs.items()}
         config = self.model.config
-        noise = torch.zeros(1, config.action_horizon, config.action_dim, device=self.device)
-        self.model.generate_actions(**inputs, noise=noise, num_steps=self.num_steps).cpu()
+        for batch in range(1, (max_batch_size if self.compiled else 1) + 1):
+            inputs = {name: torch.cat([tensor] * batch) for name, tensor in one.items()}  # laid out as real batches
+            noise = torch.zeros(batch, config.action_horizon, config.action_dim, device=self.device)
+            self.model.generate_actions(**inputs, noise=noise, num_steps=self.num_steps).cpu()
         return time.monotonic() - start
+
+    @property
+    def compiled(self) -> bool:
+        """Whether sampling runs through `torch.compile` (see `compile`)."""
+        return self.model._compiled_sample is not None
 
     def infer(self, observation: Mapping[str, Any]) -> dict[str, Any]:
         """Actions for one observation: `{"actions": float32 [horizon, robot action dims], "policy_timing": ...}`."""

@@ -1,17 +1,18 @@
 """`PI0Processor`: raw robot observations -> `PI0ForActionGeneration` inputs, and model actions -> robot actions.
 
-The processor reproduces openpi's data pipeline for π0 / π0.5 (`DeltaActions` -> `Normalize` -> `ResizeImages` ->
-`TokenizePrompt` -> `PadStatesAndActions`, and on the way out `Unnormalize` -> `AbsoluteActions` -> robot dims):
+The processor reproduces openpi's data pipeline for π0 / π0.5 (a robot's value conversion such as ALOHA's
+`adapt_to_pi` -> `DeltaActions` -> `Normalize` -> `ResizeImages` -> `TokenizePrompt` -> `PadStatesAndActions`, and on
+the way out `Unnormalize` -> `AbsoluteActions` -> robot dims -> the conversion back):
 
 - images: every camera of `camera_names`, in that order, resized with padding to `image_size` and mapped to
   [-1, 1] channels first (see `pi0_torch.images` for accepted frames); an absent camera is an all -1 image with
   mask False;
-- state: the robot's `state_dim` values, normalized (z-score for π0, quantile for π0.5, see
-  `pi0_torch.normalization`), zero-padded to `model_action_dim`;
+- state: the robot's `state_dim` values, converted with `value_conversion` if set (`pi0_torch.robot_spaces`),
+  normalized (z-score for π0, quantile for π0.5, see `pi0_torch.normalization`), zero-padded to `model_action_dim`;
 - prompt: cleaned and tokenized in the π0 format, or for π0.5 as `Task: ..., State: <bins>;\\nAction: ` with the
   normalized state discretized (see `pi0_torch.tokenization`), padded to `max_token_len`;
-- actions (training only): `[horizon, action_dim_robot]`, made relative to the state on the dims of
-  `delta_action_mask`, normalized, zero-padded to `model_action_dim`.
+- actions (training only): `[horizon, action_dim_robot]`, converted, made relative to the (converted) state on the
+  dims of `delta_action_mask`, normalized, zero-padded to `model_action_dim`.
 
 It is a plain class (not a `transformers.ProcessorMixin`, whose image-processor/tokenizer plumbing does not fit a
 robot policy's state/action statistics), registered with `AutoProcessor` for `PI0Config`:
@@ -70,6 +71,7 @@ from .normalization import (
     unnormalize,
     warn_degenerate,
 )
+from .robot_spaces import get_conversion
 from .tokenization import PromptTokenizer, TokenizerSource, load_tokenizer
 
 PROCESSOR_CONFIG_FILE = "processor_config.json"
@@ -100,6 +102,8 @@ class PI0Processor:
             `mask[i]` is True (may be shorter than the action dims; e.g. `[True] * 6 + [False]` for 6 joints and an
             absolute gripper). `postprocess_actions` then needs the raw state.
         min_norm_scale: floor of std / (q99 - q01) for near-constant dims (`pi0_torch.normalization`); 0 = openpi.
+        value_conversion: the robot's value conversion into the checkpoint's training space, `"aloha"` for openpi's
+            ALOHA `adapt_to_pi` (`pi0_torch.robot_spaces`); the norm stats are then those of the converted values.
         float_image_range: the value range of float frames: `(0, 1)` (default) or `(-1, 1)`.
         required_cameras: cameras every observation must have (error otherwise); by default any camera may be
             absent as long as one is present.
@@ -123,6 +127,7 @@ class PI0Processor:
         action_horizon: int | None = None,
         delta_action_mask: Sequence[bool] | None = None,
         min_norm_scale: float = DEFAULT_MIN_SCALE,
+        value_conversion: str | None = None,
         float_image_range: Sequence[float] = (0.0, 1.0),
         required_cameras: Sequence[str] | None = None,
         default_prompt: str | None = None,
@@ -176,6 +181,14 @@ class PI0Processor:
             self._action_stats = self.norm_stats["actions"].truncated(self.action_dim_robot)
             warn_degenerate(self._state_stats, self.norm_mode, "state", self.min_norm_scale)
             warn_degenerate(self._action_stats, self.norm_mode, "actions", self.min_norm_scale)
+
+        self.value_conversion = value_conversion
+        self._conversion = get_conversion(value_conversion) if value_conversion is not None else None
+        if self._conversion is not None and (self.state_dim, self.action_dim_robot) != (self._conversion.dim,) * 2:
+            raise ValueError(
+                f"value_conversion {value_conversion!r} applies to a state and actions of {self._conversion.dim} values, "
+                f"got state_dim {self.state_dim} and action_dim_robot {self.action_dim_robot}"
+            )
 
         self.delta_action_mask = [bool(m) for m in delta_action_mask] if delta_action_mask is not None else None
         delta_dims = len(self.delta_action_mask) if self.delta_action_mask is not None else 0
@@ -247,6 +260,7 @@ class PI0Processor:
             "action_horizon": self.action_horizon,
             "delta_action_mask": self.delta_action_mask,
             "min_norm_scale": self.min_norm_scale,
+            "value_conversion": self.value_conversion,
             "float_image_range": list(self.float_image_range),
             "required_cameras": self.required_cameras,
             "default_prompt": self.default_prompt,
@@ -405,9 +419,9 @@ class PI0Processor:
 
     def _encode(self, sample: Mapping[str, Any], where: str) -> dict[str, np.ndarray]:
         """One observation -> unbatched model arrays; `where` prefixes error messages (e.g. `"[3] "`)."""
-        raw_state = self._check_vector(sample.get("state"), where + "state", self.state_dim)
+        state = self._model_space_state(self._check_vector(sample.get("state"), where + "state", self.state_dim))
         pixel_values, image_masks = self._encode_images(sample.get("images"), where)
-        normalized_state = self._normalize(raw_state, self._state_stats)
+        normalized_state = self._normalize(state, self._state_stats)
 
         prompt = sample.get("prompt")
         if prompt is None:
@@ -429,7 +443,7 @@ class PI0Processor:
             "state": self._pad(normalized_state),
         }
         if sample.get("actions") is not None:
-            encoded["actions"] = self._encode_actions(sample["actions"], raw_state, where)
+            encoded["actions"] = self._encode_actions(sample["actions"], state, where)
         return encoded
 
     def _encode_images(self, images: Any, where: str) -> tuple[np.ndarray, np.ndarray]:
@@ -458,7 +472,8 @@ class PI0Processor:
             masks.append(name in present)
         return np.stack(frames), np.asarray(masks, bool)  # [C, 3, H, W], [C]
 
-    def _encode_actions(self, actions: Any, raw_state: np.ndarray, where: str) -> np.ndarray:
+    def _encode_actions(self, actions: Any, state: np.ndarray, where: str) -> np.ndarray:
+        """Robot actions `[horizon, action_dim_robot]` -> model targets; `state` is already in model space."""
         values = _as_numeric(actions, f"{where}actions")
         horizon = self.action_horizon if self.action_horizon is not None else "horizon"
         if values.ndim != 2 or values.shape[1] != self.action_dim_robot or (
@@ -467,8 +482,10 @@ class PI0Processor:
             raise ValueError(f"{where}actions: expected shape [{horizon}, {self.action_dim_robot}], got {values.shape}")
         if not np.all(np.isfinite(values)):
             raise ValueError(f"{where}actions: contains NaN or inf")
+        if self._conversion is not None:
+            values = self._conversion.actions_to_model(values)
         if self.delta_action_mask is not None:
-            values = apply_delta(values, raw_state, self.delta_action_mask)
+            values = apply_delta(values, state, self.delta_action_mask)
         return self._pad(self._normalize(values, self._action_stats))
 
     def _check_vector(self, value: Any, name: str, dim: int) -> np.ndarray:
@@ -481,6 +498,10 @@ class PI0Processor:
             bad = [int(i) for i in np.flatnonzero(~np.isfinite(array))]
             raise ValueError(f"{name}: contains NaN or inf at dims {bad}")
         return array
+
+    def _model_space_state(self, state: np.ndarray) -> np.ndarray:
+        """The robot's state `[..., state_dim]` in the checkpoint's space (unchanged without a value conversion)."""
+        return state if self._conversion is None else self._conversion.state_to_model(state)
 
     def _normalize(self, values: np.ndarray, stats: NormStats | None) -> np.ndarray:
         if stats is None:
@@ -498,9 +519,10 @@ class PI0Processor:
         """Model-space actions `[horizon, D]` or `[B, horizon, D]` (D = `model_action_dim` or the robot's dims)
         -> robot actions `[..., horizon, action_dim_robot]` in robot units, float32.
 
-        Keeps the robot's dims, unnormalizes them, and with a `delta_action_mask` adds back the raw (unnormalized)
-        `state` (`[state_dim]`, or `[B, state_dim]` for a batch), like openpi's `AbsoluteActions`. numpy in -> numpy
-        out; torch in -> torch out on the same device.
+        Keeps the robot's dims, unnormalizes them, with a `delta_action_mask` adds back the robot's raw (unnormalized)
+        `state` (`[state_dim]`, or `[B, state_dim]` for a batch) like openpi's `AbsoluteActions`, and with a
+        `value_conversion` converts the result to the robot's units. numpy in -> numpy out; torch in -> torch out
+        on the same device.
         """
         if not isinstance(actions, (np.ndarray, torch.Tensor)):
             raise ValueError(f"actions: expected a numpy array or torch tensor, got {type(actions).__name__}")
@@ -526,11 +548,13 @@ class PI0Processor:
                     f"state: expected shape {list(expected)} for actions of shape {tuple(actions.shape)}, "
                     f"got {list(raw_state.shape)}"
                 )
+            state_values = self._model_space_state(raw_state).astype(np.float32)
             if is_torch:
-                state_values = torch.as_tensor(raw_state, dtype=torch.float32, device=robot.device)
-            else:
-                state_values = raw_state.astype(np.float32)
+                state_values = torch.as_tensor(state_values, device=robot.device)
             robot = apply_delta(robot, state_values, self.delta_action_mask, inverse=True)
+        if self._conversion is not None:
+            converted = self._conversion.actions_to_robot(robot.cpu().numpy() if is_torch else robot)
+            robot = torch.as_tensor(converted, device=robot.device) if is_torch else converted
         return robot.float() if is_torch else robot.astype(np.float32)
 
 

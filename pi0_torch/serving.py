@@ -16,8 +16,9 @@ unchanged:
   next observation; other clients are never affected.
 - `GET /healthz` answers `200 OK`, like openpi's server.
 
-Before it listens, the server runs one warm-up chunk on a blank observation, on the thread that will run the model
-(with `--compile`, this is when compilation and CUDA graph capture happen), so the robot's first request is not slow.
+Before it listens, the server runs a warm-up chunk on a blank observation, on the thread that will run the model
+(with `--compile`, one per batch size up to `max_batch_size`: this is when compilation and CUDA graph capture
+happen), so the robot's first request is not slow.
 
 Concurrency: any number of clients may connect. Decoding and preprocessing run in a small thread pool; the model
 runs on one dedicated thread, so inference is serialized and the event loop keeps answering pings, health checks and
@@ -157,8 +158,9 @@ class ServedPolicy(Protocol):
     def infer_prepared(self, prepared: Sequence[Any]) -> list[dict[str, Any]]:
         """Run the model on prepared observations (a batch) and return one action dict per observation."""
 
-    def warmup(self) -> float:
-        """Run once on a blank observation (compilation, first allocations); returns its seconds."""
+    def warmup(self, max_batch_size: int) -> float:
+        """Run on a blank observation, for the batch sizes up to `max_batch_size` that need it (compilation, first
+        allocations); returns its seconds."""
 
 
 class _ShuttingDown(RuntimeError):
@@ -208,7 +210,7 @@ class PolicyServer:
         self.host = host
         self.port = port
         self.obs_format = obs_format or ObservationFormat.from_preset("default")
-        self.obs_format.check_policy(policy.camera_names, policy.metadata.get("state_dim"), policy.metadata.get("action_dim"))
+        self.obs_format.check_cameras(policy.camera_names)
         self.max_batch_size = max_batch_size
         self.max_message_bytes = max_message_bytes
         self.metadata = {
@@ -283,8 +285,8 @@ class PolicyServer:
         worker: asyncio.Task[None] | None = None
         try:
             # on the model thread, where every later inference runs (CUDA graphs are recorded per thread)
-            seconds = await asyncio.get_running_loop().run_in_executor(model_thread, self.policy.warmup)
-            logger.info("warm-up chunk in %.1f s", seconds)
+            seconds = await asyncio.get_running_loop().run_in_executor(model_thread, self.policy.warmup, self.max_batch_size)
+            logger.info("warm-up in %.1f s", seconds)
             worker = asyncio.create_task(self._run_model(model_thread))
             async with serve(
                 lambda ws: self._handle(ws, prepare_pool),
@@ -357,7 +359,6 @@ class PolicyServer:
                 logger.info("%s: disconnected before its actions were ready", peer)
                 return None
             reply = job.future.result()
-            reply["actions"] = self.obs_format.actions_to_robot(reply["actions"])
         except (MessageError, ObservationError) as error:
             logger.warning("%s: bad request: %s", peer, error)
             return f"invalid request: {error}"

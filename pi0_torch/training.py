@@ -31,7 +31,7 @@ import argparse
 import json
 import logging
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -42,11 +42,13 @@ from safetensors.torch import load_file, save_file
 from torch import nn
 from transformers import Trainer, TrainerCallback, TrainerControl, TrainerState, TrainingArguments
 
+from .cli import bool_mask
 from .configuration_pi0 import PI0Config, preset_names
 from .lerobot_dataset import LeRobotEpisodeDataset, split_episodes
 from .modeling_pi0 import PI0ForActionGeneration
 from .normalization import compute_norm_stats, load_openpi_norm_stats
 from .processing_pi0 import PI0Processor
+from .robot_spaces import CONVERSIONS, get_conversion
 from .tokenization import build_test_tokenizer
 
 logger = logging.getLogger(__name__)
@@ -427,6 +429,8 @@ def evaluate_policy(
         predictions.append(processor.postprocess_actions(actions.numpy(), state=raw_state if processor.delta_action_mask else None))
         targets.append(np.stack([s["actions"] for s in samples]))
         mean = np.zeros(processor.action_dim_robot) if action_stats is None else action_stats.mean[: processor.action_dim_robot]
+        if processor.value_conversion is not None:  # the statistics describe converted actions
+            mean = get_conversion(processor.value_conversion).actions_to_robot(mean)
         baselines.append(np.broadcast_to(mean, targets[-1].shape).astype(np.float32))
         prompts += [s["prompt"] for s in samples]
         episodes += [s["episode_index"] for s in samples]
@@ -457,6 +461,7 @@ class TrainSettings:
     eval_split: str | None = None
     short_episodes: str = "pad"
     delta_action_mask: list[bool] | None = None
+    value_conversion: str | None = None
     max_steps: int = 30_000
     batch_size: int = 32
     gradient_accumulation_steps: int = 1
@@ -517,9 +522,13 @@ def build_processor(settings: TrainSettings, config: PI0Config, dataset: LeRobot
         raise ValueError("no tokenizer: pass --tokenizer PATH (PaliGemma's SentencePiece model), or --tokenizer test for a tiny demo model")
 
     if settings.norm_stats == "dataset":
+        chunks: Iterable[dict[str, np.ndarray]] = dataset.iter_state_action_chunks()
+        if settings.value_conversion is not None:  # the statistics of what the model sees
+            conversion = get_conversion(settings.value_conversion)
+            chunks = ({"state": conversion.state_to_model(c["state"]), "actions": conversion.actions_to_model(c["actions"])}
+                      for c in chunks)
         norm_stats = compute_norm_stats(
-            dataset.iter_state_action_chunks(), delta_action_mask=settings.delta_action_mask,
-            total=len(dataset.episodes), progress=settings.progress,
+            chunks, delta_action_mask=settings.delta_action_mask, total=len(dataset.episodes), progress=settings.progress,
         )
     elif settings.norm_stats == "model":
         if not model_has_processor:
@@ -530,6 +539,7 @@ def build_processor(settings: TrainSettings, config: PI0Config, dataset: LeRobot
     return PI0Processor.from_config(
         config, tokenizer, norm_stats,
         state_dim=dataset.state_dim, action_dim_robot=dataset.action_dim, delta_action_mask=settings.delta_action_mask,
+        value_conversion=settings.value_conversion,
     )
 
 
@@ -668,13 +678,6 @@ def _key_value(text: str) -> tuple[str, str]:
     return name, value
 
 
-def _bool_mask(text: str) -> list[bool]:
-    try:
-        return [bool(int(v)) for v in text.split(",")]
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected comma-separated 0/1 values, got {text!r}") from None
-
-
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of `pi0-torch train` (openpi's recipe by default)."""
     data = parser.add_argument_group("data")
@@ -687,8 +690,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     data.add_argument("--action-key", default="action")
     data.add_argument("--short-episodes", choices=("pad", "skip", "error"), default="pad",
                       help="episodes shorter than the action horizon: pad with the last action (default), skip, or fail")
-    data.add_argument("--delta-action-mask", type=_bool_mask, metavar="1,1,...,0",
+    data.add_argument("--delta-action-mask", type=bool_mask, metavar="1,1,...,0",
                       help="action dims predicted relative to the state (openpi DeltaActions)")
+    data.add_argument("--value-conversion", choices=sorted(CONVERSIONS), help="convert the robot's state and actions "
+                      "into the base model's space, as openpi does for ALOHA data (adapt_to_pi); saved with the processor")
     data.add_argument("--num-workers", type=int, default=0, help="DataLoader workers per process")
 
     model = parser.add_argument_group("model")

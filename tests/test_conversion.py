@@ -125,6 +125,22 @@ def test_processor_loads_from_converted_folder(tmp_path: Path) -> None:
     assert processor.tokenizer.vocab_size == tokenizer.vocab_size
 
 
+def test_processor_settings_from_the_command_line(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """`--delta-action-mask` / `--value-conversion` go into the saved processor; a setting that cannot apply to the
+    checkpoint's norm stats fails before any weight is written."""
+    build_test_tokenizer(save_to=tmp_path / "tok.model")
+    common = ["--from", "openpi", "--input", str(step_dir("pi0_small")), "--tokenizer", str(tmp_path / "tok.model")]
+    assert run_cli(*common, "--output-dir", str(tmp_path / "delta"), "--delta-action-mask", "1,1,1,0", "--no-progress") == 0
+    assert PI0Processor.from_pretrained(tmp_path / "delta").delta_action_mask == [True, True, True, False]
+    assert run_cli(*common, "--output-dir", str(tmp_path / "aloha"), "--value-conversion", "aloha") == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith("error: cannot build the processor") and "applies to a state and actions of 14 values" in err[-1]
+    assert not (tmp_path / "aloha").exists()
+    assert run_cli("--from", "openpi", "--input", str(step_dir("pi0_small")), "--output-dir", str(tmp_path / "x"),
+                   "--value-conversion", "aloha") == 1
+    assert "need --tokenizer and norm stats" in capsys.readouterr().err
+
+
 def test_sharded_output(converted: dict, tmp_path: Path) -> None:
     out = convert_openpi_checkpoint(step_dir("pi0_small"), tmp_path / "sharded", max_shard_bytes="300kB", progress=False).output_dir
     shards = sorted(p.name for p in out.glob("*.safetensors"))

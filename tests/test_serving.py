@@ -32,7 +32,7 @@ import websockets.sync.client
 
 from pi0_torch import PI0Config, PI0ForActionGeneration
 from pi0_torch.normalization import NormStats
-from pi0_torch.observation_formats import ALOHA_TO_PI, ObservationError, ObservationFormat
+from pi0_torch.observation_formats import ObservationError, ObservationFormat
 from pi0_torch.policy import PI0Policy
 from pi0_torch.processing_pi0 import PI0Processor
 from pi0_torch.serving import MessageError, PolicyServer, pack_message, unpack_message
@@ -250,16 +250,15 @@ def run_client(client_python: Path, tmp_path: Path, **plan: Any) -> dict[str, An
 # --------------------------------------------------------------------------------------------- a real model
 
 
-def save_random_model(directory: Path, preset: str, state_dim: int = STATE_DIM, action_dim: int = ACTION_DIM) -> Path:
-    """A random model with a processor for `state_dim` / `action_dim` robot values (default LIBERO's), saved as a
-    converted model is."""
+def save_random_model(directory: Path, preset: str) -> Path:
+    """A random model with a LIBERO-sized processor (state 8, actions 7), saved as a converted model is."""
     torch.manual_seed(0)
     config = PI0Config.from_preset(preset, num_inference_steps=2)
     PI0ForActionGeneration(config).save_pretrained(directory)
     rng = np.random.default_rng(0)
     stats = {
         key: NormStats(mean=rng.normal(size=dim), std=rng.uniform(0.5, 2.0, size=dim), q01=-np.ones(dim), q99=np.ones(dim))
-        for key, dim in (("state", state_dim), ("actions", action_dim))
+        for key, dim in (("state", STATE_DIM), ("actions", ACTION_DIM))
     }
     PI0Processor.from_config(config, tokenizer=build_test_tokenizer(), norm_stats=stats).save_pretrained(directory)
     return directory
@@ -377,64 +376,16 @@ def test_format_from_json_and_its_checks(tmp_path: Path) -> None:
     assert fmt.name == "my_robot" and fmt.describe()["state"] == ["arm", ["obs", "gripper"]]
     obs = fmt.to_default({"obs": {"front": _frame(), "gripper": 1.0}, "arm": [0.1, 0.2], "task": "fold"})
     assert list(obs["images"]) == ["base_0_rgb"] and obs["state"].tolist() == pytest.approx([0.1, 0.2, 1.0])
-    fmt.check_policy(["base_0_rgb", "left_wrist_0_rgb", "right_wrist_0_rgb"], 3, 7)
+    fmt.check_cameras(["base_0_rgb", "left_wrist_0_rgb", "right_wrist_0_rgb"])
     with pytest.raises(ValueError, match="model does not have"):
-        fmt.check_policy(["base_0_rgb"], 3, 7)
-    assert fmt.conversion is None and fmt.describe()["conversion"] is None
-    converted = ObservationFormat.from_dict({**spec, "conversion": "aloha"})
-    assert converted.conversion is ALOHA_TO_PI and converted.describe()["conversion"] == "aloha"
-    with pytest.raises(ValueError, match="needs a state and actions of 14 values, the policy has state_dim 3"):
-        converted.check_policy(["base_0_rgb", "left_wrist_0_rgb"], 3, 7)
+        fmt.check_cameras(["base_0_rgb"])
     for bad, reason in (({"images": {}, "state": ["s"]}, "maps no camera"), ({"images": "i"}, "missing key 'state'"),
                         ({"images": "i", "state": "s"}, "non-empty list"), ({"images": "i", "state": ["s"], "x": 1}, "unknown keys"),
-                        ({"images": {"a": "k"}, "state": ["s"], "optional_images": ["b"]}, "not mapped"),
-                        ({"images": "i", "state": ["s"], "conversion": "ur5"}, "unknown conversion 'ur5'")):
+                        ({"images": {"a": "k"}, "state": ["s"], "optional_images": ["b"]}, "not mapped")):
         with pytest.raises(ValueError, match=reason):
             ObservationFormat.from_dict(bad)
     with pytest.raises(ValueError, match="unknown observation format 'bridge'"):
         ObservationFormat.resolve("bridge")
-
-
-def test_aloha_conversion_matches_openpis_adapt_to_pi_on_known_values() -> None:
-    """openpi's ALOHA transforms at points worked out by hand: two joints per arm flip sign; a fully open gripper
-    (0.058 m) is the linkage at arcsin(1) = pi/2, a closed one (0.01844 m) at arcsin(-0.58170); a gripper action
-    goes from PI's angle to ALOHA's normalised joint range."""
-    state = np.arange(1, 15, dtype=np.float32) / 10
-    state[6], state[13] = 1.0, 0.0  # left gripper fully open, right one closed (ALOHA's normalised opening)
-    converted = ALOHA_TO_PI.state_to_model(state)
-    signs = np.array([1, -1, -1, 1, 1, 1, 1] * 2)
-    joints = [i for i in range(14) if i not in (6, 13)]
-    np.testing.assert_allclose(converted[joints], (signs * state)[joints], rtol=1e-6)
-    np.testing.assert_allclose(converted[6], (np.pi / 2 - 0.5476) / (1.6296 - 0.5476), rtol=1e-5)
-    np.testing.assert_allclose(converted[13], (np.arcsin(-0.5816979) - 0.5476) / (1.6296 - 0.5476), rtol=1e-4)
-
-    actions = np.tile(state, (2, 1))
-    actions[:, 6], actions[:, 13] = 0.0, 1.0621  # PI gripper angles
-    robot = ALOHA_TO_PI.actions_to_robot(actions)
-    np.testing.assert_allclose(robot[:, joints], (signs * actions)[:, joints], rtol=1e-6)
-    np.testing.assert_allclose(robot[:, 6], (0.5476 + 0.6213) / (1.4910 + 0.6213), rtol=1e-5)
-    np.testing.assert_allclose(robot[:, 13], (1.0621 + 0.5476 + 0.6213) / (1.4910 + 0.6213), rtol=1e-5)
-    assert converted.dtype == robot.dtype == np.float32
-
-
-def test_aloha_server_converts_the_state_in_and_the_actions_out(tmp_path: Path) -> None:
-    """Served with the `aloha` format, a request gives what the policy gives for the converted state, converted back."""
-    model_dir = save_random_model(tmp_path / "aloha", "pi0_small", state_dim=14, action_dim=14)
-    rng = np.random.default_rng(0)
-    state = rng.uniform(0.1, 0.9, 14).astype(np.float32)
-    high, wrist = rng.integers(0, 256, (2, 3, 96, 128), dtype=np.uint8)
-    aloha = ObservationFormat.from_preset("aloha")
-    with running_server(PI0Policy.from_pretrained(model_dir, device="cpu", seed=7), obs_format=aloha) as port:
-        with websockets.sync.client.connect(f"ws://127.0.0.1:{port}", compression=None, max_size=None) as ws:
-            assert unpack_message(ws.recv())["observation_format"]["conversion"] == "aloha"
-            ws.send(pack_message({"images": {"cam_high": high, "cam_low": high, "cam_left_wrist": wrist},
-                                  "state": state, "prompt": "fold the towel"}))
-            served = unpack_message(ws.recv())["actions"]
-    local = PI0Policy.from_pretrained(model_dir, device="cpu", seed=7)
-    expected = local.infer({"images": {"base_0_rgb": high, "left_wrist_0_rgb": wrist},
-                            "state": ALOHA_TO_PI.state_to_model(state), "prompt": "fold the towel"})["actions"]
-    np.testing.assert_array_equal(served, ALOHA_TO_PI.actions_to_robot(expected))
-    assert not np.allclose(served, expected)
 
 
 # --------------------------------------------------------------------------------------------- with the real client
@@ -464,40 +415,42 @@ def test_pi05_is_served_too(client_python: Path, tmp_path: Path) -> None:
     assert result["replies"][0]["shape"] == [50, ACTION_DIM] and result["replies"][0]["finite"]
 
 
+def in_process_first_reply(model_dir: Path, seed: int) -> np.ndarray:
+    """The actions a fresh eager policy gives for the client script's first observation (rebuilt here)."""
+    rng = np.random.default_rng(0)
+    base = rng.integers(0, 256, (96, 128, 3), dtype=np.uint8)
+    wrist = rng.integers(0, 256, (3, 64, 64), dtype=np.uint8)
+    state = rng.standard_normal(STATE_DIM).astype(np.float32)
+    local = PI0Policy.from_pretrained(model_dir, device="cpu", seed=seed)
+    return local.infer({"images": {"base_0_rgb": base, "left_wrist_0_rgb": wrist}, "state": state,
+                        "prompt": "pick up the fork"})["actions"]
+
+
 def test_served_actions_equal_in_process_actions(model_dir: Path, client_python: Path, tmp_path: Path) -> None:
     """Same seed, same observation: the actions through the websocket are the policy's own, bit for bit."""
     with running_server(PI0Policy.from_pretrained(model_dir, device="cpu", seed=123)) as port:
         result = run_client(client_python, tmp_path, mode="infer", port=port, requests=1)
-    rng = np.random.default_rng(0)  # the client script's first observation, rebuilt here
-    base = rng.integers(0, 256, (96, 128, 3), dtype=np.uint8)
-    wrist = rng.integers(0, 256, (3, 64, 64), dtype=np.uint8)
-    state = rng.standard_normal(STATE_DIM).astype(np.float32)
-    local = PI0Policy.from_pretrained(model_dir, device="cpu", seed=123)
-    expected = local.infer({"images": {"base_0_rgb": base, "left_wrist_0_rgb": wrist}, "state": state,
-                            "prompt": "pick up the fork"})["actions"]
+    expected = in_process_first_reply(model_dir, seed=123)
     assert np.array_equal(np.asarray(result["replies"][0]["actions"], np.float32), expected)
 
 
 def test_compiled_policy_is_warmed_up_before_serving_and_serves_the_same_actions(
     model_dir: Path, client_python: Path, tmp_path: Path
 ) -> None:
-    """`compile=True` (`serve --compile`): compiled during the warm-up, then the eager policy's actions."""
+    """`compile=True` (`serve --compile`): every batch size up to max_batch_size is compiled during the warm-up;
+    requests, single or batched, then compile nothing and get the eager policy's actions."""
     from torch._dynamo.utils import counters
 
     compiled = PI0Policy.from_pretrained(model_dir, device="cpu", seed=123, compile=True)
     graphs_before = counters["stats"]["unique_graphs"]
-    with running_server(compiled) as port:
+    with running_server(compiled, max_batch_size=2) as port:
         graphs_warm = counters["stats"]["unique_graphs"]
         result = run_client(client_python, tmp_path, mode="infer", port=port, requests=1)
-    assert graphs_warm > graphs_before, "the warm-up did not compile"
-    assert counters["stats"]["unique_graphs"] == graphs_warm, "the request compiled again"
-    rng = np.random.default_rng(0)  # the client script's first observation, rebuilt here
-    base = rng.integers(0, 256, (96, 128, 3), dtype=np.uint8)
-    wrist = rng.integers(0, 256, (3, 64, 64), dtype=np.uint8)
-    state = rng.standard_normal(STATE_DIM).astype(np.float32)
-    eager = PI0Policy.from_pretrained(model_dir, device="cpu", seed=123)
-    expected = eager.infer({"images": {"base_0_rgb": base, "left_wrist_0_rgb": wrist}, "state": state,
-                            "prompt": "pick up the fork"})["actions"]
+        load = run_client(client_python, tmp_path, mode="load", port=port, clients=3, requests=2, rude=0)
+    assert graphs_warm >= graphs_before + 2, "the warm-up did not compile batch sizes 1 and 2"
+    assert counters["stats"]["unique_graphs"] == graphs_warm, "a request compiled again"
+    assert load["failed"] == [] and load["ok"] == 6 and 1 <= load["max_batch"] <= 2  # batching is up to timing
+    expected = in_process_first_reply(model_dir, seed=123)  # eager
     np.testing.assert_allclose(np.asarray(result["replies"][0]["actions"], np.float32), expected, rtol=1e-4, atol=1e-4)
 
 

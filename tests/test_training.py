@@ -384,6 +384,37 @@ def test_norm_stats_sources(dataset_root: Path, tmp_path: Path) -> None:
         load_config(settings(dataset_root, tmp_path, model="pi0_tiny"))
 
 
+class _AlohaEpisodes:
+    """What `build_processor` reads of a dataset, for a 14-dim (ALOHA) robot: two episodes, no images."""
+
+    def __init__(self) -> None:
+        rng = np.random.default_rng(3)
+        self.chunks = [{"state": rng.uniform(0.1, 0.9, (5, 14)), "actions": rng.uniform(0.1, 0.9, (5, 4, 14))} for _ in range(2)]
+        self.episodes, self.tasks, self.state_dim, self.action_dim = [0, 1], {0: "fold the towel"}, 14, 14
+
+    def iter_state_action_chunks(self):
+        return iter(self.chunks)
+
+
+def test_value_conversion_norm_stats_describe_the_converted_values(dataset_root: Path, tmp_path: Path) -> None:
+    """`--value-conversion aloha`: the processor converts (as openpi's ALOHA data configs do) and its statistics are
+    those of the converted state and actions, deltas included, as openpi computes them."""
+    from pi0_torch.robot_spaces import get_conversion
+
+    aloha, episodes = get_conversion("aloha"), _AlohaEpisodes()
+    mask = [True] * 6 + [False] + [True] * 6 + [False]
+    config = PI0Config.from_preset("pi0_small")  # 32 action dims: room for ALOHA's 14
+    processor = build_processor(settings(dataset_root, tmp_path, value_conversion="aloha", delta_action_mask=mask), config, episodes)
+    assert processor.value_conversion == "aloha"
+    states = np.concatenate([aloha.state_to_model(c["state"]) for c in episodes.chunks])
+    targets = np.concatenate([
+        (aloha.actions_to_model(c["actions"]) - np.where(mask, aloha.state_to_model(c["state"]), 0)[:, None]).reshape(-1, 14)
+        for c in episodes.chunks
+    ])
+    np.testing.assert_allclose(processor.norm_stats["state"].mean, states.mean(0), rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(processor.norm_stats["actions"].mean, targets.mean(0), rtol=1e-5, atol=1e-6)
+
+
 def test_cli_arguments_map_to_settings(dataset_root: Path, tmp_path: Path) -> None:
     parser = argparse.ArgumentParser()
     add_arguments(parser)
@@ -391,11 +422,12 @@ def test_cli_arguments_map_to_settings(dataset_root: Path, tmp_path: Path) -> No
         "--dataset", str(dataset_root), "--model", "pi0_small", "--output-dir", str(tmp_path / "cli"),
         "--config-overrides", json.dumps(TINY), "--tokenizer", "test", "--max-steps", "2", "--batch-size", "2",
         "--lora", "--freeze", "vision", "--bf16", "--gradient-checkpointing", "--ema-decay",
-        "--camera", f"base_0_rgb={CAMERA_KEY}", "--delta-action-mask", "1,0",
+        "--camera", f"base_0_rgb={CAMERA_KEY}", "--delta-action-mask", "1,0", "--value-conversion", "aloha",
     ])
     run = settings_from_args(args)
     assert run.lora and run.bf16 and run.gradient_checkpointing and run.freeze == ["vision"] and run.ema_decay == 0.99
     assert run.camera_map == {"base_0_rgb": CAMERA_KEY} and run.delta_action_mask == [True, False]
+    assert run.value_conversion == "aloha"
     assert run.learning_rate == 2.5e-5 and run.warmup_steps == 1000 and run.weight_decay == 1e-10 and run.max_grad_norm == 1.0
 
 
