@@ -6,6 +6,8 @@ CUDA allocator's peak on GPU, the process's peak resident set size (sampled ever
 
     pi0-torch bench                                     # small + medium, 1 and 3 cameras, batch 1 and 8
     pi0-torch bench --presets pi0 --dtypes bfloat16 --cameras 3 --batches 1   # full size
+    pi0-torch bench --presets pi0 --dtypes bfloat16 --cameras 3 --batches 1 --compile --device cuda
+                                                        # GPU: eager, compiled and one-CUDA-graph rows
     pi0-torch bench --side-by-side                      # against transformers' PI0, identical weights
     pi0-torch bench --loading                           # peak RSS of from_pretrained on a full-size bf16 checkpoint
 """
@@ -21,6 +23,7 @@ import time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
+from typing import Any
 
 import psutil
 import torch
@@ -161,26 +164,37 @@ def random_model(config: PI0Config, dtype: torch.dtype, device: torch.device) ->
 # -- benchmarks -------------------------------------------------------------------------------------------------------------
 
 
+def generate_modes(compile: bool, device: torch.device) -> dict[str, dict[str, Any] | None]:
+    """How `generate_actions` runs, by name -> `compile_sampling` arguments (None: eager). With `--compile`: also
+    compiled, and on CUDA compiled and replayed as one CUDA graph."""
+    modes: dict[str, dict[str, Any] | None] = {"eager": None}
+    if compile:
+        modes["compiled"] = {}
+        if device.type == "cuda":
+            modes["cuda-graph"] = {"mode": "reduce-overhead"}
+    return modes
+
+
 def bench_generate(args: argparse.Namespace, device: torch.device) -> None:
-    print(f"\ngenerate_actions on {device_name(device)}, {TEXT_TOKENS} text tokens, 50 actions, 10 steps"
-          f"{', torch.compile' if args.compile else ''}")
+    print(f"\ngenerate_actions on {device_name(device)}, {TEXT_TOKENS} text tokens, 50 actions, 10 steps")
     peaks = {dtype: matmul_throughput(device, getattr(torch, dtype)) for dtype in args.dtypes}
     print("measured matmul ceiling: " + ", ".join(f"{d} {v / 1e9:.0f} GFLOP/s" for d, v in peaks.items()))
-    print(f"{'preset':12s} {'dtype':9s} {'cams':>4s} {'batch':>5s} {'median ms':>10s} {'min ms':>10s} {'max ms':>10s} "
-          f"{'peak MiB':>10s} {'GFLOP/s':>8s} {'% peak':>6s}")
+    print(f"{'preset':12s} {'dtype':9s} {'mode':10s} {'cams':>4s} {'batch':>5s} {'median ms':>10s} {'min ms':>10s} "
+          f"{'max ms':>10s} {'peak MiB':>10s} {'GFLOP/s':>8s} {'% peak':>6s}")
     for preset in args.presets:
         config = PI0Config.from_preset(preset)
         for dtype_name in args.dtypes:
             model = random_model(config, getattr(torch, dtype_name), device)
-            if args.compile:
-                model.compile_sampling(mode="reduce-overhead" if device.type == "cuda" else None)
-            for cameras in args.cameras:
-                for batch in args.batches:
-                    inputs = example_batch(config, cameras, batch, device)
-                    timing = time_call(lambda: model.generate_actions(**inputs), device, args.repeats, warmup=2 if args.compile else 1)
-                    achieved = generate_flops(config, cameras, batch) / timing.median
-                    print(f"{preset:12s} {dtype_name:9s} {cameras:4d} {batch:5d} {timing.row()} "
-                          f"{achieved / 1e9:8.0f} {100 * achieved / peaks[dtype_name]:6.0f}")
+            for mode, compile_arguments in generate_modes(args.compile, device).items():
+                model.compile_sampling(**(compile_arguments if compile_arguments is not None else {"disable": True}))
+                for cameras in args.cameras:
+                    for batch in args.batches:
+                        inputs = example_batch(config, cameras, batch, device)
+                        warmup = 1 if compile_arguments is None else 3  # compiling; CUDA graphs record on a later call
+                        timing = time_call(lambda: model.generate_actions(**inputs), device, args.repeats, warmup=warmup)
+                        achieved = generate_flops(config, cameras, batch) / timing.median
+                        print(f"{preset:12s} {dtype_name:9s} {mode:10s} {cameras:4d} {batch:5d} {timing.row()} "
+                              f"{achieved / 1e9:8.0f} {100 * achieved / peaks[dtype_name]:6.0f}")
             del model
             gc.collect()
 
@@ -301,7 +315,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--batches", type=_csv(int), default=[1, 8])
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--compile", action="store_true", help="also use torch.compile (CUDA graphs on GPU)")
+    parser.add_argument("--compile", action="store_true", help="also time compiled sampling (and on CUDA, compiled as one CUDA graph)")
     parser.add_argument("--train", action="store_true", help="also time a training step")
     parser.add_argument("--side-by-side", action="store_true", help="also compare with transformers' PI0")
     parser.add_argument("--side-by-side-preset", default="pi0_medium")
