@@ -78,19 +78,22 @@ def peak_memory(device: torch.device) -> Iterator[list[int]]:
         result[0] = max(peak, process.memory_info().rss)
 
 
+def seconds(fn: Callable[[], object], device: torch.device) -> float:
+    """Wall time of one call of `fn`, with the device's queued work finished before and after."""
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+    start = time.perf_counter()
+    fn()
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+    return time.perf_counter() - start
+
+
 def time_call(fn: Callable[[], object], device: torch.device, repeats: int, warmup: int = 1) -> Timing:
     for _ in range(warmup):
         fn()
-    durations = []
     with peak_memory(device) as peak:
-        for _ in range(repeats):
-            if device.type == "cuda":
-                torch.cuda.synchronize(device)
-            start = time.perf_counter()
-            fn()
-            if device.type == "cuda":
-                torch.cuda.synchronize(device)
-            durations.append(time.perf_counter() - start)
+        durations = [seconds(fn, device) for _ in range(repeats)]
     return Timing(statistics.median(durations), min(durations), max(durations), peak[0])
 
 
@@ -103,13 +106,7 @@ def time_alternating(fns: Sequence[Callable[[], object]], device: torch.device, 
     for round_ in range(repeats):
         order = range(len(fns)) if round_ % 2 == 0 else reversed(range(len(fns)))
         for index in order:
-            if device.type == "cuda":
-                torch.cuda.synchronize(device)
-            start = time.perf_counter()
-            fns[index]()
-            if device.type == "cuda":
-                torch.cuda.synchronize(device)
-            durations[index].append(time.perf_counter() - start)
+            durations[index].append(seconds(fns[index], device))
     return durations
 
 
@@ -244,26 +241,28 @@ def bench_side_by_side(args: argparse.Namespace, device: torch.device) -> None:
     noise = torch.randn(1, config.action_horizon, config.action_dim, generator=torch.Generator().manual_seed(1)).to(device)
     their_inputs = transformers_pi0_inputs(inputs, config)
     eager_sample = theirs.sample_actions
-    modes = [("eager", torch.float32, False)] + ([("compiled", torch.float32, True)] if args.compile else [])
-    modes.append(("eager", torch.bfloat16, False))  # last: the weights are rounded to bf16 in place
-    print(f"{'mode':9s} {'dtype':9s} {'ours ms':>15s} {'transformers ms':>17s} {'speedup':>8s} {'max |diff|':>11s}")
-    for label, dtype, compiled in modes:
-        ours.compile_sampling(**({"mode": "reduce-overhead"} if device.type == "cuda" else {}), disable=not compiled)
-        theirs.sample_actions = torch.compile(eager_sample) if compiled else eager_sample  # type: ignore[method-assign]
+    modes = [(mode, torch.float32, arguments) for mode, arguments in generate_modes(args.compile, device).items()]
+    modes.append(("eager", torch.bfloat16, None))  # last: the weights are rounded to bf16 in place
+    print(f"{'mode':10s} {'dtype':9s} {'ours ms':>15s} {'transformers ms':>17s} {'speedup':>8s} {'max |diff|':>11s}")
+    for label, dtype, compile_arguments in modes:  # both models compiled alike
+        ours.compile_sampling(**(compile_arguments if compile_arguments is not None else {"disable": True}))
+        theirs.sample_actions = (  # type: ignore[method-assign]
+            eager_sample if compile_arguments is None else torch.compile(eager_sample, **compile_arguments)
+        )
         ours.to(dtype)
         theirs.to(dtype)
-        # transformers' PI0 takes floating inputs in its weights' dtype
+        # transformers' PI0 takes floating inputs (noise too) in its weights' dtype
         their_dtype_inputs = {k: v.to(dtype) if v.is_floating_point() else v for k, v in their_inputs.items()}
+        their_dtype_inputs["noise"] = noise.to(dtype)
         ours_actions = ours.generate_actions(**inputs, noise=noise)
-        their_actions = theirs.sample_actions(**their_dtype_inputs, noise=noise.to(dtype))
+        their_actions = theirs.sample_actions(**their_dtype_inputs)
         difference = (ours_actions - their_actions.float()).abs().max().item()
         ours_times, their_times = time_alternating(
-            [lambda: ours.generate_actions(**inputs, noise=noise),
-             lambda: theirs.sample_actions(**their_dtype_inputs, noise=noise.to(dtype))],
+            [lambda: ours.generate_actions(**inputs, noise=noise), lambda: theirs.sample_actions(**their_dtype_inputs)],
             device, args.repeats,
         )
         ours_median, their_median = statistics.median(ours_times), statistics.median(their_times)
-        print(f"{label:9s} {str(dtype).removeprefix('torch.'):9s} {ours_median * 1e3:7.1f} ({min(ours_times) * 1e3:5.1f}) "
+        print(f"{label:10s} {str(dtype).removeprefix('torch.'):9s} {ours_median * 1e3:7.1f} ({min(ours_times) * 1e3:5.1f}) "
               f"{their_median * 1e3:9.1f} ({min(their_times) * 1e3:5.1f}) {their_median / ours_median:7.2f}x {difference:11.2e}")
 
 

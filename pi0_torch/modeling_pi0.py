@@ -624,10 +624,10 @@ class PI0ForActionGeneration(PI0PreTrainedModel):
             noise = torch.randn(shape, generator=generator, device=pixel_values.device, dtype=torch.float32)
         _check_tensor("noise", noise, shape, floating=True)
         times = euler_times(config.num_inference_steps if num_steps is None else num_steps)
-        if self._compiled_sample is None:
-            return self._sample(pixel_values, image_masks, input_ids, attention_mask, state, noise.float(), times)
-        actions = self._compiled_sample(pixel_values, image_masks, input_ids, attention_mask, state, noise.float(), times)
-        return actions.clone()  # a CUDA graph's output is overwritten by its next replay; the caller's copy is not
+        sample = self._sample if self._compiled_sample is None else self._compiled_sample
+        actions = sample(pixel_values, image_masks, input_ids, attention_mask, state, noise.float(), times)
+        # a CUDA graph's output is overwritten by its next replay: compiled sampling hands back a copy
+        return actions if self._compiled_sample is None else actions.clone()
 
     def _sample(
         self,
@@ -647,6 +647,11 @@ class PI0ForActionGeneration(PI0PreTrainedModel):
         for conditioning in self.step_conditioning(times, noise.shape[0]):
             x_t = x_t + dt * self.denoise_step(cache, state, x_t, conditioning, suffix_attention)
         return x_t
+
+    @property
+    def sampling_compiled(self) -> bool:
+        """Whether `generate_actions` runs through `torch.compile` (see `compile_sampling`)."""
+        return self._compiled_sample is not None
 
     def compile_sampling(self, **compile_kwargs: Any) -> None:
         """Opt in to `torch.compile` for `generate_actions`: the prefix pass and the whole Euler loop as one graph.

@@ -195,16 +195,11 @@ class PI0Policy:
         }
         one = {name: tensor.to(self.device) for name, tensor in self.prepare(blank).inputs.items()}
         config = self.model.config
-        for batch in range(1, (max_batch_size if self.compiled else 1) + 1):
+        for batch in range(1, (max_batch_size if self.model.sampling_compiled else 1) + 1):
             inputs = {name: torch.cat([tensor] * batch) for name, tensor in one.items()}  # laid out as real batches
             noise = torch.zeros(batch, config.action_horizon, config.action_dim, device=self.device)
             self.model.generate_actions(**inputs, noise=noise, num_steps=self.num_steps).cpu()
         return time.monotonic() - start
-
-    @property
-    def compiled(self) -> bool:
-        """Whether sampling runs through `torch.compile` (see `compile`)."""
-        return self.model._compiled_sample is not None
 
     def infer(self, observation: Mapping[str, Any]) -> dict[str, Any]:
         """Actions for one observation: `{"actions": float32 [horizon, robot action dims], "policy_timing": ...}`."""

@@ -417,6 +417,9 @@ def evaluate_policy(
     camera_map = dict(camera_map) if camera_map is not None else default_camera_map(dataset.camera_keys, model.config.camera_names)
     collator = PI0DataCollator(processor, camera_map)
     action_stats = processor.norm_stats["actions"] if processor.norm_stats else None
+    mean = np.zeros(processor.action_dim_robot) if action_stats is None else action_stats.mean[: processor.action_dim_robot]
+    if processor.value_conversion is not None:  # the statistics describe converted actions
+        mean = get_conversion(processor.value_conversion).actions_to_robot(mean)
     predictions, targets, baselines, prompts, episodes = [], [], [], [], []
     starts = range(0, len(dataset), batch_size)
     for number, start in enumerate(tqdm(starts, desc="evaluating", disable=not progress)):
@@ -428,9 +431,6 @@ def evaluate_policy(
         raw_state = np.stack([s["state"] for s in samples])
         predictions.append(processor.postprocess_actions(actions.numpy(), state=raw_state if processor.delta_action_mask else None))
         targets.append(np.stack([s["actions"] for s in samples]))
-        mean = np.zeros(processor.action_dim_robot) if action_stats is None else action_stats.mean[: processor.action_dim_robot]
-        if processor.value_conversion is not None:  # the statistics describe converted actions
-            mean = get_conversion(processor.value_conversion).actions_to_robot(mean)
         baselines.append(np.broadcast_to(mean, targets[-1].shape).astype(np.float32))
         prompts += [s["prompt"] for s in samples]
         episodes += [s["episode_index"] for s in samples]
