@@ -31,8 +31,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from pi0_torch import PI0Config  # noqa: E402
-from pi0_torch.openpi_weights import expected_openpi_shapes  # noqa: E402
-from pi0_torch.orbax_reader import write_orbax_checkpoint  # noqa: E402
+from pi0_torch.conversion.openpi_weights import expected_openpi_shapes  # noqa: E402
+from pi0_torch.conversion.orbax_reader import write_orbax_checkpoint  # noqa: E402
 
 def folder_bytes(folder: Path) -> int:
     return sum(p.stat().st_size for p in folder.rglob("*") if p.is_file())
@@ -96,7 +96,7 @@ def main() -> None:
         )
         params = int(printed.split()[-1])
         checkpoint_bytes = folder_bytes(step_dir)
-        _, baseline_rss, _ = run_measured([sys.executable, "-c", "import pi0_torch.conversion"])
+        _, baseline_rss, _ = run_measured([sys.executable, "-c", "import pi0_torch.conversion.convert"])
         convert_s, peak_rss, _ = run_measured(
             [sys.executable, str(ROOT / "conversion" / "convert_openpi_checkpoint.py"), "--checkpoint-dir", str(step_dir),
              "--output-dir", str(output_dir), "--dtype", args.dtype, "--no-progress"]

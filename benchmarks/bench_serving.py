@@ -30,7 +30,7 @@ def _client_process(port: int, clients: int, requests: int, warmup: int, frame_s
     """Runs in a child process: `clients` threads, each its own connection; puts one summary dict on `results`."""
     import websockets.sync.client
 
-    from pi0_torch.serving import pack_message, unpack_message
+    from pi0_torch.runtime.serving import pack_message, unpack_message
 
     barrier = threading.Barrier(clients + 1)
     latencies: list[float] = []
@@ -93,9 +93,9 @@ def _random_model(preset: str, directory: Path, num_steps: int | None) -> Path:
     import torch
 
     from pi0_torch import PI0Config, PI0ForActionGeneration
-    from pi0_torch.normalization import NormStats
-    from pi0_torch.processing_pi0 import PI0Processor
-    from pi0_torch.tokenization import build_test_tokenizer
+    from pi0_torch.processing.normalization import NormStats
+    from pi0_torch.processing.processing_pi0 import PI0Processor
+    from pi0_torch.processing.tokenization import build_test_tokenizer
 
     torch.manual_seed(0)
     overrides = {"num_inference_steps": num_steps} if num_steps else {}
@@ -157,8 +157,8 @@ def main() -> None:
 
     import torch
 
-    from pi0_torch.policy import PI0Policy
-    from pi0_torch.serving import PolicyServer
+    from pi0_torch.runtime.policy import PI0Policy
+    from pi0_torch.runtime.serving import PolicyServer
 
     frame_shape = (*map(int, args.frame.split("x")), 3)
     with tempfile.TemporaryDirectory() as scratch:

@@ -7,7 +7,7 @@ Run from the repository root:
 
 `--checkpoint-dir` is an openpi step folder (`<run>/<step>`, holding `params/` and `assets/`) or its `params`
 folder. The output loads with `PI0ForActionGeneration.from_pretrained` (and, with `--tokenizer`,
-`PI0Processor.from_pretrained`). Same as `pi0-torch convert --from openpi`; see `pi0_torch.conversion`.
+`PI0Processor.from_pretrained`). Same as `pi0-torch convert --from openpi`; see `pi0_torch.conversion.convert`.
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository root, when not pip-installed
 
-from pi0_torch import conversion  # noqa: E402
+from pi0_torch.conversion import convert as conversion  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -2,10 +2,10 @@
 
 from transformers import AutoConfig, AutoModel
 
-from .configuration_pi0 import PI0Config
-from .modeling_pi0 import PI0ForActionGeneration, PI0Output
-from .normalization import NormStats, compute_norm_stats, load_openpi_norm_stats, save_openpi_norm_stats
-from .processing_pi0 import PI0Processor
+from pi0_torch.models.configuration_pi0 import PI0Config
+from pi0_torch.models.modeling_pi0 import PI0ForActionGeneration, PI0Output
+from pi0_torch.processing.normalization import NormStats, compute_norm_stats, load_openpi_norm_stats, save_openpi_norm_stats
+from pi0_torch.processing.processing_pi0 import PI0Processor
 
 __version__ = "0.1.0"
 

@@ -28,8 +28,8 @@ from typing import Any
 import psutil
 import torch
 
-from .configuration_pi0 import PI0Config, preset_names
-from .modeling_pi0 import PI0ForActionGeneration
+from pi0_torch.models.configuration_pi0 import PI0Config, preset_names
+from pi0_torch.models.modeling_pi0 import PI0ForActionGeneration
 
 TEXT_TOKENS = 48
 
@@ -226,7 +226,7 @@ def bench_side_by_side(args: argparse.Namespace, device: torch.device) -> None:
     """Ours vs transformers' `PI0ForConditionalGeneration` with identical weights, inputs and noise (π0)."""
     from transformers import PI0ForConditionalGeneration
 
-    from .conversion import export_to_transformers, transformers_pi0_inputs
+    from pi0_torch.conversion.convert import export_to_transformers, transformers_pi0_inputs
 
     preset = args.side_by_side_preset
     config = PI0Config.from_preset(preset)

@@ -13,9 +13,9 @@ import sys
 # subcommand -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
     "demo": ("pi0_torch.demo", "Run the committed demo policy on held-out synthetic scenes and plot its action chunks."),
-    "convert": ("pi0_torch.conversion", "Convert openpi / LeRobot / transformers checkpoints to pi0-torch folders (and π0 to transformers)."),
-    "train": ("pi0_torch.training", "Fine-tune π0 / π0.5 on a LeRobot dataset with the Hugging Face Trainer (openpi's recipe)."),
-    "serve": ("pi0_torch.serving", "Serve a policy over openpi's websocket protocol (openpi-client compatible)."),
+    "convert": ("pi0_torch.conversion.convert", "Convert openpi / LeRobot / transformers checkpoints to pi0-torch folders (and π0 to transformers)."),
+    "train": ("pi0_torch.training.trainer", "Fine-tune π0 / π0.5 on a LeRobot dataset with the Hugging Face Trainer (openpi's recipe)."),
+    "serve": ("pi0_torch.runtime.serving", "Serve a policy over openpi's websocket protocol (openpi-client compatible)."),
     "bench": ("pi0_torch.benchmark", "Time generate_actions, a training step and loading; compare with transformers' PI0."),
 }
 

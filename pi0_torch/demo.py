@@ -5,7 +5,7 @@ scenes it never saw.
 
 1. loads `examples/demo_policy/` with `PI0ForActionGeneration.from_pretrained` / `PI0Processor.from_pretrained`
    (a ~0.2 M-parameter π0 trained from scratch by `scripts/train_demo_policy.py`);
-2. writes 24 new scenes (`pi0_torch.synthetic_data.DEMO_HELDOUT`: another seed than the training data, three
+2. writes 24 new scenes (`pi0_torch.data.synthetic_data.DEMO_HELDOUT`: another seed than the training data, three
    colored discs each, "move to the <color> object") as a LeRobot v3.0 dataset with mp4 video;
 3. runs `generate_actions` through the processor on every frame, maps the chunks back to robot units, and prints
    the error against the scripted ground truth next to the mean-action baseline (always predicting the training
@@ -28,10 +28,10 @@ import numpy as np
 import torch
 
 from pi0_torch import PI0ForActionGeneration
-from pi0_torch.lerobot_dataset import LeRobotEpisodeDataset
-from pi0_torch.processing_pi0 import PI0Processor
-from pi0_torch.synthetic_data import DEMO_HELDOUT, write_synthetic_dataset
-from pi0_torch.training import PolicyEvaluation, evaluate_policy
+from pi0_torch.data.lerobot_dataset import LeRobotEpisodeDataset
+from pi0_torch.processing.processing_pi0 import PI0Processor
+from pi0_torch.data.synthetic_data import DEMO_HELDOUT, write_synthetic_dataset
+from pi0_torch.training.trainer import PolicyEvaluation, evaluate_policy
 
 DEFAULT_POLICY = Path(__file__).resolve().parents[1] / "examples" / "demo_policy"  # in a clone of the repository
 

@@ -2,7 +2,7 @@
 
     .venv/bin/python scripts/train_demo_policy.py [--work-dir outputs/demo_training] [--max-steps 6000]
 
-1. writes the synthetic "move to the <color> object" dataset (`pi0_torch.synthetic_data.DEMO_DATASET`, LeRobot v3.0
+1. writes the synthetic "move to the <color> object" dataset (`pi0_torch.data.synthetic_data.DEMO_DATASET`, LeRobot v3.0
    with mp4 videos) under the work dir;
 2. trains the tiny π0 of `DEMO_POLICY_CONFIG` from scratch with the real pipeline (`pi0_torch.training.train_policy`,
    the HF Trainer; recipe `demo_train_settings`), evaluating the loss on the held-out split as it goes;
@@ -24,10 +24,10 @@ from pathlib import Path
 import torch
 
 from pi0_torch import PI0ForActionGeneration
-from pi0_torch.lerobot_dataset import LeRobotEpisodeDataset
-from pi0_torch.processing_pi0 import PI0Processor
-from pi0_torch.synthetic_data import DEMO_DATASET, DEMO_HELDOUT, DEMO_STEPS, demo_train_settings, write_synthetic_dataset
-from pi0_torch.training import evaluate_policy, train_policy
+from pi0_torch.data.lerobot_dataset import LeRobotEpisodeDataset
+from pi0_torch.processing.processing_pi0 import PI0Processor
+from pi0_torch.data.synthetic_data import DEMO_DATASET, DEMO_HELDOUT, DEMO_STEPS, demo_train_settings, write_synthetic_dataset
+from pi0_torch.training.trainer import evaluate_policy, train_policy
 
 REPO = Path(__file__).resolve().parent.parent
 POLICY_FILES = ("config.json", "model.safetensors", "processor_config.json", "norm_stats.json", "tokenizer.model")

@@ -20,7 +20,7 @@ class OpenpiReference:
     """A fixture variant: its openpi weights, inputs in our layout, and openpi's outputs."""
 
     def __init__(self, variant: str) -> None:
-        from pi0_torch.openpi_weights import config_from_openpi_shapes
+        from pi0_torch.conversion.openpi_weights import config_from_openpi_shapes
 
         self.variant = variant
         self.dir = FIXTURES / variant
@@ -36,7 +36,7 @@ class OpenpiReference:
 
     def model(self, dtype: torch.dtype = torch.float32):
         from pi0_torch import PI0ForActionGeneration
-        from pi0_torch.openpi_weights import load_openpi_params
+        from pi0_torch.conversion.openpi_weights import load_openpi_params
 
         model = PI0ForActionGeneration(self.config).eval()
         load_openpi_params(model, self.params)

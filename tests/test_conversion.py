@@ -17,8 +17,8 @@ from safetensors import safe_open
 from safetensors.torch import save_file
 
 from pi0_torch import PI0Config, PI0ForActionGeneration
-from pi0_torch import conversion, orbax_reader
-from pi0_torch.conversion import (
+from pi0_torch.conversion import convert as conversion, orbax_reader
+from pi0_torch.conversion.convert import (
     ConversionError,
     convert_hf_checkpoint,
     convert_openpi_checkpoint,
@@ -26,10 +26,10 @@ from pi0_torch.conversion import (
     planned_shapes,
     transformers_pi0_inputs,
 )
-from pi0_torch.normalization import load_openpi_norm_stats
-from pi0_torch.orbax_reader import write_orbax_checkpoint
-from pi0_torch.processing_pi0 import PI0Processor
-from pi0_torch.tokenization import build_test_tokenizer
+from pi0_torch.processing.normalization import load_openpi_norm_stats
+from pi0_torch.conversion.orbax_reader import write_orbax_checkpoint
+from pi0_torch.processing.processing_pi0 import PI0Processor
+from pi0_torch.processing.tokenization import build_test_tokenizer
 
 from conftest import FIXTURES, VARIANTS, OpenpiReference, relative_error
 from test_orbax_reader import writable_copy

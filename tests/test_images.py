@@ -7,7 +7,7 @@ import pytest
 import torch
 from PIL import Image
 
-from pi0_torch.images import missing_image, resize_with_pad, to_model_image
+from pi0_torch.processing.images import missing_image, resize_with_pad, to_model_image
 
 from conftest import FIXTURES
 

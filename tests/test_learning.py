@@ -1,6 +1,6 @@
 """End to end: a tiny π0 trained from scratch with the real pipeline learns the synthetic reaching task.
 
-The task (`pi0_torch.synthetic_data`): up to three colored discs, the instruction names one, the action chunk moves
+The task (`pi0_torch.data.synthetic_data`): up to three colored discs, the instruction names one, the action chunk moves
 the effector toward it. The held-out episodes have new layouts and always three discs, so neither the image alone
 nor the instruction alone gives the action: a policy that ignored the instruction would pick a wrong disc most of
 the time, and with flow sampling score worse than the mean-action baseline.
@@ -13,10 +13,10 @@ from pathlib import Path
 import torch
 
 from pi0_torch import PI0ForActionGeneration
-from pi0_torch.lerobot_dataset import LeRobotEpisodeDataset, split_episodes
-from pi0_torch.processing_pi0 import PI0Processor
-from pi0_torch.synthetic_data import DEMO_DATASET, demo_train_settings, write_synthetic_dataset
-from pi0_torch.training import evaluate_policy, train_policy
+from pi0_torch.data.lerobot_dataset import LeRobotEpisodeDataset, split_episodes
+from pi0_torch.processing.processing_pi0 import PI0Processor
+from pi0_torch.data.synthetic_data import DEMO_DATASET, demo_train_settings, write_synthetic_dataset
+from pi0_torch.training.trainer import evaluate_policy, train_policy
 
 STEPS = 2500  # the first 2,500 of the demo policy's 6,000 steps (same data, seed and learning-rate schedule)
 

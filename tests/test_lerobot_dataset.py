@@ -14,7 +14,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
-from pi0_torch.lerobot_dataset import (
+from pi0_torch.data.lerobot_dataset import (
     LeRobotDatasetError,
     LeRobotEpisodeDataset,
     VideoFrameReader,
@@ -22,7 +22,7 @@ from pi0_torch.lerobot_dataset import (
     read_info,
     split_episodes,
 )
-from pi0_torch.synthetic_data import CAMERA_KEY, rollout, sample_scene, write_synthetic_dataset
+from pi0_torch.data.synthetic_data import CAMERA_KEY, rollout, sample_scene, write_synthetic_dataset
 
 HORIZON = 5
 LENGTHS = [12, 9, 3, 10, 12, 7]  # episode 2 is shorter than the horizon

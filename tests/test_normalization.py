@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from pi0_torch.normalization import (
+from pi0_torch.processing.normalization import (
     NormStats,
     RunningStats,
     apply_delta,

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 import tensorstore as ts
 
-from pi0_torch import orbax_reader
-from pi0_torch.orbax_reader import CheckpointError, OrbaxCheckpoint, find_params_dir, write_orbax_checkpoint
+from pi0_torch.conversion import orbax_reader
+from pi0_torch.conversion.orbax_reader import CheckpointError, OrbaxCheckpoint, find_params_dir, write_orbax_checkpoint
 
 from conftest import FIXTURES, VARIANTS
 

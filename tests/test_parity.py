@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from pi0_torch.flow_matching import euler_times, interpolate, sincos_time_embedding
+from pi0_torch.models.flow_matching import euler_times, interpolate, sincos_time_embedding
 from pi0_torch.masks import prefix_lm_mask
 
 from conftest import VARIANTS, OpenpiReference, relative_error

@@ -12,10 +12,10 @@ from PIL import Image
 from transformers import AutoProcessor
 
 from pi0_torch import PI0Config
-from pi0_torch.images import to_model_image
-from pi0_torch.normalization import NormStats, load_openpi_norm_stats, normalize
-from pi0_torch.processing_pi0 import PI0Processor
-from pi0_torch.tokenization import PromptTokenizer, build_test_tokenizer, format_pi05_prompt
+from pi0_torch.processing.images import to_model_image
+from pi0_torch.processing.normalization import NormStats, load_openpi_norm_stats, normalize
+from pi0_torch.processing.processing_pi0 import PI0Processor
+from pi0_torch.processing.tokenization import PromptTokenizer, build_test_tokenizer, format_pi05_prompt
 
 from conftest import FIXTURES, OpenpiReference
 

@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 
 from pi0_torch import PI0Config
-from pi0_torch.normalization import NormStats
-from pi0_torch.processing_pi0 import PI0Processor
-from pi0_torch.robot_spaces import get_conversion
-from pi0_torch.tokenization import build_test_tokenizer
+from pi0_torch.processing.normalization import NormStats
+from pi0_torch.processing.processing_pi0 import PI0Processor
+from pi0_torch.processing.robot_spaces import get_conversion
+from pi0_torch.processing.tokenization import build_test_tokenizer
 
 ALOHA = get_conversion("aloha")
 SIGNS = np.array([1, -1, -1, 1, 1, 1, 1] * 2)

@@ -31,12 +31,12 @@ import torch
 import websockets.sync.client
 
 from pi0_torch import PI0Config, PI0ForActionGeneration
-from pi0_torch.normalization import NormStats
-from pi0_torch.observation_formats import ObservationError, ObservationFormat
-from pi0_torch.policy import PI0Policy
-from pi0_torch.processing_pi0 import PI0Processor
-from pi0_torch.serving import MessageError, PolicyServer, pack_message, unpack_message
-from pi0_torch.tokenization import build_test_tokenizer
+from pi0_torch.processing.normalization import NormStats
+from pi0_torch.runtime.observation_formats import ObservationError, ObservationFormat
+from pi0_torch.runtime.policy import PI0Policy
+from pi0_torch.processing.processing_pi0 import PI0Processor
+from pi0_torch.runtime.serving import MessageError, PolicyServer, pack_message, unpack_message
+from pi0_torch.processing.tokenization import build_test_tokenizer
 
 OPENPI_CLIENT = "openpi-client==0.1.2"
 STATE_DIM, ACTION_DIM = 8, 7  # LIBERO's robot dims
@@ -544,7 +544,7 @@ def test_concurrent_clients_and_hang_ups(
 
 def test_serve_command_health_check_and_clean_sigterm(model_dir: Path) -> None:
     process = subprocess.Popen(
-        [sys.executable, "-m", "pi0_torch.serving", "--model", str(model_dir), "--port", "0", "--device", "cpu",
+        [sys.executable, "-m", "pi0_torch.runtime.serving", "--model", str(model_dir), "--port", "0", "--device", "cpu",
          "--num-steps", "1", "--obs-format", "droid", "--default-prompt", "wipe the table",
          "--metadata", "{\"reset_pose\": [0, 1]}"],
         cwd=REPO_ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,

@@ -10,7 +10,7 @@ import pytest
 from tokenizers import Tokenizer, models, pre_tokenizers
 from transformers import PreTrainedTokenizerFast
 
-from pi0_torch.tokenization import (
+from pi0_torch.processing.tokenization import (
     PromptTokenizer,
     build_test_tokenizer,
     clean_prompt,

@@ -15,11 +15,11 @@ import torch
 from safetensors.torch import load_file
 
 from pi0_torch import PI0Config, PI0ForActionGeneration
-from pi0_torch.lerobot_dataset import LeRobotEpisodeDataset
-from pi0_torch.normalization import NormStats, save_openpi_norm_stats
-from pi0_torch.processing_pi0 import PI0Processor
-from pi0_torch.synthetic_data import CAMERA_KEY, write_synthetic_dataset
-from pi0_torch.training import (
+from pi0_torch.data.lerobot_dataset import LeRobotEpisodeDataset
+from pi0_torch.processing.normalization import NormStats, save_openpi_norm_stats
+from pi0_torch.processing.processing_pi0 import PI0Processor
+from pi0_torch.data.synthetic_data import CAMERA_KEY, write_synthetic_dataset
+from pi0_torch.training.trainer import (
     EMA_FILE,
     EMACallback,
     PI0DataCollator,
@@ -399,7 +399,7 @@ class _AlohaEpisodes:
 def test_value_conversion_norm_stats_describe_the_converted_values(dataset_root: Path, tmp_path: Path) -> None:
     """`--value-conversion aloha`: the processor converts (as openpi's ALOHA data configs do) and its statistics are
     those of the converted state and actions, deltas included, as openpi computes them."""
-    from pi0_torch.robot_spaces import get_conversion
+    from pi0_torch.processing.robot_spaces import get_conversion
 
     aloha, episodes = get_conversion("aloha"), _AlohaEpisodes()
     mask = [True] * 6 + [False] + [True] * 6 + [False]

@@ -6,8 +6,8 @@ This is the object a policy server wraps, and the shortest way to run a saved mo
 ```python
 >>> import numpy as np
 >>> from pi0_torch import PI0Config, PI0ForActionGeneration
->>> from pi0_torch.normalization import NormStats
->>> from pi0_torch.tokenization import build_test_tokenizer
+>>> from pi0_torch.processing.normalization import NormStats
+>>> from pi0_torch.processing.tokenization import build_test_tokenizer
 >>> config = PI0Config.from_preset("pi0_small")
 >>> stats = {key: NormStats(mean=np.zeros(dim), std=np.ones(dim)) for key, dim in (("state", 8), ("actions", 7))}
 >>> processor = PI0Processor.from_config(config, tokenizer=build_test_tokenizer(), norm_stats=stats)
@@ -34,10 +34,10 @@ from typing import Any
 import numpy as np
 import torch
 
-from . import __version__
-from .modeling_pi0 import PI0ForActionGeneration
-from .observation_formats import ObservationError
-from .processing_pi0 import PI0Processor
+from pi0_torch import __version__
+from pi0_torch.models.modeling_pi0 import PI0ForActionGeneration
+from pi0_torch.runtime.observation_formats import ObservationError
+from pi0_torch.processing.processing_pi0 import PI0Processor
 
 _DTYPES = {"float32": torch.float32, "bfloat16": torch.bfloat16}
 
@@ -54,7 +54,7 @@ class PI0Policy:
     """[`PI0ForActionGeneration`] + [`PI0Processor`] behind openpi's policy interface (`infer(obs) -> dict`).
 
     Observations use the default layout `{"images": {camera_name: frame}, "state": [...], "prompt": str}` (see
-    [`pi0_torch.observation_formats`] for other layouts). `infer` returns `{"actions": float32 [action_horizon,
+    [`pi0_torch.runtime.observation_formats`] for other layouts). `infer` returns `{"actions": float32 [action_horizon,
     robot action dims], "policy_timing": {"infer_ms": model time, "batch_size": observations run together}}`,
     actions unnormalized by the processor.
 

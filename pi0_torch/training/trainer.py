@@ -42,14 +42,14 @@ from safetensors.torch import load_file, save_file
 from torch import nn
 from transformers import Trainer, TrainerCallback, TrainerControl, TrainerState, TrainingArguments
 
-from .cli import bool_mask
-from .configuration_pi0 import PI0Config, preset_names
-from .lerobot_dataset import LeRobotEpisodeDataset, split_episodes
-from .modeling_pi0 import PI0ForActionGeneration
-from .normalization import compute_norm_stats, load_openpi_norm_stats
-from .processing_pi0 import PI0Processor
-from .robot_spaces import CONVERSIONS, get_conversion
-from .tokenization import build_test_tokenizer
+from pi0_torch.cli import bool_mask
+from pi0_torch.models.configuration_pi0 import PI0Config, preset_names
+from pi0_torch.data.lerobot_dataset import LeRobotEpisodeDataset, split_episodes
+from pi0_torch.models.modeling_pi0 import PI0ForActionGeneration
+from pi0_torch.processing.normalization import compute_norm_stats, load_openpi_norm_stats
+from pi0_torch.processing.processing_pi0 import PI0Processor
+from pi0_torch.processing.robot_spaces import CONVERSIONS, get_conversion
+from pi0_torch.processing.tokenization import build_test_tokenizer
 
 logger = logging.getLogger(__name__)
 
@@ -751,11 +751,8 @@ def run(args: argparse.Namespace) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """`python -m pi0_torch.training ...` (the same as `pi0-torch train ...`; handy after `accelerate launch -m`)."""
+    """`python -m pi0_torch.training.trainer ...` (the same as `pi0-torch train ...`; handy after `accelerate launch -m`)."""
     parser = argparse.ArgumentParser(prog="pi0_torch.training", description="Fine-tune π0 / π0.5 on a LeRobot dataset.")
     add_arguments(parser)
     return run(parser.parse_args(argv))
 
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -7,7 +7,7 @@ so a converter can stream a 12 GB checkpoint with bounded memory.
 ```python
 >>> import numpy as np
 >>> from pi0_torch import PI0ForActionGeneration
->>> from pi0_torch.openpi_weights import config_from_openpi_shapes, load_openpi_params
+>>> from pi0_torch.conversion.openpi_weights import config_from_openpi_shapes, load_openpi_params
 >>> arrays = dict(np.load("tests/fixtures/openpi/pi0_small/params_flat.npz"))
 >>> model = PI0ForActionGeneration(config_from_openpi_shapes({k: v.shape for k, v in arrays.items()}))
 >>> load_openpi_params(model, arrays)
@@ -25,7 +25,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from .configuration_pi0 import PI0Config
+from pi0_torch.models.configuration_pi0 import PI0Config
 
 # read(path, layer): the openpi array at `path` (without a trailing "/value"), or only its slice `[layer]`.
 LeafReader = Callable[[str, "int | None"], np.ndarray]

@@ -18,9 +18,9 @@ from transformers import PreTrainedModel, SiglipVisionConfig, SiglipVisionModel
 from transformers.modeling_layers import GradientCheckpointingLayer
 from transformers.utils import ModelOutput
 
-from .configuration_pi0 import PI0Config
-from .flow_matching import euler_times, interpolate, sample_flow_time, sincos_time_embedding
-from .masks import masked_attention, prefix_lm_mask, to_additive_mask
+from pi0_torch.models.configuration_pi0 import PI0Config
+from pi0_torch.models.flow_matching import euler_times, interpolate, sample_flow_time, sincos_time_embedding
+from pi0_torch.masks import masked_attention, prefix_lm_mask, to_additive_mask
 
 # ----------------------------------------------------------------------------------------------------------------------
 # Normalisation and rotary position embedding

@@ -5,12 +5,12 @@ The processor reproduces openpi's data pipeline for π0 / π0.5 (a robot's value
 the way out `Unnormalize` -> `AbsoluteActions` -> robot dims -> the conversion back):
 
 - images: every camera of `camera_names`, in that order, resized with padding to `image_size` and mapped to
-  [-1, 1] channels first (see `pi0_torch.images` for accepted frames); an absent camera is an all -1 image with
+  [-1, 1] channels first (see `pi0_torch.processing.images` for accepted frames); an absent camera is an all -1 image with
   mask False;
-- state: the robot's `state_dim` values, converted with `value_conversion` if set (`pi0_torch.robot_spaces`),
-  normalized (z-score for π0, quantile for π0.5, see `pi0_torch.normalization`), zero-padded to `model_action_dim`;
+- state: the robot's `state_dim` values, converted with `value_conversion` if set (`pi0_torch.processing.robot_spaces`),
+  normalized (z-score for π0, quantile for π0.5, see `pi0_torch.processing.normalization`), zero-padded to `model_action_dim`;
 - prompt: cleaned and tokenized in the π0 format, or for π0.5 as `Task: ..., State: <bins>;\\nAction: ` with the
-  normalized state discretized (see `pi0_torch.tokenization`), padded to `max_token_len`;
+  normalized state discretized (see `pi0_torch.processing.tokenization`), padded to `max_token_len`;
 - actions (training only): `[horizon, action_dim_robot]`, converted, made relative to the (converted) state on the
   dims of `delta_action_mask`, normalized, zero-padded to `model_action_dim`.
 
@@ -22,8 +22,8 @@ robot policy's state/action statistics), registered with `AutoProcessor` for `PI
 ```python
 >>> import numpy as np
 >>> from pi0_torch import PI0Config
->>> from pi0_torch.normalization import NormStats
->>> from pi0_torch.tokenization import build_test_tokenizer
+>>> from pi0_torch.processing.normalization import NormStats
+>>> from pi0_torch.processing.tokenization import build_test_tokenizer
 >>> seven = NormStats(mean=np.zeros(7), std=np.ones(7), q01=-np.ones(7), q99=np.ones(7))
 >>> config = PI0Config.from_preset("pi0_small")
 >>> processor = PI0Processor.from_config(config, build_test_tokenizer(), norm_stats={"state": seven, "actions": seven})
@@ -58,9 +58,9 @@ import numpy as np
 import torch
 from transformers import AutoProcessor, BatchFeature
 
-from .configuration_pi0 import DEFAULT_CAMERA_NAMES, PI0Config
-from .images import check_float_range, missing_image, to_model_image
-from .normalization import (
+from pi0_torch.models.configuration_pi0 import DEFAULT_CAMERA_NAMES, PI0Config
+from pi0_torch.processing.images import check_float_range, missing_image, to_model_image
+from pi0_torch.processing.normalization import (
     DEFAULT_MIN_SCALE,
     NORM_MODES,
     NormStats,
@@ -71,8 +71,8 @@ from .normalization import (
     unnormalize,
     warn_degenerate,
 )
-from .robot_spaces import get_conversion
-from .tokenization import PromptTokenizer, TokenizerSource, load_tokenizer
+from pi0_torch.processing.robot_spaces import get_conversion
+from pi0_torch.processing.tokenization import PromptTokenizer, TokenizerSource, load_tokenizer
 
 PROCESSOR_CONFIG_FILE = "processor_config.json"
 NORM_STATS_FILE = "norm_stats.json"
@@ -85,7 +85,7 @@ class PI0Processor:
 
     Args:
         tokenizer: a [`PromptTokenizer`], a SentencePiece `.model` path (PaliGemma's), a `SentencePieceProcessor`,
-            a transformers tokenizer, or a folder holding one (see `pi0_torch.tokenization.load_tokenizer`).
+            a transformers tokenizer, or a folder holding one (see `pi0_torch.processing.tokenization.load_tokenizer`).
         camera_names: the model's cameras, in model order (`PI0Config.camera_names`).
         image_size: the model's square image size (224).
         max_token_len: prompt length in tokens (48 for π0, 200 for π0.5).
@@ -101,9 +101,9 @@ class PI0Processor:
         delta_action_mask: openpi's `DeltaActions` mask: action dim `i` is predicted relative to `state[i]` where
             `mask[i]` is True (may be shorter than the action dims; e.g. `[True] * 6 + [False]` for 6 joints and an
             absolute gripper). `postprocess_actions` then needs the raw state.
-        min_norm_scale: floor of std / (q99 - q01) for near-constant dims (`pi0_torch.normalization`); 0 = openpi.
+        min_norm_scale: floor of std / (q99 - q01) for near-constant dims (`pi0_torch.processing.normalization`); 0 = openpi.
         value_conversion: the robot's value conversion into the checkpoint's training space, `"aloha"` for openpi's
-            ALOHA `adapt_to_pi` (`pi0_torch.robot_spaces`); the norm stats are then those of the converted values.
+            ALOHA `adapt_to_pi` (`pi0_torch.processing.robot_spaces`); the norm stats are then those of the converted values.
         float_image_range: the value range of float frames: `(0, 1)` (default) or `(-1, 1)`.
         required_cameras: cameras every observation must have (error otherwise); by default any camera may be
             absent as long as one is present.

@@ -52,7 +52,7 @@ import numpy as np
 import websockets
 from websockets.asyncio.server import Request, Response, ServerConnection, serve
 
-from .observation_formats import ObservationError, ObservationFormat
+from pi0_torch.runtime.observation_formats import ObservationError, ObservationFormat
 
 logger = logging.getLogger(__name__)
 
@@ -144,7 +144,7 @@ def unpack_message(data: bytes) -> Any:
 
 
 class ServedPolicy(Protocol):
-    """What the server needs from a policy ([`pi0_torch.policy.PI0Policy`] is one)."""
+    """What the server needs from a policy ([`pi0_torch.runtime.policy.PI0Policy`] is one)."""
 
     @property
     def metadata(self) -> dict[str, Any]: ...
@@ -476,7 +476,7 @@ def _observation_format(name_or_path: str) -> ObservationFormat:
 def run(args: argparse.Namespace) -> int:
     logging.basicConfig(level=args.log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     logging.getLogger("websockets").setLevel(max(logging.WARNING, logging.getLevelName(args.log_level)))  # we log connections
-    from .policy import PI0Policy  # imports torch: only when the command runs
+    from pi0_torch.runtime.policy import PI0Policy  # imports torch: only when the command runs
 
     try:
         logger.info("loading %s", args.model)
@@ -499,7 +499,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """`python -m pi0_torch.serving ...`: the same as `pi0-torch serve ...`."""
+    """`python -m pi0_torch.runtime.serving ...`: the same as `pi0-torch serve ...`."""
     parser = argparse.ArgumentParser(prog="pi0-torch serve", description=__doc__.splitlines()[0])
     add_arguments(parser)
     return run(parser.parse_args(argv))

@@ -9,7 +9,7 @@ Leaf paths are reported the way openpi names parameters: tree keys joined by "/"
 (`params`) and without the `/value` suffix that nnx state adds (`PaliGemma/llm/layers/attn/q_einsum/w`).
 
 ```python
->>> from pi0_torch.orbax_reader import OrbaxCheckpoint
+>>> from pi0_torch.conversion.orbax_reader import OrbaxCheckpoint
 >>> ckpt = OrbaxCheckpoint("tests/fixtures/openpi/pi0_small/ckpt/0")
 >>> ckpt.leaves["PaliGemma/llm/layers/attn/q_einsum/w"].shape
 (3, 4, 64, 32)
@@ -34,7 +34,7 @@ from typing import Any
 import numpy as np
 import tensorstore as ts
 
-from .openpi_weights import strip_value_suffix
+from pi0_torch.conversion.openpi_weights import strip_value_suffix
 
 try:
     import zstandard

@@ -21,7 +21,7 @@ How it stays safe on a 12 GB checkpoint:
 ```python
 >>> import tempfile
 >>> from pi0_torch import PI0ForActionGeneration
->>> from pi0_torch.conversion import convert_openpi_checkpoint
+>>> from pi0_torch.conversion.convert import convert_openpi_checkpoint
 >>> result = convert_openpi_checkpoint("tests/fixtures/openpi/pi0_small/ckpt/0", tempfile.mkdtemp() + "/pi0", progress=False)
 >>> sorted(p.name for p in result.output_dir.iterdir())
 ['config.json', 'model.safetensors', 'norm_stats.json']
@@ -54,14 +54,14 @@ import torch
 from safetensors import safe_open
 from tqdm.auto import tqdm
 
-from .cli import bool_mask
-from .configuration_pi0 import PI0Config
-from .modeling_pi0 import PI0ForActionGeneration
-from .normalization import NormStats, load_openpi_norm_stats, save_openpi_norm_stats
-from .openpi_weights import check_openpi_shapes, config_from_openpi_shapes, iter_openpi_state_dict
-from .orbax_reader import CheckpointError, LeafInfo, OrbaxCheckpoint, first_line
-from .processing_pi0 import NORM_STATS_FILE, PI0Processor
-from .robot_spaces import CONVERSIONS
+from pi0_torch.cli import bool_mask
+from pi0_torch.models.configuration_pi0 import PI0Config
+from pi0_torch.models.modeling_pi0 import PI0ForActionGeneration
+from pi0_torch.processing.normalization import NormStats, load_openpi_norm_stats, save_openpi_norm_stats
+from pi0_torch.conversion.openpi_weights import check_openpi_shapes, config_from_openpi_shapes, iter_openpi_state_dict
+from pi0_torch.conversion.orbax_reader import CheckpointError, LeafInfo, OrbaxCheckpoint, first_line
+from pi0_torch.processing.processing_pi0 import NORM_STATS_FILE, PI0Processor
+from pi0_torch.processing.robot_spaces import CONVERSIONS
 
 logger = logging.getLogger(__name__)
 

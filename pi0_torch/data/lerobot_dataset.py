@@ -50,7 +50,7 @@ import torch
 from PIL import Image
 from tqdm.auto import tqdm
 
-from .masks import generate_chunk_data
+from pi0_torch.masks import generate_chunk_data
 
 logger = logging.getLogger(__name__)
 
@@ -450,7 +450,7 @@ class LeRobotEpisodeDataset(torch.utils.data.Dataset):
         frame_cache_mb: memory for decoded video frames (per process / DataLoader worker).
 
     ```python
-    >>> from pi0_torch.synthetic_data import write_synthetic_dataset
+    >>> from pi0_torch.data.synthetic_data import write_synthetic_dataset
     >>> import tempfile
     >>> root = write_synthetic_dataset(tempfile.mkdtemp() + "/reach", num_episodes=2, episode_length=12)
     >>> dataset = LeRobotEpisodeDataset(root, action_horizon=4)
