@@ -30,6 +30,7 @@ from pi0_torch.processing.normalization import load_openpi_norm_stats
 from pi0_torch.conversion.orbax_reader import write_orbax_checkpoint
 from pi0_torch.processing.processing_pi0 import PI0Processor
 from pi0_torch.processing.tokenization import build_test_tokenizer
+from pi0_torch.utils import files
 
 from conftest import FIXTURES, VARIANTS, OpenpiReference, relative_error
 from test_orbax_reader import writable_copy
@@ -271,6 +272,63 @@ def test_existing_output_and_overwrite(tmp_path: Path, capsys: pytest.CaptureFix
     assert "π0, " in capsys.readouterr().out
     assert sorted(p.name for p in out.iterdir()) == ["config.json", "model.safetensors", "norm_stats.json"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+
+
+def tree_digest(folder: Path) -> dict[str, int]:
+    return {str(p.relative_to(folder)): p.stat().st_size for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+@pytest.mark.parametrize("where", ["same", "same via symlink", "inside the input", "containing the input", "params of the input"])
+def test_output_overlapping_the_input_is_refused_even_with_overwrite(where: str, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """Issue 17.1: `--output-dir` equal to, inside or around the input once deleted the checkpoint being converted."""
+    source = tmp_path / "run" / "0"
+    shutil.copytree(step_dir("pi0_small"), source)
+    before = tree_digest(tmp_path / "run")
+    (tmp_path / "link").symlink_to(source)
+    given_input, output = {
+        "same": (source, source),
+        "same via symlink": (source, tmp_path / "link"),
+        "inside the input": (source, source / "converted"),
+        "containing the input": (source, tmp_path / "run"),
+        "params of the input": (source / "params", source / "assets"),  # the assets beside params/ are input too
+    }[where]
+    assert run_cli("--from", "openpi", "--input", str(given_input), "--output-dir", str(output), "--overwrite") == 1
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error: output folder") and "the input" in err and "\n" not in err, err
+    assert tree_digest(tmp_path / "run") == before  # nothing deleted, nothing added
+
+
+def test_partial_folder_of_a_killed_conversion_is_removed_by_the_next_run(tmp_path: Path) -> None:
+    """Issue 17.3: a SIGKILLed conversion leaves `.NAME.partial-*`; the next conversion beside it removes it, while a
+    live run's partial folder and foreign folders stay."""
+    import signal
+    import subprocess
+    import sys
+    import textwrap
+
+    # a conversion killed while it writes its weights
+    script = textwrap.dedent(f"""
+        import os, signal
+        from pi0_torch.conversion import convert
+        original = convert.ShardedSafetensorsWriter.write
+        def write_then_die(self, name, tensor):
+            original(self, name, tensor)
+            os.kill(os.getpid(), signal.SIGKILL)
+        convert.ShardedSafetensorsWriter.write = write_then_die
+        convert.convert_openpi_checkpoint({str(step_dir("pi0_small"))!r}, {str(tmp_path / "killed")!r}, progress=False)
+    """)
+    finished = subprocess.run([sys.executable, "-c", script], cwd=ROOT, capture_output=True, timeout=300)
+    assert finished.returncode == -signal.SIGKILL, finished.stderr
+    [stale] = [p for p in tmp_path.iterdir()]
+    assert stale.name.startswith(".killed.partial-") and (stale / "model.safetensors").is_file()
+
+    live = tmp_path / ".other.partial-live"  # a run that is still writing: this process owns it
+    live.mkdir()
+    files.claim(live)
+    foreign = tmp_path / ".mine.partial-notes"  # no owner file: not ours to delete
+    foreign.mkdir()
+    assert run_cli("--from", "openpi", "--input", str(step_dir("pi0_small")), "--output-dir", str(tmp_path / "next")) == 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([live.name, foreign.name, "next"])
 
 
 def test_plain_script(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:

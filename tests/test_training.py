@@ -5,8 +5,10 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import subprocess
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -36,6 +38,7 @@ from pi0_torch.training.trainer import (
     loss_free_parameter_names,
     merge_lora,
     openpi_learning_rate,
+    resolve_resume_checkpoint,
     settings_from_args,
     train_policy,
 )
@@ -172,6 +175,78 @@ def test_resume_continues_the_same_run(dataset_root: Path, tmp_path: Path) -> No
     b = PI0ForActionGeneration.from_pretrained(tmp_path / "resumed").state_dict()
     for name in a:
         torch.testing.assert_close(a[name], b[name], rtol=1e-5, atol=1e-6)
+
+
+KILL_POINTS = {  # Trainer method -> what is on disk when the process dies right after it
+    "save_model": "weights",
+    "_save_optimizer_and_scheduler": "weights, optimizer, scheduler",
+    "_save_rng_state": "everything but the trainer state",
+    "save_to_json": "everything but the processor and EMA files",
+}
+
+
+@pytest.fixture(scope="module")
+def uninterrupted_run(dataset_root: Path, tmp_path_factory: pytest.TempPathFactory) -> dict:
+    return train_policy(settings(dataset_root, tmp_path_factory.mktemp("whole"), max_steps=6, save_steps=3, ema_decay=0.9))
+
+
+@pytest.mark.parametrize("kill_after", sorted(KILL_POINTS))
+def test_checkpoints_appear_whole_and_resume_skips_a_killed_save(
+    kill_after: str, dataset_root: Path, tmp_path: Path, uninterrupted_run: dict, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Issue 17.2: a SIGKILL inside the Trainer's save of checkpoint-6 leaves no `checkpoint-6` (only a hidden
+    partial folder); `--resume-from-checkpoint latest` resumes from checkpoint-3 and continues the same run, and
+    removes the dead run's partial folder."""
+    output = tmp_path / "run"
+    run_settings = settings(dataset_root, output, max_steps=6, save_steps=3, ema_decay=0.9)
+    owner = "TrainerState" if kill_after == "save_to_json" else "Trainer"
+    script = f"""
+import os, signal, json
+from transformers import Trainer, TrainerState
+from pi0_torch.training import TrainSettings, train_policy
+original = {owner}.{kill_after}
+def then_die(self, *args, **kwargs):
+    result = original(self, *args, **kwargs)
+    if "checkpoint-6" in str(args[0] if args else kwargs):
+        os.kill(os.getpid(), signal.SIGKILL)
+    return result
+{owner}.{kill_after} = then_die
+train_policy(TrainSettings(**json.loads({json.dumps(json.dumps(vars(run_settings)))})))
+"""
+    finished = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=600,
+                              env={**os.environ, "OMP_NUM_THREADS": "1"})
+    assert finished.returncode == -9, finished.stderr[-2000:]
+    names = sorted(p.name for p in output.iterdir())
+    assert "checkpoint-3" in names and "checkpoint-6" not in names, names
+    assert [n for n in names if n.startswith(".")] == [".checkpoint-6.partial-save"]
+
+    with caplog.at_level("INFO"):
+        resumed = train_policy(replace(run_settings, resume_from_checkpoint="latest"))
+    assert f"resuming from {output / 'checkpoint-3'}" in caplog.text
+    expected, got = losses(uninterrupted_run["log_history"]), losses(resumed["log_history"])
+    for step in (4, 5, 6):
+        assert got[step] == pytest.approx(expected[step], rel=1e-6, abs=1e-7)
+    assert sorted(p.name for p in output.iterdir() if p.name.startswith((".", "checkpoint"))) == ["checkpoint-3", "checkpoint-6"]
+
+
+def test_resume_falls_back_from_an_incomplete_checkpoint(dataset_root: Path, tmp_path: Path, uninterrupted_run: dict,
+                                                         caplog: pytest.LogCaptureFixture) -> None:
+    """A `checkpoint-N` without trainer state (as the Trainer's in-place saving left it) is skipped with a log line,
+    explicitly named or found as "latest"; a fresh output folder with "latest" starts from scratch."""
+    whole = Path(uninterrupted_run["output_dir"])
+    output = tmp_path / "run"
+    output.mkdir()
+    shutil.copytree(whole / "checkpoint-3", output / "checkpoint-3")
+    shutil.copytree(whole / "checkpoint-6", output / "checkpoint-6")
+    (output / "checkpoint-6" / "trainer_state.json").unlink()
+    with caplog.at_level("INFO"):
+        assert resolve_resume_checkpoint(output, str(output / "checkpoint-6")) == str(output / "checkpoint-3")
+        assert resolve_resume_checkpoint(output, "latest") == str(output / "checkpoint-3")
+    assert "checkpoint-6 is incomplete" in caplog.text and "skipping" in caplog.text
+    assert resolve_resume_checkpoint(tmp_path / "fresh", "latest") is None
+    (output / "checkpoint-3" / "model.safetensors").unlink()
+    with pytest.raises(ValueError, match="holds no complete checkpoint before it"):
+        resolve_resume_checkpoint(output, str(output / "checkpoint-6"))
 
 
 def test_global_batch_split_gives_the_same_losses(dataset_root: Path, tmp_path: Path) -> None:
@@ -335,7 +410,7 @@ def test_ema_callback_math_and_resume(tmp_path: Path) -> None:
     callback.on_step_end(args, state, None, model=model)
     torch.testing.assert_close(callback.shadow["weight"], start + 1.0)
     (tmp_path / "checkpoint-1").mkdir()
-    callback.on_save(args, state, None)
+    callback.write_checkpoint(tmp_path / "checkpoint-1", state)
     resumed = EMACallback(0.5, resume_from=tmp_path / "checkpoint-1")
     resumed.on_train_begin(args, state, None, model=model)
     torch.testing.assert_close(resumed.shadow["weight"], start + 1.0)

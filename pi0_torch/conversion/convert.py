@@ -15,8 +15,10 @@ How it stays safe on a 12 GB checkpoint:
   embedding), not the model;
 - validation first: every leaf must be used and every parameter filled, with the shapes the inferred config
   needs; leftovers are reported by name before anything is written;
-- atomic output: everything goes into a hidden temporary folder next to DST that is renamed into place at the end;
-  any failure removes it. An existing non-empty DST is replaced only with `overwrite=True`.
+- atomic output: everything goes into a hidden partial folder next to DST that is renamed into place at the end;
+  any failure removes it, and a partial folder left by a killed run is removed by the next run
+  (`pi0_torch.utils.files`). An existing non-empty DST is replaced only with `overwrite=True`, and never when it is,
+  contains or lies inside the input.
 
 ```python
 >>> import tempfile
@@ -42,9 +44,7 @@ import re
 import shutil
 import struct
 import sys
-import uuid
-from collections.abc import Callable, Iterable, Iterator, Mapping
-from contextlib import contextmanager
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -62,6 +62,7 @@ from pi0_torch.conversion.openpi_weights import check_openpi_shapes, config_from
 from pi0_torch.conversion.orbax_reader import CheckpointError, LeafInfo, OrbaxCheckpoint, first_line
 from pi0_torch.processing.processing_pi0 import NORM_STATS_FILE, PI0Processor
 from pi0_torch.processing.robot_spaces import CONVERSIONS
+from pi0_torch.utils.files import OutputPathError, atomic_output_dir, check_output_dir, check_separate
 
 logger = logging.getLogger(__name__)
 
@@ -81,47 +82,8 @@ class ConversionError(CheckpointError):
 
 
 # ---------------------------------------------------------------------------------------------------------------------
-# output folder and streaming safetensors writer
+# streaming safetensors writer
 # ---------------------------------------------------------------------------------------------------------------------
-
-
-def _check_output_dir(output_dir: Path, overwrite: bool) -> None:
-    if output_dir.exists() and not output_dir.is_dir():
-        raise ConversionError(f"output path {output_dir} exists and is not a folder")
-    if output_dir.is_dir() and any(output_dir.iterdir()) and not overwrite:
-        raise ConversionError(f"output folder {output_dir} exists and is not empty (pass --overwrite to replace it)")
-
-
-@contextmanager
-def atomic_output_dir(output_dir: str | os.PathLike[str], overwrite: bool = False) -> Iterator[Path]:
-    """Yield a fresh hidden folder next to `output_dir`; on success it replaces `output_dir`, on failure it is removed.
-
-    Parent folders created for the output are removed again on failure, so a failed run leaves nothing behind.
-    """
-    output_dir = Path(output_dir).expanduser().absolute()
-    _check_output_dir(output_dir, overwrite)
-    created = [p for p in (output_dir.parent, *output_dir.parent.parents) if not p.exists()]
-    output_dir.parent.mkdir(parents=True, exist_ok=True)
-    partial = output_dir.with_name(f".{output_dir.name}.partial-{uuid.uuid4().hex[:8]}")
-    partial.mkdir()
-    try:
-        yield partial
-        _check_output_dir(output_dir, overwrite)  # it may have appeared meanwhile
-        if output_dir.exists():
-            retired = output_dir.with_name(f".{output_dir.name}.old-{uuid.uuid4().hex[:8]}")
-            output_dir.rename(retired)
-            partial.rename(output_dir)
-            shutil.rmtree(retired, ignore_errors=True)
-        else:
-            partial.rename(output_dir)
-    except BaseException:
-        shutil.rmtree(partial, ignore_errors=True)
-        for parent in created:  # innermost first
-            try:
-                parent.rmdir()
-            except OSError:
-                break
-        raise
 
 
 def parse_size(size: int | str) -> int:
@@ -505,8 +467,9 @@ def convert_openpi_checkpoint(
     `value_conversion="aloha"`). Raises `CheckpointError` (one line; nothing is written) for any problem with the
     input or the output location.
     """
-    torch_dtype, max_shard_bytes, output_dir = _common_arguments(dtype, max_shard_bytes, output_dir, overwrite)
+    torch_dtype, max_shard_bytes, output_dir = _common_arguments(dtype, max_shard_bytes, checkpoint_dir, output_dir, overwrite)
     checkpoint = OrbaxCheckpoint(checkpoint_dir)
+    _check_output(checkpoint.step_dir, output_dir, overwrite)  # the assets beside params/ are input too
     shapes = checkpoint.shapes()
     try:
         config = config_from_openpi_shapes(shapes, **config_overrides)
@@ -544,7 +507,19 @@ def convert_openpi_checkpoint(
     return ConversionResult(output_dir, config, torch_dtype, [output_dir / n for n in writer.filenames], writer.total_bytes, norm_stats_path)
 
 
-def _common_arguments(dtype: str, max_shard_bytes: int | str, output_dir: str | os.PathLike[str], overwrite: bool) -> tuple[torch.dtype, int, Path]:
+def _check_output(input_path: str | os.PathLike[str], output_dir: Path, overwrite: bool) -> None:
+    """Fail before reading anything: the output must not overlap the input, and may replace a non-empty folder
+    only with `overwrite`."""
+    try:
+        check_separate(input_path, output_dir)
+        check_output_dir(output_dir, overwrite)
+    except OutputPathError as error:
+        raise ConversionError(str(error)) from None
+
+
+def _common_arguments(
+    dtype: str, max_shard_bytes: int | str, input_path: str | os.PathLike[str], output_dir: str | os.PathLike[str], overwrite: bool
+) -> tuple[torch.dtype, int, Path]:
     if dtype not in DTYPES:
         raise ConversionError(f"dtype must be one of {', '.join(DTYPES)}, got {dtype!r}")
     try:
@@ -552,7 +527,7 @@ def _common_arguments(dtype: str, max_shard_bytes: int | str, output_dir: str | 
     except ValueError as error:
         raise ConversionError(str(error)) from None
     output_dir = Path(output_dir).expanduser().absolute()
-    _check_output_dir(output_dir, overwrite)  # fail before reading anything
+    _check_output(input_path, output_dir, overwrite)
     return DTYPES[dtype], shard_bytes, output_dir
 
 
@@ -817,7 +792,7 @@ def convert_hf_checkpoint(
     files come from `norm_stats` (an openpi `norm_stats.json`, file or folder) or else from a LeRobot folder's
     `policy_preprocessor_step_*_normalizer_processor.safetensors`.
     """
-    torch_dtype, max_shard_bytes, output_dir = _common_arguments(dtype, max_shard_bytes, output_dir, overwrite)
+    torch_dtype, max_shard_bytes, output_dir = _common_arguments(dtype, max_shard_bytes, input_dir, output_dir, overwrite)
     folder = Path(input_dir).expanduser()
     if not folder.is_dir():
         raise ConversionError(f"input folder {folder} does not exist")
@@ -936,7 +911,7 @@ def export_to_transformers(
 
     source = Path(model_dir).expanduser()
     output = Path(output_dir).expanduser().absolute()
-    _check_output_dir(output, overwrite)
+    _check_output(source, output, overwrite)
     try:
         config = PI0Config.from_pretrained(source)
     except (OSError, ValueError) as error:
@@ -1036,7 +1011,7 @@ def run(args: argparse.Namespace) -> int:
             result = convert_hf_checkpoint(args.input, args.output_dir, norm_stats=args.norm_stats, **common)
         else:
             raise ConversionError("--from pi0-torch needs --to transformers")
-    except (CheckpointError, OSError) as error:
+    except (CheckpointError, OutputPathError, OSError) as error:
         print(f"error: {first_line(error)}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:

@@ -15,6 +15,8 @@ Pieces, usable on their own or through [`train_policy`] / `pi0-torch train`:
   average, as openpi saves its EMA parameters for inference.
 - [`SaveProcessorCallback`]: writes the processor (tokenizer, norm stats, settings) into every checkpoint folder,
   so `checkpoint-N/` loads with `from_pretrained` like the final folder.
+- Checkpoints appear whole: each is written aside and renamed into place once complete
+  ([`PI0Trainer._save_checkpoint`]); resuming skips incomplete ones ([`resolve_resume_checkpoint`]).
 - [`freeze`] (`vision`: SigLIP + its projection; `vlm`: the whole PaliGemma side) and [`apply_lora`] (openpi's
   LoRA fine-tune: rank 16 on the VLM Gemma, 32 on the action expert, the rest of the Gemma frozen; the vision
   tower and the action/state/time heads keep training).
@@ -31,8 +33,10 @@ import argparse
 import json
 import logging
 import math
+import re
+import shutil
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -41,6 +45,8 @@ import torch
 from safetensors.torch import load_file, save_file
 from torch import nn
 from transformers import Trainer, TrainerCallback, TrainerControl, TrainerState, TrainingArguments
+from transformers.trainer import TRAINER_STATE_NAME
+from transformers.trainer_utils import PREFIX_CHECKPOINT_DIR, rotate_checkpoints
 
 from pi0_torch.cli import bool_mask
 from pi0_torch.models.configuration_pi0 import PI0Config, preset_names
@@ -50,6 +56,7 @@ from pi0_torch.processing.normalization import compute_norm_stats, load_openpi_n
 from pi0_torch.processing.processing_pi0 import PI0Processor
 from pi0_torch.processing.robot_spaces import CONVERSIONS, get_conversion
 from pi0_torch.processing.tokenization import build_test_tokenizer
+from pi0_torch.utils import files
 
 logger = logging.getLogger(__name__)
 
@@ -174,6 +181,7 @@ class PI0Trainer(Trainer):
         self.lr_schedule = lr_schedule
         self._draw_step = -1
         self._micro_batch = 0
+        self._staging_run_dir: Path | None = None  # set while `_save_checkpoint` writes aside
 
     def create_scheduler(self, num_training_steps: int, optimizer: torch.optim.Optimizer | None = None) -> Any:
         if self.lr_schedule is None:
@@ -200,6 +208,46 @@ class PI0Trainer(Trainer):
         self._micro_batch += 1
         return [(self.args.seed, 0, step, first + j) for j in range(size)]
 
+    def _get_output_dir(self, trial: Any) -> str:
+        return str(self._staging_run_dir) if self._staging_run_dir is not None else super()._get_output_dir(trial)
+
+    def _save_checkpoint(self, model: nn.Module, trial: Any) -> None:
+        """Write `checkpoint-N` aside and rename it into place once complete (weights, optimizer, scheduler, RNG
+        states of every process, trainer state, and what callbacks add through `write_checkpoint(folder)`).
+
+        The Trainer writes a checkpoint in place, so a process killed while saving left a `checkpoint-N` without
+        `trainer_state.json` that resuming then failed on. Here every process writes into the hidden folder
+        `.checkpoint-N.partial-save/checkpoint-N` (the Trainer's own saving code, pointed there), and the main
+        process renames the finished folder to `checkpoint-N` (atomic) before the old ones are rotated out. A
+        killed save leaves only the hidden folder, which the next run removes.
+        """
+        run_dir = Path(super()._get_output_dir(trial))
+        final = run_dir / f"{PREFIX_CHECKPOINT_DIR}-{self.state.global_step}"
+        staging = run_dir / files.partial_name(final.name, "save")
+        if self.args.should_save:
+            shutil.rmtree(staging, ignore_errors=True)  # an earlier attempt at this very step
+            staging.mkdir(parents=True)
+            files.claim(staging)
+        self.accelerator.wait_for_everyone()
+        self._staging_run_dir = staging
+        try:
+            super()._save_checkpoint(model, trial)  # into staging / checkpoint-N; rotates nothing there
+        finally:
+            self._staging_run_dir = None
+        if self.args.should_save:
+            for callback in self.callback_handler.callbacks:
+                if isinstance(callback, CheckpointContents):
+                    callback.write_checkpoint(staging / final.name, self.state)
+        self.accelerator.wait_for_everyone()  # every process's files are in
+        if self.args.should_save:
+            files.publish(staging / final.name, final)
+            shutil.rmtree(staging, ignore_errors=True)
+            rotate_checkpoints(
+                str(run_dir), save_total_limit=self.args.save_total_limit,
+                best_model_checkpoint=self.state.best_model_checkpoint, use_mtime=True,
+            )
+        self.accelerator.wait_for_everyone()
+
     def compute_loss(self, model: nn.Module, inputs: dict[str, Any], return_outputs: bool = False, num_items_in_batch: Any = None) -> Any:
         inputs = dict(inputs)
         sample_index = inputs.pop("sample_index", None)
@@ -217,7 +265,15 @@ class PI0Trainer(Trainer):
 # ----------------------------------------------------------------------------------------------------------------
 
 
-class EMACallback(TrainerCallback):
+class CheckpointContents:
+    """A callback that adds files to every checkpoint: [`PI0Trainer`] calls `write_checkpoint` on the main process
+    while the checkpoint is still being written aside, so the files appear together with the rest of it."""
+
+    def write_checkpoint(self, folder: Path, state: TrainerState) -> None:
+        raise NotImplementedError
+
+
+class EMACallback(TrainerCallback, CheckpointContents):
     """Exponential moving average of the trainable weights: `ema = decay * ema + (1 - decay) * weights` after every
     optimizer step (openpi's `ema_decay`, default 0.99).
 
@@ -251,10 +307,8 @@ class EMACallback(TrainerCallback):
         for name, param in self._trainable(model).items():
             self.shadow[name].lerp_(param.detach().float(), 1.0 - self.decay)
 
-    def on_save(self, args: TrainingArguments, state: TrainerState, control: TrainerControl, **kwargs: Any) -> None:
-        if state.is_world_process_zero:
-            folder = Path(args.output_dir) / f"checkpoint-{state.global_step}"
-            save_file({name: t.contiguous() for name, t in self.shadow.items()}, str(folder / EMA_FILE))
+    def write_checkpoint(self, folder: Path, state: TrainerState) -> None:
+        save_file({name: t.contiguous() for name, t in self.shadow.items()}, str(folder / EMA_FILE))
 
     @torch.no_grad()
     def on_train_end(self, args: TrainingArguments, state: TrainerState, control: TrainerControl, model: nn.Module | None = None, **kwargs: Any) -> None:
@@ -262,15 +316,14 @@ class EMACallback(TrainerCallback):
             param.copy_(self.shadow[name].to(param.dtype))
 
 
-class SaveProcessorCallback(TrainerCallback):
+class SaveProcessorCallback(TrainerCallback, CheckpointContents):
     """Saves the processor into every `checkpoint-N` folder, next to the weights."""
 
     def __init__(self, processor: PI0Processor) -> None:
         self.processor = processor
 
-    def on_save(self, args: TrainingArguments, state: TrainerState, control: TrainerControl, **kwargs: Any) -> None:
-        if state.is_world_process_zero:
-            self.processor.save_pretrained(Path(args.output_dir) / f"checkpoint-{state.global_step}")
+    def write_checkpoint(self, folder: Path, state: TrainerState) -> None:
+        self.processor.save_pretrained(folder)
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -559,6 +612,55 @@ def build_model(settings: TrainSettings, config: PI0Config) -> nn.Module:
     return model
 
 
+WEIGHT_FILES = ("model.safetensors", "model.safetensors.index.json", "adapter_model.safetensors")
+
+
+def is_complete_checkpoint(folder: Path) -> bool:
+    """A checkpoint folder with its trainer state and its weights (what resuming needs first)."""
+    return (folder / TRAINER_STATE_NAME).is_file() and any((folder / name).is_file() for name in WEIGHT_FILES)
+
+
+def _checkpoint_step(folder: Path) -> int | None:
+    match = re.fullmatch(rf"{PREFIX_CHECKPOINT_DIR}-(\d+)", folder.name)
+    return int(match[1]) if match and folder.is_dir() else None
+
+
+def resolve_resume_checkpoint(output_dir: str | Path, requested: str | None) -> str | None:
+    """The checkpoint a run resumes from: `requested` is None (a fresh run), `"latest"` (the newest complete
+    `checkpoint-N` in `output_dir`, or a fresh run when there is none) or a `checkpoint-N` folder.
+
+    An incomplete checkpoint (no trainer state or no weights: written in place and killed by an older version) is
+    skipped with a log line, falling back to the newest complete one before it in the same folder.
+    """
+    if requested is None:
+        return None
+    if requested == "latest":
+        folder, before = Path(output_dir), None
+    else:
+        given = Path(requested)
+        if not given.is_dir():
+            raise ValueError(f"--resume-from-checkpoint {requested}: no such folder")
+        if is_complete_checkpoint(given):
+            return str(given)
+        folder, before = given.parent, _checkpoint_step(given)
+        logger.warning("%s is incomplete (no %s or no weights): looking for an earlier complete checkpoint", given, TRAINER_STATE_NAME)
+    candidates = sorted(
+        ((step, path) for path in (folder.iterdir() if folder.is_dir() else ()) if (step := _checkpoint_step(path)) is not None),
+        reverse=True,
+    )
+    for step, path in candidates:
+        if before is not None and step >= before:
+            continue
+        if is_complete_checkpoint(path):
+            logger.info("resuming from %s", path)
+            return str(path)
+        logger.warning("skipping %s: incomplete (no %s or no weights)", path, TRAINER_STATE_NAME)
+    if requested == "latest":
+        logger.info("no complete checkpoint in %s: starting a fresh run", folder)
+        return None
+    raise ValueError(f"--resume-from-checkpoint {requested} is incomplete and {folder} holds no complete checkpoint before it")
+
+
 def _has_accelerator() -> bool:
     xpu = getattr(torch, "xpu", None)
     return torch.cuda.is_available() or torch.backends.mps.is_available() or bool(xpu and xpu.is_available())
@@ -578,6 +680,7 @@ def train_policy(settings: TrainSettings) -> dict[str, Any]:
     if settings.lora and settings.ema_decay is not None:
         raise ValueError("--ema-decay with --lora: an average of the LoRA factors A and B is not the average of the "
                          "weight update B @ A, so openpi turns EMA off for LoRA fine-tuning; drop one of the two")
+    settings = replace(settings, resume_from_checkpoint=resolve_resume_checkpoint(settings.output_dir, settings.resume_from_checkpoint))
     set_seed(settings.seed)
     config = load_config(settings)
     dataset_options = dict(
@@ -648,6 +751,8 @@ def train_policy(settings: TrainSettings) -> dict[str, Any]:
         callbacks=callbacks,
         lr_schedule=dict(warmup_steps=settings.warmup_steps, decay_steps=settings.decay_steps, end_lr=settings.end_learning_rate),
     )
+    if trainer.args.should_save:
+        files.remove_stale_partials(settings.output_dir)  # checkpoints of a killed run that never finished
     trainable = count_trainable(model)
     logger.info("trainable parameters: %d of %d", trainable, sum(p.numel() for p in model.parameters()))
     trainer.train(resume_from_checkpoint=settings.resume_from_checkpoint)
@@ -731,7 +836,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     run_group.add_argument("--save-steps", type=int, default=1_000)
     run_group.add_argument("--save-total-limit", type=int)
     run_group.add_argument("--eval-steps", type=int)
-    run_group.add_argument("--resume-from-checkpoint", help="a checkpoint-N folder of an earlier run with the same settings")
+    run_group.add_argument("--resume-from-checkpoint", metavar="DIR|latest",
+                           help="a checkpoint-N folder of an earlier run with the same settings, or 'latest' (the newest "
+                                "complete one in --output-dir; a fresh run when there is none)")
     run_group.add_argument("--cpu", action="store_true", help="train on CPU even when a GPU is present")
     run_group.add_argument("--report-to", default="none", help="Trainer integrations (tensorboard, wandb, ...)")
 

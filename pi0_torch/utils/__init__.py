@@ -1,0 +1,1 @@
+"""Small shared helpers: atomic output folders and the cleanup of dead runs' partial folders."""
