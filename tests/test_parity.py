@@ -47,7 +47,8 @@ def loss_path_errors(ref: OpenpiReference, dtype: torch.dtype = torch.float32) -
     x_t, target = interpolate(actions, noise, time)
     errors["x_t"] = relative_error(x_t, ref[f"{mode}/loss_path/x_t"])
     errors["u_t"] = relative_error(target, ref[f"{mode}/loss_path/u_t"])
-    condition = model.time_conditioning(time)
+    conditioning = model.conditioning(time)
+    condition = conditioning.condition
     if config.pi05:
         errors["adarms_cond"] = relative_error(condition, ref[f"{mode}/loss_path/adarms_cond"])
     suffix = model.embed_suffix(inputs["state"], x_t, condition)
@@ -61,7 +62,7 @@ def loss_path_errors(ref: OpenpiReference, dtype: torch.dtype = torch.float32) -
     assert torch.equal(mask, ref.tensor(f"{mode}/loss_path/attn_mask"))
     assert torch.equal(positions, ref.tensor(f"{mode}/loss_path/positions").long())
 
-    prefix_out, suffix_out = model.run_layers(prefix, suffix, mask, positions, condition)
+    prefix_out, suffix_out = model.run_layers(prefix, suffix, mask, positions, conditioning)
     # padded query rows of the prefix are meaningless: compare valid tokens only
     reference_prefix_out = ref[f"{mode}/loss_path/prefix_out"][prefix_valid.numpy()]
     errors["prefix_out (valid)"] = relative_error(prefix_out[prefix_valid], reference_prefix_out)

@@ -124,14 +124,19 @@ def test_openpi_schedule() -> None:
 
 def test_flow_draws_are_keyed_per_sample() -> None:
     config = PI0Config.from_preset("pi0_small", **TINY)
-    noise, time = flow_draws(config, [(0, 0, 5, 1), (0, 0, 5, 2)])
-    again, time_again = flow_draws(config, [(0, 0, 5, 2)])
+    noise, time, delay = flow_draws(config, [(0, 0, 5, 1), (0, 0, 5, 2)])
+    again, time_again, _ = flow_draws(config, [(0, 0, 5, 2)])
     assert noise.shape == (2, config.action_horizon, config.action_dim)
     torch.testing.assert_close(again[0], noise[1], rtol=0, atol=0)
     assert time_again[0] == time[1]
-    _, many = flow_draws(config, [(0, 0, 0, i) for i in range(4000)])
+    _, many, _ = flow_draws(config, [(0, 0, 0, i) for i in range(4000)])
     assert 0.001 <= float(many.min()) and float(many.max()) <= 1.0
     assert float(many.mean()) == pytest.approx(0.6 * 0.999 + 0.001, abs=0.01)  # Beta(1.5, 1) has mean 0.6
+    assert delay is None  # no delays unless the model trains for real-time chunking
+    rtc_config = PI0Config.from_preset("pi0_small", **TINY, rtc_max_delay=3)
+    _, rtc_time, delays = flow_draws(rtc_config, [(0, 0, 0, i) for i in range(4000)])
+    torch.testing.assert_close(rtc_time, many, rtol=0, atol=0)  # drawn after noise and time: those are unchanged
+    assert torch.bincount(delays).tolist() == pytest.approx([1000] * 4, abs=100)
 
 
 # ---------------------------------------------------------------------------------------------------- a run
@@ -259,9 +264,11 @@ def test_global_batch_split_gives_the_same_losses(dataset_root: Path, tmp_path: 
         assert b[step] == pytest.approx(a[step], rel=1e-4)
 
 
-def test_bf16_and_gradient_checkpointing_runs(dataset_root: Path, tmp_path: Path) -> None:
-    result = train_policy(settings(dataset_root, tmp_path / "bf16", max_steps=2, bf16=True, gradient_checkpointing=True))
+def test_bf16_gradient_checkpointing_and_rtc_delays_run(dataset_root: Path, tmp_path: Path) -> None:
+    result = train_policy(settings(dataset_root, tmp_path / "bf16", max_steps=2, bf16=True, gradient_checkpointing=True,
+                                   rtc_max_delay=2))
     assert all(np.isfinite(v) for v in losses(result["log_history"]).values())
+    assert PI0Config.from_pretrained(result["output_dir"]).rtc_max_delay == 2  # conditioning sampling may use it
 
 
 # ---------------------------------------------------------------------------------------------------- what trains
@@ -498,11 +505,12 @@ def test_cli_arguments_map_to_settings(dataset_root: Path, tmp_path: Path) -> No
         "--config-overrides", json.dumps(TINY), "--tokenizer", "test", "--max-steps", "2", "--batch-size", "2",
         "--lora", "--freeze", "vision", "--bf16", "--gradient-checkpointing", "--ema-decay",
         "--camera", f"base_0_rgb={CAMERA_KEY}", "--delta-action-mask", "1,0", "--value-conversion", "aloha",
+        "--rtc-max-delay", "3",
     ])
     run = settings_from_args(args)
     assert run.lora and run.bf16 and run.gradient_checkpointing and run.freeze == ["vision"] and run.ema_decay == 0.99
     assert run.camera_map == {"base_0_rgb": CAMERA_KEY} and run.delta_action_mask == [True, False]
-    assert run.value_conversion == "aloha"
+    assert run.value_conversion == "aloha" and run.rtc_max_delay == 3
     assert run.learning_rate == 2.5e-5 and run.warmup_steps == 1000 and run.weight_decay == 1e-10 and run.max_grad_norm == 1.0
 
 

@@ -44,7 +44,8 @@ class PI0Config(PretrainedConfig):
     Holds the dimensions of the SigLIP vision tower, the VLM Gemma ("expert 0", width `vlm_hidden_size`) and the
     action expert ("expert 1", width `expert_hidden_size`), which share depth, head count and head size, plus the
     action/flow-matching settings. `pi05=True` selects π0.5 (adaRMS time conditioning in the action expert, no state
-    token). Use the presets for the released sizes:
+    token). `rtc_max_delay` records the largest inference delay (in action steps) the model was trained to take
+    committed actions for (training-time real-time chunking, `pi0-torch train --rtc-max-delay`); 0 = not trained so. Use the presets for the released sizes:
 
     ```python
     >>> from pi0_torch import PI0Config
@@ -92,6 +93,7 @@ class PI0Config(PretrainedConfig):
         time_min_period: float = 4e-3,
         time_max_period: float = 4.0,
         camera_names: Sequence[str] = DEFAULT_CAMERA_NAMES,
+        rtc_max_delay: int = 0,
         **kwargs: Any,
     ) -> None:
         self.pi05 = bool(pi05)
@@ -123,6 +125,7 @@ class PI0Config(PretrainedConfig):
         self.time_min_period = time_min_period
         self.time_max_period = time_max_period
         self.camera_names = list(camera_names)
+        self.rtc_max_delay = rtc_max_delay
         super().__init__(**kwargs)
         self._check()
 
@@ -138,6 +141,8 @@ class PI0Config(PretrainedConfig):
             raise ValueError(f"head_dim must be even for RoPE, got {self.head_dim}")
         if self.image_size % self.patch_size:
             raise ValueError(f"image_size ({self.image_size}) must be a multiple of patch_size ({self.patch_size})")
+        if not 0 <= self.rtc_max_delay < self.action_horizon:
+            raise ValueError(f"rtc_max_delay must lie in [0, action_horizon - 1 = {self.action_horizon - 1}], got {self.rtc_max_delay}")
         if not self.camera_names or len(set(self.camera_names)) != len(self.camera_names):
             raise ValueError(f"camera_names must be non-empty and unique, got {self.camera_names}")
 

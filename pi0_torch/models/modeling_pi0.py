@@ -8,6 +8,7 @@ N query heads, K kv heads, H head size, D0 / D1 widths of the VLM Gemma (expert 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -18,9 +19,10 @@ from transformers import PreTrainedModel, SiglipVisionConfig, SiglipVisionModel
 from transformers.modeling_layers import GradientCheckpointingLayer
 from transformers.utils import ModelOutput
 
+from pi0_torch.masks import masked_attention, prefix_lm_mask, to_additive_mask
 from pi0_torch.models.configuration_pi0 import PI0Config
 from pi0_torch.models.flow_matching import euler_times, interpolate, sample_flow_time, sincos_time_embedding
-from pi0_torch.masks import masked_attention, prefix_lm_mask, to_additive_mask
+from pi0_torch.models.rtc import DEFAULT_MAX_GUIDANCE, METHODS, ChunkPrefix, chunk_prefix, guidance_weight, per_sample_steps
 
 # ----------------------------------------------------------------------------------------------------------------------
 # Normalisation and rotary position embedding
@@ -48,8 +50,10 @@ class RMSNorm(nn.Module):
 class AdaRMSNorm(nn.Module):
     """π0.5 adaptive RMSNorm: the flow-time condition sets scale, shift and a residual gate.
 
-    `modulation` is `self.modulation(condition)` `[B, 3 * dim]` = [scale | shift | gate]; callers compute it (once
-    for all sampling steps, see `PI0ForActionGeneration.expert_modulations`). Returns the normed input and the gate.
+    `modulation` is `self.modulation(condition)` = [scale | shift | gate], `[B, 3 * dim]` for all tokens of a sample
+    or `[B, T, 3 * dim]` per token (real-time chunking gives committed action tokens their own flow time); callers
+    compute it (once for all sampling steps, see `PI0ForActionGeneration.expert_modulations`). Returns the normed
+    input and the gate.
     """
 
     def __init__(self, dim: int, eps: float) -> None:
@@ -58,7 +62,9 @@ class AdaRMSNorm(nn.Module):
         self.modulation = nn.Linear(dim, 3 * dim)
 
     def forward(self, x: torch.Tensor, modulation: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        scale, shift, gate = modulation[:, None, :].chunk(3, dim=-1)  # [B, 1, dim] each
+        if modulation.dim() == 2:
+            modulation = modulation[:, None, :]
+        scale, shift, gate = modulation.chunk(3, dim=-1)  # [B, 1 or T, dim] each
         return (_rms_normalize(x, self.eps) * (1 + scale) + shift).to(x.dtype), gate
 
 
@@ -135,12 +141,15 @@ class JointDecoderLayer(GradientCheckpointingLayer):
         kv_buffer: tuple[torch.Tensor, torch.Tensor] | None = None,  # [B, K, P + S, H] each
         kv_offset: int = 0,
         keys_only: bool = False,
+        write_cache: bool = True,
     ) -> tuple[torch.Tensor | None, torch.Tensor | None]:
         """Returns the updated (prefix, suffix).
 
         With `kv_buffer`, the new post-RoPE k/v are written into it at `kv_offset` and attention reads the buffer up
         to the end of the new tokens (a static k/v cache). `keys_only` stops once they are written (the last layer
-        of the cached prefix: its outputs are never read) and returns (None, None).
+        of the cached prefix: its outputs are never read) and returns (None, None). `write_cache=False` reads the
+        buffer's first `kv_offset` entries and appends the new k/v without writing them (a pure function of its
+        inputs, for differentiating a sampling step with respect to its input).
         """
         attn_modulation, mlp_modulation = expert_modulation if expert_modulation is not None else (None, None)
         streams = [
@@ -160,7 +169,11 @@ class JointDecoderLayer(GradientCheckpointingLayer):
         q = apply_rope(torch.cat(queries, dim=2), cos, sin)
         k = apply_rope(torch.cat(keys, dim=2), cos, sin)
         v = torch.cat(values, dim=2)
-        if kv_buffer is not None:
+        if kv_buffer is not None and not write_cache:
+            key_buffer, value_buffer = kv_buffer
+            k = torch.cat([key_buffer[:, :, :kv_offset], k], dim=2)
+            v = torch.cat([value_buffer[:, :, :kv_offset], v], dim=2)
+        elif kv_buffer is not None:
             key_buffer, value_buffer = kv_buffer
             end = kv_offset + k.shape[2]
             key_buffer[:, :, kv_offset:end] = k
@@ -203,10 +216,29 @@ class PI0Output(ModelOutput):
 
 @dataclass
 class StepConditioning:
-    """What one sampling step's flow time contributes (see `PI0ForActionGeneration.step_conditioning`)."""
+    """What the flow time contributes to the suffix (see `PI0ForActionGeneration.conditioning`): per sample
+    `[B, ...]`, or per action token `[B, horizon, ...]` when committed tokens have their own time (real-time chunking).
+    """
 
     condition: torch.Tensor  # [B, D1] time half of action_time_mlp_in (π0) or adaRMS condition (π0.5)
     modulations: tuple[list[tuple[torch.Tensor, torch.Tensor]], torch.Tensor] | None  # π0.5: per layer, final
+
+    def tensors(self) -> list[torch.Tensor]:
+        per_layer, final = self.modulations if self.modulations is not None else ([], None)
+        return [self.condition, *(m for pair in per_layer for m in pair), *([final] if final is not None else [])]
+
+    def map(self, fn: Callable[..., torch.Tensor], *others: StepConditioning) -> StepConditioning:
+        """Apply `fn` to every tensor (with the matching tensors of `others` as further arguments)."""
+        values = iter([fn(*group) for group in zip(self.tensors(), *(other.tensors() for other in others))])
+        condition = next(values)
+        if self.modulations is None:
+            return StepConditioning(condition, None)
+        per_layer = [(next(values), next(values)) for _ in self.modulations[0]]
+        return StepConditioning(condition, (per_layer, next(values)))
+
+    def per_token(self, clean: StepConditioning, committed: torch.Tensor) -> StepConditioning:
+        """Per action token: `clean` (flow time 0, one row) where `committed` `[B, horizon]`, this step's elsewhere."""
+        return self.map(lambda value, clean_value: torch.where(committed[..., None], clean_value[:, None], value[:, None]), clean)
 
 
 @dataclass
@@ -403,20 +435,29 @@ class PI0ForActionGeneration(PI0PreTrainedModel):
         width = config.expert_hidden_size
         return F.linear(embedding, self.action_time_mlp_in.weight[:, width:], self.action_time_mlp_in.bias)
 
-    def step_conditioning(self, times: list[float], batch: int) -> list[StepConditioning]:
-        """Everything that depends only on the flow time, for all sampling steps at once: per step the time
-        conditioning `[B, D1]` and (π0.5) the adaRMS modulations of every expert norm."""
-        conditions = self.time_conditioning(torch.tensor(times, dtype=torch.float32, device=self.device))  # [steps, D1]
-        if not self.config.pi05:
-            return [StepConditioning(condition.expand(batch, -1), None) for condition in conditions]
-        per_layer, final = self.expert_modulations(conditions)
-        return [
-            StepConditioning(
-                conditions[step].expand(batch, -1),
-                ([(attn[step].expand(batch, -1), mlp[step].expand(batch, -1)) for attn, mlp in per_layer], final[step].expand(batch, -1)),
-            )
-            for step in range(len(times))
-        ]
+    def conditioning(self, time: torch.Tensor, committed: torch.Tensor | None = None) -> StepConditioning:
+        """The suffix's time conditioning for flow times `[T]`: `time_conditioning` and (π0.5) the adaRMS
+        modulations of every expert norm, `[T, ...]`.
+
+        With `committed` bool `[T, horizon]` (real-time chunking: action tokens whose actions are given), those
+        tokens get the conditioning of flow time 0 ("clean") and the result is per token, `[T, horizon, ...]`.
+        """
+        condition = self.time_conditioning(time)
+        step = StepConditioning(condition, self.expert_modulations(condition) if self.config.pi05 else None)
+        if committed is None:
+            return step
+        return step.per_token(self.conditioning(torch.zeros(1, device=time.device)), committed)
+
+    def step_conditioning(self, times: list[float], batch: int, committed: torch.Tensor | None = None) -> list[StepConditioning]:
+        """Everything that depends only on the flow time, for all sampling steps at once: per step the
+        `conditioning` of that time for a batch of `batch` (per token where `committed` `[B, horizon]` is given)."""
+        steps = self.conditioning(torch.tensor(times, dtype=torch.float32, device=self.device))  # [steps, ...]
+        clean = self.conditioning(torch.zeros(1, device=self.device)) if committed is not None else None
+        per_step = []
+        for index in range(len(times)):
+            step = steps.map(lambda value, index=index: value[index].expand(batch, -1))
+            per_step.append(step if clean is None else step.per_token(clean, committed))
+        return per_step
 
     def expert_modulations(self, condition: torch.Tensor) -> tuple[list[tuple[torch.Tensor, torch.Tensor]], torch.Tensor]:
         """π0.5 adaRMS modulations `[..., 3*D1]` of every expert norm for `condition` `[..., D1]`: per layer
@@ -430,14 +471,16 @@ class PI0ForActionGeneration(PI0PreTrainedModel):
         self, state: torch.Tensor | None, noisy_actions: torch.Tensor, time_conditioning: torch.Tensor
     ) -> torch.Tensor:
         """Suffix tokens `[B, S, D1]` from the state (π0), the noisy actions `[B, horizon, action_dim]` and
-        `time_conditioning(time)` `[B, D1]`."""
+        `time_conditioning(time)`, `[B, D1]` or per action token `[B, horizon, D1]`."""
         dtype = self.action_in_proj.weight.dtype
         action_tokens = self.action_in_proj(noisy_actions.to(dtype))
         if self.config.pi05:
             return action_tokens
         width = self.config.expert_hidden_size
         # action_time_mlp_in(cat(actions, time)) split into its action half and the precomputed time half
-        hidden = F.linear(action_tokens, self.action_time_mlp_in.weight[:, :width]) + time_conditioning[:, None, :]
+        if time_conditioning.dim() == 2:
+            time_conditioning = time_conditioning[:, None, :]
+        hidden = F.linear(action_tokens, self.action_time_mlp_in.weight[:, :width]) + time_conditioning
         action_tokens = self.action_time_mlp_out(F.silu(hidden))
         state_token = self.state_proj(state.to(dtype))[:, None, :]
         return torch.cat([state_token, action_tokens], dim=1)
@@ -454,6 +497,7 @@ class PI0ForActionGeneration(PI0PreTrainedModel):
         actions: torch.Tensor | None = None,
         noise: torch.Tensor | None = None,
         time: torch.Tensor | None = None,
+        inference_delay: torch.Tensor | None = None,
         **unused: Any,
     ) -> PI0Output:
         """Predict the flow velocity at time `time` for `x_t = time * noise + (1 - time) * actions`.
@@ -467,6 +511,9 @@ class PI0ForActionGeneration(PI0PreTrainedModel):
                 `noise` is used as the noisy input `x_t` directly (with `time`, default 1).
             noise: float `[B, horizon, action_dim]`, drawn from N(0, I) when not given.
             time: float `[B]` flow times, drawn from Beta(1.5, 1) * 0.999 + 0.001 when not given.
+            inference_delay: long `[B]` (training-time real-time chunking): the first `d` action steps of each
+                sample are given clean (flow time 0, `x_t = actions` there) as the actions a robot executes while
+                the next chunk is computed; the loss averages over the other steps only. None: every step is noisy.
 
         Returns:
             [`PI0Output`] with `velocity` `[B, horizon, action_dim]` and `loss` (scalar, when `actions` is given).
@@ -487,21 +534,35 @@ class PI0ForActionGeneration(PI0PreTrainedModel):
             )
         _check_tensor("time", time, (batch,), floating=True)
 
+        committed = None
+        if inference_delay is not None:
+            delay = per_sample_steps(inference_delay, batch, "inference_delay", device)
+            if bool(((delay < 0) | (delay >= config.action_horizon)).any()):
+                raise ValueError(f"inference_delay must lie in [0, action_horizon - 1 = {config.action_horizon - 1}], got {delay.tolist()}")
+            committed = torch.arange(config.action_horizon, device=device)[None, :] < delay[:, None]  # [B, horizon]
+
         if actions is not None:
             x_t, target = interpolate(actions.float(), noise.float(), time.float())
+            if committed is not None:  # flow time 0 there
+                x_t = torch.where(committed[..., None], actions.float(), x_t)
         else:
             x_t, target = noise.float(), None
 
         prefix, prefix_valid = self.embed_prefix(pixel_values, image_masks, input_ids, attention_mask)
-        condition = self.time_conditioning(time)
-        suffix = self.embed_suffix(state, x_t, condition)
+        conditioning = self.conditioning(time, committed)
+        suffix = self.embed_suffix(state, x_t, conditioning.condition)
         suffix_flags = self.suffix_block_flags(device)
         valid = torch.cat([prefix_valid, torch.ones(batch, suffix.shape[1], dtype=torch.bool, device=device)], dim=1)
         flags = torch.cat([torch.zeros(prefix.shape[1], dtype=torch.bool, device=device), suffix_flags])
         mask, positions = prefix_lm_mask(valid, flags)
-        _, suffix_out = self.run_layers(prefix, suffix, mask, positions, condition)
+        _, suffix_out = self.run_layers(prefix, suffix, mask, positions, conditioning)
         velocity = self.action_out_proj(suffix_out[:, -config.action_horizon :]).float()
-        loss = F.mse_loss(velocity, target) if target is not None else None
+        if target is None:
+            loss = None
+        elif committed is None:
+            loss = F.mse_loss(velocity, target)
+        else:  # the given steps carry no loss
+            loss = F.mse_loss(velocity[~committed], target[~committed])
         return PI0Output(loss=loss, velocity=velocity)
 
     def run_layers(
@@ -510,18 +571,16 @@ class PI0ForActionGeneration(PI0PreTrainedModel):
         suffix: torch.Tensor,
         mask: torch.Tensor,
         positions: torch.Tensor,
-        condition: torch.Tensor,
+        conditioning: StepConditioning,
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Both experts jointly through every layer and their final norms: (prefix_out, suffix_out).
 
-        `mask` bool [B, P+S, P+S], `positions` [B, P+S], `condition` the time conditioning [B, D1].
+        `mask` bool [B, P+S, P+S], `positions` [B, P+S], `conditioning` of the flow time (see `conditioning`).
         """
         cos, sin = rope_cos_sin(positions, self.config.head_dim, self.config.rope_theta)
         mask = to_additive_mask(mask[:, None], prefix.dtype)  # once for all layers
-        if self.config.pi05:
-            layer_modulations, final_modulation = self.expert_modulations(condition)
-        else:
-            layer_modulations, final_modulation = [None] * len(self.layers), None
+        modulations = conditioning.modulations
+        layer_modulations, final_modulation = modulations if modulations is not None else ([None] * len(self.layers), None)
         for layer, modulation in zip(self.layers, layer_modulations):
             prefix, suffix = layer(prefix, suffix, cos, sin, mask, modulation)
         prefix, _ = self.vlm_final_norm(prefix)
@@ -578,9 +637,11 @@ class PI0ForActionGeneration(PI0PreTrainedModel):
         x_t: torch.Tensor,
         conditioning: StepConditioning,
         suffix_attention: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
+        write_cache: bool = True,
     ) -> torch.Tensor:
         """Velocity `[B, horizon, action_dim]` (float32) at `x_t` given the cached prefix, this step's
-        `conditioning` (from `step_conditioning`) and `suffix_attention(cache.prefix_valid)`."""
+        `conditioning` (from `step_conditioning`) and `suffix_attention(cache.prefix_valid)`. `write_cache=False`
+        leaves the cache untouched (a pure function of `x_t`, to differentiate through)."""
         mask, cos, sin = suffix_attention
         suffix = self.embed_suffix(state, x_t, conditioning.condition)
         mask = to_additive_mask(mask, suffix.dtype)
@@ -588,10 +649,38 @@ class PI0ForActionGeneration(PI0PreTrainedModel):
         layer_modulations, final_modulation = modulations if modulations is not None else ([None] * len(self.layers), None)
         for layer, key_buffer, value_buffer, modulation in zip(self.layers, cache.keys, cache.values, layer_modulations):
             _, suffix = layer(
-                None, suffix, cos, sin, mask, modulation, kv_buffer=(key_buffer, value_buffer), kv_offset=cache.prefix_len
+                None, suffix, cos, sin, mask, modulation,
+                kv_buffer=(key_buffer, value_buffer), kv_offset=cache.prefix_len, write_cache=write_cache,
             )
         suffix, _ = self.expert_final_norm(suffix, final_modulation)
         return self.action_out_proj(suffix[:, -self.config.action_horizon :]).float()
+
+    def guided_velocity(
+        self,
+        cache: PrefixCache,
+        state: torch.Tensor | None,
+        x_t: torch.Tensor,
+        time: float,
+        conditioning: StepConditioning,
+        suffix_attention: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
+        prefix: ChunkPrefix,
+        max_guidance: float,
+    ) -> torch.Tensor:
+        """Inference-time real-time chunking: the velocity at `x_t`, corrected so that the predicted clean chunk
+        `x0 = x_t - t * v` moves toward the previous chunk's target where the soft mask asks for it.
+
+        `v' = v - w * J^T (W * (Y - x0))` with `J = dx0 / dx_t` (one vector-Jacobian product through the suffix;
+        the prefix cache is a constant) and `w = min(beta, ((1 - t)^2 + t^2) / (t (1 - t)))`. The minus sign is
+        openpi's convention: v points from data to noise and the Euler steps go down in t.
+        """
+
+        def clean_estimate(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+            velocity = self.denoise_step(cache, state, x, conditioning, suffix_attention, write_cache=False)
+            return x - time * velocity, velocity
+
+        predicted, pullback, velocity = torch.func.vjp(clean_estimate, x_t, has_aux=True)
+        (correction,) = pullback(prefix.weights[..., None] * (prefix.target - predicted))
+        return velocity - guidance_weight(time, max_guidance) * correction
 
     @torch.no_grad()
     def generate_actions(
@@ -604,6 +693,12 @@ class PI0ForActionGeneration(PI0PreTrainedModel):
         noise: torch.Tensor | None = None,
         num_steps: int | None = None,
         generator: torch.Generator | None = None,
+        previous_actions: torch.Tensor | None = None,
+        inference_delay: int | torch.Tensor = 0,
+        execution_horizon: int | torch.Tensor | None = None,
+        rtc_method: str = "guidance",
+        rtc_max_guidance: float = DEFAULT_MAX_GUIDANCE,
+        rtc_schedule: str = "exp",
     ) -> torch.Tensor:
         """Sample an action chunk by Euler integration of the flow from noise (t = 1) to actions (t = 0).
 
@@ -611,7 +706,18 @@ class PI0ForActionGeneration(PI0PreTrainedModel):
         runs only the suffix against the cached k/v. Everything that depends only on the flow time is computed for
         all steps up front. The Euler state is kept in float32 whatever the weights' dtype.
 
-        Args: as [`forward`], plus `noise` `[B, horizon, action_dim]` (drawn with `generator` when not given).
+        Real-time chunking (see `pi0_torch.models.rtc`): with `previous_actions`, the new chunk continues the one
+        the robot is executing. Its index 0 is the step at which this inference starts, `execution_horizon` (`s`)
+        steps after the previous one started, and the robot executes `inference_delay` (`d`) more of the previous
+        chunk while this one computes. `rtc_method="guidance"` (inference-time RTC) steers every Euler step toward
+        the previous chunk's remaining actions with the soft mask `rtc_schedule` and guidance weight clipped at
+        `rtc_max_guidance` (beta; 0 gives plain sampling, bit for bit); `"conditioning"` (training-time RTC, for a
+        model trained with `config.rtc_max_delay >= d`) gives the first `d` actions as committed (flow time 0) and
+        returns them unchanged.
+
+        Args: as [`forward`], plus `noise` `[B, horizon, action_dim]` (drawn with `generator` when not given),
+            `previous_actions` float `[B, horizon, action_dim]` (model space, as this method returned it),
+            `inference_delay` / `execution_horizon` ints or long `[B]`.
 
         Returns:
             float32 `[B, horizon, action_dim]` actions in normalized model space (see `PI0Processor` to map them
@@ -624,8 +730,12 @@ class PI0ForActionGeneration(PI0PreTrainedModel):
             noise = torch.randn(shape, generator=generator, device=pixel_values.device, dtype=torch.float32)
         _check_tensor("noise", noise, shape, floating=True)
         times = euler_times(config.num_inference_steps if num_steps is None else num_steps)
+        prefix = None
+        if previous_actions is not None:
+            prefix = self._chunk_prefix(batch, previous_actions, inference_delay, execution_horizon, rtc_method, rtc_max_guidance, rtc_schedule)
         sample = self._sample if self._compiled_sample is None else self._compiled_sample
-        actions = sample(pixel_values, image_masks, input_ids, attention_mask, state, noise.float(), times)
+        actions = sample(pixel_values, image_masks, input_ids, attention_mask, state, noise.float(), times,
+                         prefix, rtc_method, float(rtc_max_guidance))
         # a CUDA graph's output is overwritten by its next replay: compiled sampling hands back a copy
         return actions if self._compiled_sample is None else actions.clone()
 
@@ -638,15 +748,57 @@ class PI0ForActionGeneration(PI0PreTrainedModel):
         state: torch.Tensor | None,
         noise: torch.Tensor,
         times: list[float],
+        prefix: ChunkPrefix | None = None,
+        rtc_method: str = "guidance",
+        rtc_max_guidance: float = DEFAULT_MAX_GUIDANCE,
     ) -> torch.Tensor:
         """The sampling computation of `generate_actions` on checked inputs (what `compile_sampling` compiles)."""
         cache = self.cache_prefix(pixel_values, image_masks, input_ids, attention_mask)
         suffix_attention = self.suffix_attention(cache.prefix_valid)
+        guided = prefix is not None and rtc_method == "guidance" and rtc_max_guidance > 0
+        committed = prefix.committed if prefix is not None and rtc_method == "conditioning" else None
         dt = -1.0 / len(times)
-        x_t = noise
-        for conditioning in self.step_conditioning(times, noise.shape[0]):
-            x_t = x_t + dt * self.denoise_step(cache, state, x_t, conditioning, suffix_attention)
+        x_t = noise if committed is None else torch.where(committed[..., None], prefix.target, noise)
+        for time, conditioning in zip(times, self.step_conditioning(times, noise.shape[0], committed)):
+            if guided:
+                velocity = self.guided_velocity(cache, state, x_t, time, conditioning, suffix_attention, prefix, rtc_max_guidance)
+            else:
+                velocity = self.denoise_step(cache, state, x_t, conditioning, suffix_attention)
+            x_t = x_t + dt * velocity
+            if committed is not None:  # the committed actions stay as given
+                x_t = torch.where(committed[..., None], prefix.target, x_t)
         return x_t
+
+    def _chunk_prefix(
+        self,
+        batch: int,
+        previous_actions: torch.Tensor,
+        inference_delay: int | torch.Tensor,
+        execution_horizon: int | torch.Tensor | None,
+        rtc_method: str,
+        rtc_max_guidance: float,
+        rtc_schedule: str,
+    ) -> ChunkPrefix:
+        """Check the real-time chunking arguments of `generate_actions` and build the new chunk's prefix."""
+        config = self.config
+        _check_tensor("previous_actions", previous_actions, (batch, config.action_horizon, config.action_dim), floating=True)
+        if not bool(torch.isfinite(previous_actions).all()):
+            raise ValueError("previous_actions must be finite (no NaN or inf)")
+        if execution_horizon is None:
+            raise ValueError("execution_horizon is required with previous_actions: the steps of the previous chunk executed "
+                             "between its inference start and this one's")
+        if rtc_method not in METHODS:
+            raise ValueError(f"rtc_method must be one of {METHODS}, got {rtc_method!r}")
+        if not rtc_max_guidance >= 0:
+            raise ValueError(f"rtc_max_guidance must be >= 0, got {rtc_max_guidance}")
+        prefix = chunk_prefix(previous_actions.to(self.device), inference_delay, execution_horizon, rtc_schedule)
+        longest = int(prefix.committed.sum(dim=1).max())
+        if rtc_method == "conditioning" and longest > config.rtc_max_delay:
+            raise ValueError(
+                f"rtc_method='conditioning' needs a model trained with delays up to the inference delay ({longest}); this "
+                f"one was trained with rtc_max_delay={config.rtc_max_delay} (train with --rtc-max-delay, or use 'guidance')"
+            )
+        return prefix
 
     @property
     def sampling_compiled(self) -> bool:

@@ -134,15 +134,19 @@ class PI0DataCollator:
         return batch
 
 
-def flow_draws(config: PI0Config, keys: Sequence[Sequence[int]]) -> tuple[torch.Tensor, torch.Tensor]:
+def flow_draws(config: PI0Config, keys: Sequence[Sequence[int]]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
     """Flow-matching noise `[B, horizon, action_dim]` and times `[B]` (Beta(a, b) * scale + offset, as the model's own
-    sampler), one independent numpy generator per sample seeded with that sample's key (a tuple of ints)."""
-    noise, time = [], []
+    sampler), one independent numpy generator per sample seeded with that sample's key (a tuple of ints); with
+    `config.rtc_max_delay > 0` (training-time real-time chunking) also an inference delay per sample, uniform in
+    `[0, rtc_max_delay]` (long `[B]`; None otherwise), drawn after the noise and time so those stay the same."""
+    noise, time, delay = [], [], []
     for key in keys:
         rng = np.random.default_rng([int(k) for k in key])
         noise.append(rng.standard_normal((config.action_horizon, config.action_dim)))
         time.append(rng.beta(config.time_beta_alpha, config.time_beta_beta) * config.time_scale + config.time_offset)
-    return torch.tensor(np.stack(noise), dtype=torch.float32), torch.tensor(time, dtype=torch.float32)
+        delay.append(rng.integers(0, config.rtc_max_delay + 1))
+    delays = torch.tensor(delay, dtype=torch.long) if config.rtc_max_delay > 0 else None
+    return torch.tensor(np.stack(noise), dtype=torch.float32), torch.tensor(time, dtype=torch.float32), delays
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -253,9 +257,11 @@ class PI0Trainer(Trainer):
         sample_index = inputs.pop("sample_index", None)
         if "noise" not in inputs and sample_index is not None:
             config = self.accelerator.unwrap_model(model).config
-            noise, time = flow_draws(config, self._flow_keys({**inputs, "sample_index": sample_index}, model.training))
+            noise, time, delay = flow_draws(config, self._flow_keys({**inputs, "sample_index": sample_index}, model.training))
             device = inputs["input_ids"].device
             inputs["noise"], inputs["time"] = noise.to(device), time.to(device)
+            if delay is not None:
+                inputs["inference_delay"] = delay.to(device)
         outputs = model(**inputs)
         return (outputs.loss, outputs) if return_outputs else outputs.loss
 
@@ -525,6 +531,7 @@ class TrainSettings:
     weight_decay: float = OPENPI_WEIGHT_DECAY
     max_grad_norm: float = OPENPI_CLIP_NORM
     ema_decay: float | None = None
+    rtc_max_delay: int | None = None
     lora: bool = False
     lora_rank_vlm: int = LORA_RANK_VLM
     lora_rank_expert: int = LORA_RANK_EXPERT
@@ -552,10 +559,14 @@ def load_config(settings: TrainSettings) -> PI0Config:
     if _is_model_folder(settings.model):
         if settings.config_overrides:
             raise ValueError("config_overrides apply to presets only; a checkpoint folder keeps its own config")
-        return PI0Config.from_pretrained(settings.model)
-    if settings.model not in preset_names():
+        config = PI0Config.from_pretrained(settings.model)
+    elif settings.model not in preset_names():
         raise ValueError(f"--model {settings.model!r} is neither a checkpoint folder (with config.json) nor a preset {preset_names()}")
-    return PI0Config.from_preset(settings.model, **settings.config_overrides)
+    else:
+        config = PI0Config.from_preset(settings.model, **settings.config_overrides)
+    if settings.rtc_max_delay is not None:  # a training choice the saved config records
+        config = PI0Config.from_dict({**config.to_dict(), "rtc_max_delay": settings.rtc_max_delay})
+    return config
 
 
 def build_processor(settings: TrainSettings, config: PI0Config, dataset: LeRobotEpisodeDataset) -> PI0Processor:
@@ -822,6 +833,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     recipe.add_argument("--max-grad-norm", type=float, default=OPENPI_CLIP_NORM)
     recipe.add_argument("--ema-decay", type=float, nargs="?", const=OPENPI_EMA_DECAY,
                         help=f"keep an EMA of the weights (bare flag: openpi's {OPENPI_EMA_DECAY}); the final model is the EMA")
+    recipe.add_argument("--rtc-max-delay", type=int, metavar="D",
+                        help="training-time real-time chunking: each sample takes its first d ~ U{0..D} actions as "
+                             "given, so the policy can continue a chunk with --rtc-method conditioning (0 turns it off)")
     recipe.add_argument("--lora", action="store_true", help="LoRA on the Gemma experts (openpi's low-memory fine-tune)")
     recipe.add_argument("--lora-rank-vlm", type=int, default=LORA_RANK_VLM)
     recipe.add_argument("--lora-rank-expert", type=int, default=LORA_RANK_EXPERT)
