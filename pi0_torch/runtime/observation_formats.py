@@ -23,6 +23,9 @@ message. As a JSON file (`pi0-torch serve --obs-format my_robot.json`):
 - `state` is a list of sources; their 1-D values are concatenated in order (DROID: joints, then gripper).
 - `prompt` is a source; a message without it gets the processor's default prompt (`--default-prompt`), if any.
 
+The optional real-time chunking fields of [`PI0Policy`] (`previous_actions`, `inference_delay`, `execution_horizon`,
+`rtc_method`) and `noise_seed` are top-level keys in every layout and passed on as they are.
+
 Frames are passed on as they come; [`PI0Processor`] accepts what openpi's input transforms accept (HxWx3 or 3xHxW,
 uint8 or float in [0, 1]) and checks them. Keys of a message that the format does not name are ignored, as openpi
 does.
@@ -54,6 +57,7 @@ from typing import Any, Union
 
 import numpy as np
 
+CHUNK_FIELDS = ("previous_actions", "inference_delay", "execution_horizon", "rtc_method", "noise_seed")
 Source = Union[str, tuple[str, ...]]  # a top-level key, or a path of keys into nested dicts
 
 
@@ -156,10 +160,12 @@ class ObservationFormat:
         """
         if not isinstance(message, Mapping):
             raise ObservationError(f"observation must be a dict, got {type(message).__name__}")
+        chunk_fields = {name: message[name] for name in CHUNK_FIELDS if name in message}  # the same in every layout
         return {
             "images": self._images(message),
             "state": self._state(message),
             "prompt": self._prompt(message),
+            **chunk_fields,
         }
 
     def _images(self, message: Mapping[str, Any]) -> dict[str, np.ndarray]:
@@ -266,4 +272,8 @@ PRESETS: dict[str, ObservationFormat] = {
         optional_images=frozenset({"left_wrist_0_rgb", "right_wrist_0_rgb"}),
         state=("state",),
     ),
+    # Gymnasium simulators of LeRobot (`pi0-torch eval --env ...`): gym_pusht with obs_type "pixels_agent_pos", and
+    # gym_aloha with obs_type "pixels_agent_pos" (one "top" camera; no prompt: the policy's default prompt is used).
+    "pusht": ObservationFormat(name="pusht", images={"base_0_rgb": "pixels"}, state=("agent_pos",)),
+    "gym_aloha": ObservationFormat(name="gym_aloha", images={"base_0_rgb": ("pixels", "top")}, state=("agent_pos",)),
 }

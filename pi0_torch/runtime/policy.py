@@ -36,10 +36,21 @@ import torch
 
 from pi0_torch import __version__
 from pi0_torch.models.modeling_pi0 import PI0ForActionGeneration
+from pi0_torch.models.rtc import DEFAULT_MAX_GUIDANCE, METHODS
 from pi0_torch.runtime.observation_formats import ObservationError
 from pi0_torch.processing.processing_pi0 import PI0Processor
 
 _DTYPES = {"float32": torch.float32, "bfloat16": torch.bfloat16}
+
+
+@dataclasses.dataclass
+class ChunkContinuation:
+    """A request to continue the chunk the robot is executing (real-time chunking, see `pi0_torch.models.rtc`)."""
+
+    previous_actions: torch.Tensor  # [1, horizon, model action dims], the previous chunk in this observation's model space
+    inference_delay: int  # d: steps of the previous chunk the robot executes while this one is computed
+    execution_horizon: int  # s: steps of the previous chunk executed before this observation
+    method: str  # "guidance" or "conditioning"
 
 
 @dataclasses.dataclass
@@ -48,6 +59,8 @@ class PreparedObservation:
 
     inputs: dict[str, torch.Tensor]
     state: np.ndarray  # [robot state dims], for the processor's delta-action inverse
+    continuation: ChunkContinuation | None = None
+    noise_seed: int | None = None  # this chunk's noise from its own generator (independent of batching)
 
 
 class PI0Policy:
@@ -58,11 +71,23 @@ class PI0Policy:
     robot action dims], "policy_timing": {"infer_ms": model time, "batch_size": observations run together}}`,
     actions unnormalized by the processor.
 
+    Optional observation fields (all plain values, so they travel over the websocket too):
+
+    - real-time chunking: `previous_actions` (the chunk being executed, robot units `[action_horizon, robot action
+      dims]`, as this policy returned it), `execution_horizon` (its steps executed before this observation),
+      `inference_delay` (its steps the robot executes while this chunk computes) and `rtc_method` ("guidance", or
+      "conditioning" for a model trained with `--rtc-max-delay`; default: the policy's `rtc_method`);
+    - `noise_seed` (int): this chunk's sampling noise comes from its own generator, so results do not depend on which
+      requests were batched together (reproducible evaluation, locally and through the server).
+
     Args:
         model: the model, already on its device and dtype.
         processor: its processor.
         num_steps: Euler steps per chunk (default: `model.config.num_inference_steps`).
         seed: seeds the sampling noise, so a fresh policy gives the same chunks for the same requests.
+        rtc_method: how chunks continue a `previous_actions` (default: "conditioning" for a model trained with delays,
+            `config.rtc_max_delay > 0`, else "guidance").
+        rtc_max_guidance: the guidance weight's clip (beta) for "guidance".
         compile: run sampling through `torch.compile` ([`PI0ForActionGeneration.compile_sampling`]), as one CUDA
             graph on CUDA. The first chunk of each batch size compiles (tens of seconds): call [`warmup`] first.
     """
@@ -74,8 +99,14 @@ class PI0Policy:
         num_steps: int | None = None,
         seed: int | None = None,
         compile: bool = False,
+        rtc_method: str | None = None,
+        rtc_max_guidance: float = DEFAULT_MAX_GUIDANCE,
     ) -> None:
         self.model = model.eval()
+        self.rtc_method = rtc_method or ("conditioning" if model.config.rtc_max_delay > 0 else "guidance")
+        if self.rtc_method not in METHODS:
+            raise ValueError(f"rtc_method must be one of {METHODS}, got {self.rtc_method!r}")
+        self.rtc_max_guidance = rtc_max_guidance
         self.processor = processor
         self.num_steps = num_steps if num_steps is not None else model.config.num_inference_steps
         if self.num_steps < 1:
@@ -98,12 +129,13 @@ class PI0Policy:
         seed: int | None = None,
         default_prompt: str | None = None,
         compile: bool = False,
+        rtc_method: str | None = None,
     ) -> PI0Policy:
         """Load the model and processor saved in `directory` (by `save_pretrained` or the converter).
 
         `device` defaults to CUDA when available, else CPU; `dtype` ("float32" / "bfloat16" or a torch dtype)
         defaults to bfloat16 on CUDA and float32 on CPU. `default_prompt` replaces the processor's (used for
-        observations without a prompt). `compile` as in the class.
+        observations without a prompt). `compile` and `rtc_method` as in the class.
         """
         if not Path(directory).is_dir():
             raise FileNotFoundError(f"model folder not found: {directory} (a folder written by save_pretrained or "
@@ -118,7 +150,7 @@ class PI0Policy:
         model = PI0ForActionGeneration.from_pretrained(directory, dtype=dtype).to(device)
         overrides = {"default_prompt": default_prompt} if default_prompt is not None else {}
         processor = PI0Processor.from_pretrained(directory, **overrides)
-        return cls(model, processor, num_steps=num_steps, seed=seed, compile=compile)
+        return cls(model, processor, num_steps=num_steps, seed=seed, compile=compile, rtc_method=rtc_method)
 
     @property
     def camera_names(self) -> list[str]:
@@ -139,6 +171,8 @@ class PI0Policy:
             "default_prompt": self.processor.default_prompt,
             "device": str(self.device),
             "dtype": str(self.model.dtype).removeprefix("torch."),
+            "real_time_chunking": {"methods": list(METHODS), "default_method": self.rtc_method,
+                                   "rtc_max_delay": config.rtc_max_delay},
         }
 
     def prepare(self, observation: Mapping[str, Any]) -> PreparedObservation:
@@ -154,23 +188,48 @@ class PI0Policy:
             raise ObservationError(f"observation.state: expected shape [{self.processor.state_dim}], "
                                    f"got {list(np.shape(state))}")
         sample = {"images": observation.get("images"), "state": state, "prompt": observation.get("prompt")}
+        previous = observation.get("previous_actions")
+        if previous is not None:  # into this observation's model space (delta actions relative to its state)
+            sample["actions"] = previous
         try:
-            inputs = self.processor(sample, return_tensors="pt")
+            inputs = dict(self.processor(sample, return_tensors="pt"))
             raw_state = np.asarray(state, dtype=np.float32)
         except (ValueError, TypeError) as error:
-            raise ObservationError(str(error)) from None
-        return PreparedObservation(inputs=dict(inputs), state=raw_state)
+            raise ObservationError(str(error).replace("actions:", "previous_actions:")) from None
+        continuation = None
+        if previous is not None:
+            continuation = self._continuation(observation, inputs.pop("actions"))
+        elif any(observation.get(name) is not None for name in ("inference_delay", "execution_horizon")):
+            raise ObservationError("inference_delay / execution_horizon: given without previous_actions")
+        seed = observation.get("noise_seed")
+        if seed is not None:
+            seed = _step_count(seed, "noise_seed", 0, 2**63 - 1)
+        return PreparedObservation(inputs=inputs, state=raw_state, continuation=continuation, noise_seed=seed)
+
+    def _continuation(self, observation: Mapping[str, Any], previous: torch.Tensor) -> ChunkContinuation:
+        horizon = self.model.config.action_horizon
+        method = observation.get("rtc_method") or self.rtc_method
+        if method not in METHODS:
+            raise ObservationError(f"rtc_method: expected one of {list(METHODS)}, got {method!r}")
+        executed = _step_count(observation.get("execution_horizon"), "execution_horizon", 0, horizon - 1)
+        delay = _step_count(observation.get("inference_delay", 0), "inference_delay", 0, horizon - executed)
+        if method == "conditioning" and delay > self.model.config.rtc_max_delay:
+            raise ObservationError(f"inference_delay: {delay} exceeds the {self.model.config.rtc_max_delay} steps this "
+                                   "model was trained to take as given (rtc_method 'conditioning'); use 'guidance'")
+        return ChunkContinuation(previous, delay, executed, method)
 
     @torch.inference_mode()
     def infer_prepared(self, prepared: Sequence[PreparedObservation]) -> list[dict[str, Any]]:
         """Run the model once on a batch of prepared observations; one action dict per observation."""
         start = time.monotonic()
-        batch = {
-            name: torch.cat([p.inputs[name] for p in prepared]).to(self.device)
-            for name in prepared[0].inputs
-        }
-        actions = self.model.generate_actions(**batch, num_steps=self.num_steps, generator=self.generator)
-        actions = actions.float().cpu().numpy()  # [B, horizon, action_dim]; waits for the device
+        actions: list[np.ndarray | None] = [None] * len(prepared)
+        groups: dict[str | None, list[int]] = {}  # one model call per way of sampling
+        for index, p in enumerate(prepared):
+            groups.setdefault(p.continuation.method if p.continuation else None, []).append(index)
+        for method, members in groups.items():
+            chunks = self._generate([prepared[i] for i in members], method)  # [b, horizon, action_dim]
+            for index, chunk in zip(members, chunks):
+                actions[index] = chunk
         model_ms = (time.monotonic() - start) * 1000
         return [
             {
@@ -179,6 +238,30 @@ class PI0Policy:
             }
             for chunk, p in zip(actions, prepared)
         ]
+
+    def _generate(self, prepared: Sequence[PreparedObservation], method: str | None) -> np.ndarray:
+        """One `generate_actions` call for observations sampled alike (plain, or continued with `method`)."""
+        batch = {name: torch.cat([p.inputs[name] for p in prepared]).to(self.device) for name in prepared[0].inputs}
+        config = self.model.config
+        options: dict[str, Any] = {"generator": self.generator}
+        if any(p.noise_seed is not None for p in prepared):
+            shape = (1, config.action_horizon, config.action_dim)
+            options = {"noise": torch.cat([
+                torch.randn(shape, generator=torch.Generator().manual_seed(p.noise_seed)).to(self.device)
+                if p.noise_seed is not None else torch.randn(shape, generator=self.generator, device=self.device)
+                for p in prepared
+            ])}
+        if method is not None:
+            continuations = [p.continuation for p in prepared]
+            options.update(
+                previous_actions=torch.cat([c.previous_actions for c in continuations]).to(self.device),
+                inference_delay=torch.tensor([c.inference_delay for c in continuations]),
+                execution_horizon=torch.tensor([c.execution_horizon for c in continuations]),
+                rtc_method=method,
+                rtc_max_guidance=self.rtc_max_guidance,
+            )
+        actions = self.model.generate_actions(**batch, num_steps=self.num_steps, **options)
+        return actions.float().cpu().numpy()  # waits for the device
 
     @torch.inference_mode()
     def warmup(self, max_batch_size: int = 1) -> float:
@@ -204,3 +287,14 @@ class PI0Policy:
     def infer(self, observation: Mapping[str, Any]) -> dict[str, Any]:
         """Actions for one observation: `{"actions": float32 [horizon, robot action dims], "policy_timing": ...}`."""
         return self.infer_prepared([self.prepare(observation)])[0]
+
+
+def _step_count(value: Any, name: str, low: int, high: int) -> int:
+    """An integer field of an observation in `[low, high]`, or an `ObservationError` naming it."""
+    if isinstance(value, np.ndarray) and value.ndim == 0:
+        value = value.item()
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+        raise ObservationError(f"{name}: expected an integer in [{low}, {high}], got {type(value).__name__} {value!r}")
+    if not low <= int(value) <= high:
+        raise ObservationError(f"{name}: expected an integer in [{low}, {high}], got {int(value)}")
+    return int(value)
