@@ -18,22 +18,14 @@ as PNG images inside the parquet (`storage="image"`).
 
 from __future__ import annotations
 
-import io
-import json
-import shutil
-import tempfile
+from collections.abc import Iterator
 from dataclasses import dataclass
-from fractions import Fraction
 from pathlib import Path
 from typing import Any, Literal
 
-import av
-import datasets
 import numpy as np
-import pandas as pd
-import pyarrow as pa
-import pyarrow.parquet as pq
-from PIL import Image
+
+from pi0_torch.data.lerobot_writer import EpisodeRecord, write_lerobot_dataset
 
 COLORS: dict[str, tuple[int, int, int]] = {
     "red": (220, 40, 40),
@@ -111,37 +103,6 @@ def render(scene: Scene, effector: np.ndarray, image_size: int) -> np.ndarray:
     return image
 
 
-def _encode_video(path: Path, frames: list[np.ndarray], fps: int, codec: str) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with av.open(str(path), mode="w") as container:
-        stream = container.add_stream(codec, rate=fps)
-        height, width = frames[0].shape[:2]
-        stream.width, stream.height, stream.pix_fmt = width, height, "yuv420p"
-        stream.time_base = Fraction(1, fps)
-        stream.codec_context.gop_size = 10
-        if codec in ("libx264", "h264"):
-            stream.options = {"crf": "8", "bf": "0"}
-        for number, frame in enumerate(frames):
-            picture = av.VideoFrame.from_ndarray(frame, format="rgb24")
-            picture.pts = number
-            container.mux(stream.encode(picture))
-        container.mux(stream.encode(None))
-
-
-def _png(image: np.ndarray) -> bytes:
-    buffer = io.BytesIO()
-    Image.fromarray(image).save(buffer, format="PNG")
-    return buffer.getvalue()
-
-
-def _vector_stats(values: np.ndarray) -> dict[str, list[float]]:
-    return {
-        "mean": values.mean(0).tolist(), "std": values.std(0).tolist(), "min": values.min(0).tolist(),
-        "max": values.max(0).tolist(), "count": [len(values)],
-        "q01": np.quantile(values, 0.01, axis=0).tolist(), "q99": np.quantile(values, 0.99, axis=0).tolist(),
-    }
-
-
 def write_synthetic_dataset(
     root: str | Path,
     *,
@@ -170,8 +131,8 @@ def write_synthetic_dataset(
         codec: PyAV encoder for the videos (LeRobot uses libsvtav1 by default; h264 decodes everywhere).
 
     Returns:
-        `root` as a `Path`. The folder is assembled in a temporary sibling and renamed at the end, so a failure
-        leaves nothing behind.
+        `root` as a `Path`. Written by `pi0_torch.data.lerobot_writer` (assembled aside and renamed into place, so
+        a failure leaves nothing behind).
     """
     root = Path(root)
     if root.exists():
@@ -193,156 +154,18 @@ def write_synthetic_dataset(
         for index in range(num_episodes)
     ]
     tasks = sorted({scene.prompt for scene in scenes})
-    task_index = {task: i for i, task in enumerate(tasks)}
-    root.parent.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=f".{root.name}-", dir=root.parent))
-    try:
-        _write(staging, scenes, lengths, task_index, image_size, fps, storage, episodes_per_file, codec, num_heldout)
-        staging.rename(root)
-    except BaseException:
-        shutil.rmtree(staging, ignore_errors=True)
-        raise
-    return root
-
-
-def _write(
-    root: Path,
-    scenes: list[Scene],
-    lengths: list[int],
-    task_index: dict[str, int],
-    image_size: int,
-    fps: int,
-    storage: str,
-    episodes_per_file: int,
-    codec: str,
-    num_heldout: int,
-) -> None:
-    camera_feature = {
-        "dtype": storage,
-        "shape": [image_size, image_size, 3],
-        "names": ["height", "width", "channels"],
-    }
-    if storage == "video":
-        camera_feature["info"] = {
-            "video.height": image_size, "video.width": image_size, "video.codec": codec, "video.pix_fmt": "yuv420p",
-            "video.is_depth_map": False, "video.fps": fps, "video.channels": 3, "has_audio": False,
-        }
-    elif storage != "image":
-        raise ValueError(f"storage must be 'video' or 'image', got {storage!r}")
-    features = {
-        CAMERA_KEY: camera_feature,
-        "observation.state": {"dtype": "float32", "shape": [2], "names": ["x", "y"]},
-        "action": {"dtype": "float32", "shape": [2], "names": ["dx", "dy"]},
-        "timestamp": {"dtype": "float32", "shape": [1], "names": None},
-        "frame_index": {"dtype": "int64", "shape": [1], "names": None},
-        "episode_index": {"dtype": "int64", "shape": [1], "names": None},
-        "index": {"dtype": "int64", "shape": [1], "names": None},
-        "task_index": {"dtype": "int64", "shape": [1], "names": None},
-    }
-    hf_features = datasets.Features(
-        {
-            **({CAMERA_KEY: datasets.Image()} if storage == "image" else {}),
-            "observation.state": datasets.Sequence(datasets.Value("float32"), length=2),
-            "action": datasets.Sequence(datasets.Value("float32"), length=2),
-            "timestamp": datasets.Value("float32"),
-            "frame_index": datasets.Value("int64"),
-            "episode_index": datasets.Value("int64"),
-            "index": datasets.Value("int64"),
-            "task_index": datasets.Value("int64"),
-        }
+    return write_lerobot_dataset(
+        root, _episodes(scenes, lengths, image_size), fps=fps, vector_names={"observation.state": ["x", "y"], "action": ["dx", "dy"]},
+        storage=storage, codec=codec, episodes_per_file=episodes_per_file, robot_type="synthetic_reacher",
+        num_heldout=num_heldout, tasks=tasks,
     )
-    data_template = "data/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet"
-    video_template = "videos/{video_key}/chunk-{chunk_index:03d}/file-{file_index:03d}.mp4"
 
-    episode_rows: list[dict[str, Any]] = []
-    all_states, all_actions = [], []
-    global_index = 0
-    for file_index, first in enumerate(range(0, len(scenes), episodes_per_file)):
-        columns: dict[str, list[Any]] = {name: [] for name in hf_features}
-        video_frames: list[np.ndarray] = []
-        for episode_index in range(first, min(first + episodes_per_file, len(scenes))):
-            scene, length = scenes[episode_index], lengths[episode_index]
-            states, actions = rollout(scene, length)
-            all_states.append(states)
-            all_actions.append(actions)
-            images = [render(scene, state, image_size) for state in states]
-            episode_rows.append(
-                {
-                    "episode_index": episode_index,
-                    "tasks": [scene.prompt],
-                    "length": length,
-                    "data/chunk_index": 0,
-                    "data/file_index": file_index,
-                    "dataset_from_index": global_index,
-                    "dataset_to_index": global_index + length,
-                    **(
-                        {
-                            f"videos/{CAMERA_KEY}/chunk_index": 0,
-                            f"videos/{CAMERA_KEY}/file_index": file_index,
-                            f"videos/{CAMERA_KEY}/from_timestamp": len(video_frames) / fps,
-                            f"videos/{CAMERA_KEY}/to_timestamp": (len(video_frames) + length) / fps,
-                        }
-                        if storage == "video"
-                        else {}
-                    ),
-                    "meta/episodes/chunk_index": 0,
-                    "meta/episodes/file_index": 0,
-                    **{
-                        f"stats/{name}/{stat}": value
-                        for name, values in (("observation.state", states), ("action", actions))
-                        for stat, value in _vector_stats(values).items()
-                    },
-                }
-            )
-            for t in range(length):
-                columns["observation.state"].append(states[t].tolist())
-                columns["action"].append(actions[t].tolist())
-                columns["timestamp"].append(t / fps)
-                columns["frame_index"].append(t)
-                columns["episode_index"].append(episode_index)
-                columns["index"].append(global_index + t)
-                columns["task_index"].append(task_index[scene.prompt])
-                if storage == "image":
-                    columns[CAMERA_KEY].append({"bytes": _png(images[t]), "path": None})
-            if storage == "video":
-                video_frames.extend(images)
-            global_index += length
-        data_path = root / data_template.format(chunk_index=0, file_index=file_index)
-        data_path.parent.mkdir(parents=True, exist_ok=True)
-        pq.write_table(pa.Table.from_pydict(columns, schema=hf_features.arrow_schema), data_path)
-        if storage == "video":
-            _encode_video(root / video_template.format(video_key=CAMERA_KEY, chunk_index=0, file_index=file_index), video_frames, fps, codec)
 
-    meta = root / "meta"
-    (meta / "episodes" / "chunk-000").mkdir(parents=True)
-    pq.write_table(pa.Table.from_pylist(episode_rows), meta / "episodes" / "chunk-000" / "file-000.parquet")
-    # LeRobot's tasks table: a pandas frame indexed by the task string, one column task_index
-    pd.DataFrame({"task_index": list(task_index.values())}, index=pd.Index(list(task_index), name="task")).to_parquet(
-        meta / "tasks.parquet"
-    )
-    stats = {"observation.state": _vector_stats(np.concatenate(all_states)), "action": _vector_stats(np.concatenate(all_actions))}
-    (meta / "stats.json").write_text(json.dumps(stats, indent=2))
-    num_episodes = len(scenes)
-    splits = {"train": f"0:{num_episodes - num_heldout}"}
-    if num_heldout:
-        splits["heldout"] = f"{num_episodes - num_heldout}:{num_episodes}"
-    info = {
-        "codebase_version": "v3.0",
-        "robot_type": "synthetic_reacher",
-        "total_episodes": num_episodes,
-        "total_frames": global_index,
-        "total_tasks": len(task_index),
-        "chunks_size": 1000,
-        "data_files_size_in_mb": 100,
-        "video_files_size_in_mb": 500,
-        "fps": fps,
-        "splits": splits,
-        "data_path": data_template,
-        "video_path": video_template if storage == "video" else None,
-        "features": features,
-    }
-    (meta / "info.json").write_text(json.dumps(info, indent=4))
-
+def _episodes(scenes: list[Scene], lengths: list[int], image_size: int) -> Iterator[EpisodeRecord]:
+    for scene, length in zip(scenes, lengths):
+        states, actions = rollout(scene, length)
+        frames = np.stack([render(scene, state, image_size) for state in states])  # [T, H, W, 3]
+        yield EpisodeRecord(scene.prompt, {CAMERA_KEY: frames}, {"observation.state": states, "action": actions})
 
 
 # ----------------------------------------------------------------------------------------------------------------
