@@ -197,13 +197,18 @@ def check_pretrained_location(name_or_path: Any, required_file: str | None, what
                                 f"(it holds {listing}); {convert_hint}")
 
 
+class HubLoadError(OSError):
+    """A hub id that could not be loaded (and that is no local folder either)."""
+
+
 @contextmanager
 def hub_errors(name_or_path: Any, what: str) -> Iterator[None]:
     """Around a hub download: an `OSError` for a hub id also says that no local folder of that name exists."""
     try:
         yield
     except OSError as error:
-        if not is_hub_id(name_or_path):
+        if isinstance(error, HubLoadError) or not is_hub_id(name_or_path):
             raise
-        raise OSError(f"{name_or_path!r} is no local folder, and as a hub id it could not be loaded: {first_line(error)} "
-                      f"(a local {what} folder is written by `pi0-torch convert` or save_pretrained)") from error
+        raise HubLoadError(f"{name_or_path!r} is no local folder, and as a hub id it could not be loaded: "
+                           f"{first_line(error)} (a local {what} folder is written by `pi0-torch convert` or "
+                           "save_pretrained)") from error
