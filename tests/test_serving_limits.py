@@ -19,17 +19,20 @@ import time
 import urllib.request
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import psutil
 import pytest
 import websockets
 import websockets.sync.client
-from websockets.exceptions import InvalidStatus
 from test_serving import ACTION_DIM, REPO_ROOT, STATE_DIM, client_python, run_client, save_random_model  # noqa: F401
+from websockets.exceptions import InvalidStatus
 
 from pi0_torch.runtime.serving import PolicyServer, ServerLimits, pack_message, unpack_message
+
+# websockets >= 17 warns when connect() is not used as a context manager; these clients are closed explicitly
+pytestmark = pytest.mark.filterwarnings("ignore:connect\\(\\) must be used as a context manager:DeprecationWarning")
 
 API_KEY = "test-key-7f3a"
 MAX_CONNECTIONS = 6
@@ -113,7 +116,7 @@ def ask(ws: websockets.sync.client.ClientConnection, frame: bytes) -> Any:
 # --------------------------------------------------------------------------------------------- access control
 
 
-def test_api_key_is_checked_in_the_handshake(server: ServeProcess, client_python: Path, tmp_path: Path) -> None:
+def test_api_key_is_checked_in_the_handshake(server: ServeProcess, client_python: Path, tmp_path: Path) -> None:  # noqa: F811
     for key, label in ((None, "no"), ("wrong-key", "wrong")):
         with pytest.raises(InvalidStatus) as refused:
             server.connect(api_key=key)
@@ -129,8 +132,8 @@ def test_api_key_is_checked_in_the_handshake(server: ServeProcess, client_python
 
 def test_listening_on_all_interfaces_without_a_key_warns(caplog: pytest.LogCaptureFixture) -> None:
     class Policy:  # what PolicyServer reads before serving
-        metadata: dict[str, Any] = {}
-        camera_names = ["base_0_rgb"]
+        metadata: ClassVar[dict[str, Any]] = {}
+        camera_names: ClassVar[list[str]] = ["base_0_rgb"]
 
     with caplog.at_level(logging.WARNING, logger="pi0_torch.runtime.serving"):
         PolicyServer(Policy(), host="127.0.0.1")  # type: ignore[arg-type]
@@ -187,6 +190,12 @@ def test_error_replies_are_one_line_naming_the_field(server: ServeProcess) -> No
         # a strip of 1x20000 pixels is a valid frame
         strip = {"images": {"base_0_rgb": np.zeros((1, 20_000, 3), np.uint8)}}
         assert ask(ws, pack_message({**good_observation(), **strip}))["actions"].shape == (50, ACTION_DIM)
+        # a client that sends without waiting is answered in order (the server buffers one frame and stops reading)
+        prompts = ["pick up the fork", "x" * 2_001, "open the drawer"]
+        for prompt in prompts:
+            ws.send(pack_message({**good_observation(), "prompt": prompt}))
+        replies = [ws.recv(timeout=60) for _ in prompts]
+        assert [type(reply) for reply in replies] == [bytes, str, bytes] and "prompt: 2001 characters" in replies[1]
 
 
 def _hostile(server: ServeProcess, frames: list[bytes], rounds: int, outcomes: list[str]) -> None:
@@ -217,17 +226,23 @@ def test_oversized_requests_cost_neither_memory_nor_other_clients_latency(server
         pack_message({**base, "images": {"base_0_rgb": np.zeros((1500, 2000, 3), np.uint8)}}),  # over the pixel limit
     ]
 
+    server_ms: list[float] = []  # the server's own time for each good request (frame received -> reply ready)
+
     def latencies(ws: websockets.sync.client.ClientConnection, count: int) -> list[float]:
         times = []
         for _ in range(count):
             start = time.monotonic()
-            assert ask(ws, good)["actions"].shape == (50, ACTION_DIM)
+            reply = ask(ws, good)
             times.append(time.monotonic() - start)
+            assert reply["actions"].shape == (50, ACTION_DIM)
+            server_ms.append(reply["server_timing"]["infer_ms"])
         return times
 
     with server.connect() as ws:
+        good_peer = f"{ws.local_address[0]}:{ws.local_address[1]}: actions "  # how the server log names its replies
         latencies(ws, 2)  # first allocations
         quiet = latencies(ws, 8)
+        del server_ms[:]
         rss_before = server.rss_mib
         peak = [rss_before]
         stop = threading.Event()
@@ -252,14 +267,21 @@ def test_oversized_requests_cost_neither_memory_nor_other_clients_latency(server
             threads[0].join()
 
     assert len(outcomes) == 2 * 3 * len(frames), outcomes
-    for i, outcome in enumerate(outcomes):
+    for outcome in outcomes:
         assert outcome.startswith(("closed", "invalid request: ")), outcome[:200]
     assert sum(o.startswith("closed") for o in outcomes) >= 6  # the 95 MB frames (close code 1009 when it arrives)
     assert sum("prompt: 15000000 characters; this server's limit is 2000" in o for o in outcomes) == 6
     assert sum("3000000 pixels" in o for o in outcomes) == 6
     growth = peak[0] - rss_before
+    # where the server spent the good client's time (its log line for each reply): quiet, then under attack
+    timings = [[float(x) for x in re.search(r"prepare ([\d.]+) ms, queued ([\d.]+) ms, model ([\d.]+) ms", line).groups()]
+               for line in server.lines if good_peer in line]
+    quiet_split, attacked_split = (np.median(part, axis=0) for part in (timings[2:10], timings[-8:]))
     quiet_ms, attacked_ms = 1000 * np.median(quiet), 1000 * np.median(attacked)
     print(f"\ngood client p50 {quiet_ms:.0f} ms quiet, {attacked_ms:.0f} ms (max {1000 * max(attacked):.0f} ms) while two "
-          f"clients sent 18 oversized requests; server RSS {rss_before:.0f} MiB, peak +{growth:.0f} MiB")
+          f"clients sent 18 oversized requests (server time p50 {np.median(server_ms):.0f} ms, max "
+          f"{max(server_ms):.0f} ms); server p50 prepare / queued / model {quiet_split.round().tolist()} ms quiet, "
+          f"{attacked_split.round().tolist()} ms under attack; server RSS {rss_before:.0f} MiB, peak +{growth:.0f} MiB")
     assert growth < 400, f"server RSS grew by {growth:.0f} MiB"
-    assert max(attacked) < max(quiet) + 5.0, (quiet, attacked)  # before: 33 ms -> 21 s (issue 17)
+    # generous (CPU is shared with the attack and, on CI, with other jobs); before: 33 ms -> 21 s (issue 17)
+    assert max(attacked) < 3 * max(quiet) + 10.0, (quiet, attacked)

@@ -185,8 +185,9 @@ def test_config_json_is_checked_on_load(tmp_path: Path, caplog: pytest.LogCaptur
     with caplog.at_level(logging.WARNING, logger="pi0_torch.models.configuration_pi0"):
         config = PI0Config.from_pretrained(folder)
     assert config.action_horizon == 50
-    assert caplog.messages == ["PI0Config: ignoring unknown settings ['action_horizn'] (did you mean 'action_horizon' "
-                               "for 'action_horizn'?)"]
+    assert caplog.messages == [
+        "PI0Config: ignoring unknown settings ['action_horizn'] (did you mean 'action_horizon' for 'action_horizn'?)"
+    ]
 
 
 def test_processor_config_unknown_key_is_named(saved: Path, tmp_path: Path) -> None:
@@ -309,7 +310,7 @@ def test_broken_dataset_files_are_named(dataset: Path, tmp_path: Path, capsys: p
         with pytest.raises(LeRobotDatasetError, match=rf"{info} {message}|{info}: {message}"):
             LeRobotEpisodeDataset(root, 4, progress=False)
     info.write_text(saved_info)
-    data_file = sorted((root / "data").glob("chunk-*/*.parquet"))[0]
+    data_file = min((root / "data").glob("chunk-*/*.parquet"))
     data_file.write_bytes(data_file.read_bytes()[: data_file.stat().st_size // 2])  # a copy cut short
     with pytest.raises(LeRobotDatasetError, match=rf"{data_file} is not a readable parquet file"):
         LeRobotEpisodeDataset(root, 4, progress=False)

@@ -66,9 +66,9 @@ def _shown(value: Any) -> str:
 
 def check_int(name: str, value: Any, minimum: int | None = None, maximum: int | None = None) -> int:
     """`value` if it is an integer (not a bool, not a string) within `[minimum, maximum]`; else `ValueError`."""
-    if isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_)):
-        if (minimum is None or value >= minimum) and (maximum is None or value <= maximum):
-            return int(value)
+    is_integer = isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_))
+    if is_integer and (minimum is None or value >= minimum) and (maximum is None or value <= maximum):
+        return int(value)
     raise ValueError(f"{name} must be an integer{_range_text(minimum, maximum)}, got {_shown(value)} ({type(value).__name__})")
 
 
