@@ -8,7 +8,9 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import json
 import sys
+from typing import Any
 
 # subcommand -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -28,6 +30,17 @@ def bool_mask(text: str) -> list[bool]:
         return [bool(int(v)) for v in text.split(",")]
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected comma-separated 0/1 values, got {text!r}") from None
+
+
+def json_object(text: str) -> dict[str, Any]:
+    """Argument type shared by subcommands: a JSON object (e.g. `--metadata`, `--config-overrides`)."""
+    try:
+        value = json.loads(text)
+    except json.JSONDecodeError as error:
+        raise argparse.ArgumentTypeError(f"not valid JSON: {error}") from None
+    if not isinstance(value, dict):
+        raise argparse.ArgumentTypeError(f"expected a JSON object, got a JSON {type(value).__name__}")
+    return value
 
 
 def build_parser(argv: list[str]) -> argparse.ArgumentParser:

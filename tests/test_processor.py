@@ -220,7 +220,7 @@ def test_construction_errors(tokenizer, stats) -> None:
         PI0Processor(tokenizer, norm_stats=stats, delta_action_mask=[True] * 9)
     with pytest.raises(ValueError, match="norm_mode must be one of"):
         PI0Processor(tokenizer, norm_stats=stats, norm_mode="minmax")
-    with pytest.raises(FileNotFoundError, match="processor_config.json not found"):
+    with pytest.raises(FileNotFoundError, match="processor_config.json is missing"):
         PI0Processor.from_pretrained(STATS_DIR)
     # stats longer than the robot are cut to its dims (openpi slices the same way)
     processor = PI0Processor(tokenizer, norm_stats=stats, state_dim=6, action_dim_robot=7)

@@ -12,6 +12,7 @@ from __future__ import annotations
 import contextlib
 import fcntl
 import json
+import logging
 import os
 import re
 import shutil
@@ -83,7 +84,7 @@ def error_of(send):
 
 
 def run_infer():
-    policy = WebsocketClientPolicy(host=HOST, port=PORT)
+    policy = WebsocketClientPolicy(host=HOST, port=PORT, api_key=plan.get("api_key"))
     meta = policy.get_server_metadata()
     rng = np.random.default_rng(0)
     replies = [summary(policy.infer(observation(meta, rng, plan.get("layout", "default"))))
@@ -486,10 +487,11 @@ def test_bad_requests_get_an_error_reply_and_the_server_keeps_serving(
     assert result["fresh"] == [50, ACTION_DIM]
 
 
-def test_a_failing_model_run_sends_the_traceback_and_the_next_request_works(
-    model_dir: Path, client_python: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+def test_a_failing_model_run_sends_one_line_and_the_next_request_works(
+    model_dir: Path, client_python: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
 ) -> None:
-    """Server-side failures (here an injected out-of-memory) reach the client as openpi's server sends them."""
+    """Server-side failures (here an injected out-of-memory) reach the client as one line; the traceback, with its
+    file paths, stays in the server log."""
     policy = PI0Policy.from_pretrained(model_dir, device="cpu", seed=0)
     generate = policy.model.generate_actions
     calls = []
@@ -501,10 +503,11 @@ def test_a_failing_model_run_sends_the_traceback_and_the_next_request_works(
         return generate(*args, **kwargs)
 
     monkeypatch.setattr(policy.model, "generate_actions", fail_once)
-    with running_server(policy) as port:
+    with caplog.at_level(logging.ERROR, logger="pi0_torch.runtime.serving"), running_server(policy) as port:
         result = run_client(client_python, tmp_path, mode="retry", port=port)
-    assert result["error"].startswith("Error in inference server:\nTraceback (most recent call last):")
-    assert "RuntimeError: injected: CUDA out of memory" in result["error"]
+    assert result["error"] == ("Error in inference server:\ninternal server error: RuntimeError: injected: CUDA out of "
+                               "memory (see the server log)")
+    assert "Traceback (most recent call last)" in caplog.text and "injected: CUDA out of memory" in caplog.text
     assert result["then"] == [50, ACTION_DIM] and len(calls) == 3
 
 

@@ -35,6 +35,7 @@ import numpy as np
 import tensorstore as ts
 
 from pi0_torch.conversion.openpi_weights import strip_value_suffix
+from pi0_torch.utils.validation import first_line
 
 try:
     import zstandard
@@ -316,12 +317,6 @@ class _KvStoreValueReader:
         self._position += len(value)
         self._at_end = self._at_end or not value or end is None
         return value
-
-
-def first_line(error: BaseException) -> str:
-    """The first line of an error's message (its type when it has none): for one-line error reports."""
-    text = str(error).strip()
-    return text.splitlines()[0] if text else type(error).__name__
 
 
 def _normalize(path: str) -> str:

@@ -51,6 +51,7 @@ from PIL import Image
 from tqdm.auto import tqdm
 
 from pi0_torch.masks import generate_chunk_data
+from pi0_torch.utils.validation import first_line
 
 logger = logging.getLogger(__name__)
 
@@ -91,10 +92,14 @@ def read_info(root: Path) -> dict[str, Any]:
     path = root / "meta" / "info.json"
     if not path.is_file():
         raise FileNotFoundError(f"{root} is not a LeRobot dataset: {path} is missing")
-    info = json.loads(path.read_text())
+    info = _read_json(path)
+    if not isinstance(info, dict):
+        raise LeRobotDatasetError(f"{path} must hold a JSON object, got a JSON {type(info).__name__}")
     missing = [field for field in ("codebase_version", "fps", "features", "data_path") if field not in info]
     if missing:
         raise LeRobotDatasetError(f"{path} lacks {', '.join(missing)}")
+    if not isinstance(info["features"], dict) or not all(isinstance(f, dict) for f in info["features"].values()):
+        raise LeRobotDatasetError(f"{path}: 'features' must map feature names to objects (dtype, shape, names)")
     version = str(info["codebase_version"])
     try:
         major = int(version.lstrip("v").split(".")[0])
@@ -109,10 +114,39 @@ def _major_version(info: dict[str, Any]) -> int:
     return int(str(info["codebase_version"]).lstrip("v").split(".")[0])
 
 
+def _read_json(path: Path) -> Any:
+    try:
+        return json.loads(path.read_text())
+    except (UnicodeDecodeError, json.JSONDecodeError) as error:
+        raise LeRobotDatasetError(f"{path} is not valid JSON ({first_line(error)})") from None
+
+
 def _read_jsonl(path: Path) -> list[dict[str, Any]]:
     if not path.is_file():
         raise FileNotFoundError(f"LeRobot metadata file {path} is missing")
-    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+    rows = []
+    for number, line in enumerate(path.read_text().splitlines(), start=1):
+        if line.strip():
+            try:
+                rows.append(json.loads(line))
+            except json.JSONDecodeError as error:
+                raise LeRobotDatasetError(f"{path} line {number} is not valid JSON ({error})") from None
+    return rows
+
+
+def _parquet_columns(path: Path) -> list[str]:
+    """The column names of a parquet file; a truncated or foreign file raises an error naming it."""
+    try:
+        return pq.ParquetFile(path).schema_arrow.names
+    except (pa.ArrowException, OSError) as error:
+        raise LeRobotDatasetError(f"{path} is not a readable parquet file ({first_line(error)})") from None
+
+
+def _read_parquet(path: Path, columns: list[str] | None = None, memory_map: bool = False) -> pa.Table:
+    try:
+        return pq.read_table(path, columns=columns, memory_map=memory_map)
+    except (pa.ArrowException, OSError) as error:
+        raise LeRobotDatasetError(f"{path} is not a readable parquet file ({first_line(error)})") from None
 
 
 def read_tasks(root: Path, info: dict[str, Any]) -> dict[int, str]:
@@ -121,7 +155,7 @@ def read_tasks(root: Path, info: dict[str, Any]) -> dict[int, str]:
         path = root / "meta" / "tasks.parquet"
         if not path.is_file():
             raise FileNotFoundError(f"LeRobot metadata file {path} is missing")
-        table = pq.read_table(path)
+        table = _read_parquet(path)
         # LeRobot writes a pandas frame indexed by the task string: the index is stored as a column named "task"
         # (or "__index_level_0__" when it was unnamed).
         text_column = next((c for c in ("task", "__index_level_0__") if c in table.column_names), None)
@@ -150,11 +184,11 @@ def _read_episodes_v3(root: Path, info: dict[str, Any], video_keys: list[str]) -
         wanted += [f"videos/{key}/chunk_index", f"videos/{key}/file_index", f"videos/{key}/from_timestamp"]
     episodes = []
     for path in files:
-        available = pq.ParquetFile(path).schema_arrow.names
+        available = _parquet_columns(path)
         missing = [column for column in wanted if column not in available]
         if missing:
             raise LeRobotDatasetError(f"{path} lacks columns {missing}")
-        rows = pq.read_table(path, columns=wanted).to_pylist()
+        rows = _read_parquet(path, columns=wanted).to_pylist()
         for row in rows:
             data_path = info["data_path"].format(chunk_index=row["data/chunk_index"], file_index=row["data/file_index"])
             videos = {
@@ -191,7 +225,7 @@ def split_episodes(root: str | Path, split: str) -> list[int]:
     info = read_info(Path(root))
     splits = info.get("splits") or {}
     if split not in splits:
-        raise KeyError(f"split {split!r} is not in {root}/meta/info.json; it has {sorted(splits)}")
+        raise LeRobotDatasetError(f"split {split!r} is not in {root}/meta/info.json; it has {sorted(splits)}")
     start, stop = (int(n) for n in str(splits[split]).split(":"))
     return list(range(start, stop))
 
@@ -373,13 +407,13 @@ def _read_frames(
     ):
         if not path.is_file():
             raise FileNotFoundError(f"data file {path} (episodes {[e.index for e in file_episodes][:8]}) is missing")
-        available = pq.ParquetFile(path).schema_arrow.names
+        available = _parquet_columns(path)
         wanted = ["episode_index", "frame_index", state_key, action_key, *image_keys]
         missing = [column for column in wanted if column not in available]
         if missing:
             raise LeRobotDatasetError(f"{path} lacks columns {missing} (it has {available})")
         optional = [column for column in ("timestamp", "task_index") if column in available]
-        table = pq.read_table(path, columns=wanted + optional, memory_map=True)
+        table = _read_parquet(path, columns=wanted + optional, memory_map=True)
         episode_column = table["episode_index"].to_numpy()
         frame_column = table["frame_index"].to_numpy()
         state = _vector_column(table[state_key], state_key, state_dim, path)

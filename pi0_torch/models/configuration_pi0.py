@@ -2,10 +2,20 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import dataclasses
+import difflib
+import inspect
+import json
+import logging
+import os
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 from transformers import PretrainedConfig
+
+from pi0_torch.utils.validation import check_float, check_int, check_pretrained_location, hub_errors
+
+logger = logging.getLogger(__name__)
 
 DEFAULT_CAMERA_NAMES = ("base_0_rgb", "left_wrist_0_rgb", "right_wrist_0_rgb")
 PALIGEMMA_VOCAB_SIZE = 257_152
@@ -96,6 +106,8 @@ class PI0Config(PretrainedConfig):
         rtc_max_delay: int = 0,
         **kwargs: Any,
     ) -> None:
+        if pi05 not in (True, False):  # (0 and 1 pass; the string "false" would be truthy)
+            raise ValueError(f"pi05 must be true or false, got {pi05!r}")
         self.pi05 = bool(pi05)
         self.image_size = image_size
         self.patch_size = patch_size
@@ -124,12 +136,29 @@ class PI0Config(PretrainedConfig):
         self.time_offset = time_offset
         self.time_min_period = time_min_period
         self.time_max_period = time_max_period
+        if isinstance(camera_names, str) or not isinstance(camera_names, Sequence):
+            raise ValueError(f"camera_names must be a list of camera names, got {camera_names!r}")
         self.camera_names = list(camera_names)
         self.rtc_max_delay = rtc_max_delay
         super().__init__(**kwargs)
+        unknown = sorted(set(kwargs) - _TRANSFORMERS_KEYS)
+        if unknown:  # transformers keeps them as attributes; nothing in pi0-torch reads them
+            logger.warning("PI0Config: ignoring unknown settings %s%s", unknown, _suggestions(unknown))
         self._check()
 
     def _check(self) -> None:
+        """Types and ranges of every setting (presets, `from_pretrained`, `from_dict` and overrides all come here)."""
+        for name in _POSITIVE_INTS:
+            check_int(name, getattr(self, name), minimum=1)
+        for name in _POSITIVE_FLOATS:
+            check_float(name, getattr(self, name), minimum=0.0, exclusive_minimum=True)
+        check_float("time_offset", self.time_offset, minimum=0.0)
+        if self.time_scale + self.time_offset > 1.0 + 1e-6:
+            raise ValueError(f"time_scale + time_offset must be <= 1 (flow times lie in (0, 1]), got "
+                             f"{self.time_scale} + {self.time_offset}")
+        if self.vision_hidden_size % self.vision_num_heads:
+            raise ValueError(f"vision_hidden_size ({self.vision_hidden_size}) must be a multiple of vision_num_heads "
+                             f"({self.vision_num_heads})")
         if self.num_attention_heads % self.num_key_value_heads:
             raise ValueError(
                 f"num_attention_heads ({self.num_attention_heads}) must be a multiple of "
@@ -141,10 +170,10 @@ class PI0Config(PretrainedConfig):
             raise ValueError(f"head_dim must be even for RoPE, got {self.head_dim}")
         if self.image_size % self.patch_size:
             raise ValueError(f"image_size ({self.image_size}) must be a multiple of patch_size ({self.patch_size})")
-        if not 0 <= self.rtc_max_delay < self.action_horizon:
-            raise ValueError(f"rtc_max_delay must lie in [0, action_horizon - 1 = {self.action_horizon - 1}], got {self.rtc_max_delay}")
-        if not self.camera_names or len(set(self.camera_names)) != len(self.camera_names):
-            raise ValueError(f"camera_names must be non-empty and unique, got {self.camera_names}")
+        check_int("rtc_max_delay", self.rtc_max_delay, minimum=0, maximum=self.action_horizon - 1)
+        if (not self.camera_names or len(set(self.camera_names)) != len(self.camera_names)
+                or not all(isinstance(name, str) and name for name in self.camera_names)):
+            raise ValueError(f"camera_names must be non-empty, unique strings, got {self.camera_names}")
 
     @property
     def num_cameras(self) -> int:
@@ -166,11 +195,40 @@ class PI0Config(PretrainedConfig):
 
     @classmethod
     def from_preset(cls, name: str, **overrides: Any) -> PI0Config:
-        """Build a preset: `pi0`, `pi05` (released sizes), `pi0_medium`, `pi05_medium`, `pi0_small`, `pi05_small`."""
+        """Build a preset: `pi0`, `pi05` (released sizes), `pi0_medium`, `pi05_medium`, `pi0_small`, `pi05_small`.
+
+        `overrides` replace settings of the preset; a name that is not a setting is refused (a typo would otherwise
+        be ignored silently).
+        """
         variant, _, size = name.partition("_")
         if variant not in ("pi0", "pi05") or (size or "full") not in _SIZES:
             raise ValueError(f"unknown preset {name!r}; expected one of {', '.join(preset_names())}")
+        if "pi05" in overrides:
+            raise ValueError(f"pi05 is set by the preset name ({variant}_... or the other variant), not by an override")
+        unknown = sorted(set(overrides) - set(CONFIG_FIELDS))
+        if unknown:
+            raise ValueError(f"unknown config settings {unknown}"
+                             f"{_suggestions(unknown) or '; settings: ' + ', '.join(CONFIG_FIELDS)}")
         return cls(pi05=variant == "pi05", **{**_SIZES[size or "full"], **overrides})
+
+    @classmethod
+    def from_pretrained(cls, pretrained_model_name_or_path: str | os.PathLike[str], **kwargs: Any) -> PI0Config:
+        """`PretrainedConfig.from_pretrained`, refusing at once a path that is neither a folder with `config.json`
+        nor a hub id (see `pi0_torch.utils.validation.is_hub_id`)."""
+        config_file = f"{kwargs['subfolder']}/config.json" if kwargs.get("subfolder") else "config.json"
+        check_pretrained_location(pretrained_model_name_or_path, config_file, "model")
+        with hub_errors(pretrained_model_name_or_path, "model"):
+            return super().from_pretrained(pretrained_model_name_or_path, **kwargs)
+
+    @classmethod
+    def _dict_from_json_file(cls, json_file: str | os.PathLike[str]) -> dict[str, Any]:
+        try:
+            config_dict = super()._dict_from_json_file(json_file)
+        except json.JSONDecodeError as error:
+            raise ValueError(f"{json_file} is not valid JSON: {error}") from None
+        if not isinstance(config_dict, Mapping):
+            raise ValueError(f"{json_file} must hold a JSON object of settings, got a JSON {type(config_dict).__name__}")
+        return dict(config_dict)
 
     @classmethod
     def pi0(cls, **overrides: Any) -> PI0Config:
@@ -181,6 +239,33 @@ class PI0Config(PretrainedConfig):
     def pi05(cls, **overrides: Any) -> PI0Config:
         """π0.5 at the released size (3,353,433,872 parameters)."""
         return cls.from_preset("pi05", **overrides)
+
+
+CONFIG_FIELDS: tuple[str, ...] = tuple(
+    name for name, parameter in inspect.signature(PI0Config.__init__).parameters.items()
+    if name != "self" and parameter.kind is not inspect.Parameter.VAR_KEYWORD
+)
+_POSITIVE_INTS = (
+    "image_size", "patch_size", "vision_hidden_size", "vision_intermediate_size", "vision_num_layers", "vision_num_heads",
+    "vlm_hidden_size", "vlm_intermediate_size", "expert_hidden_size", "expert_intermediate_size", "num_hidden_layers",
+    "num_attention_heads", "num_key_value_heads", "head_dim", "vocab_size", "action_dim", "action_horizon",
+    "max_token_len", "num_inference_steps",
+)
+_POSITIVE_FLOATS = (
+    "rms_norm_eps", "rope_theta", "time_beta_alpha", "time_beta_beta", "time_scale", "time_min_period", "time_max_period",
+)
+# What transformers itself writes into config.json or passes to a config besides the model's own settings.
+_TRANSFORMERS_KEYS = {field.name for field in dataclasses.fields(PretrainedConfig)} | {
+    "model_type", "transformers_version", "name_or_path", "_name_or_path", "_commit_hash", "torch_dtype",
+    "attn_implementation", "experts_implementation", "output_attentions", "num_labels", "auto_map",
+}
+
+
+def _suggestions(names: Sequence[str]) -> str:
+    """` (did you mean 'action_horizon'?)` for names close to a setting, else an empty string."""
+    close = {name: difflib.get_close_matches(name, CONFIG_FIELDS, n=1) for name in names}
+    hints = [f"{match[0]!r} for {name!r}" for name, match in close.items() if match]
+    return f" (did you mean {', '.join(hints)}?)" if hints else ""
 
 
 def preset_names() -> list[str]:

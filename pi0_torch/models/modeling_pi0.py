@@ -23,6 +23,8 @@ from pi0_torch.masks import masked_attention, prefix_lm_mask, to_additive_mask
 from pi0_torch.models.configuration_pi0 import PI0Config
 from pi0_torch.models.flow_matching import euler_times, interpolate, sample_flow_time, sincos_time_embedding
 from pi0_torch.models.rtc import DEFAULT_MAX_GUIDANCE, METHODS, ChunkPrefix, chunk_prefix, guidance_weight, per_sample_steps
+from pi0_torch.utils.validation import check_pretrained_location, describe, hub_errors
+from pi0_torch.utils.validation import check_tensor as _check_tensor  # (the name other model modules import from here)
 
 # ----------------------------------------------------------------------------------------------------------------------
 # Normalisation and rotary position embedding
@@ -289,12 +291,18 @@ class PI0PreTrainedModel(PreTrainedModel):
         policy with silently random weights is worse than no policy, so any missing, unexpected or mis-shaped
         tensor raises `ValueError` naming them. `ignore_mismatched_sizes=True` is the explicit opt-in to
         re-initialise mis-shaped tensors (e.g. fine-tuning with another `action_dim`).
+
+        A local folder must hold `config.json` (unless a `config` is given); a path that is neither a folder nor a hub
+        id `namespace/name` is refused at once, without trying the hub (see `pi0_torch.utils.validation.is_hub_id`).
         """
+        config_file = None if kwargs.get("config") else f"{kwargs['subfolder']}/config.json" if kwargs.get("subfolder") else "config.json"
+        check_pretrained_location(pretrained_model_name_or_path, config_file, "model")
         want_info = kwargs.pop("output_loading_info", False)
         allow_mismatched = kwargs.pop("ignore_mismatched_sizes", False)  # an explicit opt-in to re-initialise them
-        model, info = super().from_pretrained(
-            pretrained_model_name_or_path, *args, output_loading_info=True, ignore_mismatched_sizes=True, **kwargs
-        )
+        with hub_errors(pretrained_model_name_or_path, "model"):
+            model, info = super().from_pretrained(
+                pretrained_model_name_or_path, *args, output_loading_info=True, ignore_mismatched_sizes=True, **kwargs
+            )
         problems = {
             "missing": sorted(info.get("missing_keys", ())),
             "unexpected": sorted(info.get("unexpected_keys", ())),
@@ -782,8 +790,6 @@ class PI0ForActionGeneration(PI0PreTrainedModel):
         """Check the real-time chunking arguments of `generate_actions` and build the new chunk's prefix."""
         config = self.config
         _check_tensor("previous_actions", previous_actions, (batch, config.action_horizon, config.action_dim), floating=True)
-        if not bool(torch.isfinite(previous_actions).all()):
-            raise ValueError("previous_actions must be finite (no NaN or inf)")
         if execution_horizon is None:
             raise ValueError("execution_horizon is required with previous_actions: the steps of the previous chunk executed "
                              "between its inference start and this one's")
@@ -834,10 +840,10 @@ class PI0ForActionGeneration(PI0PreTrainedModel):
         if not isinstance(pixel_values, torch.Tensor) or pixel_values.dim() != 5:
             raise ValueError(
                 f"pixel_values must be a float tensor [B, num_cameras={config.num_cameras}, 3, {config.image_size}, "
-                f"{config.image_size}], got {_describe(pixel_values)}"
+                f"{config.image_size}], got {describe(pixel_values)}"
             )
         batch = pixel_values.shape[0]
-        _check_tensor("pixel_values", pixel_values, (batch, config.num_cameras, 3, config.image_size, config.image_size), floating=True)
+        _check_tensor("pixel_values", pixel_values, (batch, config.num_cameras, 3, config.image_size, config.image_size), floating=True, finite=False)
         low, high = pixel_values.aminmax()
         if low < -1.001 or high > 1.001 or not (torch.isfinite(low) and torch.isfinite(high)):
             raise ValueError(
@@ -845,11 +851,19 @@ class PI0ForActionGeneration(PI0PreTrainedModel):
                 f"[{low.item():.4g}, {high.item():.4g}]"
             )
         _check_tensor("image_masks", image_masks, (batch, config.num_cameras), dtypes=(torch.bool,))
-        if input_ids.dim() != 2 or input_ids.shape[0] != batch or not 1 <= input_ids.shape[1] <= config.max_token_len:
+        if (not isinstance(input_ids, torch.Tensor) or input_ids.dim() != 2 or input_ids.shape[0] != batch
+                or not 1 <= input_ids.shape[1] <= config.max_token_len):
             raise ValueError(
-                f"input_ids must be [B={batch}, L] with 1 <= L <= max_token_len={config.max_token_len}, got {_describe(input_ids)}"
+                f"input_ids must be a torch.Tensor [B={batch}, L] with 1 <= L <= max_token_len={config.max_token_len}, "
+                f"got {describe(input_ids)}"
             )
         _check_tensor("input_ids", input_ids, tuple(input_ids.shape), dtypes=(torch.long, torch.int32))
+        lowest, highest = input_ids.aminmax()
+        if (lowest < 0) | (highest >= config.vocab_size):
+            raise ValueError(
+                f"input_ids must be token ids in [0, vocab_size={config.vocab_size}), got values in "
+                f"[{lowest.item()}, {highest.item()}] (a tokenizer larger than the model's vocabulary?)"
+            )
         _check_tensor("attention_mask", attention_mask, tuple(input_ids.shape), dtypes=(torch.bool, torch.long, torch.int32))
         if not config.pi05 or state is not None:
             if state is None:
@@ -870,26 +884,3 @@ def _drop_invalid_tokens(tokens: torch.Tensor, valid: torch.Tensor) -> tuple[tor
     order = torch.sort((~valid).to(torch.uint8), dim=1, stable=True).indices[:, :kept]  # valid first, in order
     tokens = tokens.gather(1, order[..., None].expand(-1, -1, tokens.shape[-1]))
     return tokens, valid.gather(1, order)
-
-
-def _describe(value: Any) -> str:
-    if isinstance(value, torch.Tensor):
-        return f"shape {tuple(value.shape)} dtype {value.dtype}"
-    return f"{type(value).__name__}"
-
-
-def _check_tensor(
-    name: str,
-    value: Any,
-    shape: tuple[int, ...],
-    floating: bool = False,
-    dtypes: tuple[torch.dtype, ...] = (),
-) -> None:
-    if not isinstance(value, torch.Tensor):
-        raise ValueError(f"{name} must be a torch.Tensor of shape {shape}, got {_describe(value)}")
-    if tuple(value.shape) != tuple(shape):
-        raise ValueError(f"{name} must have shape {tuple(shape)}, got {tuple(value.shape)}")
-    if floating and not value.is_floating_point():
-        raise ValueError(f"{name} must be a floating-point tensor, got dtype {value.dtype}")
-    if dtypes and value.dtype not in dtypes:
-        raise ValueError(f"{name} must have dtype in {[str(d) for d in dtypes]}, got {value.dtype}")

@@ -42,6 +42,8 @@ import torch
 import torch.nn.functional as F
 from PIL import Image
 
+from pi0_torch.utils.validation import check_frame_size
+
 FLOAT_RANGES: tuple[tuple[float, float], ...] = ((0.0, 1.0), (-1.0, 1.0))
 RANGE_TOLERANCE = 1e-3
 
@@ -51,7 +53,8 @@ Frame = Union[np.ndarray, torch.Tensor, Image.Image]
 
 def _resized_size(height: int, width: int, target_height: int, target_width: int) -> tuple[int, int]:
     ratio = max(width / target_width, height / target_height)
-    return int(height / ratio), int(width / ratio)
+    # at least one pixel: a 1x20000 strip would truncate to 0 rows (where openpi's resize fails)
+    return max(1, int(height / ratio)), max(1, int(width / ratio))
 
 
 def _padding(resized: int, target: int) -> tuple[int, int]:
@@ -69,6 +72,7 @@ def resize_with_pad(images: ImageT, height: int, width: int) -> ImageT:
     if images.ndim < 3:
         raise ValueError(f"images must be [..., h, w, c], got shape {tuple(images.shape)}")
     cur_height, cur_width = int(images.shape[-3]), int(images.shape[-2])
+    check_frame_size("images", cur_height, cur_width)
     if (cur_height, cur_width) == (height, width):
         return images
     new_height, new_width = _resized_size(cur_height, cur_width, height, width)
@@ -127,6 +131,7 @@ def to_model_image(
     elif not isinstance(frame, (np.ndarray, torch.Tensor)):
         raise ValueError(f"{name}: expected a numpy array, torch tensor or PIL image, got {type(frame).__name__}")
     frame = _channels_last(frame, name)
+    check_frame_size(name, int(frame.shape[0]), int(frame.shape[1]))
     if isinstance(frame, torch.Tensor):
         frame = frame.detach().cpu()
         if frame.dtype == torch.bfloat16:

@@ -49,6 +49,7 @@ state (1, 32) torch.float32
 
 from __future__ import annotations
 
+import inspect
 import json
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -73,6 +74,7 @@ from pi0_torch.processing.normalization import (
 )
 from pi0_torch.processing.robot_spaces import get_conversion
 from pi0_torch.processing.tokenization import PromptTokenizer, TokenizerSource, load_tokenizer
+from pi0_torch.utils.validation import check_finite, check_pretrained_location, hub_errors, is_hub_id
 
 PROCESSOR_CONFIG_FILE = "processor_config.json"
 NORM_STATS_FILE = "norm_stats.json"
@@ -289,18 +291,21 @@ class PI0Processor:
 
     @classmethod
     def from_pretrained(cls, pretrained_path: str | Path, **overrides: Any) -> PI0Processor:
-        """Load what [`save_pretrained`] wrote in a local folder; `overrides` replace saved settings.
+        """Load what [`save_pretrained`] wrote in a local folder, or a hub repository `namespace/name` holding one;
+        `overrides` replace saved settings.
 
-        The norm stats come from `norm_stats.json` in the folder (unless `norm_stats=` is given).
+        The norm stats come from `norm_stats.json` in the folder (unless `norm_stats=` is given). For a hub id only
+        the processor's files are downloaded; `cache_dir`, `revision`, `token`, `force_download` and
+        `local_files_only` go to `huggingface_hub.snapshot_download`. A path that is neither a local folder nor a hub
+        id is refused at once (see `pi0_torch.utils.validation.is_hub_id`).
         """
-        for name in list(overrides):
-            if name in _HUB_KWARGS or name.startswith("_"):  # passed along by AutoProcessor; nothing to download here
-                overrides.pop(name)
+        hub_options = {name: overrides.pop(name) for name in list(overrides) if name in _HUB_KWARGS or name.startswith("_")}
+        check_pretrained_location(pretrained_path, PROCESSOR_CONFIG_FILE, "processor")
         directory = Path(pretrained_path)
+        if is_hub_id(pretrained_path):
+            directory = _download_processor(str(pretrained_path), hub_options)
         config_path = directory / PROCESSOR_CONFIG_FILE
-        if not config_path.is_file():
-            raise FileNotFoundError(f"{config_path} not found; is {directory} a folder written by save_pretrained?")
-        settings = json.loads(config_path.read_text())
+        settings = _read_processor_config(config_path)
         kind = settings.pop("tokenizer_kind")
         tokenizer = overrides.pop("tokenizer", None) or PromptTokenizer.load(directory, kind)
         if "norm_stats" not in overrides and (directory / NORM_STATS_FILE).is_file():
@@ -422,6 +427,7 @@ class PI0Processor:
         state = self._model_space_state(self._check_vector(sample.get("state"), where + "state", self.state_dim))
         pixel_values, image_masks = self._encode_images(sample.get("images"), where)
         normalized_state = self._normalize(state, self._state_stats)
+        check_finite(f"{where}state (normalized)", normalized_state)
 
         prompt = sample.get("prompt")
         if prompt is None:
@@ -480,13 +486,14 @@ class PI0Processor:
             self.action_horizon is not None and values.shape[0] != self.action_horizon
         ):
             raise ValueError(f"{where}actions: expected shape [{horizon}, {self.action_dim_robot}], got {values.shape}")
-        if not np.all(np.isfinite(values)):
-            raise ValueError(f"{where}actions: contains NaN or inf")
+        check_finite(f"{where}actions", values)
         if self._conversion is not None:
             values = self._conversion.actions_to_model(values)
         if self.delta_action_mask is not None:
             values = apply_delta(values, state, self.delta_action_mask)
-        return self._pad(self._normalize(values, self._action_stats))
+        normalized = self._pad(self._normalize(values, self._action_stats))
+        check_finite(f"{where}actions (normalized)", normalized)
+        return normalized
 
     def _check_vector(self, value: Any, name: str, dim: int) -> np.ndarray:
         if value is None:
@@ -494,9 +501,7 @@ class PI0Processor:
         array = _as_numeric(value, name)
         if array.shape != (dim,):
             raise ValueError(f"{name}: expected shape [{dim}], got {list(array.shape)}")
-        if not np.all(np.isfinite(array)):
-            bad = [int(i) for i in np.flatnonzero(~np.isfinite(array))]
-            raise ValueError(f"{name}: contains NaN or inf at dims {bad}")
+        check_finite(name, array)
         return array
 
     def _model_space_state(self, state: np.ndarray) -> np.ndarray:
@@ -556,6 +561,36 @@ class PI0Processor:
             converted = self._conversion.actions_to_robot(robot.cpu().numpy() if is_torch else robot)
             robot = torch.as_tensor(converted, device=robot.device) if is_torch else converted
         return robot.float() if is_torch else robot.astype(np.float32)
+
+
+PROCESSOR_SETTINGS = tuple(name for name in inspect.signature(PI0Processor.__init__).parameters if name not in ("self", "tokenizer"))
+
+
+def _read_processor_config(path: Path) -> dict[str, Any]:
+    """`processor_config.json` as a dict of known settings plus `tokenizer_kind`; `ValueError` naming the file."""
+    try:
+        settings = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
+        raise ValueError(f"{path} is not a readable processor config: {error}") from None
+    if not isinstance(settings, dict):
+        raise ValueError(f"{path} must hold a JSON object of settings, got a JSON {type(settings).__name__}")
+    if not isinstance(settings.get("tokenizer_kind"), str):
+        raise ValueError(f"{path} lacks 'tokenizer_kind' ('sentencepiece' or 'transformers')")
+    unknown = sorted(set(settings) - set(PROCESSOR_SETTINGS) - {"tokenizer_kind"})
+    if unknown:
+        raise ValueError(f"{path} has unknown settings {unknown}; PI0Processor settings: {', '.join(PROCESSOR_SETTINGS)}")
+    return settings
+
+
+def _download_processor(repo_id: str, hub_options: dict[str, Any]) -> Path:
+    """The processor files of hub repository `repo_id` (config, norm stats, tokenizer), in the local hub cache."""
+    from huggingface_hub import snapshot_download
+
+    options = {name: hub_options[name] for name in ("cache_dir", "force_download", "local_files_only", "revision", "token")
+               if hub_options.get(name) is not None}
+    patterns = [PROCESSOR_CONFIG_FILE, NORM_STATS_FILE, "tokenizer*", "special_tokens_map.json", "added_tokens.json"]
+    with hub_errors(repo_id, "processor"):
+        return Path(snapshot_download(repo_id, allow_patterns=patterns, **options))
 
 
 def _as_numeric(value: Any, name: str) -> np.ndarray:

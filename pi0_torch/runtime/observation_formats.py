@@ -154,7 +154,7 @@ class ObservationFormat:
     def to_default(self, message: Mapping[str, Any]) -> dict[str, Any]:
         """Pick images, state and prompt out of `message` into the default layout.
 
-        Frames are passed through; the state comes out as one 1-D float32 array (the policy checks values and sizes);
+        Frames are passed through; the state comes out as one 1-D float64 array (the policy checks values and sizes);
         an absent prompt comes out as None.
         Raises [`ObservationError`] naming the missing or malformed field.
         """
@@ -201,7 +201,7 @@ class ObservationFormat:
                 raise ObservationError(f"state field {_name(source)!r} must be numeric, got dtype {array.dtype}")
             if array.ndim > 1:
                 raise ObservationError(f"state field {_name(source)!r} must be 1-D, got shape {array.shape}")
-            parts.append(array.astype(np.float32).reshape(-1))
+            parts.append(array.astype(np.float64).reshape(-1))  # (in float32, 1e308 would already be inf)
         return np.concatenate(parts)
 
     def _prompt(self, message: Mapping[str, Any]) -> str | None:

@@ -10,11 +10,17 @@ unchanged:
   gets one binary frame out: `{"actions": float32 [horizon, robot action dims], "policy_timing": {"infer_ms"},
   "server_timing": {"infer_ms", "prev_total_ms"}}`.
 - A request that fails gets one *text* frame instead: `WebsocketClientPolicy.infer` raises
-  `RuntimeError("Error in inference server:\\n<text>")` on text frames. Bad requests (undecodable msgpack, missing
-  fields, wrong shapes or dtypes, NaN/inf) get a one-line reason; unexpected server errors get the traceback, as
-  openpi's server sends. Unlike openpi's server, the connection then stays open, so the same client may send its
-  next observation; other clients are never affected.
+  `RuntimeError("Error in inference server:\\n<text>")` on text frames. The text is one line: bad requests
+  (undecodable msgpack, missing fields, wrong shapes or dtypes, NaN/inf, fields over the limits) get the reason,
+  naming the field; unexpected server errors get their type and message, and the traceback goes to the server log
+  only. Unlike openpi's server, the connection then stays open, so the same client may send its next observation;
+  other clients are never affected.
 - `GET /healthz` answers `200 OK`, like openpi's server.
+
+Limits ([`ServerLimits`], each a `pi0-torch serve` flag): every request is bounded before any work is done on it
+(frame size, list lengths, prompt characters, image pixels), connections are capped (more get HTTP 503) and closed
+after an idle time, and with an API key the handshake needs the `Authorization: Api-Key <key>` header that
+`WebsocketClientPolicy(api_key=...)` sends (others get HTTP 401 before reaching the model).
 
 Before it listens, the server runs a warm-up chunk on a blank observation, on the thread that will run the model
 (with `--compile`, one per batch size up to `max_batch_size`: this is when compilation and CUDA graph capture
@@ -36,27 +42,31 @@ import asyncio
 import concurrent.futures
 import contextlib
 import dataclasses
+import hmac
 import http
-import json
 import logging
 import math
+import os
 import signal
 import threading
 import time
-import traceback
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from typing import Any, Protocol
 
 import msgpack
 import numpy as np
 import websockets
 from websockets.asyncio.server import Request, Response, ServerConnection, serve
+from websockets.protocol import State
 
+from pi0_torch.cli import json_object
 from pi0_torch.runtime.observation_formats import ObservationError, ObservationFormat
+from pi0_torch.utils.validation import check_float, check_int, first_line, one_line
 
 logger = logging.getLogger(__name__)
 
-DEFAULT_MAX_MESSAGE_BYTES = 256 * 2**20
+API_KEY_ENV = "PI0_TORCH_API_KEY"
+ALL_INTERFACES = ("0.0.0.0", "::", "")
 _ARRAY_KINDS = "biufUS"  # bool, ints, floats, strings; object/void/complex arrays are refused both ways
 
 
@@ -124,20 +134,76 @@ def pack_message(obj: Any) -> bytes:
     return msgpack.packb(obj, default=_pack_numpy)
 
 
-def unpack_message(data: bytes) -> Any:
+def unpack_message(data: bytes, max_items: int | None = None) -> Any:
     """Decode a frame packed by openpi-client (or [`pack_message`]); raises [`MessageError`] if it is malformed.
 
     Arrays come back read-only, backed by the frame's bytes. Object, void and complex dtypes are refused.
+    `max_items` bounds the length of every list and map before it is built (numpy arrays are not lists).
     """
     if not isinstance(data, (bytes, bytearray, memoryview)):
         raise MessageError(f"expected a binary frame, got {type(data).__name__}")
+    bounds = {} if max_items is None else {"max_array_len": max_items, "max_map_len": max_items}
     try:
-        return msgpack.unpackb(data, object_hook=_unpack_numpy)
+        return msgpack.unpackb(data, object_hook=_unpack_numpy, **bounds)
     except MessageError:
         raise
     except Exception as error:  # msgpack raises several unrelated types for corrupt input
+        if max_items is not None and "exceeds max_" in str(error):  # "20000 exceeds max_array_len(10000)"
+            raise MessageError(f"a list or map holds more than {max_items} items ({error}); send long "
+                               "sequences as numpy arrays") from None
         detail = f"{type(error).__name__}: {error}" if str(error) else type(error).__name__
-        raise MessageError(f"not a valid msgpack message ({detail})") from None
+        raise MessageError(f"not a valid msgpack message ({one_line(detail, 200)})") from None
+
+
+# --- limits -------------------------------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class ServerLimits:
+    """What one client may ask of the server. Each bound is checked before any work is spent on what it bounds.
+
+    Args:
+        max_message_bytes: a larger frame closes its connection with code 1009 (message too big), as soon as its
+            header arrives. The default (16 MiB) holds three 1280x720 uint8 camera frames; float frames, bigger
+            frames or more cameras need more (`--max-message-mib`).
+        max_prompt_chars: a longer prompt is refused before it is tokenized (π0.5 reads at most 200 tokens, a few
+            hundred characters of instruction).
+        max_image_pixels: a frame with more pixels (height x width) is refused before it is resized (default: 1080p).
+        max_items: lists and maps in a message hold at most this many items (checked while decoding; numpy arrays,
+            the way frames and states travel, are bounded by `max_message_bytes` instead).
+        max_connections: connections beyond this many get HTTP 503 in the handshake (the websocket never opens).
+        idle_timeout_s: a connection that sends no request for this long is closed (code 1000, reason "idle
+            timeout"); None: never. Time spent waiting for the server's own reply does not count.
+    """
+
+    max_message_bytes: int = 16 * 2**20
+    max_prompt_chars: int = 2_000
+    max_image_pixels: int = 1920 * 1080
+    max_items: int = 10_000
+    max_connections: int = 16
+    idle_timeout_s: float | None = 3600.0
+
+    def __post_init__(self) -> None:
+        for name in ("max_message_bytes", "max_prompt_chars", "max_image_pixels", "max_items", "max_connections"):
+            check_int(name, getattr(self, name), minimum=1)
+        if self.idle_timeout_s is not None:
+            check_float("idle_timeout_s", self.idle_timeout_s, minimum=0.0, exclusive_minimum=True)
+
+    def check(self, observation: Mapping[str, Any]) -> None:
+        """Refuse (with [`ObservationError`]) a default-layout observation whose prompt or frames exceed the limits."""
+        prompt = observation.get("prompt")
+        if isinstance(prompt, str) and len(prompt) > self.max_prompt_chars:
+            raise ObservationError(f"prompt: {len(prompt)} characters; this server's limit is {self.max_prompt_chars} "
+                                   "(pi0-torch serve --max-prompt-chars)")
+        images = observation.get("images")
+        for camera, frame in (images.items() if isinstance(images, Mapping) else ()):
+            shape = frame.shape if isinstance(frame, np.ndarray) else ()
+            if len(shape) == 3 and 3 in (shape[0], shape[-1]):  # [H, W, 3] or [3, H, W]; others: the processor says
+                height, width = shape[:2] if shape[-1] == 3 else shape[1:]
+                if height * width > self.max_image_pixels:
+                    raise ObservationError(f"images[{camera!r}]: a frame of {height}x{width} = {height * width} pixels; "
+                                           f"this server's limit is {self.max_image_pixels} (pi0-torch serve "
+                                           "--max-image-pixels)")
 
 
 # --- the server --------------------------------------------------------------------------------------------------
@@ -184,8 +250,11 @@ class PolicyServer:
         host, port: where to listen (port 0 picks a free port).
         obs_format: the observation layout clients send (default: pi0-torch's own).
         max_batch_size: run up to this many queued observations as one batch (1: strictly one at a time).
-        max_message_bytes: larger frames close the connection with code 1009 (message too big).
         extra_metadata: merged into the metadata sent on connect (openpi's ALOHA client reads `reset_pose`).
+        limits: bounds on messages, prompts, frames, connections and idle time ([`ServerLimits`]).
+        api_key: when set, the websocket handshake must carry `Authorization: Api-Key <api_key>` (what
+            `WebsocketClientPolicy(api_key=...)` sends); others get HTTP 401. `/healthz` stays open. Without a key,
+            listening on all interfaces logs a warning.
 
     ```python
     server = PolicyServer(PI0Policy.from_pretrained("converted/pi0_libero"),
@@ -201,18 +270,24 @@ class PolicyServer:
         port: int = 8000,
         obs_format: ObservationFormat | None = None,
         max_batch_size: int = 1,
-        max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES,
         extra_metadata: dict[str, Any] | None = None,
+        limits: ServerLimits | None = None,
+        api_key: str | None = None,
     ) -> None:
-        if max_batch_size < 1:
-            raise ValueError(f"max_batch_size must be >= 1, got {max_batch_size}")
+        check_int("max_batch_size", max_batch_size, minimum=1)
+        if api_key is not None and not api_key:
+            raise ValueError("api_key must be a non-empty string (or None for no access control)")
         self.policy = policy
         self.host = host
         self.port = port
         self.obs_format = obs_format or ObservationFormat.from_preset("default")
         self.obs_format.check_cameras(policy.camera_names)
         self.max_batch_size = max_batch_size
-        self.max_message_bytes = max_message_bytes
+        self.limits = limits or ServerLimits()
+        self._expected_authorization = f"Api-Key {api_key}".encode() if api_key is not None else None
+        if api_key is None and host in ALL_INTERFACES:
+            logger.warning("listening on all interfaces (%r) without an API key: anyone who reaches port %d can run "
+                           "the policy; set --api-key or %s", host, port, API_KEY_ENV)
         self.metadata = {
             **policy.metadata,
             "observation_format": self.obs_format.describe(),
@@ -223,6 +298,7 @@ class PolicyServer:
         self._queue: asyncio.Queue[_Job] | None = None
         self._stopping = False
         self._requests_served = 0
+        self._admitted: set[ServerConnection] = set()  # handshakes let through, until their connection closes
 
     @contextlib.contextmanager
     def serve_in_thread(self, timeout: float = 600.0) -> Iterator[int]:
@@ -293,8 +369,9 @@ class PolicyServer:
                 self.host,
                 self.port,
                 compression=None,
-                max_size=self.max_message_bytes,
-                process_request=_health_check,
+                max_size=self.limits.max_message_bytes,
+                max_queue=1,  # one request at a time per connection: never buffer a pipelining client's frames
+                process_request=self._admit,
             ) as server:
                 port = next(iter(server.sockets)).getsockname()[1]
                 logger.info("serving %s on ws://%s:%d (health check: http://%s:%d/healthz)",
@@ -315,13 +392,39 @@ class PolicyServer:
             prepare_pool.shutdown(wait=True)
             logger.info("server stopped after %d requests", self._requests_served)
 
+    def _admit(self, connection: ServerConnection, request: Request) -> Response | None:
+        """The handshake's gate: `/healthz` answers 200; a missing or wrong API key gets 401, a full server 503."""
+        if request.path == "/healthz":  # as openpi's server; open to all (load balancers carry no key)
+            return connection.respond(http.HTTPStatus.OK, "OK\n")
+        peer = _peer(connection)
+        if self._expected_authorization is not None:
+            given = (request.headers.get("Authorization") or "").encode()
+            if not hmac.compare_digest(given, self._expected_authorization):
+                logger.warning("%s: refused: %s API key", peer, "wrong" if given else "no")
+                return connection.respond(http.HTTPStatus.UNAUTHORIZED, "missing or wrong API key: send the header "
+                                          "'Authorization: Api-Key <key>' (WebsocketClientPolicy(api_key=...))\n")
+        self._admitted = {c for c in self._admitted if c.state is not State.CLOSED}
+        if len(self._admitted) >= self.limits.max_connections:
+            logger.warning("%s: refused: %d connections open (--max-connections)", peer, len(self._admitted))
+            return connection.respond(http.HTTPStatus.SERVICE_UNAVAILABLE, f"the server holds its limit of "
+                                      f"{self.limits.max_connections} connections; try again later\n")
+        self._admitted.add(connection)
+        return None
+
     async def _handle(self, ws: ServerConnection, prepare_pool: concurrent.futures.Executor) -> None:
-        peer = "%s:%s" % ws.remote_address[:2] if ws.remote_address else "?"
+        peer = _peer(ws)
         logger.info("connection from %s opened", peer)
         prev_total_ms: float | None = None
+        idle_timeout = self.limits.idle_timeout_s
         try:
             await ws.send(self._packed_metadata)
-            async for frame in ws:
+            while True:
+                try:
+                    frame = await asyncio.wait_for(ws.recv(), idle_timeout)  # cancelling recv() loses no data
+                except asyncio.TimeoutError:
+                    logger.info("%s: no request for %g s: closing (--idle-timeout)", peer, idle_timeout)
+                    await ws.close(1000, f"idle timeout: no request for {idle_timeout:g} s")
+                    break
                 received = time.monotonic()
                 reply = await self._answer(frame, ws, peer, prepare_pool)
                 if reply is None:  # the client went away while its request waited
@@ -360,13 +463,14 @@ class PolicyServer:
                 return None
             reply = job.future.result()
         except (MessageError, ObservationError) as error:
-            logger.warning("%s: bad request: %s", peer, error)
-            return f"invalid request: {error}"
+            reason = one_line(str(error))
+            logger.warning("%s: bad request: %s", peer, reason)
+            return f"invalid request: {reason}"
         except _ShuttingDown as error:
             return str(error)
-        except Exception as error:
-            logger.exception("%s: inference failed", peer)
-            return "".join(traceback.format_exception(type(error), error, error.__traceback__))
+        except Exception as error:  # the traceback stays in the server log
+            logger.exception("%s: request failed", peer)
+            return f"internal server error: {type(error).__name__}: {one_line(first_line(error))} (see the server log)"
         self._requests_served += 1
         logger.info(
             "%s: actions %s in %.1f ms (prepare %.1f ms, queued %.1f ms, model %.1f ms, batch %d)",
@@ -379,8 +483,9 @@ class PolicyServer:
     def _prepare(self, frame: Any) -> Any:
         if isinstance(frame, str):
             raise MessageError("expected a binary msgpack frame, got a text frame")
-        message = unpack_message(frame)
+        message = unpack_message(frame, max_items=self.limits.max_items)
         observation = self.obs_format.to_default(message)
+        self.limits.check(observation)
         return self.policy.prepare(observation)
 
     async def _run_model(self, model_thread: concurrent.futures.Executor) -> None:
@@ -421,11 +526,8 @@ class PolicyServer:
                 job.future.set_exception(error)
 
 
-def _health_check(connection: ServerConnection, request: Request) -> Response | None:
-    """`GET /healthz` -> 200 OK (as openpi's server); every other path goes on to the websocket handshake."""
-    if request.path == "/healthz":
-        return connection.respond(http.HTTPStatus.OK, "OK\n")
-    return None
+def _peer(connection: ServerConnection) -> str:
+    return "%s:%s" % connection.remote_address[:2] if connection.remote_address else "?"
 
 
 # --- the `pi0-torch serve` command -------------------------------------------------------------------------------
@@ -447,23 +549,30 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "(default: the processor's, if it was saved with one)")
     parser.add_argument("--max-batch-size", type=int, default=1, help="run up to this many queued observations "
                         "as one batch (default 1: one at a time)")
-    parser.add_argument("--metadata", type=_json_object, default=None, metavar="JSON",
+    parser.add_argument("--metadata", type=json_object, default=None, metavar="JSON",
                         help="extra metadata sent to clients, a JSON object (openpi's ALOHA client reads "
                         "'reset_pose' from it)")
     parser.add_argument("--seed", type=int, default=None, help="seed the sampling noise (reproducible actions)")
     parser.add_argument("--compile", action="store_true", help="torch.compile the sampling (one CUDA graph on "
                         "cuda); compiled during the warm-up, before the server listens")
     parser.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
-
-
-def _json_object(text: str) -> dict[str, Any]:
-    try:
-        value = json.loads(text)
-    except json.JSONDecodeError as error:
-        raise argparse.ArgumentTypeError(f"not valid JSON: {error}") from None
-    if not isinstance(value, dict):
-        raise argparse.ArgumentTypeError(f"expected a JSON object, got {type(value).__name__}")
-    return value
+    defaults = ServerLimits()
+    access = parser.add_argument_group("access and limits (docs/serving.md, 'Limits and access')")
+    access.add_argument("--api-key", default=os.environ.get(API_KEY_ENV) or None,
+                        help=f"require the header 'Authorization: Api-Key KEY' (openpi-client: "
+                        f"WebsocketClientPolicy(api_key=KEY)); default: ${API_KEY_ENV}, else no access control")
+    access.add_argument("--max-connections", type=int, default=defaults.max_connections,
+                        help=f"refuse more connections with HTTP 503 (default {defaults.max_connections})")
+    access.add_argument("--idle-timeout", type=float, default=defaults.idle_timeout_s, metavar="SECONDS",
+                        help=f"close connections without a request for this long (default {defaults.idle_timeout_s:g}; "
+                        "0: never)")
+    access.add_argument("--max-message-mib", type=float, default=defaults.max_message_bytes / 2**20,
+                        help=f"largest frame in MiB (default {defaults.max_message_bytes / 2**20:g}: three 720p uint8 "
+                        "cameras); larger frames close the connection (code 1009)")
+    access.add_argument("--max-prompt-chars", type=int, default=defaults.max_prompt_chars,
+                        help=f"longest prompt in characters (default {defaults.max_prompt_chars})")
+    access.add_argument("--max-image-pixels", type=int, default=defaults.max_image_pixels,
+                        help=f"largest camera frame, height x width (default {defaults.max_image_pixels}: 1920x1080)")
 
 
 def _observation_format(name_or_path: str) -> ObservationFormat:
@@ -479,6 +588,11 @@ def run(args: argparse.Namespace) -> int:
     from pi0_torch.runtime.policy import PI0Policy  # imports torch: only when the command runs
 
     try:
+        limits = ServerLimits(
+            max_message_bytes=int(args.max_message_mib * 2**20), max_prompt_chars=args.max_prompt_chars,
+            max_image_pixels=args.max_image_pixels, max_connections=args.max_connections,
+            idle_timeout_s=args.idle_timeout or None,
+        )
         logger.info("loading %s", args.model)
         policy = PI0Policy.from_pretrained(
             args.model, device=args.device, dtype=args.dtype, num_steps=args.num_steps, seed=args.seed,
@@ -491,10 +605,12 @@ def run(args: argparse.Namespace) -> int:
             obs_format=args.obs_format,
             max_batch_size=args.max_batch_size,
             extra_metadata=args.metadata,
+            limits=limits,
+            api_key=args.api_key,
         )
         return server.serve_forever()
-    except (ValueError, OSError) as error:  # bad model folder, cameras the format cannot map, port in use
-        logger.error("%s", error)
+    except (ValueError, OSError) as error:  # bad limits or model folder, cameras the format cannot map, port in use
+        logger.error("%s", first_line(error))
         return 1
 
 

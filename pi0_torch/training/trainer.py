@@ -35,6 +35,7 @@ import logging
 import math
 import re
 import shutil
+import sys
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -48,7 +49,7 @@ from transformers import Trainer, TrainerCallback, TrainerControl, TrainerState,
 from transformers.trainer import TRAINER_STATE_NAME
 from transformers.trainer_utils import PREFIX_CHECKPOINT_DIR, rotate_checkpoints
 
-from pi0_torch.cli import bool_mask
+from pi0_torch.cli import bool_mask, json_object
 from pi0_torch.models.configuration_pi0 import PI0Config, preset_names
 from pi0_torch.data.lerobot_dataset import LeRobotEpisodeDataset, split_episodes
 from pi0_torch.models.modeling_pi0 import PI0ForActionGeneration
@@ -57,6 +58,7 @@ from pi0_torch.processing.processing_pi0 import PI0Processor
 from pi0_torch.processing.robot_spaces import CONVERSIONS, get_conversion
 from pi0_torch.processing.tokenization import build_test_tokenizer
 from pi0_torch.utils import files
+from pi0_torch.utils.validation import check_float, check_int, first_line
 
 logger = logging.getLogger(__name__)
 
@@ -550,6 +552,27 @@ class TrainSettings:
     progress: bool = True
 
 
+def check_settings(settings: TrainSettings) -> None:
+    """Refuse settings no run can use (`ValueError` naming the `pi0-torch train` flag): `--max-steps 0` would
+    otherwise train one step, a zero batch or save interval would fail deep inside the Trainer."""
+    def flag(name: str) -> str:
+        return "--" + name.replace("_", "-")
+
+    for name in ("max_steps", "batch_size", "gradient_accumulation_steps", "logging_steps", "save_steps",
+                 "lora_rank_vlm", "lora_rank_expert"):
+        check_int(flag(name), getattr(settings, name), minimum=1)
+    for name in ("decay_steps", "save_total_limit", "eval_steps"):
+        if getattr(settings, name) is not None:
+            check_int(flag(name), getattr(settings, name), minimum=1)
+    for name in ("warmup_steps", "num_workers", "seed"):
+        check_int(flag(name), getattr(settings, name), minimum=0)
+    check_float("--learning-rate", settings.learning_rate, minimum=0.0, exclusive_minimum=True)
+    for name in ("end_learning_rate", "weight_decay", "max_grad_norm"):
+        check_float(flag(name), getattr(settings, name), minimum=0.0)
+    if not isinstance(settings.config_overrides, Mapping):
+        raise ValueError(f"--config-overrides must be a JSON object, got {type(settings.config_overrides).__name__}")
+
+
 def _is_model_folder(model: str) -> bool:
     return (Path(model) / "config.json").is_file()
 
@@ -688,6 +711,7 @@ def train_policy(settings: TrainSettings) -> dict[str, Any]:
     """
     from transformers import set_seed
 
+    check_settings(settings)
     if settings.lora and settings.ema_decay is not None:
         raise ValueError("--ema-decay with --lora: an average of the LoRA factors A and B is not the average of the "
                          "weight update B @ A, so openpi turns EMA off for LoRA fine-tuning; drop one of the two")
@@ -814,7 +838,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
     model = parser.add_argument_group("model")
     model.add_argument("--model", required=True, help=f"checkpoint folder, or a preset: {', '.join(preset_names())}")
-    model.add_argument("--config-overrides", type=json.loads, default={}, metavar="JSON",
+    model.add_argument("--config-overrides", type=json_object, default={}, metavar="JSON",
                        help='preset overrides, e.g. \'{"image_size": 56, "action_horizon": 8}\'')
     model.add_argument("--tokenizer", help="PaliGemma SentencePiece model (file/folder); 'test' trains a tiny one (demos)")
     model.add_argument("--norm-stats", default="dataset",
@@ -866,7 +890,12 @@ def settings_from_args(args: argparse.Namespace) -> TrainSettings:
 
 def run(args: argparse.Namespace) -> int:
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
-    result = train_policy(settings_from_args(args))
+    try:
+        result = train_policy(settings_from_args(args))
+    except (ValueError, OSError) as error:  # settings, config, dataset files: one line (the traceback at DEBUG)
+        logger.debug("training failed", exc_info=True)
+        print(f"error: {first_line(error)}", file=sys.stderr)
+        return 1
     print(f"saved the fine-tuned policy to {result['output_dir']}")
     return 0
 
