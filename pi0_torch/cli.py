@@ -15,6 +15,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "demo": ("pi0_torch.demo", "Run the committed demo policy on held-out synthetic scenes and plot its action chunks."),
     "convert": ("pi0_torch.conversion.convert", "Convert openpi / LeRobot / transformers checkpoints to pi0-torch folders (and π0 to transformers)."),
     "train": ("pi0_torch.training.trainer", "Fine-tune π0 / π0.5 on a LeRobot dataset with the Hugging Face Trainer (openpi's recipe)."),
+    "consolidate": ("pi0_torch.training.fsdp", "Turn a sharded checkpoint of `train --fsdp` into a model folder (one process)."),
     "serve": ("pi0_torch.runtime.serving", "Serve a policy over openpi's websocket protocol (openpi-client compatible)."),
     "bench": ("pi0_torch.benchmark", "Time generate_actions, a training step and loading; compare with transformers' PI0."),
 }
