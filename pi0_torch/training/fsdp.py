@@ -154,6 +154,12 @@ def check_settings(fsdp: bool, model: str, resume_from_checkpoint: str | None) -
             "pi0_torch.training ...` or `accelerate launch --config_file examples/accelerate/fsdp2.yaml -m "
             "pi0_torch.training ...` (one process works too: --nproc-per-node 1)"
         )
+    if os.environ.get("ACCELERATE_USE_FSDP", "false").lower() == "true":
+        raise ValueError(
+            "launched with an accelerate FSDP config (distributed_type: FSDP): accelerate would shard with its own wrap "
+            "policy. Launch with examples/accelerate/fsdp2.yaml (distributed_type: MULTI_GPU) and pass --fsdp: "
+            "pi0-torch shards the model itself"
+        )
     if is_sharded_checkpoint(model):
         raise ValueError(f"--model {model} is a sharded checkpoint: make a model folder of it with `pi0-torch "
                          f"consolidate {model} --output-dir DIR`, or continue its run with --resume-from-checkpoint")
