@@ -39,16 +39,17 @@ def dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
     )
 
 
-def cli_arguments(run: TrainSettings) -> list[str]:
-    """`pi0-torch train` options of the settings these tests vary."""
+def cli_arguments(run: TrainSettings, cpu: bool = True) -> list[str]:
+    """`pi0-torch train` options of the settings these tests vary (on the CPU unless `cpu` is False)."""
     arguments = [
         "--dataset", run.dataset, "--model", run.model, "--output-dir", run.output_dir,
         "--config-overrides", json.dumps(run.config_overrides), "--tokenizer", run.tokenizer, "--train-split", run.train_split,
         "--max-steps", str(run.max_steps), "--batch-size", str(run.batch_size), "--learning-rate", str(run.learning_rate),
         "--warmup-steps", str(run.warmup_steps), "--end-learning-rate", str(run.end_learning_rate),
-        "--logging-steps", "1", "--save-steps", str(run.save_steps), "--seed", str(run.seed), "--cpu",
+        "--logging-steps", "1", "--save-steps", str(run.save_steps), "--seed", str(run.seed),
     ]
     flags = {"--fsdp": run.fsdp, "--gradient-checkpointing": run.gradient_checkpointing, "--lora": run.lora, "--bf16": run.bf16}
+    flags["--cpu"] = cpu
     arguments += [flag for flag, on in flags.items() if on]
     if run.ema_decay is not None:
         arguments += ["--ema-decay", str(run.ema_decay)]
@@ -61,10 +62,11 @@ def cli_arguments(run: TrainSettings) -> list[str]:
     return arguments
 
 
-def launch(launcher: list[str], run: TrainSettings) -> dict[int, float]:
-    """Run `pi0_torch.training` under `launcher`; returns the loss per step from the last checkpoint's trainer state."""
-    command = [sys.executable, *launcher, "-m", "pi0_torch.training", *cli_arguments(run)]
-    finished = subprocess.run(command, env={**os.environ, "OMP_NUM_THREADS": "1"}, capture_output=True, text=True, timeout=600)
+def launch(launcher: list[str], run: TrainSettings, cpu: bool = True) -> dict[int, dict]:
+    """Run `pi0_torch.training` under `launcher`; the log entry of each step from the last checkpoint's trainer state."""
+    command = [sys.executable, *launcher, "-m", "pi0_torch.training", *cli_arguments(run, cpu)]
+    finished = subprocess.run(command, check=False, env={**os.environ, "OMP_NUM_THREADS": "1"}, capture_output=True,
+                              text=True, timeout=600)
     assert finished.returncode == 0, finished.stderr[-3000:]
     state = json.loads((Path(run.output_dir) / f"checkpoint-{run.max_steps}" / "trainer_state.json").read_text())
     return {entry["step"]: entry for entry in state["log_history"] if "loss" in entry}
@@ -107,8 +109,8 @@ def runs(dataset: Path, tmp_path_factory: pytest.TempPathFactory) -> dict[str, o
     batch 4, checkpoints at 3 and 6: one plain process; two FSDP processes; one FSDP process resuming the
     two-process run from its checkpoint-3."""
     root = tmp_path_factory.mktemp("fsdp")
-    recipe = dict(model="pi05_small", config_overrides={**TINY, "max_token_len": 32},  # (π0.5's prompt holds the state)
-                  max_steps=6, save_steps=3, ema_decay=0.9, gradient_checkpointing=True)
+    recipe = {"model": "pi05_small", "config_overrides": {**TINY, "max_token_len": 32},  # (π0.5's prompt holds the state)
+              "max_steps": 6, "save_steps": 3, "ema_decay": 0.9, "gradient_checkpointing": True}
     one = one_process(settings(dataset, root / "one", **recipe))
     two_processes = settings(dataset, root / "two", fsdp=True, **recipe)
     two = launch(torchrun(2), two_processes)
@@ -211,11 +213,15 @@ def test_cli_and_examples() -> None:
     assert "distributed_type: MULTI_GPU" in config and "mixed_precision: 'no'" in config
 
 
+# ---------------------------------------------------------------------------------------------------- slow
+
+
+@pytest.mark.slow  # (~40 s, over the CI budget of the FSDP tests that the module fixture's runs take)
 def test_lora_with_frozen_vision_through_accelerate_launch(dataset: Path, tmp_path: Path) -> None:
     """π0, LoRA + `--freeze vision`, launched with the shipped accelerate config on 2 CPU processes: the one-process
     losses, the merged model, and a consolidated LoRA checkpoint equal to the final model."""
-    recipe = dict(max_steps=4, save_steps=4, lora=True, lora_rank_vlm=2, lora_rank_expert=4, freeze=["vision"],
-                  learning_rate=1e-2, warmup_steps=0)
+    recipe = {"max_steps": 4, "save_steps": 4, "lora": True, "lora_rank_vlm": 2, "lora_rank_expert": 4,
+              "freeze": ["vision"], "learning_rate": 1e-2, "warmup_steps": 0}
     one = one_process(settings(dataset, tmp_path / "one", **recipe))
     launcher = ["-m", "accelerate.commands.launch", "--config_file", str(EXAMPLES / "accelerate" / "fsdp2.yaml"),
                 "--num_processes", "2", "--main_process_port", "0"]
@@ -230,16 +236,34 @@ def test_lora_with_frozen_vision_through_accelerate_launch(dataset: Path, tmp_pa
         assert torch.equal(tensor, final[name]), name
 
 
-# ---------------------------------------------------------------------------------------------------- slow
-
-
 @pytest.mark.slow
 def test_bf16_mixed_precision(dataset: Path, tmp_path: Path) -> None:
     """π0 with `--bf16` on 2 FSDP processes (bf16 compute, float32 master weights and reduction) follows the float32
     loss curve of one process to bf16 precision; the saved model is float32."""
-    recipe = dict(max_steps=4, save_steps=4)
+    recipe = {"max_steps": 4, "save_steps": 4}
     one = one_process(settings(dataset, tmp_path / "one", **recipe))
     two = launch(torchrun(2), settings(dataset, tmp_path / "two", fsdp=True, bf16=True, **recipe))
     for step in range(1, 5):
         assert two[step]["loss"] == pytest.approx(one[step], rel=1e-2)
     assert all(t.dtype == torch.float32 for t in weights(tmp_path / "two").values())
+
+
+# ---------------------------------------------------------------------------------------------------- GPUs
+
+
+@pytest.mark.gpu
+def test_two_gpus_give_the_one_gpu_run(dataset: Path, tmp_path: Path) -> None:
+    """On a machine with 2+ GPUs (`make test-gpu`): NCCL, a CUDA device mesh, bf16 compute; the loss curve of one GPU
+    running the same recipe without FSDP (bf16 autocast) to bf16 precision, and the resume path on the GPU."""
+    if torch.cuda.device_count() < 2:
+        pytest.skip("needs 2 GPUs")
+    recipe = {"max_steps": 4, "save_steps": 2, "bf16": True}
+    one = launch(torchrun(1), settings(dataset, tmp_path / "one", **recipe), cpu=False)
+    two_gpus = settings(dataset, tmp_path / "two", fsdp=True, **recipe)
+    two = launch(torchrun(2), two_gpus, cpu=False)
+    for step in range(1, 5):
+        assert two[step]["loss"] == pytest.approx(one[step]["loss"], rel=1e-2)
+    resumed = launch(torchrun(2), replace(two_gpus, output_dir=str(tmp_path / "resumed"),
+                                          resume_from_checkpoint=str(tmp_path / "two" / "checkpoint-2")), cpu=False)
+    for step in (3, 4):
+        assert resumed[step]["loss"] == pytest.approx(two[step]["loss"], rel=1e-3)

@@ -39,7 +39,7 @@ from torch.distributed.checkpoint.state_dict import (
     set_model_state_dict,
     set_optimizer_state_dict,
 )
-from torch.distributed.device_mesh import init_device_mesh
+from torch.distributed.device_mesh import DeviceMesh, init_device_mesh
 from torch.distributed.fsdp import MixedPrecisionPolicy, fully_shard
 from transformers import TrainerCallback, TrainerControl, TrainerState, TrainingArguments
 from transformers.models.siglip.modeling_siglip import SiglipEncoderLayer
@@ -76,17 +76,16 @@ def wrap_units(model: nn.Module) -> list[nn.Module]:
     return inner + layers + embeddings
 
 
-def shard_model(model: nn.Module, *, bf16: bool, device_type: str = "cpu") -> nn.Module:
+def shard_model(model: nn.Module, *, bf16: bool, device_type: str = "cpu", mesh: DeviceMesh | None = None) -> nn.Module:
     """Shard `model` (a `PI0ForActionGeneration` or its peft LoRA wrapper) over all processes with FSDP2, in
     place: [`wrap_units`], then the root. Needs an initialised process group (the `Trainer`'s arguments set it up
     under `torchrun` / `accelerate launch`). Returns the same module, now an `FSDPModule`.
 
     The parameters become DTensors sharded on dim 0 (each process holds 1/N of every tensor, float32); frozen
     parameters (`--freeze`, LoRA base weights) are sharded too and get no gradient. `bf16` gathers the weights in
-    bfloat16 for compute and reduce-scatters gradients in float32.
+    bfloat16 for compute and reduce-scatters gradients in float32. `mesh` defaults to all processes on `device_type`.
     """
-    world = torch.distributed.get_world_size()
-    mesh = init_device_mesh(device_type, (world,))
+    mesh = mesh or init_device_mesh(device_type, (torch.distributed.get_world_size(),))
     policy = MixedPrecisionPolicy(
         param_dtype=torch.bfloat16 if bf16 else None, reduce_dtype=torch.float32, cast_forward_inputs=False
     )
