@@ -1,4 +1,4 @@
-"""The `pi0-torch` console command: `pi0-torch {convert,demo,demos,eval,serve,train,bench} ...`.
+"""The `pi0-torch` console command: `pi0-torch {convert,consolidate,demo,demos,eval,serve,train,bench} ...`.
 
 Each subcommand lives in its own module, which defines `add_arguments(parser)` and `run(args) -> int`; the module is
 imported only when its subcommand runs, so `pi0-torch --help` stays fast.
@@ -18,6 +18,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "convert": ("pi0_torch.conversion.convert", "Convert openpi / LeRobot / transformers checkpoints to pi0-torch folders (and π0 to transformers)."),
     "train": ("pi0_torch.training.trainer", "Fine-tune π0 / π0.5 on a LeRobot dataset with the Hugging Face Trainer (openpi's recipe)."),
     "eval": ("pi0_torch.runtime.rollout", "Closed-loop rollouts of a policy (local or ws://) in gymnasium envs: success with 95% intervals."),
+    "consolidate": ("pi0_torch.training.fsdp", "Turn a sharded checkpoint of `train --fsdp` into a model folder (one process)."),
     "serve": ("pi0_torch.runtime.serving", "Serve a policy over openpi's websocket protocol (openpi-client compatible)."),
     "bench": ("pi0_torch.benchmark", "Time generate_actions, a training step and loading; compare with transformers' PI0."),
     "demos": ("pi0_torch.envs.demos", "Record scripted-expert demonstrations of a tabletop env as a LeRobot v3.0 dataset."),

@@ -240,10 +240,9 @@ class PI0Trainer(Trainer):
             super()._save_checkpoint(model, trial)  # into staging / checkpoint-N; rotates nothing there
         finally:
             self._staging_run_dir = None
-        if self.args.should_save:
-            for callback in self.callback_handler.callbacks:
-                if isinstance(callback, CheckpointContents):
-                    callback.write_checkpoint(staging / final.name, self.state)
+        for callback in self.callback_handler.callbacks:
+            if isinstance(callback, CheckpointContents) and (self.args.should_save or callback.collective):
+                callback.write_checkpoint(staging / final.name, self.state)
         self.accelerator.wait_for_everyone()  # every process's files are in
         if self.args.should_save:
             files.publish(staging / final.name, final)
@@ -275,7 +274,10 @@ class PI0Trainer(Trainer):
 
 class CheckpointContents:
     """A callback that adds files to every checkpoint: [`PI0Trainer`] calls `write_checkpoint` on the main process
-    while the checkpoint is still being written aside, so the files appear together with the rest of it."""
+    (on every process when `collective`, e.g. for a sharded save) while the checkpoint is still being written aside,
+    so the files appear together with the rest of it."""
+
+    collective = False
 
     def write_checkpoint(self, folder: Path, state: TrainerState) -> None:
         raise NotImplementedError
@@ -540,6 +542,7 @@ class TrainSettings:
     freeze: list[str] = field(default_factory=list)
     bf16: bool = False
     gradient_checkpointing: bool = False
+    fsdp: bool = False
     seed: int = 42
     logging_steps: int = 10
     save_steps: int = 1_000
@@ -646,7 +649,8 @@ def build_model(settings: TrainSettings, config: PI0Config) -> nn.Module:
     return model
 
 
-WEIGHT_FILES = ("model.safetensors", "model.safetensors.index.json", "adapter_model.safetensors")
+# (the last: the sharded model of an --fsdp run, a DCP folder complete once its .metadata is written)
+WEIGHT_FILES = ("model.safetensors", "model.safetensors.index.json", "adapter_model.safetensors", "model_sharded/.metadata")
 
 
 def is_complete_checkpoint(folder: Path) -> bool:
@@ -711,11 +715,14 @@ def train_policy(settings: TrainSettings) -> dict[str, Any]:
     """
     from transformers import set_seed
 
+    from pi0_torch.training import fsdp as sharding
+
     check_settings(settings)
     if settings.lora and settings.ema_decay is not None:
         raise ValueError("--ema-decay with --lora: an average of the LoRA factors A and B is not the average of the "
                          "weight update B @ A, so openpi turns EMA off for LoRA fine-tuning; drop one of the two")
     settings = replace(settings, resume_from_checkpoint=resolve_resume_checkpoint(settings.output_dir, settings.resume_from_checkpoint))
+    sharding.check_settings(settings.fsdp, settings.model, settings.resume_from_checkpoint)
     set_seed(settings.seed)
     config = load_config(settings)
     dataset_options = dict(
@@ -753,7 +760,7 @@ def train_policy(settings: TrainSettings) -> dict[str, Any]:
         eval_steps=settings.eval_steps or settings.save_steps,
         seed=settings.seed,
         data_seed=settings.seed,
-        bf16=settings.bf16,
+        bf16=settings.bf16 and not settings.fsdp,  # with --fsdp: FSDP's mixed-precision policy instead of autocast
         dataloader_num_workers=settings.num_workers,
         dataloader_persistent_workers=settings.num_workers > 0,  # workers keep their decoded-frame caches
         dataloader_pin_memory=_has_accelerator() and not settings.cpu,
@@ -771,13 +778,18 @@ def train_policy(settings: TrainSettings) -> dict[str, Any]:
             f"--batch-size {settings.batch_size} (global) must be divisible by processes x accumulation steps = {per_step}"
         )
     args.per_device_train_batch_size = args.per_device_eval_batch_size = settings.batch_size // per_step
+    if settings.fsdp:
+        model = sharding.shard_model(model, bf16=settings.bf16, device_type=args.device.type)
     if settings.warmup_steps >= settings.max_steps:
         logger.warning("warmup_steps %d >= max_steps %d: the learning rate never reaches its peak", settings.warmup_steps, settings.max_steps)
 
     callbacks: list[TrainerCallback] = [SaveProcessorCallback(processor)]
     if settings.ema_decay is not None:
-        callbacks.append(EMACallback(settings.ema_decay, resume_from=settings.resume_from_checkpoint))
-    trainer = PI0Trainer(
+        ema_type = sharding.ShardedEMACallback if settings.fsdp else EMACallback
+        callbacks.append(ema_type(settings.ema_decay, resume_from=settings.resume_from_checkpoint))
+    if settings.fsdp:
+        callbacks.append(sharding.SaveModelConfigCallback(model))
+    trainer = (sharding.FSDPTrainer if settings.fsdp else PI0Trainer)(
         model=model,
         args=args,
         train_dataset=train_dataset,
@@ -792,8 +804,9 @@ def train_policy(settings: TrainSettings) -> dict[str, Any]:
     logger.info("trainable parameters: %d of %d", trainable, sum(p.numel() for p in model.parameters()))
     trainer.train(resume_from_checkpoint=settings.resume_from_checkpoint)
 
+    final = sharding.gather_model(trainer.model) if settings.fsdp else merge_lora(trainer.model)  # (all processes)
     if trainer.is_world_process_zero():
-        _save_final(merge_lora(trainer.model), processor, settings)
+        _save_final(final, processor, settings)
     trainer.accelerator.wait_for_everyone()
     return {"output_dir": settings.output_dir, "log_history": trainer.state.log_history, "trainable_parameters": trainable}
 
@@ -867,6 +880,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="freeze the vision tower, or the whole VLM side (vision + Gemma 2B); repeatable")
     recipe.add_argument("--bf16", action="store_true", help="bf16 mixed precision (autocast)")
     recipe.add_argument("--gradient-checkpointing", action="store_true")
+    recipe.add_argument("--fsdp", action="store_true", help="shard parameters, gradients and optimizer state over the "
+                        "processes (PyTorch FSDP2; under torchrun / accelerate launch); checkpoints are sharded")
     recipe.add_argument("--seed", type=int, default=42)
 
     run_group = parser.add_argument_group("run")
