@@ -6,7 +6,6 @@ import gymnasium
 import numpy as np
 import pytest
 
-import pi0_torch.envs
 from pi0_torch.envs import ENV_IDS, ConveyorEnv, PickPlaceEnv, ReachEnv, make_expert
 from pi0_torch.envs.tabletop import GRASP_RADIUS, MAX_SPEED, PALETTE, Renderer, World, Zone
 from pi0_torch.envs.tasks import BELT_SPEED
@@ -56,7 +55,7 @@ def test_observation_format_and_spaces(env_id):
     assert env.observation_space.contains(observation)
     assert env.action_space.shape == (3,) and env.action_space.dtype == np.float32
     assert set(info) >= {"is_success", "stage", "held_object", "slipped"} and info["is_success"] is False
-    observation, reward, terminated, truncated, info = env.step(env.action_space.sample())
+    observation, _, _, _, info = env.step(env.action_space.sample())
     assert env.observation_space.contains(observation) and isinstance(info["is_success"], bool)
 
 
@@ -91,7 +90,7 @@ def test_sync_vector_env_batches_the_prompt_as_a_tuple():
     assert observations["images"]["base_0_rgb"].shape == (3, 32, 32, 3) and observations["state"].shape == (3, 3)
     assert isinstance(observations["prompt"], tuple) and len(observations["prompt"]) == 3
     assert all(isinstance(prompt, str) for prompt in observations["prompt"])
-    observations, rewards, terminated, truncated, infos = envs.step(np.zeros((3, 3), np.float32))
+    observations, _, _, _, infos = envs.step(np.zeros((3, 3), np.float32))
     assert infos["is_success"].shape == (3,) and envs.single_observation_space.contains(
         {"images": {"base_0_rgb": observations["images"]["base_0_rgb"][0]}, "state": observations["state"][0],
          "prompt": observations["prompt"][0]}

@@ -102,7 +102,7 @@ class ScriptedExpert:
 
     def __init__(self, env: gymnasium.Env) -> None:
         if not isinstance(env.unwrapped, TabletopEnv):
-            raise ValueError(f"make_expert needs a pi0_torch tabletop env, got {type(env.unwrapped).__name__}")
+            raise TypeError(f"make_expert needs a pi0_torch tabletop env, got {type(env.unwrapped).__name__}")
         self.rng = np.random.default_rng()
         self.cruise = CRUISE_SPEEDS[0]
         self.plan: Plan | None = None

@@ -289,7 +289,7 @@ class ConveyorEnv(TabletopEnv):
 
     def sample_layout(self, rng: np.random.Generator) -> Layout:
         colors = _choose_colors(rng, NUM_OBJECTS)
-        positions = _sample_points(rng, NUM_OBJECTS, np.array([-0.9, -0.8]), np.array([0.1, 0.05]), OBJECT_SPACING)
+        positions = _sample_points(rng, NUM_OBJECTS, np.array([-0.9, -0.8]), np.array([0.0, 0.05]), OBJECT_SPACING)
         effector = rng.uniform([-0.9, 0.45], [0.9, 0.9])
         belt = Belt(*BELT_BAND, np.array([BELT_SPEED, 0.0]))
         bin_zone = Zone("bin", np.array(BIN_CENTER), BIN_COLOR)
