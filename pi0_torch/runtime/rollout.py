@@ -412,14 +412,14 @@ def write_outputs(result: EvalResult, frames: list[list[np.ndarray]], output_dir
     aside and moved into place."""
     from PIL import Image
 
-    from pi0_torch.data.synthetic_data import _encode_video
+    from pi0_torch.data.lerobot_writer import encode_video
     from pi0_torch.utils.files import atomic_output_dir
 
     with atomic_output_dir(output_dir, overwrite=True) as staging:
         (staging / "eval.json").write_text(json.dumps(asdict(result), indent=2) + "\n")
         for frames_of_episode, detail in zip(frames, result.episodes_detail):
             name = f"rollout_{detail['seed']}"
-            _encode_video(staging / f"{name}.mp4", [_even(f) for f in frames_of_episode], fps, "libx264")
+            encode_video(staging / f"{name}.mp4", [_even(f) for f in frames_of_episode], fps, "libx264")
             picks = np.linspace(0, len(frames_of_episode) - 1, num=min(8, len(frames_of_episode))).round().astype(int)
             Image.fromarray(np.concatenate([frames_of_episode[i] for i in picks], axis=1)).save(staging / f"{name}.png")
 

@@ -1,0 +1,205 @@
+"""Closed loop: chunk schedules and stitching, the real-time executor, `evaluate` / `pi0-torch eval` with local,
+remote and scripted policies, real-time chunking requests through `PI0Policy` and the server, third-party envs."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from pi0_torch import PI0Config, PI0ForActionGeneration, PI0Processor
+from pi0_torch.runtime.policy import PI0Policy
+from pi0_torch.processing.normalization import NormStats
+from pi0_torch.processing.tokenization import build_test_tokenizer
+from pi0_torch.runtime.chunking import ChunkSchedule, ChunkStitcher, RealTimeExecutor, continuation_fields
+from pi0_torch.runtime.rollout import EvalSettings, LocalPolicy, RemotePolicy, ScriptedPolicy, evaluate, wilson_interval
+from pi0_torch.runtime.serving import PolicyServer
+
+REPO = Path(__file__).resolve().parents[1]
+HORIZON = 8
+
+
+def tiny_policy(action_dim: int = 3, rtc_max_delay: int = 3, low: float = -1.0, high: float = 1.0) -> PI0Policy:
+    torch.manual_seed(0)
+    config = PI0Config.from_preset(
+        "pi0_small", image_size=28, max_token_len=16, action_horizon=HORIZON, action_dim=4, camera_names=["base_0_rgb"],
+        vision_num_layers=1, num_hidden_layers=2, rtc_max_delay=rtc_max_delay, vocab_size=512,
+    )
+    centre, spread = np.full(action_dim, (low + high) / 2), np.full(action_dim, (high - low) / 4)
+    stats = {key: NormStats(mean=centre, std=spread) for key in ("state", "actions")}
+    processor = PI0Processor.from_config(config, tokenizer=build_test_tokenizer(), norm_stats=stats)
+    return PI0Policy(PI0ForActionGeneration(config), processor, num_steps=2, seed=0)
+
+
+# -- schedules and stitching ---------------------------------------------------------------------------------------------
+
+
+def test_sync_waits_and_asynchronous_modes_keep_going() -> None:
+    sync = ChunkSchedule("sync", horizon=8, replan_steps=4, inference_delay=2)
+    assert [t for t in range(14) if sync.observes(t)] == [0, 6, 12] and sync.anchor(6) == 8 == sync.arrival(6)
+    stitcher, hold = ChunkStitcher("sync", replan_steps=4), np.full(1, -1.0)
+    stitcher.add(np.arange(8.0)[:, None], anchor=2)
+    executed = [float(stitcher.action(t, hold)[0]) for t in range(2, 8)]
+    stitcher.add(10 + np.arange(8.0)[:, None], anchor=8)
+    executed += [float(stitcher.action(t, hold)[0]) for t in range(8, 13)]
+    assert executed == [0.0, 1.0, 2.0, 3.0, -1.0, -1.0, 10.0, 11.0, 12.0, 13.0, -1.0]  # s = 4 actions, then it waits
+    assert float(ChunkStitcher("sync", 4).action(0, hold)[0]) == -1.0  # nothing arrived: stand still
+
+    ensemble = ChunkStitcher("ensemble", replan_steps=4)
+    ensemble.add(np.zeros((8, 1)), anchor=0)
+    ensemble.add(np.ones((8, 1)), anchor=4)
+    weights = np.exp(-0.01 * np.arange(2))
+    assert float(ensemble.action(3, hold)[0]) == 0.0
+    assert float(ensemble.action(5, hold)[0]) == pytest.approx(weights[1] / weights.sum())  # the older chunk weighs more
+    assert float(ensemble.action(9, hold)[0]) == 1.0
+
+    naive = ChunkStitcher("rtc", replan_steps=4)
+    assert continuation_fields("rtc", naive, 0, 2) == {}  # nothing to continue yet
+    naive.add(np.arange(8.0)[:, None], anchor=2)
+    fields = continuation_fields("rtc", naive, 6, 2)
+    assert (fields["execution_horizon"], fields["inference_delay"], fields["rtc_method"]) == (4, 2, "guidance")
+    assert continuation_fields("rtc-trained", naive, 9, 5)["inference_delay"] == 1  # what the chunk has left
+    assert continuation_fields("naive", naive, 6, 2) == {}
+    with pytest.raises(ValueError, match=r"replan_steps \+ inference_delay \(6 \+ 4\) must not exceed"):
+        ChunkSchedule("naive", horizon=8, replan_steps=6, inference_delay=4)
+
+
+@pytest.mark.parametrize("mode", ["sync", "naive", "rtc"])
+def test_real_time_executor_continues_where_the_robot_is(mode: str) -> None:
+    """A policy that knows the future (chunk value = the step it is meant for) run by the real-time executor with
+    ~30 ms of latency at 100 Hz: every step executes its own value, or holds the previous one when a chunk came later
+    than the executing one lasts; the delay estimate follows the latency."""
+    requests = []
+
+    def infer(observation: dict) -> dict:
+        requests.append(observation)
+        time.sleep(0.03)
+        return {"actions": (observation["step"] + np.arange(HORIZON, dtype=np.float32))[:, None]}
+
+    executor = RealTimeExecutor(infer, mode, horizon=HORIZON, replan_steps=3, control_hz=100, hold=np.zeros(1))
+    executed = []
+    for step in range(40):
+        executed.append(float(executor.step({"step": step})[0]))
+        time.sleep(0.01)
+    if mode == "sync":  # the robot waits for every chunk: no step is skipped or held
+        assert executed == [float(t) for t in range(40)]
+    else:
+        assert all(value == t or value == executed[t - 1] for t, value in enumerate(executed))
+        assert sum(value == t for t, value in enumerate(executed)) >= 30
+        assert 3 <= executor.estimated_delay <= HORIZON - 3  # ceil(30 ms * 100 Hz), plus scheduling
+    if mode == "rtc":
+        continued = [r for r in requests if "previous_actions" in r]
+        assert continued and all(r["rtc_method"] == "guidance" and r["execution_horizon"] == 3 for r in continued)
+
+
+def test_wilson_interval() -> None:
+    assert wilson_interval(0, 10)[0] == 0.0 and wilson_interval(10, 10)[1] == pytest.approx(1.0)
+    low, high = wilson_interval(80, 100)
+    assert low == pytest.approx(0.7112, abs=1e-4) and high == pytest.approx(0.8666, abs=1e-4)
+
+
+# -- closed loop in the tabletop envs --------------------------------------------------------------------------------------
+
+
+def test_scripted_expert_and_random_through_the_harness(tmp_path: Path) -> None:
+    expert = evaluate(ScriptedPolicy("expert"), EvalSettings(env="pi0_torch/PickPlace-v0", episodes=6, num_envs=3,
+                                                              output_dir=str(tmp_path / "expert")))
+    random = evaluate(ScriptedPolicy("random"), EvalSettings(env="pi0_torch/PickPlace-v0", episodes=6, num_envs=3))
+    assert expert.success_rate == 1.0 and random.success_rate == 0.0
+    saved = json.loads((tmp_path / "expert" / "eval.json").read_text())
+    for key in ("env", "episodes", "seed", "success_rate", "success_ci95", "mean_steps", "latency_ms", "execution",
+                "inference_delay", "boundary_jerk"):
+        assert key in saved
+    assert [e["seed"] for e in saved["episodes_detail"]] == list(range(1_000_000, 1_000_006))
+
+
+def test_episodes_do_not_depend_on_batching_or_on_the_wire() -> None:
+    """Per-chunk noise seeds: one env at a time, three in lockstep, and through `pi0-torch serve`'s server give the
+    same episodes (real-time chunking requests included)."""
+    policy = tiny_policy()
+    settings = dict(env="pi0_torch/Conveyor-v0", episodes=3, max_steps=14, execution="rtc", inference_delay=2,
+                    replan_steps=4)
+    one = evaluate(LocalPolicy(policy), EvalSettings(num_envs=1, **settings))
+    three = evaluate(LocalPolicy(policy), EvalSettings(num_envs=3, **settings))
+    with PolicyServer(policy, port=0, max_batch_size=3).serve_in_thread() as port:
+        remote = RemotePolicy(f"ws://127.0.0.1:{port}", connections=3)
+        try:
+            served = evaluate(remote, EvalSettings(num_envs=3, **settings))
+        finally:
+            remote.close()
+    for other in (three, served):
+        assert [e["steps"] for e in other.episodes_detail] == [e["steps"] for e in one.episodes_detail]
+        assert other.boundary_jerk == pytest.approx(one.boundary_jerk, rel=1e-4)
+        assert other.interior_jerk == pytest.approx(one.interior_jerk, rel=1e-4)
+
+
+@pytest.mark.parametrize("mode", ["sync", "naive", "ensemble", "rtc", "rtc-trained"])
+def test_every_execution_mode_runs_under_delay(mode: str) -> None:
+    result = evaluate(LocalPolicy(tiny_policy()), EvalSettings(env="pi0_torch/Reach-v0", episodes=2, num_envs=2,
+                                                               max_steps=12, execution=mode, inference_delay=3))
+    assert result.execution == mode and result.inference_delay == 3 and result.boundary_jerk is not None
+    assert result.replan_steps == (HORIZON if mode == "sync" else HORIZON - 3)
+
+
+def test_policy_continues_a_chunk_in_robot_units() -> None:
+    """`rtc_method="conditioning"` through `PI0Policy.infer`: the committed steps come back as the previous chunk's
+    actions (robot units -> model space -> robot units), the rest is sampled; bad fields are named."""
+    policy = tiny_policy(low=-2.0, high=6.0)
+    observation = {"images": {"base_0_rgb": np.zeros((32, 32, 3), np.uint8)}, "state": np.ones(3), "prompt": "reach"}
+    previous = np.linspace(-2, 6, HORIZON * 3, dtype=np.float32).reshape(HORIZON, 3)
+    out = policy.infer({**observation, "previous_actions": previous, "execution_horizon": 2, "inference_delay": 3,
+                        "rtc_method": "conditioning", "noise_seed": 5})["actions"]
+    np.testing.assert_allclose(out[:3], previous[2:5], rtol=1e-5, atol=1e-5)
+    assert not np.allclose(out[3:6], previous[5:8])
+    with pytest.raises(ValueError, match=r"inference_delay: expected an integer in \[0, 6\], got 7"):
+        policy.prepare({**observation, "previous_actions": previous, "execution_horizon": 2, "inference_delay": 7})
+    with pytest.raises(ValueError, match=r"inference_delay: 4 exceeds the 3 steps this model was trained"):
+        policy.prepare({**observation, "previous_actions": previous, "execution_horizon": 2, "inference_delay": 4,
+                        "rtc_method": "conditioning"})
+    with pytest.raises(ValueError, match=r"previous_actions: expected shape \[8, 3\]"):
+        policy.prepare({**observation, "previous_actions": previous[:4], "execution_horizon": 2})
+    with pytest.raises(ValueError, match="given without previous_actions"):
+        policy.prepare({**observation, "inference_delay": 2})
+
+
+def test_mismatches_are_named() -> None:
+    with pytest.raises(ValueError, match=r"action dims differ: the policy acts in 2 dims, the env .* takes 3"):
+        evaluate(LocalPolicy(tiny_policy(action_dim=2)), EvalSettings(env="pi0_torch/Reach-v0", episodes=1))
+    with pytest.raises(ValueError, match=r"unknown environment id 'pi0_torch/Nope-v0'; known: pi0_torch/Conveyor-v0"):
+        evaluate(ScriptedPolicy("expert"), EvalSettings(env="pi0_torch/Nope-v0", episodes=1))
+    with pytest.raises(ValueError, match=r"rtc-trained needs a policy trained with --rtc-max-delay >= 5"):
+        evaluate(LocalPolicy(tiny_policy()), EvalSettings(env="pi0_torch/Reach-v0", episodes=1,
+                                                           execution="rtc-trained", inference_delay=5, replan_steps=2))
+
+
+# -- the command, on a third-party simulator ---------------------------------------------------------------------------------
+
+
+def test_eval_command_on_gym_pusht(tmp_path: Path) -> None:
+    """`pi0-torch eval` end to end on LeRobot's PushT simulator (pygame rendering off-screen): a few steps, video,
+    PNG strip and eval.json; an unknown id is one line."""
+    pytest.importorskip("gym_pusht")
+    policy = tiny_policy(action_dim=2, low=0.0, high=512.0)
+    policy.model.save_pretrained(tmp_path / "policy")
+    policy.processor.save_pretrained(tmp_path / "policy")
+    env = {**os.environ, "SDL_VIDEODRIVER": "dummy", "PYTHONPATH": str(REPO)}
+    command = [sys.executable, "-m", "pi0_torch.cli", "eval", "--policy", str(tmp_path / "policy"),
+               "--env", "gym_pusht/PushT-v0", "--episodes", "2", "--num-envs", "2", "--max-steps", "10",
+               "--prompt", "push the T onto the target", "--output-dir", str(tmp_path / "out"), "--video"]
+    done = subprocess.run(command, capture_output=True, text=True, env=env, timeout=300, check=False)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert "gym_pusht/PushT-v0 sync d=0 s=8: success" in done.stdout
+    result = json.loads((tmp_path / "out" / "eval.json").read_text())
+    assert result["episodes"] == 2 and all(e["steps"] == 10 for e in result["episodes_detail"])
+    assert (tmp_path / "out" / "rollout_1000000.mp4").stat().st_size > 0
+    assert (tmp_path / "out" / "rollout_1000000.png").stat().st_size > 0
+    bad = subprocess.run([*command[:6], "--env", "gym_nothing/Nope-v0"], capture_output=True, text=True, env=env,
+                         timeout=120, check=False)
+    assert bad.returncode == 2 and bad.stderr.strip().count("\n") == 0 and "unknown environment id" in bad.stderr
