@@ -1,18 +1,16 @@
-"""`pi0-torch demo` / `make demo`: the committed tiny π0 policy reaches for the object the instruction names, on
-scenes it never saw.
+"""`pi0-torch demo` / `make demo`: the shipped tiny π0 acts in closed loop on tabletop tasks it never saw.
 
-    pi0-torch demo [--policy examples/demo_policy] [--plot outputs/demo_actions.png]
+    pi0-torch demo [--policy DIR] [--episodes 20] [--output-dir outputs/demo]
 
-1. loads `examples/demo_policy/` with `PI0ForActionGeneration.from_pretrained` / `PI0Processor.from_pretrained`
-   (a ~0.2 M-parameter π0 trained from scratch by `scripts/train_demo_policy.py`);
-2. writes 24 new scenes (`pi0_torch.data.synthetic_data.DEMO_HELDOUT`: another seed than the training data, three
-   colored discs each, "move to the <color> object") as a LeRobot v3.0 dataset with mp4 video;
-3. runs `generate_actions` through the processor on every frame, maps the chunks back to robot units, and prints
-   the error against the scripted ground truth next to the mean-action baseline (always predicting the training
-   data's mean action) and the figure recorded when the checkpoint was made;
-4. writes a PNG: four scenes with the true and predicted effector paths, and their dx/dy chunks.
+1. loads the demo policy shipped inside the package (`pi0_torch/demo_policy/`, a ~0.3 M-parameter π0 trained from
+   scratch on scripted-expert demonstrations by `scripts/train_demo_policy.py`) with `PI0Policy.from_pretrained`;
+2. runs it in closed loop on held-out seeds of `pi0_torch/Reach-v0` and `pi0_torch/PickPlace-v0` (the camera image, the
+   instruction and the gripper state in, action chunks out; `pi0_torch.runtime.rollout.evaluate`), next to the
+   scripted expert;
+3. prints success rates with 95% intervals and writes a rollout video (mp4) and a PNG strip of the first PickPlace
+   episode.
 
-No training happens here; it runs in a few seconds on a laptop CPU.
+No training and no download; about a minute on a laptop CPU.
 """
 
 from __future__ import annotations
@@ -20,103 +18,55 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
 import torch
 
-from pi0_torch import PI0ForActionGeneration
-from pi0_torch.data.lerobot_dataset import LeRobotEpisodeDataset
-from pi0_torch.processing.processing_pi0 import PI0Processor
-from pi0_torch.data.synthetic_data import DEMO_HELDOUT, write_synthetic_dataset
-from pi0_torch.training.trainer import PolicyEvaluation, evaluate_policy
+from pi0_torch.runtime.policy import PI0Policy
+from pi0_torch.runtime.rollout import EvalSettings, LocalPolicy, ScriptedPolicy, evaluate
 
-DEFAULT_POLICY = Path(__file__).resolve().parents[1] / "examples" / "demo_policy"  # in a clone of the repository
-
-
-def plot(evaluation: PolicyEvaluation, dataset: LeRobotEpisodeDataset, path: Path, scenes: int = 4) -> None:
-    """Top row: a scene with the true (green) and predicted (magenta) effector paths of one chunk; below: dx, dy."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    figure, axes = plt.subplots(3, scenes, figsize=(3.2 * scenes, 8), gridspec_kw={"height_ratios": [1.6, 1, 1]})
-    starts = np.flatnonzero(np.asarray([dataset[i]["frame_index"] for i in range(len(dataset))]) == 0)[:scenes]
-    for column, index in enumerate(starts):
-        sample = dataset[int(index)]
-        image = sample["images"][dataset.camera_keys[0]]
-        size = image.shape[0]
-        to_pixels = lambda xy: (np.asarray(xy) + 1) / 2 * size - 0.5  # noqa: E731  [-1, 1] -> pixel centers
-        state = sample["state"]
-        axis = axes[0, column]
-        axis.imshow(image)
-        for actions, color, label in ((evaluation.targets[index], "lime", "true"), (evaluation.predictions[index], "magenta", "predicted")):
-            path_xy = to_pixels(np.vstack([state, state + np.cumsum(actions, axis=0)]))
-            axis.plot(path_xy[:, 0], path_xy[:, 1], "-o", color=color, markersize=3, linewidth=1.5, label=label)
-        axis.set_title(sample["prompt"], fontsize=9)
-        axis.set_xticks([]), axis.set_yticks([])
-        if column == 0:
-            axis.legend(fontsize=8, loc="lower left")
-        steps = np.arange(evaluation.targets.shape[1])
-        for row, (dim, name) in enumerate(((0, "dx"), (1, "dy")), start=1):
-            axis = axes[row, column]
-            axis.plot(steps, evaluation.targets[index, :, dim], "-o", color="green", markersize=3, label="true")
-            axis.plot(steps, evaluation.predictions[index, :, dim], "--o", color="magenta", markersize=3, label="predicted")
-            axis.plot(steps, evaluation.baseline[index, :, dim], ":", color="gray", label="mean action")
-            axis.set_ylabel(name), axis.set_xlabel("step in chunk")
-            if column == 0 and row == 1:
-                axis.legend(fontsize=8)
-    figure.suptitle("π0 demo policy on held-out scenes: predicted vs true action chunks")
-    figure.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    figure.savefig(path, dpi=110)
-    plt.close(figure)
+DEFAULT_POLICY = Path(__file__).resolve().parent / "demo_policy"
+DEMO_ENVS = ("pi0_torch/Reach-v0", "pi0_torch/PickPlace-v0")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--policy", type=Path, default=DEFAULT_POLICY, help="the demo policy folder")
-    parser.add_argument("--plot", type=Path, default=Path("outputs") / "demo_actions.png")
+    parser.add_argument("--policy", type=Path, default=DEFAULT_POLICY, help="the demo policy folder (default: shipped)")
+    parser.add_argument("--episodes", type=int, default=20, help="held-out episodes per task")
+    parser.add_argument("--output-dir", type=Path, default=Path("outputs") / "demo")
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description="Run the committed demo policy on held-out synthetic scenes.")
+    parser = argparse.ArgumentParser(description="Run the shipped demo policy in closed loop on held-out episodes.")
     add_arguments(parser)
     return run(parser.parse_args(argv))
 
 
 def run(args: argparse.Namespace) -> int:
     if not (args.policy / "config.json").is_file():
-        print(f"error: no demo policy at {args.policy} (pass --policy, e.g. examples/demo_policy of the repository)", file=sys.stderr)
+        print(f"pi0-torch demo: error: no policy at {args.policy} (a folder with config.json)", file=sys.stderr)
         return 1
-    torch.set_num_threads(1)  # a 0.2 M-parameter model: one thread is the fastest
+    torch.set_num_threads(1)  # a tiny model: one thread is the fastest
     start = time.time()
-
-    model = PI0ForActionGeneration.from_pretrained(args.policy)
-    processor = PI0Processor.from_pretrained(args.policy)
-    parameters = sum(p.numel() for p in model.parameters())
-    with tempfile.TemporaryDirectory() as scratch:
-        scenes = write_synthetic_dataset(Path(scratch) / "heldout", **DEMO_HELDOUT)
-        dataset = LeRobotEpisodeDataset(scenes, model.config.action_horizon, progress=False)
-        evaluation = evaluate_policy(model, processor, dataset, seed=0, progress=False)
-        plot(evaluation, dataset, args.plot)
-
-    recorded = json.loads((args.policy / "demo_metrics.json").read_text()) if (args.policy / "demo_metrics.json").is_file() else None
-    episodes = len(dataset.episodes)
-    horizon, dims = evaluation.targets.shape[1:]
-    print(f"π0 demo policy {args.policy} ({parameters / 1e6:.2f} M parameters)")
-    print(f"{episodes} held-out scenes (new layouts, 3 colored discs each), {len(evaluation.targets)} frames, chunks of {horizon} x {dims}")
-    print(f"  policy MSE            {evaluation.mse:.3e}")
-    print(f"  mean-action baseline  {evaluation.baseline_mse:.3e}   (always the training data's mean action)")
-    line = f"  error ratio           {evaluation.error_ratio:.4f}"
-    if recorded:
-        line += f"   (recorded when the checkpoint was made: {recorded['error_ratio']:.4f})"
-    print(line)
-    first_step = np.linalg.norm(evaluation.predictions[:, 0] - evaluation.targets[:, 0], axis=-1).mean()
-    print(f"  first action: mean error {first_step:.4f} vs mean |action| {np.linalg.norm(evaluation.targets[:, 0], axis=-1).mean():.4f}")
-    print(f"wrote {args.plot} ({time.time() - start:.1f} s)")
+    policy = LocalPolicy(PI0Policy.from_pretrained(args.policy, device="cpu"))
+    parameters = sum(p.numel() for p in policy.policy.model.parameters())
+    print(f"π0 demo policy {args.policy} ({parameters / 1e6:.2f} M parameters, chunks of "
+          f"{policy.metadata['action_horizon']} actions)")
+    recorded = json.loads((args.policy / "demo_metrics.json").read_text()).get("closed_loop", {}) \
+        if (args.policy / "demo_metrics.json").is_file() else {}
+    print(f"{'task':<24} {'policy success [95% CI]':<28} {'expert':<10} {'recorded (100 episodes)'}")
+    for env_id in DEMO_ENVS:
+        video = 1 if env_id.endswith("PickPlace-v0") else 0
+        settings = EvalSettings(env=env_id, episodes=args.episodes, num_envs=10, video_episodes=video,
+                                output_dir=str(args.output_dir / env_id.split("/")[1]) if video else None)
+        result = evaluate(policy, settings)
+        expert = evaluate(ScriptedPolicy("expert"), EvalSettings(env=env_id, episodes=args.episodes, num_envs=10))
+        low, high = result.success_ci95
+        reference = recorded.get(env_id, {}).get("success_rate")
+        print(f"{env_id:<24} {100 * result.success_rate:5.1f}% [{100 * low:4.1f}, {100 * high:5.1f}]{'':<9} "
+              f"{100 * expert.success_rate:5.1f}%    {'' if reference is None else f'{100 * reference:.1f}%'}")
+    rollout = args.output_dir / "PickPlace-v0"
+    print(f"wrote {rollout}/rollout_1000000.mp4 and .png, eval.json ({time.time() - start:.0f} s)")
     return 0
 
 
