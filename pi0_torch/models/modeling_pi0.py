@@ -21,6 +21,7 @@ from transformers.utils import ModelOutput
 from pi0_torch.models.configuration_pi0 import PI0Config
 from pi0_torch.models.flow_matching import euler_times, interpolate, sample_flow_time, sincos_time_embedding
 from pi0_torch.masks import masked_attention, prefix_lm_mask, to_additive_mask
+from pi0_torch.utils.quiet import transformers_progress
 
 # ----------------------------------------------------------------------------------------------------------------------
 # Normalisation and rotary position embedding
@@ -256,13 +257,15 @@ class PI0PreTrainedModel(PreTrainedModel):
         transformers only warns about missing or unexpected weights and initialises the missing ones randomly; a
         policy with silently random weights is worse than no policy, so any missing, unexpected or mis-shaped
         tensor raises `ValueError` naming them. `ignore_mismatched_sizes=True` is the explicit opt-in to
-        re-initialise mis-shaped tensors (e.g. fine-tuning with another `action_dim`).
+        re-initialise mis-shaped tensors (e.g. fine-tuning with another `action_dim`). Quiet unless `verbose=True`
+        (transformers' "Loading weights" bar).
         """
         want_info = kwargs.pop("output_loading_info", False)
         allow_mismatched = kwargs.pop("ignore_mismatched_sizes", False)  # an explicit opt-in to re-initialise them
-        model, info = super().from_pretrained(
-            pretrained_model_name_or_path, *args, output_loading_info=True, ignore_mismatched_sizes=True, **kwargs
-        )
+        with transformers_progress(kwargs.pop("verbose", False)):
+            model, info = super().from_pretrained(
+                pretrained_model_name_or_path, *args, output_loading_info=True, ignore_mismatched_sizes=True, **kwargs
+            )
         problems = {
             "missing": sorted(info.get("missing_keys", ())),
             "unexpected": sorted(info.get("unexpected_keys", ())),
@@ -273,6 +276,11 @@ class PI0PreTrainedModel(PreTrainedModel):
             details = "; ".join(f"{kind}: {', '.join(names[:10])}{' ...' if len(names) > 10 else ''}" for kind, names in problems.items())
             raise ValueError(f"checkpoint {pretrained_model_name_or_path} does not match {cls.__name__}({model.config.model_type}): {details}")
         return (model, info) if want_info else model
+
+    def save_pretrained(self, save_directory: Any, *args: Any, verbose: bool = False, **kwargs: Any) -> Any:
+        """`PreTrainedModel.save_pretrained`, quiet unless `verbose=True` (transformers' "Writing model shards" bar)."""
+        with transformers_progress(verbose):
+            return super().save_pretrained(save_directory, *args, **kwargs)
 
 
 def _describe_mismatch(item: Any) -> str:
