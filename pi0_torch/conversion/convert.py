@@ -456,7 +456,7 @@ def convert_openpi_checkpoint(
     processor_options: Mapping[str, Any] | None = None,
     overwrite: bool = False,
     max_shard_bytes: int | str = DEFAULT_MAX_SHARD_BYTES,
-    progress: bool = True,
+    progress: bool = False,
     **config_overrides: Any,
 ) -> ConversionResult:
     """Convert an openpi checkpoint (`<run>/<step>` or its `params` folder) into a pi0-torch folder.
@@ -780,7 +780,7 @@ def convert_hf_checkpoint(
     processor_options: Mapping[str, Any] | None = None,
     overwrite: bool = False,
     max_shard_bytes: int | str = DEFAULT_MAX_SHARD_BYTES,
-    progress: bool = True,
+    progress: bool = False,
     **config_overrides: Any,
 ) -> ConversionResult:
     """Import a LeRobot (`lerobot/pi0_base`-style) or transformers `PI0ForConditionalGeneration` folder.

@@ -489,7 +489,7 @@ def evaluate_policy(
     batch_size: int = 64,
     seed: int = 0,
     num_steps: int | None = None,
-    progress: bool = True,
+    progress: bool = False,
 ) -> PolicyEvaluation:
     """Run `generate_actions` through the processor on every frame of `dataset` and compare with its action chunks.
 
@@ -572,7 +572,7 @@ class TrainSettings:
     resume_from_checkpoint: str | None = None
     cpu: bool = False
     report_to: str = "none"
-    progress: bool = True
+    progress: bool = False  # progress bars (the command line turns them on)
 
 
 def _is_model_folder(model: str) -> bool:
@@ -913,6 +913,7 @@ def settings_from_args(args: argparse.Namespace) -> TrainSettings:
     names = {f for f in TrainSettings.__dataclass_fields__}
     values = {name: getattr(args, name) for name in names if hasattr(args, name)}
     values["camera_map"] = dict(args.camera)
+    values["progress"] = True  # long command-line work keeps its progress bar
     return TrainSettings(**values)
 
 
