@@ -10,6 +10,8 @@ from __future__ import annotations
 import base64
 import hashlib
 import json
+import re
+import shlex
 import threading
 import urllib.parse
 from collections.abc import Iterator
@@ -17,6 +19,7 @@ from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 
 import pytest
+import torch
 from conftest import FIXTURES
 
 from pi0_torch import PI0Config, PI0Processor
@@ -119,11 +122,14 @@ class _Handler(BaseHTTPRequestHandler):
 
 
 def _fixture_objects(tmp_path: Path) -> dict[tuple[str, str], bytes]:
-    step = FIXTURES / "pi0_small" / "ckpt" / "0"
+    """pi0_small as checkpoints/pi0_droid and pi05_small as checkpoints/pi05_droid (norm stats under assets/droid),
+    and a small SentencePiece model as PaliGemma's tokenizer."""
     objects = {}
-    for path in sorted(p for p in step.rglob("*") if p.is_file()):
-        relative = path.relative_to(step).as_posix().replace("assets/reference/", "assets/droid/")
-        objects["openpi-assets", f"{CHECKPOINT}/{relative}"] = path.read_bytes()
+    for variant, name in (("pi0_small", "pi0_droid"), ("pi05_small", "pi05_droid")):
+        step = FIXTURES / variant / "ckpt" / "0"
+        for path in sorted(p for p in step.rglob("*") if p.is_file()):
+            relative = path.relative_to(step).as_posix().replace("assets/reference/", "assets/droid/")
+            objects["openpi-assets", f"checkpoints/{name}/{relative}"] = path.read_bytes()
     build_test_tokenizer(save_to=tmp_path / "tokenizer.model")
     objects["big_vision", "paligemma_tokenizer.model"] = (tmp_path / "tokenizer.model").read_bytes()
     return objects
@@ -146,7 +152,8 @@ def _cached(tmp_path: Path) -> Path:
 
 
 def _largest(server: FakeBucket) -> str:
-    return max((n for b, n in server.objects if b == "openpi-assets"), key=lambda n: len(server.objects["openpi-assets", n]))
+    names = [n for b, n in server.objects if b == "openpi-assets" and n.startswith(CHECKPOINT + "/")]
+    return max(names, key=lambda n: len(server.objects["openpi-assets", n]))
 
 
 def _partial_files(root: Path) -> list[Path]:
@@ -159,11 +166,12 @@ def test_convert_published_checkpoint_downloads_then_uses_the_cache(bucket: Fake
     second conversion reads the cache and makes no request."""
     assert cli_main(["convert", "--checkpoint", "pi0_droid", "--output-dir", str(tmp_path / "out"), "--no-progress"]) == 0
     cached = _cached(tmp_path)
-    for (bucket_name, name), data in bucket.objects.items():
-        local = tmp_path / "cache" / bucket_name / name
-        assert local.read_bytes() == data, name
+    served = {(b, n): data for (b, n), data in bucket.objects.items() if b == "big_vision" or n.startswith(CHECKPOINT + "/")}
+    for (bucket_name, name), data in served.items():
+        assert (tmp_path / "cache" / bucket_name / name).read_bytes() == data, name
     manifest = json.loads((cached / MANIFEST_FILE).read_text())
-    assert len(manifest["objects"]) == sum(b == "openpi-assets" for b, _ in bucket.objects) > PAGE_SIZE
+    assert len(manifest["objects"]) == len(served) - 1 > PAGE_SIZE
+    assert sorted(p.name for p in (tmp_path / "cache" / "openpi-assets" / "checkpoints").iterdir()) == ["pi0_droid"]
     assert _partial_files(tmp_path / "cache") == []
     assert PI0Config.from_pretrained(tmp_path / "out").action_horizon == 10
     processor = PI0Processor.from_pretrained(tmp_path / "out")
@@ -235,3 +243,20 @@ def test_refusals_before_downloading(bucket: FakeBucket, tmp_path: Path, capsys:
     bucket.requests.clear()
     assert cli_main(["convert", "--checkpoint", "pi0_droid", "--output-dir", str(tmp_path / "busy")]) == 1
     assert "not empty" in capsys.readouterr().err and bucket.requests == []
+
+
+def test_readme_quick_start_runs_as_written(bucket: FakeBucket, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The README's Quick start, copied verbatim: its `pi0-torch` command (run in this process; the bucket serves
+    the small π0.5 fixture as pi05_droid), then its Python block."""
+    readme = (Path(__file__).parents[1] / "README.md").read_text()
+    section = readme.split("## Quick start", 1)[1].split("\n## ", 1)[0]
+    (command,) = re.findall(r"```bash\n(.*?)```", section, flags=re.S)
+    (code,) = re.findall(r"```python\n(.*?)```", section, flags=re.S)
+    program, *arguments = shlex.split(command)
+    assert program == ".venv/bin/pi0-torch"
+    monkeypatch.chdir(tmp_path)
+    assert cli_main(arguments) == 0
+    names: dict = {}
+    exec(compile(code, "README.md", "exec"), names)
+    assert tuple(names["chunk"].shape) == (1, 15, 32) and tuple(names["actions"].shape) == (1, 15, 8)
+    assert torch.isfinite(names["loss"])
