@@ -10,14 +10,17 @@ from __future__ import annotations
 import base64
 import hashlib
 import json
+import os
 import re
 import shlex
+import socket
 import threading
 import urllib.parse
 from collections.abc import Iterator
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 
+import psutil
 import pytest
 import torch
 from conftest import FIXTURES
@@ -35,6 +38,7 @@ from pi0_torch.conversion.download import (
     fetch_openpi_checkpoint,
 )
 from pi0_torch.processing.tokenization import build_test_tokenizer
+from pi0_torch.utils.files import OWNER_FILE, OutputPathError, remove_stale_partials
 
 CHECKPOINT = "checkpoints/pi0_droid"  # served under a published name; its assets/reference served as assets/droid
 URL = f"gs://openpi-assets/{CHECKPOINT}"
@@ -260,3 +264,20 @@ def test_readme_quick_start_runs_as_written(bucket: FakeBucket, tmp_path: Path, 
     exec(compile(code, "README.md", "exec"), names)
     assert tuple(names["chunk"].shape) == (1, 15, 32) and tuple(names["actions"].shape) == (1, 15, 8)
     assert torch.isfinite(names["loss"])
+
+
+def test_a_download_held_by_a_live_run_is_left_alone(bucket: FakeBucket, tmp_path: Path) -> None:
+    """The resumable partial folder of a run that is still alive is neither used nor removed (a second download of
+    the same checkpoint is refused); once that owner is gone, the next call takes it over. Cleaning up stale partial
+    folders never removes a resumable one."""
+    partial = _cached(tmp_path).with_name(".pi0_droid.partial-resumable")
+    partial.mkdir(parents=True)
+    parent = psutil.Process(os.getppid())  # alive for the whole test, and not this process
+    owner = {"host": socket.gethostname(), "pid": parent.pid, "started": parent.create_time()}
+    (partial / OWNER_FILE).write_text(json.dumps(owner))
+    with pytest.raises(OutputPathError, match="being written by another run"):
+        download_checkpoint(URL)
+    assert bucket.media_requests(_largest(bucket)) == []
+    (partial / OWNER_FILE).write_text(json.dumps({**owner, "started": 0.0}))  # that run is gone
+    assert remove_stale_partials(partial.parent) == [] and partial.is_dir()
+    assert download_checkpoint(URL) == _cached(tmp_path) and not partial.exists()
