@@ -37,3 +37,25 @@ def test_load_save_and_generate_print_nothing(tmp_path: Path, capfd: pytest.Capt
     PI0ForActionGeneration.from_pretrained(tmp_path / "model", verbose=True)
     assert "Loading weights" in capfd.readouterr().err
     assert hf_logging.is_progress_bar_enabled() == bars_before
+
+
+@pytest.mark.slow
+def test_a_notebook_cell_that_loads_and_runs_a_model_shows_nothing(tmp_path: Path) -> None:
+    """The same in Jupyter (nbclient + ipykernel): no "Loading weights" widget or text in the cell's outputs."""
+    nbclient = pytest.importorskip("nbclient")
+    nbformat = pytest.importorskip("nbformat")
+    pytest.importorskip("ipykernel")
+    config = PI0Config.from_preset("pi0_small")
+    PI0ForActionGeneration(config).save_pretrained(tmp_path / "model")
+    imports = "import torch, transformers"  # tqdm warns here when the kernel has no ipywidgets: not ours to hide
+    cell = f"""from pi0_torch import PI0ForActionGeneration
+model = PI0ForActionGeneration.from_pretrained({str(tmp_path / "model")!r}).eval()
+c = model.config
+with torch.no_grad():
+    chunk = model.generate_actions(pixel_values=torch.zeros(1, c.num_cameras, 3, 224, 224),
+        image_masks=torch.ones(1, c.num_cameras, dtype=torch.bool), input_ids=torch.ones(1, 8, dtype=torch.long),
+        attention_mask=torch.ones(1, 8, dtype=torch.bool), state=torch.zeros(1, c.action_dim), num_steps=2)"""
+    notebook = nbformat.v4.new_notebook(cells=[nbformat.v4.new_code_cell(source) for source in (imports, cell, "tuple(chunk.shape)")])
+    nbclient.NotebookClient(notebook, timeout=600, kernel_name="python3", resources={"metadata": {"path": str(tmp_path)}}).execute()
+    assert notebook.cells[1].outputs == []
+    assert notebook.cells[2].outputs[0]["data"]["text/plain"] == f"(1, {config.action_horizon}, {config.action_dim})"
