@@ -142,7 +142,7 @@ def _fixture_objects(tmp_path: Path) -> dict[tuple[str, str], bytes]:
 @pytest.fixture
 def bucket(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[FakeBucket]:
     server = FakeBucket(_fixture_objects(tmp_path))
-    thread = threading.Thread(target=server.serve_forever, daemon=True)
+    thread = threading.Thread(target=server.serve_forever, kwargs={"poll_interval": 0.05}, daemon=True)
     thread.start()
     monkeypatch.setenv(ENDPOINT_ENV, server.endpoint)
     monkeypatch.setenv(CACHE_ENV, str(tmp_path / "cache"))
