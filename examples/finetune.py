@@ -8,8 +8,9 @@ On several GPUs (or CPU processes) the same script runs under accelerate, the gl
 
     accelerate launch --multi_gpu --num_processes 4 examples/finetune.py --dataset ... --model ... --output-dir ...
 
-Without `--dataset` it generates the synthetic reaching dataset and fine-tunes a tiny π0 for a minute, so the whole
-path (dataset -> Trainer -> checkpoint -> `generate_actions`) can be tried on a laptop CPU.
+Without `--dataset` it generates the synthetic reaching dataset (in a temporary folder, removed at the end) and
+fine-tunes a tiny π0 for a minute, so the whole path (dataset -> Trainer -> checkpoint -> `generate_actions`) can be
+tried on a laptop CPU. The output folder gets the model, its processor and `loss.png`.
 """
 
 from __future__ import annotations
@@ -38,16 +39,20 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--max-steps", type=int)
     parser.add_argument("--lora", action="store_true", help="LoRA on the Gemma experts (openpi's low-memory recipe)")
     args = parser.parse_args(argv)
+    with tempfile.TemporaryDirectory(prefix="pi0-finetune-") as scratch:  # holds the synthetic dataset, if any
+        return finetune(args, Path(scratch))
 
+
+def finetune(args: argparse.Namespace, scratch: Path) -> int:
     if args.dataset is None:
         torch.set_num_threads(1)
-        args.dataset = Path(tempfile.mkdtemp()) / "reach"
+        args.dataset = scratch / "reach"
         write_synthetic_dataset(args.dataset, num_episodes=120, num_heldout=10, episode_length=12, image_size=56)
         settings = TrainSettings(
             dataset=str(args.dataset), model="pi0_small", output_dir=str(args.output_dir),
             config_overrides=dict(DEMO_POLICY_CONFIG), tokenizer="test", train_split="train",
             max_steps=args.max_steps or 300, batch_size=32, learning_rate=2e-3, warmup_steps=50, end_learning_rate=2e-4,
-            logging_steps=25, save_steps=150, ema_decay=0.99, lora=args.lora,
+            logging_steps=25, save_steps=150, ema_decay=0.99, lora=args.lora, progress=True,
         )
     else:
         # openpi's fine-tuning recipe: AdamW(0.9, 0.95, wd 1e-10), clip 1.0, warmup 1k -> 2.5e-5 -> cosine 2.5e-6,
@@ -55,7 +60,7 @@ def main(argv: list[str] | None = None) -> int:
         settings = TrainSettings(
             dataset=str(args.dataset), model=args.model, tokenizer=args.tokenizer, output_dir=str(args.output_dir),
             max_steps=args.max_steps or 30_000, batch_size=32, ema_decay=None if args.lora else 0.99, lora=args.lora,
-            bf16=torch.cuda.is_available(), gradient_checkpointing=True, num_workers=4, save_steps=5_000,
+            bf16=torch.cuda.is_available(), gradient_checkpointing=True, num_workers=4, save_steps=5_000, progress=True,
         )
     result = train_policy(settings)
 

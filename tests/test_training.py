@@ -554,3 +554,27 @@ def test_accelerate_two_processes_match_one(dataset_root: Path, tmp_path: Path) 
     assert sorted(curves[1]) == sorted(curves[2]) == list(range(1, 7))
     for step in range(1, 7):
         assert curves[2][step] == pytest.approx(curves[1][step], rel=1e-4)
+
+
+def test_short_run_scales_the_warmup_logs_numbers_and_plots_the_loss(
+    dataset_root: Path, tmp_path: Path, capfd: pytest.CaptureFixture, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A run shorter than openpi's 1,000 warm-up steps gets a proportional warm-up (said in a log line) and reaches
+    its peak learning rate; the Trainer's log lines print numbers as numbers, without transformers' "Writing model
+    shards" bars; `loss.png` (training and eval loss) is written beside the final model."""
+    import ast
+    import logging
+
+    run = settings(dataset_root, tmp_path / "short", max_steps=3, warmup_steps=1_000, eval_split="heldout", eval_steps=3,
+                   progress=True)
+    with caplog.at_level(logging.INFO, logger="pi0_torch.training.trainer"):
+        result = train_policy(run)
+    assert "scaled to 1 steps" in caplog.text
+    rates = [entry["learning_rate"] for entry in result["log_history"] if "learning_rate" in entry]
+    assert rates[1] == pytest.approx(1e-3, rel=1e-6)  # the peak, at optimizer step 1 (warm-up of 1 step)
+    out, err = capfd.readouterr()
+    lines = [ast.literal_eval(line) for line in out.splitlines() if line.startswith("{")]
+    assert [line["loss"] for line in lines if "loss" in line] == pytest.approx(list(losses(result["log_history"]).values()), rel=1e-3)
+    assert all(isinstance(value, (int, float)) for line in lines for value in line.values())
+    assert "Writing model shards" not in err
+    assert (tmp_path / "short" / "loss.png").read_bytes().startswith(b"\x89PNG")

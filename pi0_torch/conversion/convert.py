@@ -58,6 +58,7 @@ from pi0_torch.cli import bool_mask
 from pi0_torch.models.configuration_pi0 import PI0Config
 from pi0_torch.models.modeling_pi0 import PI0ForActionGeneration
 from pi0_torch.processing.normalization import NormStats, load_openpi_norm_stats, save_openpi_norm_stats
+from pi0_torch.conversion.download import CACHE_ENV, PUBLISHED_CHECKPOINTS, checkpoint_url, fetch_openpi_checkpoint
 from pi0_torch.conversion.openpi_weights import check_openpi_shapes, config_from_openpi_shapes, iter_openpi_state_dict
 from pi0_torch.conversion.orbax_reader import CheckpointError, LeafInfo, OrbaxCheckpoint, first_line
 from pi0_torch.processing.processing_pi0 import NORM_STATS_FILE, PI0Processor
@@ -455,7 +456,7 @@ def convert_openpi_checkpoint(
     processor_options: Mapping[str, Any] | None = None,
     overwrite: bool = False,
     max_shard_bytes: int | str = DEFAULT_MAX_SHARD_BYTES,
-    progress: bool = True,
+    progress: bool = False,
     **config_overrides: Any,
 ) -> ConversionResult:
     """Convert an openpi checkpoint (`<run>/<step>` or its `params` folder) into a pi0-torch folder.
@@ -779,7 +780,7 @@ def convert_hf_checkpoint(
     processor_options: Mapping[str, Any] | None = None,
     overwrite: bool = False,
     max_shard_bytes: int | str = DEFAULT_MAX_SHARD_BYTES,
-    progress: bool = True,
+    progress: bool = False,
     **config_overrides: Any,
 ) -> ConversionResult:
     """Import a LeRobot (`lerobot/pi0_base`-style) or transformers `PI0ForConditionalGeneration` folder.
@@ -970,11 +971,14 @@ def transformers_pi0_inputs(inputs: Mapping[str, torch.Tensor], config: PI0Confi
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--from", dest="source", required=True, choices=[*SOURCES, "pi0-torch"],
-                        help="input format (pi0-torch only with --to transformers)")
+    parser.add_argument("--from", dest="source", choices=[*SOURCES, "pi0-torch"],
+                        help="input format (pi0-torch only with --to transformers; default with --checkpoint: openpi)")
     parser.add_argument("--to", dest="target", default="pi0-torch", choices=["pi0-torch", "transformers"],
                         help="output format (default: pi0-torch; transformers = PI0ForConditionalGeneration, π0 only)")
-    parser.add_argument("--input", required=True, help="openpi <run>/<step> or <step>/params folder, or a safetensors model folder")
+    parser.add_argument("--input", help="openpi <run>/<step> or <step>/params folder (or gs://... to download it), or a safetensors model folder")
+    parser.add_argument("--checkpoint", choices=list(PUBLISHED_CHECKPOINTS), metavar="NAME",
+                        help=f"download one of openpi's published checkpoints (with its asset id and processor settings) into "
+                        f"${CACHE_ENV} (default ~/.cache/pi0_torch) and convert it: {', '.join(PUBLISHED_CHECKPOINTS)}")
     parser.add_argument("--output-dir", required=True, help="folder to create (must be absent or empty unless --overwrite)")
     parser.add_argument("--dtype", choices=list(DTYPES), default=None, help="weight dtype of the output (default: float32; export: as stored)")
     parser.add_argument("--asset-id", help="openpi: which assets/<asset_id>/norm_stats.json to use (needed when there are several)")
@@ -998,13 +1002,25 @@ def run(args: argparse.Namespace) -> int:
             print(f"wrote {export_to_transformers(args.input, args.output_dir, dtype=args.dtype, overwrite=args.overwrite)}")
             return 0
         options = {"delta_action_mask": args.delta_action_mask, "value_conversion": args.value_conversion}
+        overrides: dict[str, Any] = {}
+        if args.checkpoint or (args.input or "").startswith("gs://"):
+            if args.checkpoint and args.input or (args.source or "openpi") != "openpi":
+                raise ConversionError("--checkpoint NAME and gs:// inputs are openpi checkpoints: give one of them, with --from openpi or no --from")
+            check_output_dir(Path(args.output_dir).expanduser(), args.overwrite)  # before a download of many GB
+            fetched = fetch_openpi_checkpoint(args.input or checkpoint_url(args.checkpoint), asset_id=args.asset_id,
+                                              tokenizer=args.tokenizer, progress=not args.no_progress)
+            args.source, args.input, args.asset_id, args.tokenizer = "openpi", fetched.folder, fetched.asset_id, fetched.tokenizer
+            options = {**fetched.processor_options, **{k: v for k, v in options.items() if v is not None}}
+            overrides = fetched.config_overrides
+        if args.source is None or args.input is None:
+            raise ConversionError("give --from and --input (or --checkpoint NAME for openpi's published checkpoints)")
         common = dict(dtype=args.dtype or "float32", tokenizer=args.tokenizer, overwrite=args.overwrite,
                       max_shard_bytes=args.max_shard_size, progress=not args.no_progress,
                       processor_options={k: v for k, v in options.items() if v is not None})
         if args.source == "openpi":
             if args.norm_stats:
                 raise ConversionError("--norm-stats is for lerobot/transformers inputs; openpi's come from assets/ (--asset-id)")
-            result = convert_openpi_checkpoint(args.input, args.output_dir, asset_id=args.asset_id, **common)
+            result = convert_openpi_checkpoint(args.input, args.output_dir, asset_id=args.asset_id, **common, **overrides)
         elif args.source in ("lerobot", "transformers"):
             if args.asset_id:
                 raise ConversionError("--asset-id selects openpi assets; for lerobot/transformers use --norm-stats")

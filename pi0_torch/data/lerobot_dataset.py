@@ -507,7 +507,7 @@ class LeRobotEpisodeDataset(torch.utils.data.Dataset):
         short_episodes: ShortEpisodePolicy = "pad",
         video_tolerance_s: float = 1e-4,
         frame_cache_mb: int = 256,
-        progress: bool = True,
+        progress: bool = False,
     ) -> None:
         if action_horizon < 1:
             raise ValueError(f"action_horizon must be >= 1, got {action_horizon}")

@@ -25,6 +25,7 @@ from pi0_torch.models.flow_matching import euler_times, interpolate, sample_flow
 from pi0_torch.models.rtc import DEFAULT_MAX_GUIDANCE, METHODS, ChunkPrefix, chunk_prefix, guidance_weight, per_sample_steps
 from pi0_torch.utils.validation import check_pretrained_location, describe, hub_errors
 from pi0_torch.utils.validation import check_tensor as _check_tensor  # (the name other model modules import from here)
+from pi0_torch.utils.quiet import transformers_progress
 
 # ----------------------------------------------------------------------------------------------------------------------
 # Normalisation and rotary position embedding
@@ -290,7 +291,8 @@ class PI0PreTrainedModel(PreTrainedModel):
         transformers only warns about missing or unexpected weights and initialises the missing ones randomly; a
         policy with silently random weights is worse than no policy, so any missing, unexpected or mis-shaped
         tensor raises `ValueError` naming them. `ignore_mismatched_sizes=True` is the explicit opt-in to
-        re-initialise mis-shaped tensors (e.g. fine-tuning with another `action_dim`).
+        re-initialise mis-shaped tensors (e.g. fine-tuning with another `action_dim`). Quiet unless `verbose=True`
+        (transformers' "Loading weights" bar).
 
         A local folder must hold `config.json` (unless a `config` is given); a path that is neither a folder nor a hub
         id `namespace/name` is refused at once, without trying the hub (see `pi0_torch.utils.validation.is_hub_id`).
@@ -299,7 +301,7 @@ class PI0PreTrainedModel(PreTrainedModel):
         check_pretrained_location(pretrained_model_name_or_path, config_file, "model")
         want_info = kwargs.pop("output_loading_info", False)
         allow_mismatched = kwargs.pop("ignore_mismatched_sizes", False)  # an explicit opt-in to re-initialise them
-        with hub_errors(pretrained_model_name_or_path, "model"):
+        with hub_errors(pretrained_model_name_or_path, "model"), transformers_progress(kwargs.pop("verbose", False)):
             model, info = super().from_pretrained(
                 pretrained_model_name_or_path, *args, output_loading_info=True, ignore_mismatched_sizes=True, **kwargs
             )
@@ -313,6 +315,11 @@ class PI0PreTrainedModel(PreTrainedModel):
             details = "; ".join(f"{kind}: {', '.join(names[:10])}{' ...' if len(names) > 10 else ''}" for kind, names in problems.items())
             raise ValueError(f"checkpoint {pretrained_model_name_or_path} does not match {cls.__name__}({model.config.model_type}): {details}")
         return (model, info) if want_info else model
+
+    def save_pretrained(self, save_directory: Any, *args: Any, verbose: bool = False, **kwargs: Any) -> Any:
+        """`PreTrainedModel.save_pretrained`, quiet unless `verbose=True` (transformers' "Writing model shards" bar)."""
+        with transformers_progress(verbose):
+            return super().save_pretrained(save_directory, *args, **kwargs)
 
 
 def _describe_mismatch(item: Any) -> str:

@@ -367,10 +367,10 @@ def compute_norm_stats(
     delta_action_mask: Sequence[bool] | None = None,
     num_bins: int = NUM_QUANTILE_BINS,
     max_exact_rows: int = DEFAULT_MAX_EXACT_ROWS,
-    progress: bool = True,
+    progress: bool = False,
     total: int | None = None,
 ) -> dict[str, NormStats] | NormStats:
-    """Statistics (mean, std, q01, q99) of a stream of samples, with a progress bar and bounded memory.
+    """Statistics (mean, std, q01, q99) of a stream of samples, with bounded memory (a progress bar with `progress=True`).
 
     `data` yields either dicts (e.g. `{"state": [D] or [B, D], "actions": [H, D] or [B, H, D]}`, numpy or torch;
     every axis but the last is a batch axis) -> returns `{key: NormStats}` for `keys`; or plain arrays -> returns one

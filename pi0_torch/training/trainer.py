@@ -46,6 +46,7 @@ import torch
 from safetensors.torch import load_file, save_file
 from torch import nn
 from transformers import Trainer, TrainerCallback, TrainerControl, TrainerState, TrainingArguments
+from transformers.trainer_callback import PrinterCallback, ProgressCallback
 from transformers.trainer import TRAINER_STATE_NAME
 from transformers.trainer_utils import PREFIX_CHECKPOINT_DIR, rotate_checkpoints
 
@@ -66,6 +67,7 @@ logger = logging.getLogger(__name__)
 OPENPI_PEAK_LR = 2.5e-5
 OPENPI_END_LR = 2.5e-6
 OPENPI_WARMUP_STEPS = 1_000
+OPENPI_TRAIN_STEPS = 30_000  # the recipe's run length: its warm-up is 1/30 of it
 OPENPI_BETAS = (0.9, 0.95)
 OPENPI_EPS = 1e-8
 OPENPI_WEIGHT_DECAY = 1e-10
@@ -77,6 +79,7 @@ LORA_RANK_EXPERT = 32
 LORA_TARGETS = ("qkv_proj", "o_proj", "gate_up_proj", "down_proj")
 EMA_FILE = "ema_weights.safetensors"
 TRAIN_SETTINGS_FILE = "pi0_train_settings.json"
+LOSS_PLOT_FILE = "loss.png"
 _CHECKPOINTING_ARGUMENT = (
     "activation_checkpointing" if "activation_checkpointing" in TrainingArguments.__dataclass_fields__ else "gradient_checkpointing"
 )
@@ -184,6 +187,9 @@ class PI0Trainer(Trainer):
 
     def __init__(self, *args: Any, lr_schedule: dict[str, float] | None = None, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
+        for plain, numeric in ((ProgressCallback, NumericProgressCallback), (PrinterCallback, NumericPrinterCallback)):
+            if self.pop_callback(plain) is not None:
+                self.add_callback(numeric)
         self.lr_schedule = lr_schedule
         self._draw_step = -1
         self._micro_batch = 0
@@ -270,6 +276,32 @@ class PI0Trainer(Trainer):
 # ----------------------------------------------------------------------------------------------------------------
 # Callbacks.
 # ----------------------------------------------------------------------------------------------------------------
+
+
+def numeric_logs(logs: Mapping[str, Any]) -> dict[str, Any]:
+    """A Trainer log entry for printing: floats rounded to 4 significant digits but kept numbers (transformers'
+    progress callbacks print them as strings), `total_flos` dropped.
+
+    >>> numeric_logs({"loss": 0.123456, "grad_norm": 12.3456, "learning_rate": 2.5e-05, "epoch": 1, "total_flos": 3.0})
+    {'loss': 0.1235, 'grad_norm': 12.35, 'learning_rate': 2.5e-05, 'epoch': 1}
+    """
+    return {k: float(f"{v:.4g}") if isinstance(v, float) else v for k, v in logs.items() if k != "total_flos"}
+
+
+class NumericProgressCallback(ProgressCallback):
+    """transformers' progress bar, whose log lines print numbers as numbers."""
+
+    def on_log(self, args: TrainingArguments, state: TrainerState, control: TrainerControl, logs: dict | None = None, **kwargs: Any) -> None:
+        if state.is_world_process_zero and self.training_bar is not None:
+            self.training_bar.write(str(numeric_logs(logs or {})))
+
+
+class NumericPrinterCallback(PrinterCallback):
+    """transformers' log printer (used without a progress bar), printing numbers as numbers."""
+
+    def on_log(self, args: TrainingArguments, state: TrainerState, control: TrainerControl, logs: dict | None = None, **kwargs: Any) -> None:
+        if state.is_local_process_zero:
+            print(numeric_logs(logs or {}))
 
 
 class CheckpointContents:
@@ -467,7 +499,7 @@ def evaluate_policy(
     batch_size: int = 64,
     seed: int = 0,
     num_steps: int | None = None,
-    progress: bool = True,
+    progress: bool = False,
 ) -> PolicyEvaluation:
     """Run `generate_actions` through the processor on every frame of `dataset` and compare with its action chunks.
 
@@ -552,7 +584,7 @@ class TrainSettings:
     resume_from_checkpoint: str | None = None
     cpu: bool = False
     report_to: str = "none"
-    progress: bool = True
+    progress: bool = False  # progress bars (the command line turns them on)
 
 
 def check_settings(settings: TrainSettings) -> None:
@@ -781,7 +813,10 @@ def train_policy(settings: TrainSettings) -> dict[str, Any]:
     if settings.fsdp:
         model = sharding.shard_model(model, bf16=settings.bf16, device_type=args.device.type)
     if settings.warmup_steps >= settings.max_steps:
-        logger.warning("warmup_steps %d >= max_steps %d: the learning rate never reaches its peak", settings.warmup_steps, settings.max_steps)
+        warmup = scaled_warmup_steps(settings.max_steps)
+        logger.info("warm-up of %d steps >= --max-steps %d: scaled to %d steps (openpi's %d of %d) so that the learning "
+                    "rate reaches its peak", settings.warmup_steps, settings.max_steps, warmup, OPENPI_WARMUP_STEPS, OPENPI_TRAIN_STEPS)
+        settings = replace(settings, warmup_steps=warmup)
 
     callbacks: list[TrainerCallback] = [SaveProcessorCallback(processor)]
     if settings.ema_decay is not None:
@@ -807,8 +842,39 @@ def train_policy(settings: TrainSettings) -> dict[str, Any]:
     final = sharding.gather_model(trainer.model) if settings.fsdp else merge_lora(trainer.model)  # (all processes)
     if trainer.is_world_process_zero():
         _save_final(final, processor, settings)
+        plot_losses(trainer.state.log_history, Path(settings.output_dir) / LOSS_PLOT_FILE)
     trainer.accelerator.wait_for_everyone()
     return {"output_dir": settings.output_dir, "log_history": trainer.state.log_history, "trainable_parameters": trainable}
+
+
+def scaled_warmup_steps(max_steps: int) -> int:
+    """The warm-up for a run shorter than openpi's: the recipe's proportion (1,000 of 30,000 steps), at least 1.
+
+    >>> scaled_warmup_steps(100), scaled_warmup_steps(3_000), scaled_warmup_steps(10)
+    (3, 100, 1)
+    """
+    return max(1, max_steps * OPENPI_WARMUP_STEPS // OPENPI_TRAIN_STEPS)
+
+
+def plot_losses(log_history: Sequence[Mapping[str, Any]], path: Path) -> None:
+    """Write the training loss (and the eval loss, when evaluated) against the step as a PNG (matplotlib, Agg)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    figure = Figure(figsize=(6, 4), dpi=100)
+    axes = figure.add_subplot()
+    for key, label in (("loss", "training loss"), ("eval_loss", "eval loss")):
+        points = [(entry["step"], entry[key]) for entry in log_history if key in entry]
+        if points:
+            axes.plot(*zip(*points), marker="o" if len(points) < 30 else None, markersize=3, label=label)
+    axes.set_xlabel("step")
+    axes.set_ylabel("flow-matching loss")
+    axes.grid(alpha=0.3)
+    if axes.lines:
+        axes.set_yscale("log")
+        axes.legend()
+    figure.tight_layout()
+    FigureCanvasAgg(figure).print_png(str(path))
 
 
 def _save_final(model: PI0ForActionGeneration, processor: PI0Processor, settings: TrainSettings) -> None:
@@ -900,6 +966,7 @@ def settings_from_args(args: argparse.Namespace) -> TrainSettings:
     names = {f for f in TrainSettings.__dataclass_fields__}
     values = {name: getattr(args, name) for name in names if hasattr(args, name)}
     values["camera_map"] = dict(args.camera)
+    values["progress"] = True  # long command-line work keeps its progress bar
     return TrainSettings(**values)
 
 

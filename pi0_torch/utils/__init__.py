@@ -1,1 +1,1 @@
-"""Small shared helpers: atomic output folders and the cleanup of dead runs' partial folders."""
+"""Small shared helpers: atomic output folders, the cleanup of dead runs' partial folders, quiet library calls."""

@@ -43,6 +43,7 @@ logger = logging.getLogger(__name__)
 
 OWNER_FILE = ".pi0-torch-owner.json"
 PARTIAL_MARKER = ".partial-"
+RESUMABLE_TAG = "resumable"  # the fixed tag of a partial folder that a later run continues (a download)
 
 
 class OutputPathError(ValueError):
@@ -101,13 +102,16 @@ def _owner_is_dead(folder: Path) -> bool:
 
 
 def remove_stale_partials(parent: str | os.PathLike[str]) -> list[Path]:
-    """Remove the partial folders in `parent` whose owner died on this host; returns what was removed."""
+    """Remove the partial folders in `parent` whose owner died on this host; returns what was removed.
+
+    Resumable partial folders ([`resumable_output_dir`]) are kept: the next run of their owner's job continues them."""
     parent = Path(parent)
     removed = []
     if not parent.is_dir():
         return removed
     for folder in parent.iterdir():
-        if folder.name.startswith(".") and PARTIAL_MARKER in folder.name and folder.is_dir() and _owner_is_dead(folder):
+        resumable = folder.name.endswith(PARTIAL_MARKER + RESUMABLE_TAG)
+        if folder.name.startswith(".") and PARTIAL_MARKER in folder.name and not resumable and folder.is_dir() and _owner_is_dead(folder):
             shutil.rmtree(folder, ignore_errors=True)
             logger.info("removed %s, left behind by a run that died while writing it", folder)
             removed.append(folder)
@@ -151,3 +155,22 @@ def atomic_output_dir(output_dir: str | os.PathLike[str], overwrite: bool = Fals
             except OSError:
                 break
         raise
+
+
+@contextmanager
+def resumable_output_dir(output_dir: str | os.PathLike[str]) -> Iterator[Path]:
+    """Like [`atomic_output_dir`], but the partial folder has a fixed name and is KEPT when the block fails, so that
+    the next call continues what it holds (a download resumes its files). It is published only when the block
+    succeeds. Refuses (`OutputPathError`) when a live run (or one on another host) holds the partial folder."""
+    output_dir = Path(output_dir).expanduser().absolute()
+    partial = output_dir.with_name(partial_name(output_dir.name, RESUMABLE_TAG))
+    if partial.is_dir() and (partial / OWNER_FILE).exists() and not _owner_is_dead(partial):
+        raise OutputPathError(f"{partial} is being written by another run (see its {OWNER_FILE}); wait for it, or remove the folder if that run is gone")
+    partial.mkdir(parents=True, exist_ok=True)
+    claim(partial)
+    try:
+        yield partial
+    except BaseException:
+        (partial / OWNER_FILE).unlink(missing_ok=True)  # free for the next run, which continues it
+        raise
+    publish(partial, output_dir)
