@@ -86,6 +86,19 @@ def record(root: Path, episodes: dict[str, int]) -> None:
                           storage="image", episodes_per_file=200, robot_type="pi0_torch_tabletop")
 
 
+def closed_loop_success(policy_dir: Path, episodes: int) -> dict[str, dict]:
+    """Success of the policy on held-out seeds of every task (what `demo_metrics.json` records)."""
+    policy = LocalPolicy(PI0Policy.from_pretrained(policy_dir, device="cpu"))
+    success = {}
+    for env_id in ENV_IDS:
+        outcome = evaluate(policy, EvalSettings(env=env_id, episodes=episodes, num_envs=25, seed=HELDOUT_SEED))
+        print(outcome.summary())
+        success[env_id] = {"success_rate": outcome.success_rate, "success_ci95": outcome.success_ci95,
+                           "episodes": outcome.episodes, "seed": HELDOUT_SEED,
+                           "successes": [int(e["success"]) for e in outcome.episodes_detail]}
+    return success
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--work-dir", type=Path, default=REPO / "outputs" / "demo_training")
@@ -118,13 +131,7 @@ def main(argv: list[str] | None = None) -> int:
     result = train_policy(settings)
     minutes = (time.time() - start) / 60
 
-    policy = LocalPolicy(PI0Policy.from_pretrained(run_dir, device="cpu"))
-    success = {}
-    for env_id in ENV_IDS:
-        outcome = evaluate(policy, EvalSettings(env=env_id, episodes=args.eval_episodes, num_envs=25, seed=HELDOUT_SEED))
-        print(outcome.summary())
-        success[env_id] = {"success_rate": outcome.success_rate, "success_ci95": outcome.success_ci95,
-                           "episodes": outcome.episodes, "seed": HELDOUT_SEED}
+    success = closed_loop_success(run_dir, args.eval_episodes)
 
     args.destination.mkdir(parents=True, exist_ok=True)
     for name in POLICY_FILES:

@@ -85,6 +85,7 @@ class TabletopEnv(gymnasium.Env):
 
     metadata: ClassVar[dict[str, Any]] = {"render_modes": ["rgb_array"], "render_fps": CONTROL_HZ}
     control_hz: ClassVar[int] = CONTROL_HZ  # control steps per second (simulated time)
+    motion_action_dims: ClassVar[tuple[int, ...]] = (0, 1)  # the position target; the gripper command is a switch
     default_max_episode_steps: ClassVar[int]
 
     def __init__(

@@ -257,7 +257,7 @@ _POSITIVE_FLOATS = (
 # What transformers itself writes into config.json or passes to a config besides the model's own settings.
 _TRANSFORMERS_KEYS = {field.name for field in dataclasses.fields(PretrainedConfig)} | {
     "model_type", "transformers_version", "name_or_path", "_name_or_path", "_commit_hash", "torch_dtype",
-    "attn_implementation", "experts_implementation", "output_attentions", "num_labels", "auto_map",
+    "attn_implementation", "experts_implementation", "output_attentions", "num_labels", "auto_map", "use_cache",
 }
 
 

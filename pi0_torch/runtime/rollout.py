@@ -397,7 +397,10 @@ def _run_group(
         step += 1
     results = []
     for i, seed in enumerate(seeds):
-        jerk = second_differences(np.stack(executed[i]))  # index t - 1 is the second difference centred at t
+        motion = np.stack(executed[i])  # jerk of the motion dims where the env names them (not a gripper switch)
+        dims = getattr(envs[i].unwrapped, "motion_action_dims", None)
+        motion = motion if dims is None else motion[:, list(dims)]
+        jerk = second_differences(motion)  # index t - 1 is the second difference centred at t
         at_switch = {t - 1 for t in switches[i] if 2 <= t <= len(executed[i]) - 1}  # centred on the last old action
         results.append(EpisodeResult(
             seed=seed, success=success[i], steps=len(executed[i]),

@@ -1,0 +1,199 @@
+"""Closed-loop success and smoothness under inference delay: every execution mode, every delay, with 95% intervals.
+
+    .venv/bin/python benchmarks/bench_closed_loop.py --policy pi0_torch/demo_policy --policy-plain DIR \
+        [--envs pi0_torch/Conveyor-v0 pi0_torch/PickPlace-v0] [--delays 0 1 2 4 8] [--episodes 100] \
+        [--replan-steps 8] [--output benchmarks/results/closed_loop]
+
+Delays are simulated in control steps (`pi0-torch eval --inference-delay`), so the numbers do not depend on this
+machine's speed; every cell uses the same held-out seeds. `--policy` is a model trained with `--rtc-max-delay`
+(it runs every mode, `rtc-trained` included); `--policy-plain` (optional) one trained without, for `naive`, `rtc`
+(guidance) and `sync` only. Prints a markdown table (success [95% CI], jerk at chunk boundaries / inside chunks),
+writes `<output>.json` and a plot `<output>.png`. Also times one chunk of plain, guided and conditioned sampling.
+
+`--served ENV` instead compares one evaluation run locally and through a `pi0-torch serve` process on loopback:
+the same seeds must give the same episodes; prints both wall times.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from pi0_torch.runtime.chunking import EXECUTION_MODES
+from pi0_torch.runtime.policy import PI0Policy
+from pi0_torch.runtime.rollout import EvalSettings, LocalPolicy, RemotePolicy, evaluate
+
+DEFAULT_ENVS = ("pi0_torch/Conveyor-v0", "pi0_torch/PickPlace-v0")
+
+
+def sampling_times(policy: PI0Policy, repeats: int = 20) -> dict[str, float]:
+    """Milliseconds per chunk (batch 1): plain sampling, guided (inference-time RTC) and conditioned (training-time)."""
+    model, config = policy.model, policy.model.config
+    size = config.image_size
+    inputs = policy.prepare({"images": {config.camera_names[0]: np.zeros((size, size, 3), np.uint8)},
+                             "state": np.zeros(policy.processor.state_dim, np.float32), "prompt": "warm up"}).inputs
+    previous = torch.zeros(1, config.action_horizon, config.action_dim)
+    variants = {
+        "plain": {},
+        "rtc guidance": dict(previous_actions=previous, inference_delay=2, execution_horizon=8),
+        "rtc conditioning": dict(previous_actions=previous, inference_delay=2, execution_horizon=8,
+                                 rtc_method="conditioning"),
+    }
+    times = {}
+    for name, options in variants.items():
+        if name == "rtc conditioning" and config.rtc_max_delay < 2:
+            continue
+        model.generate_actions(**inputs, **options)  # warm-up
+        start = time.perf_counter()
+        for _ in range(repeats):
+            model.generate_actions(**inputs, **options)
+        times[name] = (time.perf_counter() - start) / repeats * 1000
+    return times
+
+
+def served_versus_local(policy_dir: Path, env_id: str, episodes: int, num_envs: int, threads: int) -> None:
+    """The same evaluation in this process and through `pi0-torch serve` (its own process) on loopback."""
+    settings = EvalSettings(env=env_id, episodes=episodes, num_envs=num_envs)
+    start = time.perf_counter()
+    local = evaluate(LocalPolicy(PI0Policy.from_pretrained(policy_dir, device="cpu")), settings)
+    local_s = time.perf_counter() - start
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    server = subprocess.Popen(
+        [sys.executable, "-m", "pi0_torch.cli", "serve", "--model", str(policy_dir), "--port", str(port), "--device", "cpu",
+         "--max-batch-size", str(num_envs), "--log-level", "WARNING"],
+        env={**os.environ, "OMP_NUM_THREADS": str(threads)},
+    )
+    try:
+        deadline = time.time() + 300
+        while True:
+            try:
+                remote = RemotePolicy(f"ws://127.0.0.1:{port}", connections=num_envs, timeout=60)
+                break
+            except ConnectionError:
+                if time.time() > deadline or server.poll() is not None:
+                    raise
+                time.sleep(1)
+        start = time.perf_counter()
+        served = evaluate(remote, settings)
+        served_s = time.perf_counter() - start
+        remote.close()
+    finally:
+        server.terminate()
+        server.wait()
+    same = [e["success"] for e in local.episodes_detail] == [e["success"] for e in served.episodes_detail]
+    print(f"local : {local.summary()} [{local_s:.1f} s]")
+    print(f"served: {served.summary()} [{served_s:.1f} s]")
+    print(f"same episode outcomes: {same}; served / local wall time: {served_s / local_s:.2f}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--policy", type=Path, default=Path("pi0_torch/demo_policy"))
+    parser.add_argument("--policy-plain", type=Path, help="a policy trained without --rtc-max-delay")
+    parser.add_argument("--envs", nargs="+", default=list(DEFAULT_ENVS))
+    parser.add_argument("--delays", nargs="+", type=int, default=[0, 1, 2, 4, 8])
+    parser.add_argument("--modes", nargs="+", default=list(EXECUTION_MODES), choices=EXECUTION_MODES)
+    parser.add_argument("--episodes", type=int, default=100)
+    parser.add_argument("--num-envs", type=int, default=25)
+    parser.add_argument("--replan-steps", type=int, default=8)
+    parser.add_argument("--output", type=Path, default=Path("benchmarks/results/closed_loop"))
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--served", metavar="ENV", help="compare a local and a served evaluation on ENV instead")
+    args = parser.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    if args.served:
+        served_versus_local(args.policy, args.served, args.episodes, args.num_envs, args.threads)
+        return 0
+
+    policies = {"rtc-trained policy": PI0Policy.from_pretrained(args.policy, device="cpu")}
+    if args.policy_plain:
+        policies["plain policy"] = PI0Policy.from_pretrained(args.policy_plain, device="cpu")
+    rows = []
+    for label, policy in policies.items():
+        print(f"{label}: chunk ms (batch 1, CPU, {args.threads} thread):",
+              {k: round(v, 1) for k, v in sampling_times(policy).items()})
+        for env_id in args.envs:
+            for mode in args.modes:
+                if mode == "rtc-trained" and policy.model.config.rtc_max_delay == 0:
+                    continue
+                for delay in args.delays:
+                    if mode == "rtc-trained" and delay > policy.model.config.rtc_max_delay:
+                        continue
+                    start = time.time()
+                    result = evaluate(LocalPolicy(policy), EvalSettings(
+                        env=env_id, episodes=args.episodes, num_envs=args.num_envs, execution=mode,
+                        inference_delay=delay, replan_steps=args.replan_steps))
+                    rows.append({"policy": label, "env": env_id, "execution": mode, "inference_delay": delay,
+                                 "success_rate": result.success_rate, "success_ci95": result.success_ci95,
+                                 "boundary_jerk": result.boundary_jerk, "interior_jerk": result.interior_jerk,
+                                 "mean_steps": result.mean_steps, "episodes": result.episodes})
+                    print(f"  {result.summary()} [{time.time() - start:.0f} s]", flush=True)
+
+    print(f"\n| policy | env | execution | {' | '.join(f'd={d}' for d in args.delays)} |")
+    print(f"|---|---|---|{'---|' * len(args.delays)}")
+    keys = sorted({(r["policy"], r["env"], r["execution"]) for r in rows}, key=lambda k: (k[0], k[1], EXECUTION_MODES.index(k[2])))
+    for key in keys:
+        cells = []
+        for delay in args.delays:
+            match = [r for r in rows if (r["policy"], r["env"], r["execution"]) == key and r["inference_delay"] == delay]
+            if not match:
+                cells.append("-")
+                continue
+            r = match[0]
+            low, high = r["success_ci95"]
+            cells.append(f"{100 * r['success_rate']:.0f}% [{100 * low:.0f}, {100 * high:.0f}] · {r['boundary_jerk']:.3f}")
+        print(f"| {key[0]} | {key[1].split('/')[1]} | {key[2]} | {' | '.join(cells)} |")
+
+    args.output.parent.mkdir(parents=True, exist_ok=True)
+    args.output.with_suffix(".json").write_text(json.dumps(rows, indent=1) + "\n")
+    plot(rows, args.delays, args.output.with_suffix(".png"))
+    print(f"wrote {args.output.with_suffix('.json')} and {args.output.with_suffix('.png')}")
+    return 0
+
+
+def plot(rows: list[dict], delays: list[int], path: Path) -> None:
+    """Success (with 95% intervals) and jerk at chunk boundaries against delay, one column per env."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    envs = sorted({r["env"] for r in rows})
+    figure, axes = plt.subplots(2, len(envs), figsize=(6 * len(envs), 7), squeeze=False)
+    for column, env_id in enumerate(envs):
+        for (policy, mode) in sorted({(r["policy"], r["execution"]) for r in rows if r["env"] == env_id}):
+            series = sorted((r for r in rows if (r["env"], r["policy"], r["execution"]) == (env_id, policy, mode)),
+                            key=lambda r: r["inference_delay"])
+            x = [r["inference_delay"] for r in series]
+            label = mode if policy.startswith("rtc-trained") else f"{mode} (plain policy)"
+            style = "-o" if policy.startswith("rtc-trained") else "--s"
+            success = np.array([r["success_rate"] for r in series]) * 100
+            low = success - np.array([r["success_ci95"][0] for r in series]) * 100
+            high = np.array([r["success_ci95"][1] for r in series]) * 100 - success
+            axes[0, column].errorbar(x, success, yerr=[low, high], fmt=style, capsize=3, label=label)
+            axes[1, column].plot(x, [r["boundary_jerk"] for r in series], style, label=label)
+        axes[0, column].set_title(env_id)
+        axes[0, column].set_ylabel("success % (95% CI)")
+        axes[1, column].set_ylabel("jerk at chunk boundaries")
+        axes[1, column].set_xlabel("inference delay d (control steps)")
+        for row in (0, 1):
+            axes[row, column].set_xticks(delays)
+    axes[0, 0].legend(fontsize=8)
+    figure.tight_layout()
+    figure.savefig(path, dpi=100)
+    plt.close(figure)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
