@@ -3,7 +3,9 @@
 from transformers import AutoConfig, AutoModel
 
 from pi0_torch.models.configuration_pi0 import PI0Config
+from pi0_torch.models.configuration_pi0_fast import PI0FastConfig
 from pi0_torch.models.modeling_pi0 import PI0ForActionGeneration, PI0Output
+from pi0_torch.models.modeling_pi0_fast import PI0FastForActionGeneration, PI0FastOutput
 from pi0_torch.processing.normalization import NormStats, compute_norm_stats, load_openpi_norm_stats, save_openpi_norm_stats
 from pi0_torch.processing.processing_pi0 import PI0Processor
 
@@ -11,10 +13,15 @@ __version__ = "0.1.0"
 
 AutoConfig.register(PI0Config.model_type, PI0Config, exist_ok=True)
 AutoModel.register(PI0Config, PI0ForActionGeneration, exist_ok=True)
+AutoConfig.register(PI0FastConfig.model_type, PI0FastConfig, exist_ok=True)
+AutoModel.register(PI0FastConfig, PI0FastForActionGeneration, exist_ok=True)
 
 __all__ = [
     "NormStats",
     "PI0Config",
+    "PI0FastConfig",
+    "PI0FastForActionGeneration",
+    "PI0FastOutput",
     "PI0ForActionGeneration",
     "PI0Output",
     "PI0Processor",
