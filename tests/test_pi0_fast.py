@@ -245,7 +245,8 @@ def test_processor_inputs_save_and_reload(tmp_path: Path, fast_reference: FastRe
     batch = processor(images={"base_0_rgb": [frame, frame], "wrist_0_rgb": [frame, None]}, prompt=list(fast_reference["tokenizer/prompts"]),
                       state=state, actions=actions)
     assert batch["pixel_values"].shape == (2, 3, 3, 224, 224)
-    assert batch["image_masks"].tolist() == [[True, False, True], [True, False, False]]
+    assert batch["image_masks"].all()  # openpi's π0-FAST transforms: absent cameras are black frames, not masked
+    assert (batch["pixel_values"][1, 1:] == -1).all() and (batch["pixel_values"][0, 2] == -1).all()
     np.testing.assert_array_equal(batch["input_ids"].numpy(), fast_reference["inputs/train/tokens"])
     np.testing.assert_array_equal(batch["token_loss_mask"].numpy(), fast_reference["inputs/train/loss_mask"])
     processor.save_pretrained(tmp_path / "model")

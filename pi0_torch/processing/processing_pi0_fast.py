@@ -16,8 +16,9 @@ checks) with openpi's π0-FAST prompt (`FASTTokenizer.tokenize`) and, on the way
   mapped back to FAST ids and FAST-decoded to `[action_horizon, action_dim]` (zeros, with a warning, when that
   fails), then unnormalized like π0's actions (`postprocess_actions`).
 
-Normalization defaults to quantile (openpi normalizes every model but π0 by quantiles). The FAST tokenizer is saved
-in the `fast_tokenizer/` subfolder of the model folder.
+Normalization defaults to quantile (openpi normalizes every model but π0 by quantiles), and an absent camera is a
+black frame with its mask on (openpi's π0-FAST input transforms do not mask padding images). The FAST tokenizer is
+saved in the `fast_tokenizer/` subfolder of the model folder.
 
 ```python
 >>> import numpy as np
@@ -87,6 +88,8 @@ class PI0FastProcessor(PI0Processor):
         action_tokenizer: a [`FASTActionTokenizer`] or a folder holding one (the `physical-intelligence/fast`
             layout).
         fast_skip_tokens: special tokens at the end of the prompt vocabulary that FAST ids skip (128 for PaliGemma).
+        mask_missing_cameras: False (openpi's π0-FAST input transforms, "we don't mask out padding images for FAST
+            models"): an absent camera is a black frame the model sees; True: it is masked out, as π0 does.
         camera_names, max_token_len, norm_mode, ...: as for [`PI0Processor`] (defaults: openpi's π0-FAST cameras,
             250 tokens, quantile normalization).
     """
@@ -100,9 +103,11 @@ class PI0FastProcessor(PI0Processor):
         max_token_len: int = 250,
         norm_mode: str | None = "quantile",
         fast_skip_tokens: int = 128,
+        mask_missing_cameras: bool = False,
         **settings: Any,
     ) -> None:
         super().__init__(tokenizer, camera_names=camera_names, max_token_len=max_token_len, norm_mode=norm_mode, **settings)
+        self.mask_missing_cameras = bool(mask_missing_cameras)
         if self.pi05:
             raise ValueError("pi05=True is a π0.5 setting; PI0FastProcessor writes π0-FAST prompts")
         if not isinstance(action_tokenizer, FASTActionTokenizer):
@@ -152,6 +157,7 @@ class PI0FastProcessor(PI0Processor):
         settings = super().to_dict()
         settings.pop("pi05")
         settings["fast_skip_tokens"] = self.fast_skip_tokens
+        settings["mask_missing_cameras"] = self.mask_missing_cameras
         return settings
 
     def save_pretrained(self, save_directory: str | Path, **unused: Any) -> list[str]:
@@ -209,6 +215,11 @@ class PI0FastProcessor(PI0Processor):
             "token_ar_mask": token_ar_mask,
             "token_loss_mask": token_ar_mask.copy(),  # the loss is on the postfix, the causal part
         }
+
+    def _encode_images(self, images: Any, where: str) -> tuple[np.ndarray, np.ndarray]:
+        """As π0's; an absent camera is a black frame whose mask stays on unless `mask_missing_cameras`."""
+        pixel_values, image_masks = super()._encode_images(images, where)
+        return pixel_values, image_masks if self.mask_missing_cameras else np.ones_like(image_masks)
 
     def _encode(self, sample: Mapping[str, Any], where: str) -> dict[str, np.ndarray]:
         """One observation -> unbatched model arrays; `where` prefixes error messages (e.g. `"[3] "`)."""

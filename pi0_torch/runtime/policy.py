@@ -26,6 +26,7 @@ This is the object a policy server wraps, and the shortest way to run a saved mo
 from __future__ import annotations
 
 import dataclasses
+import json
 import time
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -52,6 +53,7 @@ class PreparedObservation:
 
 class PI0Policy:
     """[`PI0ForActionGeneration`] + [`PI0Processor`] behind openpi's policy interface (`infer(obs) -> dict`).
+    (`from_pretrained` of a π0-FAST folder gives its sibling [`pi0_torch.runtime.policy_fast.PI0FastPolicy`].)
 
     Observations use the default layout `{"images": {camera_name: frame}, "state": [...], "prompt": str}` (see
     [`pi0_torch.runtime.observation_formats`] for other layouts). `infer` returns `{"actions": float32 [action_horizon,
@@ -66,6 +68,9 @@ class PI0Policy:
         compile: run sampling through `torch.compile` ([`PI0ForActionGeneration.compile_sampling`]), as one CUDA
             graph on CUDA. The first chunk of each batch size compiles (tens of seconds): call [`warmup`] first.
     """
+
+    model_class: Any = PI0ForActionGeneration
+    processor_class: Any = PI0Processor
 
     def __init__(
         self,
@@ -115,10 +120,11 @@ class PI0Policy:
             if dtype not in _DTYPES:
                 raise ValueError(f"dtype must be one of {', '.join(_DTYPES)}, got {dtype!r}")
             dtype = _DTYPES[dtype]
-        model = PI0ForActionGeneration.from_pretrained(directory, dtype=dtype).to(device)
+        policy_class = _policy_class(directory) if cls is PI0Policy else cls
+        model = policy_class.model_class.from_pretrained(directory, dtype=dtype).to(device)
         overrides = {"default_prompt": default_prompt} if default_prompt is not None else {}
-        processor = PI0Processor.from_pretrained(directory, **overrides)
-        return cls(model, processor, num_steps=num_steps, seed=seed, compile=compile)
+        processor = policy_class.processor_class.from_pretrained(directory, **overrides)
+        return policy_class(model, processor, num_steps=num_steps, seed=seed, compile=compile)
 
     @property
     def camera_names(self) -> list[str]:
@@ -130,7 +136,7 @@ class PI0Policy:
         config = self.model.config
         return {
             "policy": f"pi0-torch {__version__}",
-            "model_type": "pi05" if config.pi05 else "pi0",
+            "model_type": self.model_type,
             "camera_names": self.camera_names,
             "state_dim": self.processor.state_dim,
             "action_dim": self.processor.action_dim_robot,
@@ -169,8 +175,7 @@ class PI0Policy:
             name: torch.cat([p.inputs[name] for p in prepared]).to(self.device)
             for name in prepared[0].inputs
         }
-        actions = self.model.generate_actions(**batch, num_steps=self.num_steps, generator=self.generator)
-        actions = actions.float().cpu().numpy()  # [B, horizon, action_dim]; waits for the device
+        actions = self.model_actions(batch)  # [B, horizon, action_dim]; waits for the device
         model_ms = (time.monotonic() - start) * 1000
         return [
             {
@@ -179,6 +184,23 @@ class PI0Policy:
             }
             for chunk, p in zip(actions, prepared)
         ]
+
+    def model_actions(self, batch: Mapping[str, torch.Tensor], warmup: bool = False) -> np.ndarray:
+        """Model-space action chunks `[B, horizon, action_dim]` (float32 numpy) for a batch of model inputs; a
+        warm-up run leaves the seeded noise untouched."""
+        if warmup:
+            config = self.model.config
+            noise = torch.zeros(len(batch["input_ids"]), config.action_horizon, config.action_dim, device=self.device)
+            return self.model.generate_actions(**batch, noise=noise, num_steps=self.num_steps).float().cpu().numpy()
+        return self.model.generate_actions(**batch, num_steps=self.num_steps, generator=self.generator).float().cpu().numpy()
+
+    @property
+    def compiled(self) -> bool:
+        return self.model.sampling_compiled
+
+    @property
+    def model_type(self) -> str:
+        return "pi05" if self.model.config.pi05 else "pi0"
 
     @torch.inference_mode()
     def warmup(self, max_batch_size: int = 1) -> float:
@@ -194,13 +216,23 @@ class PI0Policy:
             "prompt": self.processor.default_prompt or "warm-up",
         }
         one = {name: tensor.to(self.device) for name, tensor in self.prepare(blank).inputs.items()}
-        config = self.model.config
-        for batch in range(1, (max_batch_size if self.model.sampling_compiled else 1) + 1):
+        for batch in range(1, (max_batch_size if self.compiled else 1) + 1):
             inputs = {name: torch.cat([tensor] * batch) for name, tensor in one.items()}  # laid out as real batches
-            noise = torch.zeros(batch, config.action_horizon, config.action_dim, device=self.device)
-            self.model.generate_actions(**inputs, noise=noise, num_steps=self.num_steps).cpu()
+            self.model_actions(inputs, warmup=True)
         return time.monotonic() - start
 
     def infer(self, observation: Mapping[str, Any]) -> dict[str, Any]:
         """Actions for one observation: `{"actions": float32 [horizon, robot action dims], "policy_timing": ...}`."""
         return self.infer_prepared([self.prepare(observation)])[0]
+
+
+def _policy_class(directory: str | Path) -> type[PI0Policy]:
+    """The policy for the model saved in `directory`, from its `config.json` (π0 / π0.5, or π0-FAST)."""
+    from pi0_torch.models.configuration_pi0_fast import PI0FastConfig
+
+    config_path = Path(directory) / "config.json"
+    if config_path.is_file() and json.loads(config_path.read_text()).get("model_type") == PI0FastConfig.model_type:
+        from pi0_torch.runtime.policy_fast import PI0FastPolicy
+
+        return PI0FastPolicy
+    return PI0Policy
