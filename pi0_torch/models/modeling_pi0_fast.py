@@ -328,7 +328,8 @@ class PI0FastForActionGeneration(SiglipImageEmbedding, PI0FastPreTrainedModel):
         openpi's `sample_actions`: prefill once (`prepare_decoding`), then one token per step against the static
         k/v cache; greedy (`temperature=0`, the first of equal maxima) or sampled from `softmax(logits /
         temperature)` with `generator`. Decoding stops after the first step at which every row's new token is EOS
-        (`config.eos_token_id`); the steps not run stay 0. The only host synchronization per token is that check.
+        (`config.eos_token_id`; None: never); the steps not run stay 0. The only host synchronization per token is
+        that check.
 
         Returns:
             long `[B, max_new_tokens]` token ids (`PI0FastProcessor.extract_actions` turns them into actions).
@@ -347,7 +348,8 @@ class PI0FastForActionGeneration(SiglipImageEmbedding, PI0FastPreTrainedModel):
         for step in range(max_new_tokens):
             token = _pick_token(logits, temperature, generator)  # [B]
             output[:, step] = token
-            if step == max_new_tokens - 1 or bool((token == self.config.eos_token_id).all()):
+            eos = self.config.eos_token_id
+            if step == max_new_tokens - 1 or (eos is not None and bool((token == eos).all())):
                 break
             logits = decode_step(cache, token, steps[step : step + 1])
         return output
