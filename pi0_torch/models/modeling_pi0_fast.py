@@ -61,11 +61,13 @@ class FastDecoderLayer(GradientCheckpointingLayer):
         mask: torch.Tensor,  # additive float [B, 1, T, T] (no buffer) or [B, 1, T, S] (with a buffer)
         kv_buffer: tuple[torch.Tensor, torch.Tensor] | None = None,  # [B, K, S, H] each
         kv_slots: torch.Tensor | None = None,  # long [T]: where the new k/v go in the buffer
+        last_only: bool = False,
     ) -> torch.Tensor:
-        """Returns the layer's output `[B, T, D]`.
+        """Returns the layer's output `[B, T, D]` (`[B, 1, D]` for the last token alone with `last_only`).
 
         With `kv_buffer`, the tokens' post-RoPE k/v are written into the buffer at `kv_slots` and attention reads
-        the whole buffer (a static k/v cache; `mask` says which slots each query sees).
+        the whole buffer (a static k/v cache; `mask` says which slots each query sees). `last_only` finishes only the
+        last token once every token's k/v is written (the prefill's last layer: only the last output is read).
         """
         block = self.block
         h, _ = block.attn_norm(x)
@@ -76,6 +78,8 @@ class FastDecoderLayer(GradientCheckpointingLayer):
             key_buffer.index_copy_(2, kv_slots, k)
             value_buffer.index_copy_(2, kv_slots, v)
             k, v = key_buffer, value_buffer
+        if last_only:
+            q, x, mask = q[:, :, -1:], x[:, -1:], mask[:, :, -1:]
         attended = masked_attention(q, k, v, mask, scale=q.shape[-1] ** -0.5, additive=True)  # [B, N, T, H]
         x = x + block.o_proj(attended.transpose(1, 2).flatten(2))
         h, _ = block.mlp_norm(x)
@@ -272,8 +276,9 @@ class PI0FastForActionGeneration(SiglipImageEmbedding, PI0FastPreTrainedModel):
         additive = to_additive_mask(prefix_mask, tokens.dtype)
         prefix_slots = torch.arange(prefix_len, device=device)
         x = tokens
-        for layer, key_buffer, value_buffer in zip(self.layers, keys, values):
-            x = layer(x, cos, sin, additive, kv_buffer=(key_buffer, value_buffer), kv_slots=prefix_slots)
+        for index, (layer, key_buffer, value_buffer) in enumerate(zip(self.layers, keys, values)):
+            last = index == len(self.layers) - 1
+            x = layer(x, cos, sin, additive, kv_buffer=(key_buffer, value_buffer), kv_slots=prefix_slots, last_only=last)
         hidden, _ = self.final_norm(x[:, -1])
         logits = self.lm_head(hidden)  # [B, V]
 
