@@ -70,3 +70,28 @@ def test_fast_lora_is_openpi_gemma_2b_lora(dataset_root: Path, tmp_path: Path) -
     assert isinstance(processor, PI0FastProcessor) and processor.action_tokenizer.action_dim == 2
     with pytest.raises(ValueError, match="π0-FAST needs a FAST tokenizer"):
         train_policy(fast_settings(dataset_root, tmp_path / "none", fast_tokenizer=None, max_steps=1))
+
+
+def test_gradient_checkpointing_gives_the_same_gradients() -> None:
+    torch.manual_seed(0)
+    model = PI0FastForActionGeneration(PI0FastConfig(**{**TINY_FAST, "camera_names": ["base_0_rgb"]})).train()
+    length = 12
+    batch = dict(
+        pixel_values=torch.rand(2, 1, 3, 28, 28) * 2 - 1, image_masks=torch.ones(2, 1, dtype=torch.bool),
+        input_ids=torch.randint(2, 512, (2, length)), attention_mask=torch.ones(2, length, dtype=torch.bool),
+        token_ar_mask=torch.arange(length).expand(2, -1) >= 6, token_loss_mask=torch.arange(length).expand(2, -1) >= 6,
+    )
+
+    def gradients() -> dict[str, torch.Tensor]:
+        model.zero_grad()
+        model(**batch).loss.backward()
+        return {name: p.grad.clone() for name, p in model.named_parameters() if p.grad is not None}
+
+    plain = gradients()
+    model.gradient_checkpointing_enable()
+    assert all(layer.gradient_checkpointing for layer in model.layers)
+    assert all(layer.gradient_checkpointing for layer in model.vision_tower.encoder.layers)
+    checkpointed = gradients()
+    assert plain.keys() == checkpointed.keys() and len(plain) == len(list(model.parameters()))
+    for name in plain:
+        torch.testing.assert_close(checkpointed[name], plain[name], rtol=1e-5, atol=1e-7, msg=name)
