@@ -234,7 +234,7 @@ def _names(names: Iterable[str], limit: int = 12) -> str:
     return shown + (f" ... ({len(names) - limit} more)" if len(names) > limit else "")
 
 
-def _model_class(config: PI0Config | PI0FastConfig) -> type[PI0ForActionGeneration] | type[PI0FastForActionGeneration]:
+def _model_class(config: PI0Config | PI0FastConfig) -> type[PI0ForActionGeneration | PI0FastForActionGeneration]:
     return PI0FastForActionGeneration if isinstance(config, PI0FastConfig) else PI0ForActionGeneration
 
 

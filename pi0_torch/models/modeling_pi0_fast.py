@@ -451,7 +451,7 @@ def left_to_right_align(
     Row b is rolled left by `n_b` = (index of its last valid token + 1): the trailing padding moves to the front.
     `tokens` `[B, P, D]`, `valid` bool `[B, P]` and `mask` bool `[B, P, P]` (both axes) move together.
     """
-    batch, length = valid.shape
+    length = valid.shape[1]
     index = torch.arange(length, device=valid.device)
     shift = (valid * index).amax(dim=1, keepdim=True) + 1  # [B, 1]
     order = (index[None, :] + shift) % length  # [B, P]: new position i holds old position order[b, i]
