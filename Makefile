@@ -24,8 +24,8 @@ demo: $(STAMP)
 # was once seen stuck in torch's CPU thread pool. Not reproduced since (the whole suite in one process, and a 6-minute
 # load of 13,824 requests after other torch work, both passed). The timeout turns any hang into a failure quickly.
 test: $(STAMP)
-	$(PY) -m pytest -q -m "not slow and not gpu" --timeout 900 --doctest-modules pi0_torch tests --ignore tests/test_serving.py
-	$(PY) -m pytest -q -m "not slow and not gpu" --timeout 300 tests/test_serving.py
+	$(PY) -m pytest -q -m "not slow and not gpu" --timeout 900 --doctest-modules pi0_torch tests --ignore tests/test_serving.py --ignore tests/test_pi0_fast_serving.py
+	$(PY) -m pytest -q -m "not slow and not gpu" --timeout 300 tests/test_serving.py tests/test_pi0_fast_serving.py
 
 test-slow: $(STAMP)
 	$(PY) -m pytest -q -m "slow" tests

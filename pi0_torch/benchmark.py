@@ -10,6 +10,7 @@ CUDA allocator's peak on GPU, the process's peak resident set size (sampled ever
                                                         # GPU: eager, compiled and one-CUDA-graph rows
     pi0-torch bench --side-by-side                      # against transformers' PI0, identical weights
     pi0-torch bench --loading                           # peak RSS of from_pretrained on a full-size bf16 checkpoint
+    pi0-torch bench --fast --compile                    # π0-FAST decoding (tokens/s, ms per chunk) after π0's rows
 """
 
 from __future__ import annotations
@@ -29,7 +30,9 @@ import psutil
 import torch
 
 from pi0_torch.models.configuration_pi0 import PI0Config, preset_names
+from pi0_torch.models.configuration_pi0_fast import PI0FastConfig, fast_preset_names
 from pi0_torch.models.modeling_pi0 import PI0ForActionGeneration
+from pi0_torch.models.modeling_pi0_fast import PI0FastForActionGeneration
 
 TEXT_TOKENS = 48
 
@@ -196,6 +199,48 @@ def bench_generate(args: argparse.Namespace, device: torch.device) -> None:
             gc.collect()
 
 
+def bench_fast_decoding(args: argparse.Namespace, device: torch.device) -> None:
+    """π0-FAST: a chunk of `--fast-tokens` decoded tokens (no EOS stop), every camera, as `generate_tokens` runs it:
+    the prefill (SigLIP + prompt through the decoder, k/v kept, first token) and then one decoder pass per token."""
+    tokens = args.fast_tokens
+    print(f"\nπ0-FAST generate_tokens on {device_name(device)}, 3 cameras, {TEXT_TOKENS} prompt tokens, {tokens} decoded "
+          f"tokens per chunk (prefill: up to the first token; per token: each later one)")
+    print(f"{'preset':16s} {'dtype':9s} {'mode':10s} {'batch':>5s} {'chunk ms':>9s} {'prefill ms':>10s} "
+          f"{'ms/token':>8s} {'tokens/s':>9s} {'peak MiB':>9s}")
+    for preset in args.fast_presets:
+        config = PI0FastConfig.from_preset(preset, eos_token_id=None)  # every row decodes all the tokens
+        for dtype_name in args.dtypes:
+            torch.manual_seed(0)
+            model = PI0FastForActionGeneration(config).to(device=device, dtype=getattr(torch, dtype_name)).eval()
+            for mode, compile_arguments in generate_modes(args.compile, device).items():
+                model.compile_decoding(**(compile_arguments if compile_arguments is not None else {"disable": True}))
+                warmup = 1 if compile_arguments is None else 3  # compiling; CUDA graphs record on a later call
+                for batch in args.batches:
+                    inputs = fast_example_batch(config, batch, device)
+                    chunk = time_call(lambda: model.generate_tokens(**inputs, max_new_tokens=tokens), device, args.repeats, warmup)
+                    prefill = time_call(lambda: model.generate_tokens(**inputs, max_new_tokens=1), device, args.repeats, warmup)
+                    per_token = max(chunk.median - prefill.median, 0.0) / max(tokens - 1, 1)
+                    rate = f"{batch / per_token:9.1f}" if per_token > 0 else f"{'-':>9s}"
+                    print(f"{preset:16s} {dtype_name:9s} {mode:10s} {batch:5d} {chunk.median * 1e3:9.1f} "
+                          f"{prefill.median * 1e3:10.1f} {per_token * 1e3:8.2f} {rate} {chunk.peak_bytes / 2**20:9.0f}")
+            del model
+            gc.collect()
+
+
+def fast_example_batch(config: PI0FastConfig, batch: int, device: torch.device, seed: int = 0) -> dict[str, torch.Tensor]:
+    """Random π0-FAST inference inputs: every camera present, a prompt of `TEXT_TOKENS` tokens (all bidirectional)."""
+    generator = torch.Generator().manual_seed(seed)
+    size = config.image_size
+    inputs = dict(
+        pixel_values=torch.rand(batch, config.num_cameras, 3, size, size, generator=generator) * 2 - 1,
+        image_masks=torch.ones(batch, config.num_cameras, dtype=torch.bool),
+        input_ids=torch.randint(2, config.vocab_size, (batch, TEXT_TOKENS), generator=generator),
+        attention_mask=torch.ones(batch, TEXT_TOKENS, dtype=torch.bool),
+        token_ar_mask=torch.zeros(batch, TEXT_TOKENS, dtype=torch.bool),
+    )
+    return {k: v.to(device) for k, v in inputs.items()}
+
+
 def bench_train_step(args: argparse.Namespace, device: torch.device) -> None:
     print(f"\ntraining step (forward + backward + AdamW) on {device_name(device)}, 3 cameras")
     print(f"{'preset':12s} {'dtype':9s} {'batch':>5s} {'median ms':>10s} {'min ms':>10s} {'max ms':>10s} {'peak MiB':>10s}")
@@ -322,6 +367,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--loading-preset", default="pi0")
     parser.add_argument("--tmp-dir", default=None, help="where --loading writes its checkpoint")
     parser.add_argument("--skip-generate", action="store_true")
+    parser.add_argument("--fast", action="store_true", help="also time π0-FAST decoding (generate_tokens)")
+    parser.add_argument("--fast-presets", type=_csv(str), default=["pi0_fast_small", "pi0_fast_medium"],
+                        help=f"comma list of {fast_preset_names()}")
+    parser.add_argument("--fast-tokens", type=int, default=60, help="tokens decoded per π0-FAST chunk (no EOS stop)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -329,6 +378,8 @@ def run(args: argparse.Namespace) -> int:
     with torch.inference_mode(False):
         if not args.skip_generate:
             bench_generate(args, device)
+        if args.fast:
+            bench_fast_decoding(args, device)
         if args.train:
             bench_train_step(args, device)
         if args.side_by_side:

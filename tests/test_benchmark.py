@@ -32,3 +32,12 @@ def test_side_by_side_with_transformers_agrees(capsys: pytest.CaptureFixture[str
     assert sorted(rows) == ["bfloat16", "float32"], out
     assert float(rows["float32"]) <= 1e-4  # identical weights, inputs and noise
     assert float(rows["bfloat16"]) <= 0.5  # both in bf16, each with its own rounding
+
+
+def test_fast_decoding_table(capsys: pytest.CaptureFixture[str]) -> None:
+    out = bench(capsys, "--skip-generate", "--fast", "--fast-presets", "pi0_fast_small", "--fast-tokens", "4", "--dtypes",
+                "float32", "--batches", "1")
+    rows = re.findall(r"^pi0_fast_small\s+float32\s+eager\s+1\s+([\d.]+)\s+([\d.]+)\s+([\d.]+)\s+(\S+)\s+\d+$", out, re.MULTILINE)
+    assert len(rows) == 1, out
+    chunk_ms, prefill_ms, _, _ = rows[0]
+    assert float(chunk_ms) > 0 and float(prefill_ms) > 0

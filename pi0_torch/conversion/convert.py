@@ -56,12 +56,16 @@ from tqdm.auto import tqdm
 
 from pi0_torch.cli import bool_mask
 from pi0_torch.models.configuration_pi0 import PI0Config
+from pi0_torch.models.configuration_pi0_fast import PI0FastConfig
 from pi0_torch.models.modeling_pi0 import PI0ForActionGeneration
+from pi0_torch.models.modeling_pi0_fast import PI0FastForActionGeneration
 from pi0_torch.processing.normalization import NormStats, load_openpi_norm_stats, save_openpi_norm_stats
 from pi0_torch.conversion.download import CACHE_ENV, PUBLISHED_CHECKPOINTS, checkpoint_url, fetch_openpi_checkpoint
-from pi0_torch.conversion.openpi_weights import check_openpi_shapes, config_from_openpi_shapes, iter_openpi_state_dict
+from pi0_torch.conversion.openpi_weights import check_openpi_shapes, config_from_openpi_shapes, is_openpi_fast_tree, iter_openpi_state_dict
 from pi0_torch.conversion.orbax_reader import CheckpointError, LeafInfo, OrbaxCheckpoint, first_line
+from pi0_torch.processing.fast_tokenizer import FASTActionTokenizer
 from pi0_torch.processing.processing_pi0 import NORM_STATS_FILE, PI0Processor
+from pi0_torch.processing.processing_pi0_fast import FAST_TOKENIZER_DIR, PI0FastProcessor
 from pi0_torch.processing.robot_spaces import CONVERSIONS
 from pi0_torch.utils.files import OutputPathError, atomic_output_dir, check_output_dir, check_separate
 
@@ -226,10 +230,15 @@ def _names(names: Iterable[str], limit: int = 12) -> str:
     return shown + (f" ... ({len(names) - limit} more)" if len(names) > limit else "")
 
 
-def planned_shapes(config: PI0Config) -> dict[str, tuple[int, ...]]:
-    """Every parameter `PI0ForActionGeneration(config)` has, with its shape, in state-dict order (nothing allocated)."""
+def _model_class(config: PI0Config | PI0FastConfig) -> type[PI0ForActionGeneration | PI0FastForActionGeneration]:
+    return PI0FastForActionGeneration if isinstance(config, PI0FastConfig) else PI0ForActionGeneration
+
+
+def planned_shapes(config: PI0Config | PI0FastConfig) -> dict[str, tuple[int, ...]]:
+    """Every parameter the config's model (`PI0ForActionGeneration` / `PI0FastForActionGeneration`) has, with its
+    shape, in state-dict order (nothing allocated)."""
     with torch.device("meta"):
-        model = PI0ForActionGeneration(config)
+        model = _model_class(config)(config)
     return {name: tuple(tensor.shape) for name, tensor in model.state_dict().items()}
 
 
@@ -275,18 +284,24 @@ def _read_norm_stats(path: Path) -> dict[str, NormStats]:
 
 
 def _build_processor(
-    config: PI0Config,
+    config: PI0Config | PI0FastConfig,
     norm_stats: Mapping[str, NormStats] | None,
     tokenizer: str | Path | None,
     processor_options: Mapping[str, Any] | None,
+    fast_tokenizer: FASTActionTokenizer | None = None,
 ) -> PI0Processor | None:
-    """The output's processor when there are a tokenizer and norm stats, built before any weight is written so that a
-    bad setting fails fast. `processor_options` (`delta_action_mask`, `value_conversion`) need both."""
-    if tokenizer is None or norm_stats is None:
+    """The output's processor when there are a tokenizer and norm stats (and for π0-FAST its FAST tokenizer), built
+    before any weight is written so that a bad setting fails fast. `processor_options` (`delta_action_mask`,
+    `value_conversion`) need all of them."""
+    fast = isinstance(config, PI0FastConfig)
+    if tokenizer is None or norm_stats is None or (fast and fast_tokenizer is None):
         if processor_options:
-            raise ConversionError(f"processor settings {sorted(processor_options)} need --tokenizer and norm stats")
+            needed = "--tokenizer, --fast-tokenizer" if fast else "--tokenizer"
+            raise ConversionError(f"processor settings {sorted(processor_options)} need {needed} and norm stats")
         return None
     try:
+        if fast:
+            return PI0FastProcessor.from_config(config, tokenizer, fast_tokenizer, norm_stats, **(processor_options or {}))
         return PI0Processor.from_config(config, tokenizer=tokenizer, norm_stats=norm_stats, **(processor_options or {}))
     except (ValueError, OSError, TypeError) as error:
         raise ConversionError(f"cannot build the processor with tokenizer {tokenizer}: {error}") from None
@@ -342,8 +357,8 @@ def _check_tokenizer(tokenizer: str | Path | None) -> Path | None:
     return path
 
 
-def _save_config(config: PI0Config, dtype: torch.dtype, folder: Path) -> None:
-    config.architectures = [PI0ForActionGeneration.__name__]
+def _save_config(config: PI0Config | PI0FastConfig, dtype: torch.dtype, folder: Path) -> None:
+    config.architectures = [_model_class(config).__name__]
     config.dtype = dtype
     config.save_pretrained(folder)
 
@@ -353,7 +368,7 @@ class ConversionResult:
     """What a conversion wrote."""
 
     output_dir: Path
-    config: PI0Config
+    config: PI0Config | PI0FastConfig
     dtype: torch.dtype
     weight_files: list[Path]
     weight_bytes: int
@@ -361,7 +376,7 @@ class ConversionResult:
     dropped: list[str] = field(default_factory=list)  # source tensors deliberately not converted
 
     def summary(self) -> str:
-        kind = "π0.5" if self.config.pi05 else "π0"
+        kind = "π0-FAST" if isinstance(self.config, PI0FastConfig) else "π0.5" if self.config.pi05 else "π0"
         params = self.weight_bytes // torch.empty((), dtype=self.dtype).element_size()
         lines = [
             f"wrote {self.output_dir}: {kind}, {_human(params)} parameters, {_human(self.weight_bytes)}B of "
@@ -457,21 +472,29 @@ def convert_openpi_checkpoint(
     overwrite: bool = False,
     max_shard_bytes: int | str = DEFAULT_MAX_SHARD_BYTES,
     progress: bool = False,
+    fast_tokenizer: str | os.PathLike[str] | None = None,
     **config_overrides: Any,
 ) -> ConversionResult:
     """Convert an openpi checkpoint (`<run>/<step>` or its `params` folder) into a pi0-torch folder.
 
-    π0 vs π0.5 and every dimension are inferred from the parameter tree; `config_overrides` set what the weights
-    do not store (`action_horizon`, `max_token_len`, `camera_names`, `num_inference_steps`). Norm stats come from
-    `<step>/assets/<asset_id>/norm_stats.json` (`asset_id` may be omitted when there is one). `processor_options`
-    go to the processor (e.g. openpi's ALOHA configs: `delta_action_mask` for the joints and
-    `value_conversion="aloha"`). Raises `CheckpointError` (one line; nothing is written) for any problem with the
-    input or the output location.
+    π0 vs π0.5 vs π0-FAST and every dimension are inferred from the parameter tree; `config_overrides` set what the
+    weights do not store (`action_horizon`, `max_token_len`, `camera_names`, `num_inference_steps`; for π0-FAST also
+    `action_dim`, which otherwise comes from the FAST tokenizer's settings, like the horizon, then openpi's
+    defaults). Norm stats come from `<step>/assets/<asset_id>/norm_stats.json` (`asset_id` may be omitted when there
+    is one). `processor_options` go to the processor (e.g. openpi's ALOHA configs: `delta_action_mask` for the joints
+    and `value_conversion="aloha"`). A π0-FAST checkpoint takes its FAST tokenizer folder (`fast_tokenizer`,
+    written to `fast_tokenizer/` in the output). Raises `CheckpointError` (one line; nothing is written) for any
+    problem with the input or the output location.
     """
     torch_dtype, max_shard_bytes, output_dir = _common_arguments(dtype, max_shard_bytes, checkpoint_dir, output_dir, overwrite)
     checkpoint = OrbaxCheckpoint(checkpoint_dir)
     _check_output(checkpoint.step_dir, output_dir, overwrite)  # the assets beside params/ are input too
     shapes = checkpoint.shapes()
+    action_tokenizer = _load_fast_tokenizer(fast_tokenizer)
+    if is_openpi_fast_tree(shapes) and action_tokenizer is not None:
+        for name, value in (("action_horizon", action_tokenizer.time_horizon), ("action_dim", action_tokenizer.action_dim)):
+            if value is not None:
+                config_overrides.setdefault(name, value)
     try:
         config = config_from_openpi_shapes(shapes, **config_overrides)
         check_openpi_shapes(shapes, config)
@@ -483,8 +506,10 @@ def convert_openpi_checkpoint(
     norm_stats = _read_norm_stats(norm_stats_path) if norm_stats_path else None
     if norm_stats is None:
         logger.warning(f"no assets/<asset_id>/norm_stats.json in {checkpoint.step_dir}: the output has no norm stats")
+    if action_tokenizer is not None and not isinstance(config, PI0FastConfig):
+        raise ConversionError(f"--fast-tokenizer is for π0-FAST checkpoints; {checkpoint.params_dir} holds a π0/π0.5 model")
     tokenizer = _check_tokenizer(tokenizer)
-    processor = _build_processor(config, norm_stats, tokenizer, processor_options)
+    processor = _build_processor(config, norm_stats, tokenizer, processor_options, action_tokenizer)
     plan = planned_shapes(config)
     itemsize = torch.empty((), dtype=torch_dtype).element_size()
     _check_disk_space(output_dir, sum(math.prod(s) for s in plan.values()) * itemsize + _OpenpiLeafSource.spill_bytes(checkpoint))
@@ -505,7 +530,18 @@ def convert_openpi_checkpoint(
             raise ConversionError(f"checkpoint leaves not used by the conversion: {_names(unused)}")
         _save_config(config, torch_dtype, folder)
         _write_processor_files(folder, processor, norm_stats, tokenizer)
+        if processor is None and action_tokenizer is not None:
+            action_tokenizer.save_pretrained(folder / FAST_TOKENIZER_DIR)
     return ConversionResult(output_dir, config, torch_dtype, [output_dir / n for n in writer.filenames], writer.total_bytes, norm_stats_path)
+
+
+def _load_fast_tokenizer(folder: str | os.PathLike[str] | None) -> FASTActionTokenizer | None:
+    if folder is None:
+        return None
+    try:
+        return FASTActionTokenizer.from_pretrained(Path(folder).expanduser())
+    except (OSError, ValueError) as error:
+        raise ConversionError(f"unusable FAST tokenizer {folder}: {first_line(error)}") from None
 
 
 def _check_output(input_path: str | os.PathLike[str], output_dir: Path, overwrite: bool) -> None:
@@ -985,6 +1021,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--norm-stats", help="lerobot/transformers: an openpi norm_stats.json for the processor files (default for a LeRobot "
                         "folder: its policy_preprocessor_step_*_normalizer_processor.safetensors)")
     parser.add_argument("--tokenizer", help="PaliGemma SentencePiece model (e.g. paligemma_tokenizer.model) to save with the processor")
+    parser.add_argument("--fast-tokenizer", help="openpi π0-FAST: the FAST action tokenizer folder (physical-intelligence/fast "
+                        "layout), saved in the output's fast_tokenizer/")
+    parser.add_argument("--action-horizon", type=int, help="actions per chunk (not stored in the weights; π0-FAST DROID / "
+                        "LIBERO: 10; default: the FAST tokenizer's time_horizon, else the model's default)")
+    parser.add_argument("--action-dim", type=int, help="π0-FAST: action dims a FAST chunk decodes to (DROID 8, LIBERO 7; "
+                        "default: the FAST tokenizer's action_dim, else 32)")
+    parser.add_argument("--max-token-len", type=int, help="prompt length in tokens (π0-FAST LIBERO: 180; default: the model's)")
     parser.add_argument("--delta-action-mask", type=bool_mask, metavar="1,1,...,0", help="processor: action dims the "
                         "checkpoint predicts relative to the state (openpi's DeltaActions; ALOHA: 1,1,1,1,1,1,0,1,1,1,1,1,1,0)")
     parser.add_argument("--value-conversion", choices=sorted(CONVERSIONS), help="processor: the robot's value "
@@ -1017,14 +1060,18 @@ def run(args: argparse.Namespace) -> int:
         common = dict(dtype=args.dtype or "float32", tokenizer=args.tokenizer, overwrite=args.overwrite,
                       max_shard_bytes=args.max_shard_size, progress=not args.no_progress,
                       processor_options={k: v for k, v in options.items() if v is not None})
+        overrides = {name: getattr(args, name) for name in ("action_horizon", "action_dim", "max_token_len") if getattr(args, name) is not None}
         if args.source == "openpi":
             if args.norm_stats:
                 raise ConversionError("--norm-stats is for lerobot/transformers inputs; openpi's come from assets/ (--asset-id)")
-            result = convert_openpi_checkpoint(args.input, args.output_dir, asset_id=args.asset_id, **common, **overrides)
+            result = convert_openpi_checkpoint(args.input, args.output_dir, asset_id=args.asset_id, fast_tokenizer=args.fast_tokenizer,
+                                               **common, **overrides)
         elif args.source in ("lerobot", "transformers"):
             if args.asset_id:
                 raise ConversionError("--asset-id selects openpi assets; for lerobot/transformers use --norm-stats")
-            result = convert_hf_checkpoint(args.input, args.output_dir, norm_stats=args.norm_stats, **common)
+            if args.fast_tokenizer:
+                raise ConversionError("--fast-tokenizer is for openpi π0-FAST checkpoints")
+            result = convert_hf_checkpoint(args.input, args.output_dir, norm_stats=args.norm_stats, **common, **overrides)
         else:
             raise ConversionError("--from pi0-torch needs --to transformers")
     except (CheckpointError, OutputPathError, OSError) as error:

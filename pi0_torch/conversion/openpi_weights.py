@@ -26,6 +26,7 @@ import torch
 from torch import nn
 
 from pi0_torch.models.configuration_pi0 import PI0Config
+from pi0_torch.models.configuration_pi0_fast import PI0FastConfig
 
 # read(path, layer): the openpi array at `path` (without a trailing "/value"), or only its slice `[layer]`.
 LeafReader = Callable[[str, "int | None"], np.ndarray]
@@ -46,12 +47,10 @@ def _suffix(expert: int) -> str:
     return "" if expert == 0 else f"_{expert}"
 
 
-def expected_openpi_shapes(config: PI0Config) -> dict[str, tuple[int, ...]]:
-    """Every openpi leaf path (without '/value') a checkpoint of `config` holds, with its shape."""
+def vision_openpi_shapes(config: Any, width: int) -> dict[str, tuple[int, ...]]:
+    """The SigLIP leaves (tower and head to the Gemma `width`) of a π0 / π0.5 / π0-FAST `config`, with their shapes."""
     W, M, Lv, heads = config.vision_hidden_size, config.vision_intermediate_size, config.vision_num_layers, config.vision_num_heads
     p, tokens = config.patch_size, config.tokens_per_image
-    L, N, K, H = config.num_hidden_layers, config.num_attention_heads, config.num_key_value_heads, config.head_dim
-    D0, D1 = config.vlm_hidden_size, config.expert_hidden_size
     hd = W // heads
     shapes: dict[str, tuple[int, ...]] = {
         f"{_IMG}/embedding/kernel": (p, p, 3, W),
@@ -59,9 +58,8 @@ def expected_openpi_shapes(config: PI0Config) -> dict[str, tuple[int, ...]]:
         f"{_IMG}/pos_embedding": (1, tokens, W),
         f"{_IMG}/Transformer/encoder_norm/scale": (W,),
         f"{_IMG}/Transformer/encoder_norm/bias": (W,),
-        f"{_IMG}/head/kernel": (W, D0),
-        f"{_IMG}/head/bias": (D0,),
-        f"{_LLM}/embedder/input_embedding": (config.vocab_size, D0),
+        f"{_IMG}/head/kernel": (W, width),
+        f"{_IMG}/head/bias": (width,),
         f"{_BLOCK}/MlpBlock_0/Dense_0/kernel": (Lv, W, M),
         f"{_BLOCK}/MlpBlock_0/Dense_0/bias": (Lv, M),
         f"{_BLOCK}/MlpBlock_0/Dense_1/kernel": (Lv, M, W),
@@ -75,15 +73,33 @@ def expected_openpi_shapes(config: PI0Config) -> dict[str, tuple[int, ...]]:
     for projection in ("query", "key", "value"):
         shapes[f"{_ATTN}/{projection}/kernel"] = (Lv, W, heads, hd)
         shapes[f"{_ATTN}/{projection}/bias"] = (Lv, heads, hd)
+    return shapes
+
+
+def gemma_layers_openpi_shapes(config: Any, expert: int, width: int, mlp_width: int) -> dict[str, tuple[int, ...]]:
+    """The stacked attention and MLP leaves of one Gemma expert (0: the VLM / π0-FAST's only one), with their shapes."""
+    L, N, K, H = config.num_hidden_layers, config.num_attention_heads, config.num_key_value_heads, config.head_dim
+    s, D, F = _suffix(expert), width, mlp_width
+    return {
+        f"{_LLM}/layers/attn/q_einsum{s}/w": (L, N, D, H),
+        f"{_LLM}/layers/attn/kv_einsum{s}/w": (L, 2, K, D, H),
+        f"{_LLM}/layers/attn/attn_vec_einsum{s}/w": (L, N, H, D),
+        f"{_LLM}/layers/mlp{s}/gating_einsum": (L, 2, D, F),
+        f"{_LLM}/layers/mlp{s}/linear": (L, F, D),
+    }
+
+
+def expected_openpi_shapes(config: PI0Config) -> dict[str, tuple[int, ...]]:
+    """Every openpi leaf path (without '/value') a checkpoint of `config` holds, with its shape."""
+    L = config.num_hidden_layers
+    D0, D1 = config.vlm_hidden_size, config.expert_hidden_size
+    shapes = vision_openpi_shapes(config, D0)
+    shapes[f"{_LLM}/embedder/input_embedding"] = (config.vocab_size, D0)
     for expert, (D, F) in enumerate(
         [(D0, config.vlm_intermediate_size), (D1, config.expert_intermediate_size)]
     ):
         s = _suffix(expert)
-        shapes[f"{_LLM}/layers/attn/q_einsum{s}/w"] = (L, N, D, H)
-        shapes[f"{_LLM}/layers/attn/kv_einsum{s}/w"] = (L, 2, K, D, H)
-        shapes[f"{_LLM}/layers/attn/attn_vec_einsum{s}/w"] = (L, N, H, D)
-        shapes[f"{_LLM}/layers/mlp{s}/gating_einsum"] = (L, 2, D, F)
-        shapes[f"{_LLM}/layers/mlp{s}/linear"] = (L, F, D)
+        shapes.update(gemma_layers_openpi_shapes(config, expert, D, F))
         adaptive = expert == 1 and config.pi05
         for norm in ("pre_attention_norm", "pre_ffw_norm"):
             if adaptive:
@@ -108,13 +124,24 @@ def expected_openpi_shapes(config: PI0Config) -> dict[str, tuple[int, ...]]:
     return shapes
 
 
-def config_from_openpi_shapes(shapes: Mapping[str, tuple[int, ...]], **overrides: Any) -> PI0Config:
-    """Infer π0 vs π0.5 and every dimension from the leaf shapes of an openpi checkpoint.
+def is_openpi_fast_tree(shapes: Mapping[str, tuple[int, ...]]) -> bool:
+    """Whether openpi leaf paths are a π0-FAST tree: PaliGemma's one Gemma, no action expert and no action heads."""
+    paths = {strip_value_suffix(k) for k in shapes}
+    return f"{_LLM}/layers/attn/q_einsum/w" in paths and not {f"{_LLM}/layers/attn/q_einsum_1/w", "action_in_proj/kernel"} & paths
+
+
+def config_from_openpi_shapes(shapes: Mapping[str, tuple[int, ...]], **overrides: Any) -> PI0Config | PI0FastConfig:
+    """Infer π0 vs π0.5 vs π0-FAST and every dimension from the leaf shapes of an openpi checkpoint.
 
     `action_horizon`, `max_token_len` and camera names are not stored in the weights: they keep the π0/π0.5
     defaults unless given in `overrides`. Raises `ValueError` when the tree is not a π0/π0.5 parameter tree.
+    A π0-FAST tree gives a `PI0FastConfig` (see `pi0_torch.conversion.openpi_fast_weights`).
     """
     shapes = {strip_value_suffix(k): tuple(v) for k, v in shapes.items()}
+    if is_openpi_fast_tree(shapes) and f"{_IMG}/embedding/kernel" in shapes:
+        from pi0_torch.conversion.openpi_fast_weights import config_from_openpi_fast_shapes
+
+        return config_from_openpi_fast_shapes(shapes, **overrides)
     required = [f"{_IMG}/embedding/kernel", f"{_IMG}/pos_embedding", f"{_LLM}/layers/attn/q_einsum/w", "action_in_proj/kernel"]
     missing = [path for path in required if path not in shapes]
     if missing:
@@ -145,10 +172,15 @@ def config_from_openpi_shapes(shapes: Mapping[str, tuple[int, ...]], **overrides
     return PI0Config(**{**inferred, **overrides})
 
 
-def check_openpi_shapes(shapes: Mapping[str, tuple[int, ...]], config: PI0Config) -> None:
+def check_openpi_shapes(shapes: Mapping[str, tuple[int, ...]], config: PI0Config | PI0FastConfig) -> None:
     """Raise `ValueError` naming every missing, unexpected or mis-shaped leaf."""
     shapes = {strip_value_suffix(k): tuple(v) for k, v in shapes.items()}
-    expected = expected_openpi_shapes(config)
+    if isinstance(config, PI0FastConfig):
+        from pi0_torch.conversion.openpi_fast_weights import expected_openpi_fast_shapes
+
+        expected = expected_openpi_fast_shapes(config)
+    else:
+        expected = expected_openpi_shapes(config)
     missing = sorted(set(expected) - set(shapes))
     unexpected = sorted(set(shapes) - set(expected))
     misshaped = sorted(f"{p} {shapes[p]} (expected {expected[p]})" for p in set(expected) & set(shapes) if shapes[p] != expected[p])
@@ -161,18 +193,14 @@ def _t(array: np.ndarray) -> torch.Tensor:
     return torch.from_numpy(np.ascontiguousarray(array))
 
 
-def iter_openpi_state_dict(read: LeafReader, config: PI0Config) -> Iterator[tuple[str, torch.Tensor]]:
-    """Yield `(our_name, tensor)` for every parameter of `PI0ForActionGeneration(config)`.
+def _linear(kernel: np.ndarray) -> torch.Tensor:  # (in, out) -> (out, in)
+    return _t(kernel.T)
 
-    Reads stacked leaves one layer at a time through `read(path, layer)`, so at most one layer's worth of arrays is
-    alive at once. Tensors keep the dtype `read` returns.
-    """
+
+def iter_openpi_vision_state_dict(read: LeafReader, config: Any) -> Iterator[tuple[str, torch.Tensor]]:
+    """Yield `(our_name, tensor)` for the SigLIP tower (`vision_tower.*`) and its head (`image_projection.*`) of a
+    π0 / π0.5 / π0-FAST `config`, one layer at a time."""
     W = config.vision_hidden_size
-    N, K, H = config.num_attention_heads, config.num_key_value_heads, config.head_dim
-
-    def linear(kernel: np.ndarray) -> torch.Tensor:  # (in, out) -> (out, in)
-        return _t(kernel.T)
-
     yield f"{_VISION}.embeddings.patch_embedding.weight", _t(read(f"{_IMG}/embedding/kernel", None).transpose(3, 2, 0, 1))
     yield f"{_VISION}.embeddings.patch_embedding.bias", _t(read(f"{_IMG}/embedding/bias", None))
     yield f"{_VISION}.embeddings.position_embedding.weight", _t(read(f"{_IMG}/pos_embedding", None)[0])
@@ -182,42 +210,65 @@ def iter_openpi_state_dict(read: LeafReader, config: PI0Config) -> Iterator[tupl
             yield f"{prefix}.{ours}.weight", _t(read(f"{_BLOCK}/{theirs}/scale", i))
             yield f"{prefix}.{ours}.bias", _t(read(f"{_BLOCK}/{theirs}/bias", i))
         for ours, theirs in (("q_proj", "query"), ("k_proj", "key"), ("v_proj", "value")):
-            yield f"{prefix}.self_attn.{ours}.weight", linear(read(f"{_ATTN}/{theirs}/kernel", i).reshape(W, -1))
+            yield f"{prefix}.self_attn.{ours}.weight", _linear(read(f"{_ATTN}/{theirs}/kernel", i).reshape(W, -1))
             yield f"{prefix}.self_attn.{ours}.bias", _t(read(f"{_ATTN}/{theirs}/bias", i).reshape(-1))
-        yield f"{prefix}.self_attn.out_proj.weight", linear(read(f"{_ATTN}/out/kernel", i).reshape(-1, W))
+        yield f"{prefix}.self_attn.out_proj.weight", _linear(read(f"{_ATTN}/out/kernel", i).reshape(-1, W))
         yield f"{prefix}.self_attn.out_proj.bias", _t(read(f"{_ATTN}/out/bias", i))
         for ours, theirs in (("fc1", "Dense_0"), ("fc2", "Dense_1")):
-            yield f"{prefix}.mlp.{ours}.weight", linear(read(f"{_BLOCK}/MlpBlock_0/{theirs}/kernel", i))
+            yield f"{prefix}.mlp.{ours}.weight", _linear(read(f"{_BLOCK}/MlpBlock_0/{theirs}/kernel", i))
             yield f"{prefix}.mlp.{ours}.bias", _t(read(f"{_BLOCK}/MlpBlock_0/{theirs}/bias", i))
     yield f"{_VISION}.post_layernorm.weight", _t(read(f"{_IMG}/Transformer/encoder_norm/scale", None))
     yield f"{_VISION}.post_layernorm.bias", _t(read(f"{_IMG}/Transformer/encoder_norm/bias", None))
-    yield "image_projection.weight", linear(read(f"{_IMG}/head/kernel", None))
+    yield "image_projection.weight", _linear(read(f"{_IMG}/head/kernel", None))
     yield "image_projection.bias", _t(read(f"{_IMG}/head/bias", None))
+
+
+def iter_openpi_layer_weights(read: LeafReader, config: Any, layer: int, expert: int, prefix: str) -> Iterator[tuple[str, torch.Tensor]]:
+    """Yield the attention and MLP weights of one Gemma expert's `layer` as `ExpertLayer` names under `prefix`
+    (q/k/v and gate/up fused); its norms are left to the caller."""
+    N, K, H = config.num_attention_heads, config.num_key_value_heads, config.head_dim
+    s = _suffix(expert)
+    q = read(f"{_LLM}/layers/attn/q_einsum{s}/w", layer)  # (N, D, H)
+    kv = read(f"{_LLM}/layers/attn/kv_einsum{s}/w", layer)  # (2, K, D, H)
+    D = q.shape[1]
+    q_rows = q.transpose(0, 2, 1).reshape(N * H, D)
+    k_rows, v_rows = (kv[j].transpose(0, 2, 1).reshape(K * H, D) for j in (0, 1))
+    yield f"{prefix}.qkv_proj.weight", _t(np.concatenate([q_rows, k_rows, v_rows]))
+    # attn_vec_einsum (N, H, D): head-major rows, then (out, in)
+    yield f"{prefix}.o_proj.weight", _linear(read(f"{_LLM}/layers/attn/attn_vec_einsum{s}/w", layer).reshape(N * H, D))
+    gating = read(f"{_LLM}/layers/mlp{s}/gating_einsum", layer)  # (2, D, F): [0] gate (GELU), [1] up
+    yield f"{prefix}.gate_up_proj.weight", _t(np.concatenate([gating[0].T, gating[1].T]))
+    yield f"{prefix}.down_proj.weight", _linear(read(f"{_LLM}/layers/mlp{s}/linear", layer))
+
+
+def iter_openpi_state_dict(read: LeafReader, config: PI0Config | PI0FastConfig) -> Iterator[tuple[str, torch.Tensor]]:
+    """Yield `(our_name, tensor)` for every parameter of `PI0ForActionGeneration(config)` (or, for a
+    `PI0FastConfig`, of `PI0FastForActionGeneration(config)`).
+
+    Reads stacked leaves one layer at a time through `read(path, layer)`, so at most one layer's worth of arrays is
+    alive at once. Tensors keep the dtype `read` returns.
+    """
+    if isinstance(config, PI0FastConfig):
+        from pi0_torch.conversion.openpi_fast_weights import iter_openpi_fast_state_dict
+
+        yield from iter_openpi_fast_state_dict(read, config)
+        return
+    yield from iter_openpi_vision_state_dict(read, config)
     yield "embed_tokens.weight", _t(read(f"{_LLM}/embedder/input_embedding", None))
 
     for i in range(config.num_hidden_layers):
         for expert, name in enumerate(("vlm", "expert")):
             s, prefix = _suffix(expert), f"layers.{i}.{name}"
-            q = read(f"{_LLM}/layers/attn/q_einsum{s}/w", i)  # (N, D, H)
-            kv = read(f"{_LLM}/layers/attn/kv_einsum{s}/w", i)  # (2, K, D, H)
-            D = q.shape[1]
-            q_rows = q.transpose(0, 2, 1).reshape(N * H, D)
-            k_rows, v_rows = (kv[j].transpose(0, 2, 1).reshape(K * H, D) for j in (0, 1))
-            yield f"{prefix}.qkv_proj.weight", _t(np.concatenate([q_rows, k_rows, v_rows]))
-            # attn_vec_einsum (N, H, D): head-major rows, then (out, in)
-            yield f"{prefix}.o_proj.weight", linear(read(f"{_LLM}/layers/attn/attn_vec_einsum{s}/w", i).reshape(N * H, D))
-            gating = read(f"{_LLM}/layers/mlp{s}/gating_einsum", i)  # (2, D, F): [0] gate (GELU), [1] up
-            yield f"{prefix}.gate_up_proj.weight", _t(np.concatenate([gating[0].T, gating[1].T]))
-            yield f"{prefix}.down_proj.weight", linear(read(f"{_LLM}/layers/mlp{s}/linear", i))
+            yield from iter_openpi_layer_weights(read, config, i, expert, prefix)
             for ours, theirs in (("attn_norm", "pre_attention_norm"), ("mlp_norm", "pre_ffw_norm")):
                 if expert == 1 and config.pi05:
-                    yield f"{prefix}.{ours}.modulation.weight", linear(read(f"{_LLM}/layers/{theirs}{s}/Dense_0/kernel", i))
+                    yield f"{prefix}.{ours}.modulation.weight", _linear(read(f"{_LLM}/layers/{theirs}{s}/Dense_0/kernel", i))
                     yield f"{prefix}.{ours}.modulation.bias", _t(read(f"{_LLM}/layers/{theirs}{s}/Dense_0/bias", i))
                 else:
                     yield f"{prefix}.{ours}.weight", _t(read(f"{_LLM}/layers/{theirs}{s}/scale", i))
     yield "vlm_final_norm.weight", _t(read(f"{_LLM}/final_norm/scale", None))
     if config.pi05:
-        yield "expert_final_norm.modulation.weight", linear(read(f"{_LLM}/final_norm_1/Dense_0/kernel", None))
+        yield "expert_final_norm.modulation.weight", _linear(read(f"{_LLM}/final_norm_1/Dense_0/kernel", None))
         yield "expert_final_norm.modulation.bias", _t(read(f"{_LLM}/final_norm_1/Dense_0/bias", None))
     else:
         yield "expert_final_norm.weight", _t(read(f"{_LLM}/final_norm_1/scale", None))
@@ -225,7 +276,7 @@ def iter_openpi_state_dict(read: LeafReader, config: PI0Config) -> Iterator[tupl
     head_names = ["action_in_proj", "action_out_proj"]
     head_names += ["time_mlp_in", "time_mlp_out"] if config.pi05 else ["state_proj", "action_time_mlp_in", "action_time_mlp_out"]
     for name in head_names:
-        yield f"{name}.weight", linear(read(f"{name}/kernel", None))
+        yield f"{name}.weight", _linear(read(f"{name}/kernel", None))
         yield f"{name}.bias", _t(read(f"{name}/bias", None))
 
 
@@ -236,7 +287,7 @@ def load_openpi_params(model: nn.Module, arrays: Mapping[str, np.ndarray]) -> No
     otherwise `ValueError` names the offending leaves and nothing is loaded.
     """
     arrays = {strip_value_suffix(k): v for k, v in arrays.items()}
-    config: PI0Config = model.config  # type: ignore[assignment]
+    config: PI0Config | PI0FastConfig = model.config  # type: ignore[assignment]
     check_openpi_shapes({k: v.shape for k, v in arrays.items()}, config)
 
     def read(path: str, layer: int | None) -> np.ndarray:

@@ -335,7 +335,51 @@ def _is_inside_vision_tower(model: nn.Module, module: nn.Module) -> bool:
     return vision_tower is not None and any(module is m for m in vision_tower.modules())
 
 
-class PI0ForActionGeneration(PI0PreTrainedModel):
+def siglip_vision_tower(config: Any) -> SiglipVisionModel:
+    """The SigLIP tower of π0, π0.5 and π0-FAST from a config's `vision_*` dims, `image_size` and `patch_size`:
+    pre-LN blocks with tanh GELU, LayerNorm eps 1e-6, no pooling head (openpi's `pool_type="none"`)."""
+    vision_config = SiglipVisionConfig(
+        hidden_size=config.vision_hidden_size,
+        intermediate_size=config.vision_intermediate_size,
+        num_hidden_layers=config.vision_num_layers,
+        num_attention_heads=config.vision_num_heads,
+        image_size=config.image_size,
+        patch_size=config.patch_size,
+        hidden_act="gelu_pytorch_tanh",
+        layer_norm_eps=1e-6,
+        vision_use_head=False,
+        attn_implementation="sdpa",
+    )
+    return SiglipVisionModel(vision_config)
+
+
+class SiglipImageEmbedding:
+    """Image tokens of the PaliGemma models (π0 / π0.5 and π0-FAST): `self.vision_tower` (`siglip_vision_tower`)
+    followed by the linear head `self.image_projection` to the Gemma width."""
+
+    def embed_images(self, pixel_values: torch.Tensor, image_masks: torch.Tensor | None = None) -> torch.Tensor:
+        """SigLIP + linear head: `[B, C, 3, H, W]` in [-1, 1] -> image tokens `[B, C, tokens_per_image, D0]`.
+
+        With `image_masks` (eager mode only), masked cameras skip the vision tower and get zero tokens: no valid
+        token ever attends to them, so the result is unchanged.
+        """
+        batch, cameras = pixel_values.shape[:2]
+        images = pixel_values.flatten(0, 1).to(self.image_projection.weight.dtype)  # [B*C, 3, H, W]
+        if image_masks is not None and not torch.compiler.is_compiling():
+            keep = image_masks.flatten().bool()
+            if not keep.all() and keep.any():
+                encoded = self._encode_images(images[keep])  # dtype as the tower runs (autocast may change it)
+                tokens = encoded.new_zeros(batch * cameras, *encoded.shape[1:])
+                tokens[keep] = encoded
+                return tokens.unflatten(0, (batch, cameras))
+        return self._encode_images(images).unflatten(0, (batch, cameras))
+
+    def _encode_images(self, images: torch.Tensor) -> torch.Tensor:
+        """`[n, 3, H, W]` -> `[n, tokens_per_image, D0]`."""
+        return self.image_projection(self.vision_tower(pixel_values=images).last_hidden_state)
+
+
+class PI0ForActionGeneration(SiglipImageEmbedding, PI0PreTrainedModel):
     """π0 / π0.5: SigLIP vision tower + VLM Gemma (expert 0) + action expert Gemma (expert 1) + action heads.
 
     ```python
@@ -360,19 +404,7 @@ class PI0ForActionGeneration(PI0PreTrainedModel):
 
     def __init__(self, config: PI0Config) -> None:
         super().__init__(config)
-        vision_config = SiglipVisionConfig(
-            hidden_size=config.vision_hidden_size,
-            intermediate_size=config.vision_intermediate_size,
-            num_hidden_layers=config.vision_num_layers,
-            num_attention_heads=config.vision_num_heads,
-            image_size=config.image_size,
-            patch_size=config.patch_size,
-            hidden_act="gelu_pytorch_tanh",
-            layer_norm_eps=1e-6,
-            vision_use_head=False,
-            attn_implementation="sdpa",
-        )
-        self.vision_tower = SiglipVisionModel(vision_config)
+        self.vision_tower = siglip_vision_tower(config)
         self.image_projection = nn.Linear(config.vision_hidden_size, config.vlm_hidden_size)
         self.embed_tokens = nn.Embedding(config.vocab_size, config.vlm_hidden_size)
         self.layers = nn.ModuleList(JointDecoderLayer(config) for _ in range(config.num_hidden_layers))
@@ -392,27 +424,6 @@ class PI0ForActionGeneration(PI0PreTrainedModel):
         self.post_init()
 
     # -- prefix: images and text ---------------------------------------------------------------------------------------
-
-    def embed_images(self, pixel_values: torch.Tensor, image_masks: torch.Tensor | None = None) -> torch.Tensor:
-        """SigLIP + linear head: `[B, C, 3, H, W]` in [-1, 1] -> image tokens `[B, C, tokens_per_image, D0]`.
-
-        With `image_masks` (eager mode only), masked cameras skip the vision tower and get zero tokens: no valid
-        token ever attends to them, so the result is unchanged.
-        """
-        batch, cameras = pixel_values.shape[:2]
-        images = pixel_values.flatten(0, 1).to(self.image_projection.weight.dtype)  # [B*C, 3, H, W]
-        if image_masks is not None and not torch.compiler.is_compiling():
-            keep = image_masks.flatten().bool()
-            if not keep.all() and keep.any():
-                encoded = self._encode_images(images[keep])  # dtype as the tower runs (autocast may change it)
-                tokens = encoded.new_zeros(batch * cameras, *encoded.shape[1:])
-                tokens[keep] = encoded
-                return tokens.unflatten(0, (batch, cameras))
-        return self._encode_images(images).unflatten(0, (batch, cameras))
-
-    def _encode_images(self, images: torch.Tensor) -> torch.Tensor:
-        """`[n, 3, H, W]` -> `[n, tokens_per_image, D0]`."""
-        return self.image_projection(self.vision_tower(pixel_values=images).last_hidden_state)
 
     def embed_prefix(
         self, pixel_values: torch.Tensor, image_masks: torch.Tensor, input_ids: torch.Tensor, attention_mask: torch.Tensor

@@ -429,11 +429,7 @@ class PI0Processor:
         normalized_state = self._normalize(state, self._state_stats)
         check_finite(f"{where}state (normalized)", normalized_state)
 
-        prompt = sample.get("prompt")
-        if prompt is None:
-            if self.default_prompt is None:
-                raise ValueError(f"{where}prompt: required (a task instruction string); no default_prompt is set")
-            prompt = self.default_prompt
+        prompt = self._prompt(sample, where)
         try:
             input_ids, attention_mask = self.tokenizer.tokenize(
                 prompt, self.max_token_len, normalized_state if self.pi05 else None, self.truncation
@@ -451,6 +447,15 @@ class PI0Processor:
         if sample.get("actions") is not None:
             encoded["actions"] = self._encode_actions(sample["actions"], state, where)
         return encoded
+
+    def _prompt(self, sample: Mapping[str, Any], where: str) -> str:
+        """The observation's prompt, or the processor's `default_prompt` when it has none."""
+        prompt = sample.get("prompt")
+        if prompt is None:
+            if self.default_prompt is None:
+                raise ValueError(f"{where}prompt: required (a task instruction string); no default_prompt is set")
+            prompt = self.default_prompt
+        return prompt
 
     def _encode_images(self, images: Any, where: str) -> tuple[np.ndarray, np.ndarray]:
         if images is None:

@@ -74,11 +74,11 @@ class PromptTokenizer:
     def __init__(self, backend: sentencepiece.SentencePieceProcessor | PreTrainedTokenizerBase) -> None:
         if isinstance(backend, sentencepiece.SentencePieceProcessor):
             self.kind = "sentencepiece"
-            bos, pad = backend.bos_id(), backend.pad_id()
+            bos, pad, eos = backend.bos_id(), backend.pad_id(), backend.eos_id()
             self.vocab_size = int(backend.get_piece_size())
         elif isinstance(backend, PreTrainedTokenizerBase):
             self.kind = "transformers"
-            bos, pad = backend.bos_token_id, backend.pad_token_id
+            bos, pad, eos = backend.bos_token_id, backend.pad_token_id, backend.eos_token_id
             self.vocab_size = len(backend)
         else:
             raise TypeError(
@@ -90,6 +90,7 @@ class PromptTokenizer:
         self.backend = backend
         self.bos_id = int(bos)
         self.pad_id = int(pad) if pad is not None and pad >= 0 else 0  # openpi pads with 0
+        self.eos_id = int(eos) if eos is not None and eos >= 0 else None  # ends π0-FAST's action postfix
 
     def encode(self, text: str, add_bos: bool = False) -> list[int]:
         if self.kind == "sentencepiece":

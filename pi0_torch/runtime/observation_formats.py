@@ -77,7 +77,8 @@ class ObservationFormat:
 
     @classmethod
     def from_preset(cls, name: str) -> ObservationFormat:
-        """A built-in layout: `default`, `libero`, `droid` or `aloha` (openpi's example clients)."""
+        """A built-in layout: `default`, `libero`, `droid` or `aloha` (openpi's example clients), or for π0-FAST's
+        cameras `libero_fast`, `droid_fast`, `aloha_fast`."""
         if name not in PRESETS:
             raise ValueError(f"unknown observation format {name!r}; expected one of {', '.join(PRESETS)} or a .json path")
         return PRESETS[name]
@@ -270,6 +271,28 @@ PRESETS: dict[str, ObservationFormat] = {
             "right_wrist_0_rgb": ("images", "cam_right_wrist"),
         },
         optional_images=frozenset({"left_wrist_0_rgb", "right_wrist_0_rgb"}),
+        state=("state",),
+    ),
+    # π0-FAST's cameras (openpi's *Inputs for ModelType.PI0_FAST): a single arm's wrist is wrist_0_rgb; ALOHA's left
+    # wrist is base_1_rgb and its right wrist wrist_0_rgb
+    "libero_fast": ObservationFormat(
+        name="libero_fast",
+        images={"base_0_rgb": "observation/image", "wrist_0_rgb": "observation/wrist_image"},
+        state=("observation/state",),
+    ),
+    "droid_fast": ObservationFormat(
+        name="droid_fast",
+        images={"base_0_rgb": "observation/exterior_image_1_left", "wrist_0_rgb": "observation/wrist_image_left"},
+        state=("observation/joint_position", "observation/gripper_position"),
+    ),
+    "aloha_fast": ObservationFormat(
+        name="aloha_fast",
+        images={
+            "base_0_rgb": ("images", "cam_high"),
+            "base_1_rgb": ("images", "cam_left_wrist"),
+            "wrist_0_rgb": ("images", "cam_right_wrist"),
+        },
+        optional_images=frozenset({"base_1_rgb", "wrist_0_rgb"}),
         state=("state",),
     ),
     # Gymnasium simulators of LeRobot (`pi0-torch eval --env ...`): gym_pusht with obs_type "pixels_agent_pos", and

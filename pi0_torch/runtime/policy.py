@@ -26,10 +26,11 @@ This is the object a policy server wraps, and the shortest way to run a saved mo
 from __future__ import annotations
 
 import dataclasses
+import json
 import time
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
@@ -37,7 +38,7 @@ import torch
 from pi0_torch import __version__
 from pi0_torch.models.modeling_pi0 import PI0ForActionGeneration
 from pi0_torch.models.rtc import DEFAULT_MAX_GUIDANCE, METHODS
-from pi0_torch.runtime.observation_formats import ObservationError
+from pi0_torch.runtime.observation_formats import CHUNK_FIELDS, ObservationError
 from pi0_torch.processing.processing_pi0 import PI0Processor
 
 _DTYPES = {"float32": torch.float32, "bfloat16": torch.bfloat16}
@@ -65,6 +66,7 @@ class PreparedObservation:
 
 class PI0Policy:
     """[`PI0ForActionGeneration`] + [`PI0Processor`] behind openpi's policy interface (`infer(obs) -> dict`).
+    (`from_pretrained` of a π0-FAST folder gives its sibling [`pi0_torch.runtime.policy_fast.PI0FastPolicy`].)
 
     Observations use the default layout `{"images": {camera_name: frame}, "state": [...], "prompt": str}` (see
     [`pi0_torch.runtime.observation_formats`] for other layouts). `infer` returns `{"actions": float32 [action_horizon,
@@ -92,6 +94,11 @@ class PI0Policy:
             graph on CUDA. The first chunk of each batch size compiles (tens of seconds): call [`warmup`] first.
     """
 
+    model_class: Any = PI0ForActionGeneration
+    processor_class: Any = PI0Processor
+
+    continues_chunks: ClassVar[bool] = True  # real-time chunking requests (see the class docstring)
+
     def __init__(
         self,
         model: PI0ForActionGeneration,
@@ -103,7 +110,7 @@ class PI0Policy:
         rtc_max_guidance: float = DEFAULT_MAX_GUIDANCE,
     ) -> None:
         self.model = model.eval()
-        self.rtc_method = rtc_method or ("conditioning" if model.config.rtc_max_delay > 0 else "guidance")
+        self.rtc_method = rtc_method or ("conditioning" if getattr(model.config, "rtc_max_delay", 0) > 0 else "guidance")
         if self.rtc_method not in METHODS:
             raise ValueError(f"rtc_method must be one of {METHODS}, got {self.rtc_method!r}")
         self.rtc_max_guidance = rtc_max_guidance
@@ -147,10 +154,12 @@ class PI0Policy:
             if dtype not in _DTYPES:
                 raise ValueError(f"dtype must be one of {', '.join(_DTYPES)}, got {dtype!r}")
             dtype = _DTYPES[dtype]
-        model = PI0ForActionGeneration.from_pretrained(directory, dtype=dtype).to(device)
+        policy_class = _policy_class(directory) if cls is PI0Policy else cls
+        model = policy_class.model_class.from_pretrained(directory, dtype=dtype).to(device)
         overrides = {"default_prompt": default_prompt} if default_prompt is not None else {}
-        processor = PI0Processor.from_pretrained(directory, **overrides)
-        return cls(model, processor, num_steps=num_steps, seed=seed, compile=compile, rtc_method=rtc_method)
+        processor = policy_class.processor_class.from_pretrained(directory, **overrides)
+        options = {"rtc_method": rtc_method} if policy_class.continues_chunks else {}
+        return policy_class(model, processor, num_steps=num_steps, seed=seed, compile=compile, **options)
 
     @property
     def camera_names(self) -> list[str]:
@@ -162,7 +171,7 @@ class PI0Policy:
         config = self.model.config
         return {
             "policy": f"pi0-torch {__version__}",
-            "model_type": "pi05" if config.pi05 else "pi0",
+            "model_type": self.model_type,
             "camera_names": self.camera_names,
             "state_dim": self.processor.state_dim,
             "action_dim": self.processor.action_dim_robot,
@@ -172,7 +181,7 @@ class PI0Policy:
             "device": str(self.device),
             "dtype": str(self.model.dtype).removeprefix("torch."),
             "real_time_chunking": {"methods": list(METHODS), "default_method": self.rtc_method,
-                                   "rtc_max_delay": config.rtc_max_delay},
+                                   "rtc_max_delay": config.rtc_max_delay} if self.continues_chunks else None,
         }
 
     def prepare(self, observation: Mapping[str, Any]) -> PreparedObservation:
@@ -189,6 +198,10 @@ class PI0Policy:
                                    f"got {list(np.shape(state))}")
         sample = {"images": observation.get("images"), "state": state, "prompt": observation.get("prompt")}
         previous = observation.get("previous_actions")
+        chunk_fields = [name for name in CHUNK_FIELDS if name != "noise_seed" and observation.get(name) is not None]
+        if chunk_fields and not self.continues_chunks:
+            raise ObservationError(f"{', '.join(chunk_fields)}: this {self.model_type} policy decodes tokens; it does "
+                                   "not continue chunks")
         if previous is not None:  # into this observation's model space (delta actions relative to its state)
             sample["actions"] = previous
         try:
@@ -240,17 +253,17 @@ class PI0Policy:
         ]
 
     def _generate(self, prepared: Sequence[PreparedObservation], method: str | None) -> np.ndarray:
-        """One `generate_actions` call for observations sampled alike (plain, or continued with `method`)."""
+        """One model call for observations sampled alike (plain, or continued with `method`)."""
         batch = {name: torch.cat([p.inputs[name] for p in prepared]).to(self.device) for name in prepared[0].inputs}
         config = self.model.config
-        options: dict[str, Any] = {"generator": self.generator}
-        if any(p.noise_seed is not None for p in prepared):
+        options: dict[str, Any] = {}
+        if self.continues_chunks and any(p.noise_seed is not None for p in prepared):  # (FAST decodes greedily)
             shape = (1, config.action_horizon, config.action_dim)
-            options = {"noise": torch.cat([
+            options["noise"] = torch.cat([
                 torch.randn(shape, generator=torch.Generator().manual_seed(p.noise_seed)).to(self.device)
                 if p.noise_seed is not None else torch.randn(shape, generator=self.generator, device=self.device)
                 for p in prepared
-            ])}
+            ])
         if method is not None:
             continuations = [p.continuation for p in prepared]
             options.update(
@@ -260,8 +273,26 @@ class PI0Policy:
                 rtc_method=method,
                 rtc_max_guidance=self.rtc_max_guidance,
             )
-        actions = self.model.generate_actions(**batch, num_steps=self.num_steps, **options)
-        return actions.float().cpu().numpy()  # waits for the device
+        return self.model_actions(batch, **options)
+
+    def model_actions(self, batch: Mapping[str, torch.Tensor], warmup: bool = False, **options: Any) -> np.ndarray:
+        """Model-space action chunks `[B, horizon, action_dim]` (float32 numpy) for a batch of model inputs.
+        `options` go to `generate_actions` (`noise`, real-time chunking); without `noise` the policy's seeded
+        generator draws it, which a warm-up run leaves untouched."""
+        if warmup:
+            config = self.model.config
+            options = {"noise": torch.zeros(len(batch["input_ids"]), config.action_horizon, config.action_dim, device=self.device)}
+        elif "noise" not in options:
+            options["generator"] = self.generator
+        return self.model.generate_actions(**batch, num_steps=self.num_steps, **options).float().cpu().numpy()
+
+    @property
+    def compiled(self) -> bool:
+        return self.model.sampling_compiled
+
+    @property
+    def model_type(self) -> str:
+        return "pi05" if self.model.config.pi05 else "pi0"
 
     @torch.inference_mode()
     def warmup(self, max_batch_size: int = 1) -> float:
@@ -277,11 +308,9 @@ class PI0Policy:
             "prompt": self.processor.default_prompt or "warm-up",
         }
         one = {name: tensor.to(self.device) for name, tensor in self.prepare(blank).inputs.items()}
-        config = self.model.config
-        for batch in range(1, (max_batch_size if self.model.sampling_compiled else 1) + 1):
+        for batch in range(1, (max_batch_size if self.compiled else 1) + 1):
             inputs = {name: torch.cat([tensor] * batch) for name, tensor in one.items()}  # laid out as real batches
-            noise = torch.zeros(batch, config.action_horizon, config.action_dim, device=self.device)
-            self.model.generate_actions(**inputs, noise=noise, num_steps=self.num_steps).cpu()
+            self.model_actions(inputs, warmup=True)
         return time.monotonic() - start
 
     def infer(self, observation: Mapping[str, Any]) -> dict[str, Any]:
@@ -298,3 +327,15 @@ def _step_count(value: Any, name: str, low: int, high: int) -> int:
     if not low <= int(value) <= high:
         raise ObservationError(f"{name}: expected an integer in [{low}, {high}], got {int(value)}")
     return int(value)
+
+
+def _policy_class(directory: str | Path) -> type[PI0Policy]:
+    """The policy for the model saved in `directory`, from its `config.json` (π0 / π0.5, or π0-FAST)."""
+    from pi0_torch.models.configuration_pi0_fast import PI0FastConfig
+
+    config_path = Path(directory) / "config.json"
+    if config_path.is_file() and json.loads(config_path.read_text()).get("model_type") == PI0FastConfig.model_type:
+        from pi0_torch.runtime.policy_fast import PI0FastPolicy
+
+        return PI0FastPolicy
+    return PI0Policy

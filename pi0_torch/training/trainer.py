@@ -1,4 +1,5 @@
-"""Fine-tune π0 / π0.5 on LeRobot episode datasets with the Hugging Face `Trainer` (and `accelerate`).
+"""Fine-tune π0 / π0.5 (and π0-FAST, see `pi0_torch.training.fast`) on LeRobot episode datasets with the Hugging Face
+`Trainer` (and `accelerate`).
 
 Pieces, usable on their own or through [`train_policy`] / `pi0-torch train`:
 
@@ -52,12 +53,16 @@ from transformers.trainer_utils import PREFIX_CHECKPOINT_DIR, rotate_checkpoints
 
 from pi0_torch.cli import bool_mask, json_object
 from pi0_torch.models.configuration_pi0 import PI0Config, preset_names
+from pi0_torch.models.configuration_pi0_fast import PI0FastConfig, fast_preset_names
 from pi0_torch.data.lerobot_dataset import LeRobotEpisodeDataset, split_episodes
 from pi0_torch.models.modeling_pi0 import PI0ForActionGeneration
+from pi0_torch.models.modeling_pi0_fast import PI0FastForActionGeneration
 from pi0_torch.processing.normalization import compute_norm_stats, load_openpi_norm_stats
 from pi0_torch.processing.processing_pi0 import PI0Processor
+from pi0_torch.processing.processing_pi0_fast import PI0FastProcessor
 from pi0_torch.processing.robot_spaces import CONVERSIONS, get_conversion
 from pi0_torch.processing.tokenization import build_test_tokenizer
+from pi0_torch.training.fast import build_fast_processor
 from pi0_torch.utils import files
 from pi0_torch.utils.validation import check_float, check_int, first_line
 
@@ -262,8 +267,8 @@ class PI0Trainer(Trainer):
     def compute_loss(self, model: nn.Module, inputs: dict[str, Any], return_outputs: bool = False, num_items_in_batch: Any = None) -> Any:
         inputs = dict(inputs)
         sample_index = inputs.pop("sample_index", None)
-        if "noise" not in inputs and sample_index is not None:
-            config = self.accelerator.unwrap_model(model).config
+        config = self.accelerator.unwrap_model(model).config
+        if "noise" not in inputs and sample_index is not None and isinstance(config, PI0Config):  # π0-FAST draws nothing
             noise, time, delay = flow_draws(config, self._flow_keys({**inputs, "sample_index": sample_index}, model.training))
             device = inputs["input_ids"].device
             inputs["noise"], inputs["time"] = noise.to(device), time.to(device)
@@ -380,14 +385,16 @@ def _group_prefixes(model: PI0ForActionGeneration, group: str) -> tuple[str, ...
     if group == "vision":
         return vision
     if group == "vlm":
-        layers = tuple(f"layers.{i}.vlm." for i in range(len(model.layers)))
-        return vision + ("embed_tokens.", "vlm_final_norm.") + layers
+        layers = tuple(f"layers.{i}.{kind}." for i in range(len(model.layers)) for kind in ("vlm", "block"))  # block: π0-FAST
+        return vision + ("embed_tokens.", "vlm_final_norm.", "final_norm.") + layers
     raise ValueError(f"unknown freeze group {group!r}; expected one of {FREEZE_GROUPS}")
 
 
 def loss_free_parameter_names(model: PI0ForActionGeneration) -> list[str]:
     """Parameters that cannot influence the flow-matching loss: the VLM's final norm, and in the last layer the VLM
     o-projection, MLP norm and MLP (the last layer's prefix output is never read; its keys/values are)."""
+    if isinstance(model.config, PI0FastConfig):
+        return []  # every π0-FAST parameter feeds the next-token loss
     last = f"layers.{len(model.layers) - 1}.vlm."
     unused = ("vlm_final_norm.", last + "o_proj.", last + "mlp_norm.", last + "gate_up_proj.", last + "down_proj.")
     return [name for name, _ in model.named_parameters() if name.startswith(unused)]
@@ -429,18 +436,19 @@ def apply_lora(
     unused = set(loss_free_parameter_names(model))
     full_modules = [
         name for name, module in model.named_children()
-        if name not in ("layers", "embed_tokens", "vlm_final_norm", "expert_final_norm")
+        if name not in ("layers", "embed_tokens", "vlm_final_norm", "expert_final_norm", "final_norm")
         and not f"{name}.".startswith(frozen_prefixes)
         and any(True for _ in module.parameters())
     ]
     targets = "|".join(LORA_TARGETS)
-    layer_kinds = "expert" if "vlm" in freeze_groups else "vlm|expert"  # a frozen VLM gets no adapters either
+    layer_kinds = "expert" if "vlm" in freeze_groups else "vlm|expert|block"  # a frozen VLM gets no adapters either
+    expert_rank = {r"layers\.\d+\.expert\..*": rank_expert} if isinstance(model.config, PI0Config) else {}  # π0-FAST: no expert
     config = LoraConfig(
         r=rank_vlm,
         lora_alpha=rank_vlm,
         target_modules=rf"layers\.\d+\.({layer_kinds})\.({targets})",
-        rank_pattern={r"layers\.\d+\.expert\..*": rank_expert},
-        alpha_pattern={r"layers\.\d+\.expert\..*": rank_expert},
+        rank_pattern=expert_rank,
+        alpha_pattern=expert_rank,
         modules_to_save=full_modules,
         exclude_modules=[name.rsplit(".", 1)[0] for name in unused],
     )
@@ -568,6 +576,7 @@ class TrainSettings:
     max_grad_norm: float = OPENPI_CLIP_NORM
     ema_decay: float | None = None
     rtc_max_delay: int | None = None
+    fast_tokenizer: str | None = None
     lora: bool = False
     lora_rank_vlm: int = LORA_RANK_VLM
     lora_rank_expert: int = LORA_RANK_EXPERT
@@ -612,26 +621,38 @@ def _is_model_folder(model: str) -> bool:
     return (Path(model) / "config.json").is_file()
 
 
-def load_config(settings: TrainSettings) -> PI0Config:
+def load_config(settings: TrainSettings) -> PI0Config | PI0FastConfig:
     """The model config: a checkpoint folder's `config.json`, or a preset with `config_overrides`."""
     if _is_model_folder(settings.model):
         if settings.config_overrides:
             raise ValueError("config_overrides apply to presets only; a checkpoint folder keeps its own config")
-        config = PI0Config.from_pretrained(settings.model)
+        model_type = json.loads((Path(settings.model) / "config.json").read_text()).get("model_type")
+        config = (PI0FastConfig if model_type == PI0FastConfig.model_type else PI0Config).from_pretrained(settings.model)
+    elif settings.model in fast_preset_names():
+        config = PI0FastConfig.from_preset(settings.model, **settings.config_overrides)
     elif settings.model not in preset_names():
-        raise ValueError(f"--model {settings.model!r} is neither a checkpoint folder (with config.json) nor a preset {preset_names()}")
+        raise ValueError(f"--model {settings.model!r} is neither a checkpoint folder (with config.json) nor a preset "
+                         f"{preset_names() + fast_preset_names()}")
     else:
         config = PI0Config.from_preset(settings.model, **settings.config_overrides)
     if settings.rtc_max_delay is not None:  # a training choice the saved config records
+        if not isinstance(config, PI0Config):
+            raise ValueError("--rtc-max-delay applies to π0 / π0.5 (flow matching); π0-FAST decodes tokens")
         config = PI0Config.from_dict({**config.to_dict(), "rtc_max_delay": settings.rtc_max_delay})
     return config
 
 
-def build_processor(settings: TrainSettings, config: PI0Config, dataset: LeRobotEpisodeDataset) -> PI0Processor:
+def _processor_class(config: PI0Config | PI0FastConfig) -> type[PI0Processor]:
+    return PI0FastProcessor if isinstance(config, PI0FastConfig) else PI0Processor
+
+
+def build_processor(settings: TrainSettings, config: PI0Config | PI0FastConfig, dataset: LeRobotEpisodeDataset) -> PI0Processor:
     """The processor of a run: tokenizer from `--tokenizer` (or the model folder), norm stats from the dataset (or
-    the model folder's processor, or an openpi `norm_stats.json`), robot dims from the dataset."""
+    the model folder's processor, or an openpi `norm_stats.json`), robot dims from the dataset; for π0-FAST the
+    FAST tokenizer from `--fast-tokenizer` (a folder, or `fit`), else the model folder's."""
+    processor_class = _processor_class(config)
     if settings.resume_from_checkpoint and (Path(settings.resume_from_checkpoint) / "processor_config.json").is_file():
-        return PI0Processor.from_pretrained(settings.resume_from_checkpoint)
+        return processor_class.from_pretrained(settings.resume_from_checkpoint)
     model_has_processor = _is_model_folder(settings.model) and (Path(settings.model) / "processor_config.json").is_file()
     if settings.tokenizer == "test":
         prompts = sorted(set(dataset.tasks.values()))
@@ -639,7 +660,7 @@ def build_processor(settings: TrainSettings, config: PI0Config, dataset: LeRobot
     elif settings.tokenizer:
         tokenizer = settings.tokenizer
     elif model_has_processor:
-        tokenizer = PI0Processor.from_pretrained(settings.model).tokenizer
+        tokenizer = processor_class.from_pretrained(settings.model).tokenizer
     else:
         raise ValueError("no tokenizer: pass --tokenizer PATH (PaliGemma's SentencePiece model), or --tokenizer test for a tiny demo model")
 
@@ -655,26 +676,32 @@ def build_processor(settings: TrainSettings, config: PI0Config, dataset: LeRobot
     elif settings.norm_stats == "model":
         if not model_has_processor:
             raise ValueError(f"--norm-stats model: {settings.model} has no processor with norm stats")
-        norm_stats = PI0Processor.from_pretrained(settings.model).norm_stats
+        norm_stats = processor_class.from_pretrained(settings.model).norm_stats
     else:
         norm_stats = load_openpi_norm_stats(settings.norm_stats)
-    return PI0Processor.from_config(
-        config, tokenizer, norm_stats,
-        state_dim=dataset.state_dim, action_dim_robot=dataset.action_dim, delta_action_mask=settings.delta_action_mask,
-        value_conversion=settings.value_conversion,
-    )
+    robot = dict(state_dim=dataset.state_dim, action_dim_robot=dataset.action_dim, delta_action_mask=settings.delta_action_mask,
+                 value_conversion=settings.value_conversion)
+    if isinstance(config, PI0FastConfig):
+        action_tokenizer: Any = settings.fast_tokenizer
+        if action_tokenizer is None and model_has_processor:
+            action_tokenizer = PI0FastProcessor.from_pretrained(settings.model).action_tokenizer
+        return build_fast_processor(config, tokenizer, norm_stats, dataset, action_tokenizer, **robot)
+    return PI0Processor.from_config(config, tokenizer, norm_stats, **robot)
 
 
-def build_model(settings: TrainSettings, config: PI0Config) -> nn.Module:
+def build_model(settings: TrainSettings, config: PI0Config | PI0FastConfig) -> nn.Module:
     """The model with its frozen parts set, wrapped in LoRA when asked."""
+    model_class = PI0FastForActionGeneration if isinstance(config, PI0FastConfig) else PI0ForActionGeneration
     if _is_model_folder(settings.model):
-        model = PI0ForActionGeneration.from_pretrained(settings.model, dtype=torch.float32)
+        model = model_class.from_pretrained(settings.model, dtype=torch.float32)
     else:
         torch.manual_seed(settings.seed)
-        model = PI0ForActionGeneration(config)
+        model = model_class(config)
     for group in settings.freeze:
         if group not in FREEZE_GROUPS:
             raise ValueError(f"--freeze {group!r}: expected one of {FREEZE_GROUPS}")
+    if "vlm" in settings.freeze and isinstance(config, PI0FastConfig):
+        raise ValueError("--freeze vlm: π0-FAST is all VLM, nothing would train; freeze 'vision' or use --lora")
     freeze(model, settings.freeze)
     if settings.lora:
         return apply_lora(model, settings.lora_rank_vlm, settings.lora_rank_expert, settings.freeze)
@@ -797,7 +824,7 @@ def train_policy(settings: TrainSettings) -> dict[str, Any]:
         dataloader_persistent_workers=settings.num_workers > 0,  # workers keep their decoded-frame caches
         dataloader_pin_memory=_has_accelerator() and not settings.cpu,
         remove_unused_columns=False,
-        label_names=["actions"],
+        label_names=["token_loss_mask" if isinstance(config, PI0FastConfig) else "actions"],
         use_cpu=settings.cpu or not _has_accelerator(),  # (bf16 autocast on CPU needs it said explicitly)
         report_to=settings.report_to,
         disable_tqdm=not settings.progress,
@@ -916,10 +943,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     data.add_argument("--num-workers", type=int, default=0, help="DataLoader workers per process")
 
     model = parser.add_argument_group("model")
-    model.add_argument("--model", required=True, help=f"checkpoint folder, or a preset: {', '.join(preset_names())}")
+    model.add_argument("--model", required=True, help=f"checkpoint folder, or a preset: {', '.join(preset_names() + fast_preset_names())}")
     model.add_argument("--config-overrides", type=json_object, default={}, metavar="JSON",
                        help='preset overrides, e.g. \'{"image_size": 56, "action_horizon": 8}\'')
     model.add_argument("--tokenizer", help="PaliGemma SentencePiece model (file/folder); 'test' trains a tiny one (demos)")
+    model.add_argument("--fast-tokenizer", help="π0-FAST: the FAST action tokenizer folder (physical-intelligence/fast layout), "
+                       "or 'fit' to fit one to the training episodes (default: the model folder's)")
     model.add_argument("--norm-stats", default="dataset",
                        help="'dataset' (compute from the training episodes), 'model' (the model folder's), or a norm_stats.json")
 

@@ -1,0 +1,87 @@
+"""`PI0FastPolicy`: `PI0Policy` for π0-FAST (the same observation checks, batching, warm-up and server interface;
+the chunk comes from decoded FAST tokens).
+
+`PI0Policy.from_pretrained(folder)` returns one for a π0-FAST folder, so `pi0-torch serve --model DIR` serves either
+kind. openpi's π0-FAST configs use the cameras `base_0_rgb`, `base_1_rgb`, `wrist_0_rgb`.
+
+```python
+>>> import numpy as np
+>>> from pi0_torch import FASTActionTokenizer, PI0FastConfig, PI0FastForActionGeneration, PI0FastProcessor
+>>> from pi0_torch.processing.normalization import NormStats
+>>> from pi0_torch.processing.tokenization import build_test_tokenizer
+>>> rng = np.random.default_rng(0)
+>>> fast = FASTActionTokenizer.fit([np.cumsum(rng.normal(0, .1, (10, 8)), 0) for _ in range(100)], vocab_size=256)
+>>> stats = {key: NormStats(mean=np.zeros(8), std=np.ones(8), q01=-np.ones(8), q99=np.ones(8)) for key in ("state", "actions")}
+>>> config = PI0FastConfig.from_preset("pi0_fast_small")
+>>> processor = PI0FastProcessor.from_config(config, build_test_tokenizer(1024), fast, stats)
+>>> policy = PI0FastPolicy(PI0FastForActionGeneration(config), processor, num_steps=4)
+>>> out = policy.infer({"images": {"base_0_rgb": np.zeros((480, 640, 3), np.uint8)}, "state": np.zeros(8), "prompt": "pick up the fork"})
+>>> out["actions"].shape  # a random model decodes no chunk: zeros, with a logged warning
+(10, 8)
+
+```
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import numpy as np
+import torch
+
+from pi0_torch.models.modeling_pi0_fast import PI0FastForActionGeneration
+from pi0_torch.processing.processing_pi0_fast import PI0FastProcessor
+from pi0_torch.runtime.policy import PI0Policy
+
+
+class PI0FastPolicy(PI0Policy):
+    """[`PI0FastForActionGeneration`] + [`PI0FastProcessor`] behind openpi's policy interface.
+
+    Args:
+        model, processor: the π0-FAST model (on its device and dtype) and its processor.
+        num_steps: the most tokens decoded per chunk (default `model.config.max_decoding_steps`; decoding stops
+            earlier once every chunk of the batch emits EOS at the same step).
+        seed: seeds the sampling when `temperature > 0` (greedy decoding needs none).
+        compile: decode through `torch.compile` ([`PI0FastForActionGeneration.compile_decoding`]; CUDA graphs on
+            CUDA); call [`warmup`] first.
+        temperature: 0 for greedy decoding (openpi's default), else sampling at this temperature.
+    """
+
+    model_class = PI0FastForActionGeneration
+    processor_class = PI0FastProcessor
+    continues_chunks = False  # FAST decodes tokens: no real-time chunking, and noise seeds do not apply
+
+    def __init__(
+        self,
+        model: PI0FastForActionGeneration,
+        processor: PI0FastProcessor,
+        num_steps: int | None = None,
+        seed: int | None = None,
+        compile: bool = False,
+        temperature: float = 0.0,
+    ) -> None:
+        steps = num_steps if num_steps is not None else model.config.max_decoding_steps
+        super().__init__(model, processor, num_steps=steps, seed=seed)  # type: ignore[arg-type]
+        if temperature < 0:
+            raise ValueError(f"temperature must be >= 0, got {temperature}")
+        self.temperature = float(temperature)
+        if compile:
+            model.compile_decoding(**({"mode": "reduce-overhead"} if self.device.type == "cuda" else {}))
+
+    @property
+    def compiled(self) -> bool:
+        return self.model.decoding_compiled
+
+    @property
+    def model_type(self) -> str:
+        return "pi0_fast"
+
+    def model_actions(self, batch: Mapping[str, torch.Tensor], warmup: bool = False) -> np.ndarray:
+        """Decode tokens (greedy, or sampled at `temperature`) and extract the chunks `[B, horizon, action_dim]`."""
+        tokens = self.model.generate_tokens(
+            **batch,
+            max_new_tokens=self.num_steps,
+            temperature=self.temperature,
+            generator=None if warmup else self.generator,
+        )
+        return self.processor.extract_actions(tokens.cpu().numpy())

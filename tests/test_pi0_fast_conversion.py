@@ -1,0 +1,79 @@
+"""`pi0-torch convert --from openpi` on openpi's π0-FAST checkpoint: model and processor load from the output and
+reproduce openpi's outputs."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from transformers import AutoModel, AutoProcessor
+
+from pi0_torch import PI0FastForActionGeneration, PI0FastProcessor
+from pi0_torch.cli import main as cli_main
+from pi0_torch.conversion.convert import ConversionError, convert_openpi_checkpoint
+from pi0_torch.models.modeling_pi0_fast import token_log_probs
+
+from conftest import FIXTURES, relative_error
+from test_pi0_fast import FAST_DIR, FastReference
+
+
+@pytest.fixture(scope="module")
+def fast_reference() -> FastReference:
+    return FastReference()
+
+
+def test_convert_command_gives_model_and_processor(tmp_path: Path, fast_reference: FastReference, capsys: pytest.CaptureFixture) -> None:
+    output = tmp_path / "pi0_fast"
+    code = cli_main([
+        "convert", "--from", "openpi", "--input", str(FAST_DIR / "ckpt" / "0"), "--output-dir", str(output),
+        "--tokenizer", str(FAST_DIR / "tokenizer.model"), "--fast-tokenizer", str(FAST_DIR / "fast_tokenizer"),
+        "--max-token-len", "96", "--no-progress",
+    ])
+    assert code == 0 and "π0-FAST" in capsys.readouterr().out
+    assert sorted(p.name for p in output.iterdir()) == [
+        "config.json", "fast_tokenizer", "model.safetensors", "norm_stats.json", "processor_config.json", "tokenizer.model"
+    ]
+    model = AutoModel.from_pretrained(output).eval()
+    assert isinstance(model, PI0FastForActionGeneration)
+    # action chunk shape from the FAST tokenizer's settings, prompt length from the command line
+    assert (model.config.action_dim, model.config.action_horizon, model.config.max_token_len) == (8, 10, 96)
+    processor = AutoProcessor.from_pretrained(output)
+    assert isinstance(processor, PI0FastProcessor) and processor.norm_mode == "quantile"
+
+    train = fast_reference.inputs("train")
+    loss_mask = torch.from_numpy(fast_reference["inputs/train/loss_mask"])
+    with torch.no_grad():
+        output_fp32 = model(**train, token_loss_mask=loss_mask)
+    assert relative_error(output_fp32.loss, fast_reference["fp32/loss"].mean()) < 1e-5
+    target_logp = token_log_probs(output_fp32.logits, train["input_ids"][:, 1:])
+    assert relative_error(target_logp, fast_reference["fp32/target_logp"]) < 1e-5
+
+    # raw observation -> processor -> tokens -> robot actions (a random model: whatever chunk it decodes, decoded)
+    frame = np.zeros((96, 128, 3), np.uint8)
+    inputs = processor(images={"base_0_rgb": frame, "base_1_rgb": frame, "wrist_0_rgb": frame}, prompt="pick up the cube", state=np.zeros(8))
+    tokens = model.generate_tokens(**inputs, max_new_tokens=4)
+    assert tokens.shape == (1, 4)
+    assert processor.decode_actions(tokens).shape == (1, 10, 8)
+    chunk = model.generate_actions(**inputs, processor=processor, max_new_tokens=4)
+    assert chunk.shape == (1, 10, 8) and chunk.dtype == torch.float32
+
+
+def test_bfloat16_conversion(tmp_path: Path, fast_reference: FastReference) -> None:
+    result = convert_openpi_checkpoint(FAST_DIR / "ckpt" / "0", tmp_path / "bf16", dtype="bfloat16", progress=False, max_token_len=96,
+                                       action_dim=8, action_horizon=10)
+    assert result.norm_stats is not None and not (result.output_dir / "fast_tokenizer").exists()  # no tokenizer given
+    model = PI0FastForActionGeneration.from_pretrained(result.output_dir).eval()
+    assert model.dtype == torch.bfloat16
+    with torch.no_grad():
+        loss = model(**fast_reference.inputs("train"), token_loss_mask=torch.from_numpy(fast_reference["inputs/train/loss_mask"])).loss
+    assert relative_error(loss, fast_reference["bf16_infer/loss"].mean()) < 1e-2
+
+
+def test_fast_tokenizer_for_a_pi0_checkpoint_is_refused(tmp_path: Path) -> None:
+    with pytest.raises(ConversionError, match="--fast-tokenizer is for π0-FAST"):
+        convert_openpi_checkpoint(FIXTURES / "pi0_small" / "ckpt" / "0", tmp_path / "out", fast_tokenizer=FAST_DIR / "fast_tokenizer", progress=False)
+    with pytest.raises(ConversionError, match="unusable FAST tokenizer"):
+        convert_openpi_checkpoint(FAST_DIR / "ckpt" / "0", tmp_path / "out", fast_tokenizer=tmp_path, progress=False)
+    assert not (tmp_path / "out").exists()
