@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import pytest
 import torch
 
 from pi0_torch import PI0ForActionGeneration
@@ -21,6 +22,7 @@ from pi0_torch.training.trainer import evaluate_policy, train_policy
 STEPS = 2500  # the first 2,500 of the demo policy's 6,000 steps (same data, seed and learning-rate schedule)
 
 
+@pytest.mark.slow  # ~3 minutes; make test covers the trained demo policy acting in closed loop (test_examples.py)
 def test_tiny_policy_learns_to_reach_the_named_object(tmp_path: Path) -> None:
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # the model is tiny; a DataLoader worker prepares batches on the other core

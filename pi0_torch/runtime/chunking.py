@@ -24,9 +24,11 @@ robot, with inference in a background thread and `d` estimated from measured lat
 [True, False, False, False, False, False, True, False]
 >>> stitcher = ChunkStitcher("naive", replan_steps=4)
 >>> stitcher.add(np.arange(8.0)[:, None], anchor=2)  # the first chunk: computed at step 0, executed from step 2
+>>> [float(stitcher.action(t, hold=np.zeros(1))[0]) for t in range(2, 8)]
+[0.0, 1.0, 2.0, 3.0, 4.0, 5.0]
 >>> stitcher.add(100 + np.arange(8.0)[:, None], anchor=6)  # observed at step 6, arrives at 8: index 2 first
->>> [float(stitcher.action(t, hold=np.zeros(1))[0]) for t in range(2, 11)]
-[0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 102.0, 103.0, 104.0]
+>>> [float(stitcher.action(t, hold=np.zeros(1))[0]) for t in range(8, 11)]
+[102.0, 103.0, 104.0]
 
 ```
 """
