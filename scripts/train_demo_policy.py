@@ -6,7 +6,8 @@
 1. records scripted-expert demonstrations of the three tabletop tasks (`pi0_torch.envs`: Reach, PickPlace, Conveyor;
    seeds from 0) into one LeRobot v3.0 dataset with the shared writer (`pi0-torch demos` does the same per task);
 2. trains the tiny π0 of `DEMO_POLICY_CONFIG` from scratch on all three with the real pipeline
-   (`pi0_torch.training.train_policy`, the HF Trainer), with training-time real-time chunking (`--rtc-max-delay`);
+   (`pi0_torch.training.train_policy`, the HF Trainer), position targets relative to the effector (delta actions)
+   and training-time real-time chunking (`--rtc-max-delay`);
 3. evaluates it in closed loop on held-out seeds (`pi0-torch eval`'s `evaluate`, from seed 1,000,000) and copies the
    model, the processor and `demo_metrics.json` into the destination.
 
@@ -38,8 +39,14 @@ from pi0_torch.training.trainer import TrainSettings, train_policy
 REPO = Path(__file__).resolve().parent.parent
 POLICY_FILES = ("config.json", "model.safetensors", "processor_config.json", "norm_stats.json", "tokenizer.model")
 
-# successful expert episodes per task (PickPlace and Conveyor are multi-stage: more of them)
-DEMO_EPISODES = {"pi0_torch/Reach-v0": 200, "pi0_torch/PickPlace-v0": 600, "pi0_torch/Conveyor-v0": 600}
+# successful expert episodes per task (PickPlace and Conveyor are multi-stage: more of them) and number of objects:
+# the benchmark's three, plus easier scenes with one and two objects (a curriculum: with one object the image alone
+# says where to go, which binds the instruction's color to the image sooner)
+DEMO_EPISODES = {
+    ("pi0_torch/Reach-v0", 3): 200, ("pi0_torch/PickPlace-v0", 3): 600, ("pi0_torch/Conveyor-v0", 3): 600,
+    ("pi0_torch/Reach-v0", 1): 100, ("pi0_torch/PickPlace-v0", 1): 150, ("pi0_torch/Conveyor-v0", 1): 150,
+    ("pi0_torch/Reach-v0", 2): 100, ("pi0_torch/PickPlace-v0", 2): 150, ("pi0_torch/Conveyor-v0", 2): 150,
+}
 
 # `PI0Config.from_preset("pi0_small", **DEMO_POLICY_CONFIG)`: one 48 x 48 camera (6 x 6 patches of 8), 3 joint layers,
 # the robot's 3 action dims, chunks of 16 steps (1.6 s at 10 Hz)
@@ -51,6 +58,7 @@ DEMO_POLICY_CONFIG = dict(
     action_dim=3, action_horizon=16, max_token_len=16, num_inference_steps=10, camera_names=["base_0_rgb"],
 )
 DEMO_STEPS = 6000
+DELTA_ACTION_MASK = [True, True, False]  # the position target is learned relative to the effector (openpi's DeltaActions)
 HELDOUT_SEED = 1_000_000
 
 
@@ -65,12 +73,12 @@ def instructions() -> list[str]:
     return sorted(prompts)
 
 
-def record(root: Path, episodes: dict[str, int]) -> None:
-    """Expert episodes of every task (seeds 0, 1, ... per task; failed ones skipped) as one dataset."""
+def record(root: Path, episodes: dict[tuple[str, int], int]) -> None:
+    """Expert episodes of every task and object count (seeds 0, 1, ...; failed ones skipped) as one dataset."""
 
     def stream() -> Iterator[EpisodeRecord]:
-        for env_id, count in episodes.items():
-            env = gymnasium.make(env_id)
+        for (env_id, num_objects), count in episodes.items():
+            env = gymnasium.make(env_id, num_objects=num_objects)
             kept = 0
             for seed in itertools.count():
                 if kept == count:
@@ -78,7 +86,7 @@ def record(root: Path, episodes: dict[str, int]) -> None:
                 episode, success = expert_episode(env, seed)
                 if success:
                     kept += 1
-                    episode.extra["env"] = env_id
+                    episode.extra.update(env=env_id, num_objects=num_objects)
                     yield episode
             env.close()
 
@@ -108,25 +116,32 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--eval-episodes", type=int, default=100)
     parser.add_argument("--destination", type=Path, default=REPO / "pi0_torch" / "demo_policy")
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (the tiny model gains little from more)")
+    parser.add_argument("--init-from", type=Path, help="continue from this model folder (a second stage: fresh "
+                        "schedule at --learning-rate) instead of training from scratch")
+    parser.add_argument("--learning-rate", type=float, default=2e-3)
+    parser.add_argument("--run-name", help="the training folder under --work-dir (default from the settings)")
+    parser.add_argument("--image-size", type=int, default=DEMO_POLICY_CONFIG["image_size"], help="the model's camera side")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     args.work_dir.mkdir(parents=True, exist_ok=True)
 
-    episodes = {env_id: max(1, round(count * args.episodes_scale)) for env_id, count in DEMO_EPISODES.items()}
+    episodes = {key: max(1, round(count * args.episodes_scale)) for key, count in DEMO_EPISODES.items()}
     dataset = args.work_dir / f"demos_{'_'.join(str(n) for n in episodes.values())}"
     if not dataset.exists():
         record(dataset, episodes)
     tokenizer = args.work_dir / "tokenizer.model"
     build_test_tokenizer(extra_sentences=instructions() * 20, save_to=tokenizer)
 
-    run_dir = args.work_dir / f"run_rtc{args.rtc_max_delay}"
+    run_dir = args.work_dir / (args.run_name or f"run_rtc{args.rtc_max_delay}_px{args.image_size}{'_stage2' if args.init_from else ''}")
     if run_dir.exists():
         shutil.rmtree(run_dir)
     start = time.time()
     settings = TrainSettings(
-        dataset=str(dataset), model="pi0_small", output_dir=str(run_dir), config_overrides=dict(DEMO_POLICY_CONFIG),
-        tokenizer=str(tokenizer), max_steps=args.max_steps, batch_size=64, learning_rate=2e-3, end_learning_rate=1e-4,
-        warmup_steps=200, logging_steps=100, save_steps=2000, seed=0, rtc_max_delay=args.rtc_max_delay or None,
+        dataset=str(dataset), model=str(args.init_from or "pi0_small"), output_dir=str(run_dir),
+        config_overrides={} if args.init_from else {**DEMO_POLICY_CONFIG, "image_size": args.image_size},
+        tokenizer=None if args.init_from else str(tokenizer),
+        max_steps=args.max_steps, batch_size=64, learning_rate=args.learning_rate, end_learning_rate=1e-4, warmup_steps=200,
+        logging_steps=100, save_steps=2000, seed=0, rtc_max_delay=args.rtc_max_delay or None, delta_action_mask=DELTA_ACTION_MASK,
     )
     result = train_policy(settings)
     minutes = (time.time() - start) / 60
@@ -138,7 +153,7 @@ def main(argv: list[str] | None = None) -> int:
         shutil.copy2(run_dir / name, args.destination / name)
     metrics = {
         "closed_loop": success,
-        "demo_episodes": episodes,
+        "demo_episodes": {f"{env_id} x{objects}": count for (env_id, objects), count in episodes.items()},
         "train_minutes": round(minutes, 1),
         "max_steps": args.max_steps,
         "rtc_max_delay": args.rtc_max_delay,

@@ -81,6 +81,7 @@ class TabletopEnv(gymnasium.Env):
             two consecutive steps (`float("inf")` turns slipping off).
         render_mode: None or "rgb_array" (`render()` returns the frame).
         render_size: side of the frame `render()` returns (default `image_size`).
+        num_objects: objects on the table, 1 to 3 (default 3, the benchmark; fewer make easier training scenes).
     """
 
     metadata: ClassVar[dict[str, Any]] = {"render_modes": ["rgb_array"], "render_fps": CONTROL_HZ}
@@ -94,7 +95,11 @@ class TabletopEnv(gymnasium.Env):
         slip_acceleration: float = DEFAULT_SLIP_ACCELERATION,
         render_mode: str | None = None,
         render_size: int | None = None,
+        num_objects: int = NUM_OBJECTS,
     ) -> None:
+        if not 1 <= num_objects <= NUM_OBJECTS:
+            raise ValueError(f"num_objects must lie in [1, {NUM_OBJECTS}], got {num_objects}")
+        self.num_objects = int(num_objects)  # fewer than 3: easier scenes (a training curriculum), not the benchmark
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
         if not slip_acceleration > 0:
@@ -230,9 +235,9 @@ class ReachEnv(TabletopEnv):
     default_max_episode_steps = 40
 
     def sample_layout(self, rng: np.random.Generator) -> Layout:
-        colors = _choose_colors(rng, NUM_OBJECTS)
-        positions = _sample_points(rng, NUM_OBJECTS, np.full(2, -0.8), np.full(2, 0.8), OBJECT_SPACING)
-        target = int(rng.integers(NUM_OBJECTS))
+        colors = _choose_colors(rng, self.num_objects)
+        positions = _sample_points(rng, self.num_objects, np.full(2, -0.8), np.full(2, 0.8), OBJECT_SPACING)
+        target = int(rng.integers(self.num_objects))
         effector = _sample_points(rng, 1, np.full(2, -0.5), np.full(2, 0.5), 0.3, existing=positions[target:target + 1])[0]
         return Layout(colors, positions, effector, target)
 
@@ -264,10 +269,10 @@ class PickPlaceEnv(TabletopEnv):
         def outside_zones(point: np.ndarray) -> bool:
             return all(np.max(np.abs(point - zone.center)) >= clear for zone in zones)
 
-        colors = _choose_colors(rng, NUM_OBJECTS)
-        positions = _sample_points(rng, NUM_OBJECTS, np.full(2, -0.85), np.full(2, 0.85), OBJECT_SPACING, outside_zones)
+        colors = _choose_colors(rng, self.num_objects)
+        positions = _sample_points(rng, self.num_objects, np.full(2, -0.85), np.full(2, 0.85), OBJECT_SPACING, outside_zones)
         effector = rng.uniform(-0.8, 0.8, size=2)
-        return Layout(colors, positions, effector, int(rng.integers(NUM_OBJECTS)), zones, int(rng.integers(num_zones)))
+        return Layout(colors, positions, effector, int(rng.integers(self.num_objects)), zones, int(rng.integers(num_zones)))
 
     def instruction(self, layout: Layout) -> str:
         return f"put the {layout.colors[layout.target_object]} object in the {layout.zones[layout.target_zone].name} zone"
@@ -289,12 +294,12 @@ class ConveyorEnv(TabletopEnv):
     default_max_episode_steps = 100
 
     def sample_layout(self, rng: np.random.Generator) -> Layout:
-        colors = _choose_colors(rng, NUM_OBJECTS)
-        positions = _sample_points(rng, NUM_OBJECTS, np.array([-0.9, -0.8]), np.array([0.0, 0.05]), OBJECT_SPACING)
+        colors = _choose_colors(rng, self.num_objects)
+        positions = _sample_points(rng, self.num_objects, np.array([-0.9, -0.8]), np.array([0.0, 0.05]), OBJECT_SPACING)
         effector = rng.uniform([-0.9, 0.45], [0.9, 0.9])
         belt = Belt(*BELT_BAND, np.array([BELT_SPEED, 0.0]))
         bin_zone = Zone("bin", np.array(BIN_CENTER), BIN_COLOR)
-        return Layout(colors, positions, effector, int(rng.integers(NUM_OBJECTS)), (bin_zone,), 0, belt)
+        return Layout(colors, positions, effector, int(rng.integers(self.num_objects)), (bin_zone,), 0, belt)
 
     def instruction(self, layout: Layout) -> str:
         return f"put the {layout.colors[layout.target_object]} object in the bin"

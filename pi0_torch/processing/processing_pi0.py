@@ -305,7 +305,7 @@ class PI0Processor:
         if is_hub_id(pretrained_path):
             directory = _download_processor(str(pretrained_path), hub_options)
         config_path = directory / PROCESSOR_CONFIG_FILE
-        settings = _read_processor_config(config_path)
+        settings = _read_processor_config(config_path, processor_settings(cls))
         kind = settings.pop("tokenizer_kind")
         tokenizer = overrides.pop("tokenizer", None) or PromptTokenizer.load(directory, kind)
         if "norm_stats" not in overrides and (directory / NORM_STATS_FILE).is_file():
@@ -568,11 +568,16 @@ class PI0Processor:
         return robot.float() if is_torch else robot.astype(np.float32)
 
 
-PROCESSOR_SETTINGS = tuple(name for name in inspect.signature(PI0Processor.__init__).parameters if name not in ("self", "tokenizer"))
+def processor_settings(processor_class: type[PI0Processor]) -> tuple[str, ...]:
+    """The settings a processor class saves in `processor_config.json` (its constructor's arguments)."""
+    return tuple(name for name in inspect.signature(processor_class.__init__).parameters if name not in ("self", "tokenizer"))
 
 
-def _read_processor_config(path: Path) -> dict[str, Any]:
-    """`processor_config.json` as a dict of known settings plus `tokenizer_kind`; `ValueError` naming the file."""
+PROCESSOR_SETTINGS = processor_settings(PI0Processor)
+
+
+def _read_processor_config(path: Path, known: Sequence[str] = PROCESSOR_SETTINGS) -> dict[str, Any]:
+    """`processor_config.json` as a dict of `known` settings plus `tokenizer_kind`; `ValueError` naming the file."""
     try:
         settings = json.loads(path.read_text())
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
@@ -581,9 +586,9 @@ def _read_processor_config(path: Path) -> dict[str, Any]:
         raise ValueError(f"{path} must hold a JSON object of settings, got a JSON {type(settings).__name__}")
     if not isinstance(settings.get("tokenizer_kind"), str):
         raise ValueError(f"{path} lacks 'tokenizer_kind' ('sentencepiece' or 'transformers')")
-    unknown = sorted(set(settings) - set(PROCESSOR_SETTINGS) - {"tokenizer_kind"})
+    unknown = sorted(set(settings) - set(known) - {"tokenizer_kind"})
     if unknown:
-        raise ValueError(f"{path} has unknown settings {unknown}; PI0Processor settings: {', '.join(PROCESSOR_SETTINGS)}")
+        raise ValueError(f"{path} has unknown settings {unknown}; known settings: {', '.join(known)}")
     return settings
 
 
