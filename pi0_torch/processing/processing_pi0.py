@@ -569,8 +569,15 @@ class PI0Processor:
 
 
 def processor_settings(processor_class: type[PI0Processor]) -> tuple[str, ...]:
-    """The settings a processor class saves in `processor_config.json` (its constructor's arguments)."""
-    return tuple(name for name in inspect.signature(processor_class.__init__).parameters if name not in ("self", "tokenizer"))
+    """The settings a processor class saves in `processor_config.json`: its constructors' named arguments, along the
+    class hierarchy (a subclass passes the base's settings on through `**settings`)."""
+    names: dict[str, None] = {}
+    for klass in processor_class.__mro__:
+        if isinstance(klass, type) and issubclass(klass, PI0Processor) and "__init__" in vars(klass):
+            for name, parameter in inspect.signature(klass.__init__).parameters.items():
+                if name not in ("self", "tokenizer") and parameter.kind not in (parameter.VAR_KEYWORD, parameter.VAR_POSITIONAL):
+                    names[name] = None
+    return tuple(names)
 
 
 PROCESSOR_SETTINGS = processor_settings(PI0Processor)
