@@ -1,6 +1,6 @@
-"""`make demo`: run the committed demo policy on held-out scenes (the code is `pi0_torch/demo.py`).
+"""`make demo`: the shipped demo policy acts in closed loop on held-out tabletop episodes (the code is `pi0_torch/demo.py`).
 
-    python examples/demo.py [--policy examples/demo_policy] [--plot outputs/demo_actions.png]
+    python examples/demo.py [--policy DIR] [--episodes 20] [--output-dir outputs/demo]
 """
 
 import sys
