@@ -364,7 +364,15 @@ def _run_group(
         policy.start_group(envs, seeds, done)
     frames: list[list[np.ndarray]] = [[envs[i].render()] if i < record else [] for i in range(len(envs))]
     chunk_count, step = 0, 0
+    def deliver(i: int) -> None:  # chunks that have arrived by this step take over
+        while pending[i] and pending[i][0][0] <= step:
+            _, anchor, chunk = pending[i].pop(0)
+            stitchers[i].add(chunk, anchor)
+            switches[i].append(step)
+
     while not all(done):
+        for i in range(len(envs)):
+            deliver(i)  # before observing: a request continues the newest chunk
         if schedule.observes(step):
             active = [i for i in range(len(envs)) if not done[i]]
             requests = [
@@ -381,10 +389,7 @@ def _run_group(
         for i, env in enumerate(envs):
             if done[i]:
                 continue
-            while pending[i] and pending[i][0][0] <= step:
-                _, anchor, chunk = pending[i].pop(0)
-                stitchers[i].add(chunk, anchor)
-                switches[i].append(step)
+            deliver(i)  # (with no delay, the chunk observed now)
             hold = executed[i][-1] if executed[i] else holds[i]
             action = stitchers[i].action(step, hold)
             executed[i].append(np.asarray(action, np.float32))
