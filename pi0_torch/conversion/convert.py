@@ -1060,7 +1060,8 @@ def run(args: argparse.Namespace) -> int:
         common = dict(dtype=args.dtype or "float32", tokenizer=args.tokenizer, overwrite=args.overwrite,
                       max_shard_bytes=args.max_shard_size, progress=not args.no_progress,
                       processor_options={k: v for k, v in options.items() if v is not None})
-        overrides = {name: getattr(args, name) for name in ("action_horizon", "action_dim", "max_token_len") if getattr(args, name) is not None}
+        overrides.update({name: getattr(args, name) for name in ("action_horizon", "action_dim", "max_token_len")
+                          if getattr(args, name) is not None})  # the flags win over a published checkpoint's settings
         if args.source == "openpi":
             if args.norm_stats:
                 raise ConversionError("--norm-stats is for lerobot/transformers inputs; openpi's come from assets/ (--asset-id)")
