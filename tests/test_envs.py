@@ -244,3 +244,19 @@ def test_expert_paths_are_multimodal():
     chord = goal - start
     sides = {np.sign(chord[0] * (m - start)[1] - chord[1] * (m - start)[0]) for m in middles}
     assert sides == {-1.0, 1.0}
+
+
+def test_fewer_objects_make_easier_scenes_the_expert_still_solves() -> None:
+    for count in (1, 2):
+        env = gymnasium.make("pi0_torch/PickPlace-v0", num_objects=count)
+        observation, _ = env.reset(seed=4)
+        assert len(env.unwrapped.world.positions) == count
+        expert = make_expert(env)
+        expert.reset(4)
+        done, info = False, {}
+        while not done:
+            observation, _, terminated, truncated, info = env.step(expert.act(env))
+            done = terminated or truncated
+        assert info["is_success"]
+    with pytest.raises(ValueError, match=r"num_objects must lie in \[1, 3\], got 4"):
+        gymnasium.make("pi0_torch/Reach-v0", num_objects=4)
