@@ -31,7 +31,6 @@ import numpy as np
 
 from pi0_torch.runtime.chunking import (
     EXECUTION_MODES,
-    RTC_METHODS,
     ChunkSchedule,
     ChunkStitcher,
     continuation_fields,
