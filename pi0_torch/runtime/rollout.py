@@ -110,6 +110,7 @@ class RemotePolicy:
     a group's requests sent concurrently so that the server can batch them."""
 
     def __init__(self, url: str, connections: int, api_key: str | None = None, timeout: float = 600.0) -> None:
+        from websockets.exceptions import WebSocketException
         from websockets.sync.client import connect
 
         from pi0_torch.runtime.serving import pack_message, unpack_message
@@ -119,7 +120,7 @@ class RemotePolicy:
         try:
             self.sockets = [connect(url, max_size=None, additional_headers=headers, open_timeout=timeout)
                             for _ in range(connections)]
-        except (OSError, Exception) as error:  # websockets raises its own types for refused handshakes
+        except (OSError, WebSocketException) as error:  # refused, unreachable, or a handshake the server rejected
             raise ConnectionError(f"cannot reach the policy server at {url}: {error}") from None
         self.metadata = [self._unpack(socket.recv(timeout)) for socket in self.sockets][0]
         self.timeout = timeout
