@@ -167,7 +167,7 @@ def test_policy_continues_a_chunk_in_robot_units() -> None:
                         "rtc_method": "conditioning", "noise_seed": 5})["actions"]
     np.testing.assert_allclose(out[:3], previous[2:5], rtol=1e-5, atol=1e-5)
     assert not np.allclose(out[3:6], previous[5:8])
-    with pytest.raises(ValueError, match=r"inference_delay: expected an integer in \[0, 6\], got 7"):
+    with pytest.raises(ValueError, match=r"inference_delay must be an integer in \[0, 6\], got 7"):
         policy.prepare({**observation, "previous_actions": previous, "execution_horizon": 2, "inference_delay": 7})
     with pytest.raises(ValueError, match=r"inference_delay: 4 exceeds the 3 steps this model was trained"):
         policy.prepare({**observation, "previous_actions": previous, "execution_horizon": 2, "inference_delay": 4,

@@ -40,6 +40,7 @@ from pi0_torch.models.modeling_pi0 import PI0ForActionGeneration
 from pi0_torch.models.rtc import DEFAULT_MAX_GUIDANCE, METHODS
 from pi0_torch.runtime.observation_formats import CHUNK_FIELDS, ObservationError
 from pi0_torch.processing.processing_pi0 import PI0Processor
+from pi0_torch.utils.validation import check_int
 
 _DTYPES = {"float32": torch.float32, "bfloat16": torch.bfloat16}
 
@@ -319,14 +320,13 @@ class PI0Policy:
 
 
 def _step_count(value: Any, name: str, low: int, high: int) -> int:
-    """An integer field of an observation in `[low, high]`, or an `ObservationError` naming it."""
+    """An integer field of an observation in `[low, high]` (a 0-d array too), or an `ObservationError` naming it."""
     if isinstance(value, np.ndarray) and value.ndim == 0:
         value = value.item()
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
-        raise ObservationError(f"{name}: expected an integer in [{low}, {high}], got {type(value).__name__} {value!r}")
-    if not low <= int(value) <= high:
-        raise ObservationError(f"{name}: expected an integer in [{low}, {high}], got {int(value)}")
-    return int(value)
+    try:
+        return check_int(name, value, low, high)
+    except ValueError as error:
+        raise ObservationError(str(error)) from None
 
 
 def _policy_class(directory: str | Path) -> type[PI0Policy]:

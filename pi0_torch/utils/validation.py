@@ -88,10 +88,15 @@ def check_float(
 
 def _range_text(minimum: float | None, maximum: float | None) -> str:
     if minimum is not None and maximum is not None:
-        return f" in [{minimum:g}, {maximum:g}]"
+        return f" in [{_number(minimum)}, {_number(maximum)}]"
     if minimum is not None:
-        return f" >= {minimum:g}"
-    return f" <= {maximum:g}" if maximum is not None else ""
+        return f" >= {_number(minimum)}"
+    return f" <= {_number(maximum)}" if maximum is not None else ""
+
+
+def _number(value: float) -> str:
+    """Integers in full (a seed bound of 2**63 - 1 stays exact), other numbers in short form."""
+    return str(value) if isinstance(value, (int, np.integer)) else f"{value:g}"
 
 
 # --------------------------------------------------------------------------------------------- tensors and arrays
