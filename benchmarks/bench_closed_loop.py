@@ -2,12 +2,12 @@
 
     .venv/bin/python benchmarks/bench_closed_loop.py --policy pi0_torch/demo_policy --policy-plain DIR \
         [--envs pi0_torch/Conveyor-v0 pi0_torch/PickPlace-v0] [--delays 0 1 2 4 8] [--episodes 100] \
-        [--replan-steps 8] [--output benchmarks/results/closed_loop]
+        [--replan-steps 8] [--env-kwargs '{"num_objects": 1}'] [--workers 2] [--output benchmarks/results/closed_loop]
 
 Delays are simulated in control steps (`pi0-torch eval --inference-delay`), so the numbers do not depend on this
 machine's speed; every cell uses the same held-out seeds. `--policy` is a model trained with `--rtc-max-delay`
-(it runs every mode, `rtc-trained` included); `--policy-plain` (optional) one trained without, for `naive`, `rtc`
-(guidance) and `sync` only. Prints a markdown table (success [95% CI], jerk at chunk boundaries / inside chunks),
+(it runs every mode, `rtc-trained` included); `--policy-plain` (optional) one trained without, for every mode
+but `rtc-trained`. `--workers` evaluates cells in that many processes side by side. Prints a markdown table (success [95% CI], jerk at chunk boundaries / inside chunks),
 writes `<output>.json` and a plot `<output>.png`. Also times one chunk of plain, guided and conditioned sampling.
 
 `--served ENV` instead compares one evaluation run locally and through a `pi0-torch serve` process on loopback:
@@ -17,6 +17,7 @@ the same seeds must give the same episodes; prints both wall times.
 from __future__ import annotations
 
 import argparse
+import concurrent.futures
 import json
 import os
 import socket
@@ -97,6 +98,31 @@ def served_versus_local(policy_dir: Path, env_id: str, episodes: int, num_envs: 
     print(f"same episode outcomes: {same}; served / local wall time: {served_s / local_s:.2f}")
 
 
+_WORKER: dict = {}
+
+
+def _load_worker(policy_dirs: dict[str, Path], episodes: int, num_envs: int, replan_steps: int, threads: int,
+                 env_kwargs: dict) -> None:
+    """Per worker process: load every policy once (cells then only evaluate)."""
+    torch.set_num_threads(threads)
+    _WORKER.update(policies={label: PI0Policy.from_pretrained(path, device="cpu") for label, path in policy_dirs.items()},
+                   episodes=episodes, num_envs=num_envs, replan_steps=replan_steps, env_kwargs=env_kwargs)
+
+
+def _run_cell(cell: tuple[str, str, str, int]) -> dict:
+    """One (policy, env, execution mode, delay) cell over the held-out seeds; its row of the results."""
+    label, env_id, mode, delay = cell
+    start = time.time()
+    result = evaluate(LocalPolicy(_WORKER["policies"][label]), EvalSettings(
+        env=env_id, episodes=_WORKER["episodes"], num_envs=_WORKER["num_envs"], execution=mode, inference_delay=delay,
+        replan_steps=_WORKER["replan_steps"], env_kwargs=_WORKER["env_kwargs"]))
+    return {"policy": label, "env": env_id, "execution": mode, "inference_delay": delay,
+            "success_rate": result.success_rate, "success_ci95": result.success_ci95,
+            "boundary_jerk": result.boundary_jerk, "interior_jerk": result.interior_jerk,
+            "mean_steps": result.mean_steps, "episodes": result.episodes,
+            "summary": result.summary(), "seconds": time.time() - start}
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--policy", type=Path, default=Path("pi0_torch/demo_policy"))
@@ -107,8 +133,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--episodes", type=int, default=100)
     parser.add_argument("--num-envs", type=int, default=25)
     parser.add_argument("--replan-steps", type=int, default=8)
+    parser.add_argument("--env-kwargs", type=json.loads, default={}, metavar="JSON",
+                        help='passed to gymnasium.make for every env, e.g. \'{"num_objects": 1}\'')
     parser.add_argument("--output", type=Path, default=Path("benchmarks/results/closed_loop"))
-    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--threads", type=int, default=1, help="torch threads per worker process")
+    parser.add_argument("--workers", type=int, default=1, help="processes that evaluate cells side by side")
     parser.add_argument("--served", metavar="ENV", help="compare a local and a served evaluation on ENV instead")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
@@ -116,29 +145,23 @@ def main(argv: list[str] | None = None) -> int:
         served_versus_local(args.policy, args.served, args.episodes, args.num_envs, args.threads)
         return 0
 
-    policies = {"rtc-trained policy": PI0Policy.from_pretrained(args.policy, device="cpu")}
+    policy_dirs = {"rtc-trained policy": args.policy}
     if args.policy_plain:
-        policies["plain policy"] = PI0Policy.from_pretrained(args.policy_plain, device="cpu")
-    rows = []
-    for label, policy in policies.items():
+        policy_dirs["plain policy"] = args.policy_plain
+    jobs = []
+    for label, policy_dir in policy_dirs.items():
+        policy = PI0Policy.from_pretrained(policy_dir, device="cpu")
         print(f"{label}: chunk ms (batch 1, CPU, {args.threads} thread):",
               {k: round(v, 1) for k, v in sampling_times(policy).items()})
-        for env_id in args.envs:
-            for mode in args.modes:
-                if mode == "rtc-trained" and policy.model.config.rtc_max_delay == 0:
-                    continue
-                for delay in args.delays:
-                    if mode == "rtc-trained" and delay > policy.model.config.rtc_max_delay:
-                        continue
-                    start = time.time()
-                    result = evaluate(LocalPolicy(policy), EvalSettings(
-                        env=env_id, episodes=args.episodes, num_envs=args.num_envs, execution=mode,
-                        inference_delay=delay, replan_steps=args.replan_steps))
-                    rows.append({"policy": label, "env": env_id, "execution": mode, "inference_delay": delay,
-                                 "success_rate": result.success_rate, "success_ci95": result.success_ci95,
-                                 "boundary_jerk": result.boundary_jerk, "interior_jerk": result.interior_jerk,
-                                 "mean_steps": result.mean_steps, "episodes": result.episodes})
-                    print(f"  {result.summary()} [{time.time() - start:.0f} s]", flush=True)
+        trained_delay = policy.model.config.rtc_max_delay
+        jobs += [(label, env_id, mode, delay) for env_id in args.envs for mode in args.modes for delay in args.delays
+                  if mode != "rtc-trained" or 0 < trained_delay and delay <= trained_delay]
+    options = (policy_dirs, args.episodes, args.num_envs, args.replan_steps, args.threads, args.env_kwargs)
+    with concurrent.futures.ProcessPoolExecutor(args.workers, initializer=_load_worker, initargs=options) as pool:
+        rows = []
+        for row in pool.map(_run_cell, jobs):
+            print(f"  {row.pop('summary')} [{row.pop('seconds'):.0f} s]", flush=True)
+            rows.append({**row, "env_kwargs": args.env_kwargs})
 
     print(f"\n| policy | env | execution | {' | '.join(f'd={d}' for d in args.delays)} |")
     print(f"|---|---|---|{'---|' * len(args.delays)}")

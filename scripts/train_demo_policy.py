@@ -1,7 +1,7 @@
 """Reproduce the shipped demo policy `pi0_torch/demo_policy/` (what `pi0-torch demo` / `make demo` evaluates).
 
     .venv/bin/python scripts/train_demo_policy.py [--work-dir outputs/demo_training] [--max-steps 6000]
-        [--rtc-max-delay 8] [--destination pi0_torch/demo_policy]
+        [--rtc-max-delay 8] [--destination pi0_torch/demo_policy] [--envs ID ...] [--objects 1 2 3]
 
 1. records scripted-expert demonstrations of the three tabletop tasks (`pi0_torch.envs`: Reach, PickPlace, Conveyor;
    seeds from 0) into one LeRobot v3.0 dataset with the shared writer (`pi0-torch demos` does the same per task);
@@ -113,6 +113,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--max-steps", type=int, default=DEMO_STEPS)
     parser.add_argument("--rtc-max-delay", type=int, default=8)
     parser.add_argument("--episodes-scale", type=float, default=1.0, help="fraction of DEMO_EPISODES to record")
+    parser.add_argument("--objects", type=int, nargs="+", default=[1, 2, 3],
+                        help="train on the scenes of DEMO_EPISODES with these numbers of objects")
+    parser.add_argument("--envs", nargs="+", default=list(ENV_IDS), help="train on the scenes of these tasks")
     parser.add_argument("--eval-episodes", type=int, default=100)
     parser.add_argument("--destination", type=Path, default=REPO / "pi0_torch" / "demo_policy")
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (the tiny model gains little from more)")
@@ -125,8 +128,10 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(args.threads)
     args.work_dir.mkdir(parents=True, exist_ok=True)
 
-    episodes = {key: max(1, round(count * args.episodes_scale)) for key, count in DEMO_EPISODES.items()}
-    dataset = args.work_dir / f"demos_{'_'.join(str(n) for n in episodes.values())}"
+    episodes = {key: max(1, round(count * args.episodes_scale)) for key, count in DEMO_EPISODES.items()
+                if key[1] in args.objects and key[0] in args.envs}
+    dataset = args.work_dir / ("demos_" + "_".join(f"{env_id.split('/')[1].split('-')[0].lower()}{objects}x{count}"
+                                                    for (env_id, objects), count in episodes.items()))
     if not dataset.exists():
         record(dataset, episodes)
     tokenizer = args.work_dir / "tokenizer.model"
