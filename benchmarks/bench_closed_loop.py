@@ -109,18 +109,19 @@ def _load_worker(policy_dirs: dict[str, Path], episodes: int, num_envs: int, rep
                    episodes=episodes, num_envs=num_envs, replan_steps=replan_steps, env_kwargs=env_kwargs)
 
 
-def _run_cell(cell: tuple[str, str, str, int]) -> dict:
-    """One (policy, env, execution mode, delay) cell over the held-out seeds; its row of the results."""
+def _run_cell(cell: tuple[str, str, str, int]) -> tuple[dict, str, float]:
+    """One (policy, env, execution mode, delay) cell over the held-out seeds: its row of the results, its summary
+    line and the seconds it took."""
     label, env_id, mode, delay = cell
     start = time.time()
     result = evaluate(LocalPolicy(_WORKER["policies"][label]), EvalSettings(
         env=env_id, episodes=_WORKER["episodes"], num_envs=_WORKER["num_envs"], execution=mode, inference_delay=delay,
         replan_steps=_WORKER["replan_steps"], env_kwargs=_WORKER["env_kwargs"]))
-    return {"policy": label, "env": env_id, "execution": mode, "inference_delay": delay,
-            "success_rate": result.success_rate, "success_ci95": result.success_ci95,
-            "boundary_jerk": result.boundary_jerk, "interior_jerk": result.interior_jerk,
-            "mean_steps": result.mean_steps, "episodes": result.episodes,
-            "summary": result.summary(), "seconds": time.time() - start}
+    row = {"policy": label, "env": env_id, "env_kwargs": _WORKER["env_kwargs"], "execution": mode,
+           "inference_delay": delay, "success_rate": result.success_rate, "success_ci95": result.success_ci95,
+           "boundary_jerk": result.boundary_jerk, "interior_jerk": result.interior_jerk,
+           "mean_steps": result.mean_steps, "episodes": result.episodes}
+    return row, result.summary(), time.time() - start
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -159,9 +160,9 @@ def main(argv: list[str] | None = None) -> int:
     options = (policy_dirs, args.episodes, args.num_envs, args.replan_steps, args.threads, args.env_kwargs)
     with concurrent.futures.ProcessPoolExecutor(args.workers, initializer=_load_worker, initargs=options) as pool:
         rows = []
-        for row in pool.map(_run_cell, jobs):
-            print(f"  {row.pop('summary')} [{row.pop('seconds'):.0f} s]", flush=True)
-            rows.append({**row, "env_kwargs": args.env_kwargs})
+        for row, summary, seconds in pool.map(_run_cell, jobs):
+            print(f"  {summary} [{seconds:.0f} s]", flush=True)
+            rows.append(row)
 
     print(f"\n| policy | env | execution | {' | '.join(f'd={d}' for d in args.delays)} |")
     print(f"|---|---|---|{'---|' * len(args.delays)}")

@@ -113,9 +113,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--max-steps", type=int, default=DEMO_STEPS)
     parser.add_argument("--rtc-max-delay", type=int, default=8)
     parser.add_argument("--episodes-scale", type=float, default=1.0, help="fraction of DEMO_EPISODES to record")
-    parser.add_argument("--objects", type=int, nargs="+", default=[1, 2, 3],
+    parser.add_argument("--objects", type=int, nargs="+", default=[1, 2, 3], choices=[1, 2, 3],
                         help="train on the scenes of DEMO_EPISODES with these numbers of objects")
-    parser.add_argument("--envs", nargs="+", default=list(ENV_IDS), help="train on the scenes of these tasks")
+    parser.add_argument("--envs", nargs="+", default=list(ENV_IDS), choices=ENV_IDS, help="train on the scenes of these tasks")
     parser.add_argument("--eval-episodes", type=int, default=100)
     parser.add_argument("--destination", type=Path, default=REPO / "pi0_torch" / "demo_policy")
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (the tiny model gains little from more)")

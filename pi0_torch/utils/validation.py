@@ -81,8 +81,8 @@ def check_float(
         above = minimum is None or (number > minimum if exclusive_minimum else number >= minimum)
         if math.isfinite(number) and above and (maximum is None or number <= maximum):
             return number
-    low = f" > {minimum:g}" if exclusive_minimum and minimum is not None else _range_text(minimum, None)
-    high = f"{' and' if low else ''} <= {maximum:g}" if maximum is not None else ""
+    low = f" > {_number(minimum)}" if exclusive_minimum and minimum is not None else _range_text(minimum, None)
+    high = f"{' and' if low else ''} <= {_number(maximum)}" if maximum is not None else ""
     raise ValueError(f"{name} must be a finite number{low}{high}, got {_shown(value)} ({type(value).__name__})")
 
 
