@@ -5,8 +5,8 @@
 1. loads the demo policy shipped inside the package (`pi0_torch/demo_policy/`, a ~0.3 M-parameter π0 trained from
    scratch on scripted-expert demonstrations by `scripts/train_demo_policy.py`) with `PI0Policy.from_pretrained`;
 2. runs it in closed loop on held-out seeds of `pi0_torch/Reach-v0` and `pi0_torch/PickPlace-v0` (the camera image, the
-   instruction and the gripper state in, action chunks out; `pi0_torch.runtime.rollout.evaluate`), next to the
-   scripted expert;
+   instruction and the gripper state in, action chunks out, half of each chunk executed before the next;
+   `pi0_torch.runtime.rollout.evaluate`), next to the scripted expert;
 3. prints success rates with 95% intervals and writes a rollout video (mp4) and a PNG strip of the first PickPlace
    episode.
 
@@ -28,6 +28,7 @@ from pi0_torch.runtime.rollout import EvalSettings, LocalPolicy, ScriptedPolicy,
 
 DEFAULT_POLICY = Path(__file__).resolve().parent / "demo_policy"
 DEMO_ENVS = ("pi0_torch/Reach-v0", "pi0_torch/PickPlace-v0")
+DEMO_REPLAN_STEPS = 8  # execute half of each 16-action chunk, then replan (as openpi's LIBERO client does with its chunks)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -57,8 +58,8 @@ def run(args: argparse.Namespace) -> int:
     print(f"{'task':<24} {'policy success [95% CI]':<28} {'expert':<10} {'recorded (100 episodes)'}")
     for env_id in DEMO_ENVS:
         video = 1 if env_id.endswith("PickPlace-v0") else 0
-        settings = EvalSettings(env=env_id, episodes=args.episodes, num_envs=10, video_episodes=video,
-                                output_dir=str(args.output_dir / env_id.split("/")[1]) if video else None)
+        settings = EvalSettings(env=env_id, episodes=args.episodes, num_envs=10, replan_steps=DEMO_REPLAN_STEPS,
+                                video_episodes=video, output_dir=str(args.output_dir / env_id.split("/")[1]) if video else None)
         result = evaluate(policy, settings)
         expert = evaluate(ScriptedPolicy("expert"), EvalSettings(env=env_id, episodes=args.episodes, num_envs=10))
         low, high = result.success_ci95

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import pytest
@@ -51,6 +52,17 @@ def test_model_type_is_not_transformers_pi0() -> None:
     assert PI0Config.model_type == "pi0_torch"
     with pytest.raises(ValueError, match="unknown preset"):
         PI0Config.from_preset("pi1")
+
+
+def test_patch_positions_of_a_new_model_start_as_2d_sine_cosine(tiny_pi0: PI0ForActionGeneration) -> None:
+    table = tiny_pi0.vision_tower.embeddings.position_embedding.weight.detach()  # [16 * 16 patches, 40]
+    grid, quarter = 16, table.shape[1] // 4
+    omega = [10_000.0 ** (-k / (quarter - 1)) for k in range(quarter)]  # 1 down to 1e-4
+    row, column = 5, 11
+    expected = [math.sin(column * w) for w in omega] + [math.cos(column * w) for w in omega]
+    expected += [math.sin(row * w) for w in omega] + [math.cos(row * w) for w in omega]
+    torch.testing.assert_close(table[row * grid + column], torch.tensor(expected), rtol=0, atol=1e-6)
+    assert tiny_pi0.vision_tower.embeddings.position_embedding.weight.requires_grad  # still a learned table
 
 
 # -- save / load -----------------------------------------------------------------------------------------------------------
