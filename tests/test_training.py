@@ -271,6 +271,16 @@ def test_bf16_gradient_checkpointing_and_rtc_delays_run(dataset_root: Path, tmp_
     assert PI0Config.from_pretrained(result["output_dir"]).rtc_max_delay == 2  # conditioning sampling may use it
 
 
+def test_rtc_max_delay_applies_when_fine_tuning_a_checkpoint(dataset_root: Path, tmp_path: Path) -> None:
+    """`--rtc-max-delay` on a model folder (trained without it) trains with delays, not silently without them."""
+    base = train_policy(settings(dataset_root, tmp_path / "base", max_steps=1))["output_dir"]
+    from_folder = dict(model=base, config_overrides={}, tokenizer=None, max_steps=2)
+    plain = losses(train_policy(settings(dataset_root, tmp_path / "plain", **from_folder))["log_history"])
+    rtc = train_policy(settings(dataset_root, tmp_path / "rtc", rtc_max_delay=2, **from_folder))
+    assert PI0Config.from_pretrained(rtc["output_dir"]).rtc_max_delay == 2
+    assert losses(rtc["log_history"])[1] != pytest.approx(plain[1], rel=1e-6)  # the delayed tokens carry no loss
+
+
 # ---------------------------------------------------------------------------------------------------- what trains
 
 

@@ -692,8 +692,8 @@ def build_processor(settings: TrainSettings, config: PI0Config | PI0FastConfig, 
 def build_model(settings: TrainSettings, config: PI0Config | PI0FastConfig) -> nn.Module:
     """The model with its frozen parts set, wrapped in LoRA when asked."""
     model_class = PI0FastForActionGeneration if isinstance(config, PI0FastConfig) else PI0ForActionGeneration
-    if _is_model_folder(settings.model):
-        model = model_class.from_pretrained(settings.model, dtype=torch.float32)
+    if _is_model_folder(settings.model):  # with the run's config: it may add training choices (rtc_max_delay)
+        model = model_class.from_pretrained(settings.model, config=config, dtype=torch.float32)
     else:
         torch.manual_seed(settings.seed)
         model = model_class(config)
