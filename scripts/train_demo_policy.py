@@ -1,7 +1,7 @@
 """Reproduce the shipped demo policy `pi0_torch/demo_policy/` (what `pi0-torch demo` / `make demo` evaluates).
 
     .venv/bin/python scripts/train_demo_policy.py [--work-dir outputs/demo_training] [--rtc-max-delay 0]
-        [--destination pi0_torch/demo_policy] [--threads 2] [--steps-scale 1.0] [--episodes-scale 1.0]
+        [--destination pi0_torch/demo_policy] [--threads 1] [--steps-scale 1.0] [--episodes-scale 1.0]
 
     # the policy trained with training-time RTC, for benchmarks/bench_closed_loop.py (shares the first stage):
     .venv/bin/python scripts/train_demo_policy.py --rtc-max-delay 8 --destination outputs/demo_policy_rtc8
@@ -11,10 +11,10 @@
    the same per task);
 2. trains the tiny π0 of `DEMO_POLICY_CONFIG` from scratch with the real pipeline (`pi0_torch.training.train_policy`,
    the HF Trainer) in the three `STAGES` of a curriculum: first finding the object the instruction names (Reach),
-   then all three tasks, then a PickPlace-weighted mix, each from the previous stage's model. Position targets are learned relative to the
-   effector (delta actions); `--rtc-max-delay D` adds training-time real-time chunking after the first stage (the
-   shipped policy is plain: with `D = 8` the same recipe reached 69% / 1% / 11% on Reach / PickPlace / Conveyor
-   instead of 80% / 20% / 34%);
+   then all three tasks, then a PickPlace-weighted mix, each from the previous stage's model. Position targets are
+   learned relative to the effector (delta actions); `--rtc-max-delay D` adds training-time real-time chunking
+   after the first stage (the shipped policy is plain: with `D = 8` the same recipe reached 69% / 1% / 11% on
+   Reach / PickPlace / Conveyor instead of 80% / 20% / 34%);
 3. evaluates it in closed loop on held-out seeds (`pi0-torch eval`'s `evaluate`, from seed 1,000,000, executing
    `DEMO_REPLAN_STEPS` actions of each chunk) and copies the model, the processor and `demo_metrics.json` into the
    destination.
@@ -44,7 +44,7 @@ from pi0_torch.envs.demos import ACTION_NAMES, STATE_NAMES, expert_episode
 from pi0_torch.processing.tokenization import build_test_tokenizer
 from pi0_torch.runtime.policy import PI0Policy
 from pi0_torch.runtime.rollout import EvalSettings, LocalPolicy, evaluate
-from pi0_torch.training.trainer import TRAIN_SETTINGS_FILE, TrainSettings, train_policy
+from pi0_torch.training.trainer import TRAIN_SETTINGS_FILE, TrainSettings, scaled_warmup_steps, train_policy
 
 REPO = Path(__file__).resolve().parent.parent
 POLICY_FILES = ("config.json", "model.safetensors", "processor_config.json", "norm_stats.json", "tokenizer.model")
@@ -169,7 +169,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--episodes-scale", type=float, default=1.0, help="fraction of every stage's episodes")
     parser.add_argument("--eval-episodes", type=int, default=100)
     parser.add_argument("--destination", type=Path, default=REPO / "pi0_torch" / "demo_policy")
-    parser.add_argument("--threads", type=int, default=2, help="torch CPU threads")
+    parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (the shipped policy: 1; a second "
+                        "run, e.g. the RTC-trained policy, fits on the other core)")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     args.work_dir.mkdir(parents=True, exist_ok=True)
@@ -177,17 +178,18 @@ def main(argv: list[str] | None = None) -> int:
     build_test_tokenizer(extra_sentences=instructions() * 20, save_to=tokenizer)
 
     start, model, loss = time.time(), None, []
+    steps = [max(1, round(stage.steps * args.steps_scale)) for stage in STAGES]
     episodes = [{key: max(1, round(count * args.episodes_scale)) for key, count in stage.episodes.items()} for stage in STAGES]
     datasets = [dataset_folder(args.work_dir, stage_episodes) for stage_episodes in episodes]  # all recorded first
-    for stage, dataset in zip(STAGES, datasets):
+    for stage, dataset, stage_steps in zip(STAGES, datasets, steps):
         rtc_max_delay = args.rtc_max_delay if stage.rtc else 0
         run_dir = args.work_dir / f"{stage.name}_rtc{rtc_max_delay}"
-        steps = max(1, round(stage.steps * args.steps_scale))
         settings = TrainSettings(
             dataset=str(dataset), model=str(model or "pi0_small"), output_dir=str(run_dir),
             config_overrides={} if model else DEMO_POLICY_CONFIG, tokenizer=None if model else str(tokenizer),
-            max_steps=steps, batch_size=64, learning_rate=stage.learning_rate, end_learning_rate=1e-4, warmup_steps=200,
-            logging_steps=100, save_steps=steps, seed=0, rtc_max_delay=rtc_max_delay or None,
+            max_steps=stage_steps, batch_size=64, learning_rate=stage.learning_rate, end_learning_rate=1e-4,
+            warmup_steps=200 if stage_steps > 200 else scaled_warmup_steps(stage_steps),  # (the Trainer would scale it)
+            logging_steps=100, save_steps=stage_steps, seed=0, rtc_max_delay=rtc_max_delay or None,
             delta_action_mask=DELTA_ACTION_MASK,
         )
         if trained_with(settings):  # e.g. the shared first stage, trained by the other policy's run
@@ -211,7 +213,7 @@ def main(argv: list[str] | None = None) -> int:
         "closed_loop": success,
         "demo_episodes": {stage.name: {f"{env_id} x{objects}": count for (env_id, objects), count in stage_episodes.items()}
                           for stage, stage_episodes in zip(STAGES, episodes)},
-        "steps": {stage.name: max(1, round(stage.steps * args.steps_scale)) for stage in STAGES},
+        "steps": {stage.name: stage_steps for stage, stage_steps in zip(STAGES, steps)},
         "train_minutes": round(minutes, 1),
         "rtc_max_delay": args.rtc_max_delay,
         "train_loss": loss,

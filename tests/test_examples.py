@@ -49,3 +49,22 @@ def test_evaluate_notebook_runs(tmp_path: Path) -> None:
     assert any("image/png" in output.get("data", {}) for output in outputs)  # the rollout strip, inline
     table = outputs[-1]["data"]["text/plain"]
     assert "pi0_torch/PickPlace-v0" in table and "expert" in table and "random" in table
+
+
+def test_demo_recipe_runs_end_to_end_and_shares_its_first_stage(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """`scripts/train_demo_policy.py` at a tiny scale: records, trains the three stages, evaluates, writes the policy;
+    a second run with `--rtc-max-delay` reuses the first stage (trained without RTC) and conditions the rest."""
+    script = runpy.run_path(str(EXAMPLES.parent / "scripts" / "train_demo_policy.py"))
+    threads = torch.get_num_threads()
+    tiny = ["--work-dir", str(tmp_path), "--steps-scale", "0.001", "--episodes-scale", "0.001", "--eval-episodes", "1"]
+    try:
+        assert script["main"]([*tiny, "--destination", str(tmp_path / "plain")]) == 0
+        assert script["main"]([*tiny, "--rtc-max-delay", "2", "--destination", str(tmp_path / "rtc")]) == 0
+    finally:
+        torch.set_num_threads(threads)
+    out = capsys.readouterr().out
+    assert out.count("stage reach: reusing") == 1 and "stage tasks: reusing" not in out
+    for name, delay in (("plain", 0), ("rtc", 2)):
+        metrics = json.loads((tmp_path / name / "demo_metrics.json").read_text())
+        assert list(metrics["steps"]) == ["reach", "tasks", "pickplace"] and metrics["rtc_max_delay"] == delay
+        assert json.loads((tmp_path / name / "config.json").read_text())["rtc_max_delay"] == delay
