@@ -1,13 +1,13 @@
 """Closed-loop success and smoothness under inference delay: every execution mode, every delay, with 95% intervals.
 
-    .venv/bin/python benchmarks/bench_closed_loop.py --policy pi0_torch/demo_policy --policy-plain DIR \
+    .venv/bin/python benchmarks/bench_closed_loop.py --policy outputs/demo_policy_rtc8 --policy-plain pi0_torch/demo_policy \
         [--envs pi0_torch/Conveyor-v0 pi0_torch/PickPlace-v0] [--delays 0 1 2 4 8] [--episodes 100] \
         [--replan-steps 8] [--env-kwargs '{"num_objects": 1}'] [--workers 2] [--output benchmarks/results/closed_loop]
 
 Delays are simulated in control steps (`pi0-torch eval --inference-delay`), so the numbers do not depend on this
 machine's speed; every cell uses the same held-out seeds. `--policy` is a model trained with `--rtc-max-delay`
-(it runs every mode, `rtc-trained` included); `--policy-plain` (optional) one trained without, for every mode
-but `rtc-trained`. `--workers` evaluates cells in that many processes side by side. Prints a markdown table
+(`scripts/train_demo_policy.py --rtc-max-delay 8 --destination outputs/demo_policy_rtc8`); it runs every mode,
+`rtc-trained` included. `--policy-plain` (optional) is one trained without, for every mode but `rtc-trained`. `--workers` evaluates cells in that many processes side by side. Prints a markdown table
 (success [95% CI], jerk at chunk boundaries / inside chunks), writes `<output>.json` and a plot `<output>.png`. Also times one chunk of plain, guided and conditioned sampling.
 
 `--served ENV` instead compares one evaluation run locally and through a `pi0-torch serve` process on loopback:
