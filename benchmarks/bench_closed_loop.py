@@ -7,8 +7,10 @@
 Delays are simulated in control steps (`pi0-torch eval --inference-delay`), so the numbers do not depend on this
 machine's speed; every cell uses the same held-out seeds. `--policy` is a model trained with `--rtc-max-delay`
 (`scripts/train_demo_policy.py --rtc-max-delay 8 --destination outputs/demo_policy_rtc8`); it runs every mode,
-`rtc-trained` included. `--policy-plain` (optional) is one trained without, for every mode but `rtc-trained`. `--workers` evaluates cells in that many processes side by side. Prints a markdown table
-(success [95% CI], jerk at chunk boundaries / inside chunks), writes `<output>.json` and a plot `<output>.png`. Also times one chunk of plain, guided and conditioned sampling.
+`rtc-trained` included. `--policy-plain` (optional) is one trained without, for every mode but `rtc-trained`.
+`--workers` evaluates cells in that many processes side by side. Prints a markdown table (success [95% CI], jerk at
+chunk boundaries / inside chunks), writes `<output>.json` and a plot `<output>.png`. Also times one chunk of plain,
+guided and conditioned sampling.
 
 `--served ENV` instead compares one evaluation run locally and through a `pi0-torch serve` process on loopback:
 the same seeds must give the same episodes; prints both wall times.

@@ -349,7 +349,8 @@ def sincos_2d_positions(grid: int, width: int, temperature: float = 10_000.0) ->
 def siglip_vision_tower(config: Any) -> SiglipVisionModel:
     """The SigLIP tower of π0, π0.5 and π0-FAST from a config's `vision_*` dims, `image_size` and `patch_size`:
     pre-LN blocks with tanh GELU, LayerNorm eps 1e-6, no pooling head (openpi's `pool_type="none"`), patch
-    positions initialised by `sincos_2d_positions`."""
+    positions initialised by `sincos_2d_positions` (square patch grids and widths divisible by 4, as every preset
+    has; otherwise SigLIP's random init)."""
     vision_config = SiglipVisionConfig(
         hidden_size=config.vision_hidden_size,
         intermediate_size=config.vision_intermediate_size,
