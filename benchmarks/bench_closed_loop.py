@@ -2,12 +2,14 @@
 
     .venv/bin/python benchmarks/bench_closed_loop.py --policy outputs/demo_policy_rtc8 --policy-plain pi0_torch/demo_policy \
         [--envs pi0_torch/Conveyor-v0 pi0_torch/PickPlace-v0] [--delays 0 1 2 4 8] [--episodes 100] \
-        [--replan-steps 8] [--env-kwargs '{"num_objects": 1}'] [--workers 2] [--output benchmarks/results/closed_loop]
+        [--replan-steps 8] [--noise-scale 0.25] [--env-kwargs '{"num_objects": 1}'] [--workers 2] \
+        [--output benchmarks/results/closed_loop]
 
 Delays are simulated in control steps (`pi0-torch eval --inference-delay`), so the numbers do not depend on this
-machine's speed; every cell uses the same held-out seeds. `--policy` is a model trained with `--rtc-max-delay`
-(`scripts/train_demo_policy.py --rtc-max-delay 8 --destination outputs/demo_policy_rtc8`); it runs every mode,
-`rtc-trained` included. `--policy-plain` (optional) is one trained without, for every mode but `rtc-trained`.
+machine's speed; every cell uses the same held-out seeds. `--policy` and `--policy-plain` (optional) are two policies,
+labelled by their config: one trained with `--rtc-max-delay` (`scripts/train_demo_policy.py --rtc-max-delay 8
+--destination outputs/demo_policy_rtc8`) runs every mode, `rtc-trained` included; a plain one every mode but
+`rtc-trained`. Chunks are sampled from noise of standard deviation `--noise-scale` (default: the demo policy's).
 `--workers` evaluates cells in that many processes side by side. Prints a markdown table (success [95% CI], jerk at
 chunk boundaries / inside chunks), writes `<output>.json` and a plot `<output>.png`. Also times one chunk of plain,
 guided and conditioned sampling.
@@ -31,7 +33,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from pi0_torch.demo import DEMO_NOISE_SCALE
 from pi0_torch.runtime.chunking import EXECUTION_MODES
+from pi0_torch.models.configuration_pi0 import PI0Config
 from pi0_torch.runtime.policy import PI0Policy
 from pi0_torch.runtime.rollout import EvalSettings, LocalPolicy, RemotePolicy, evaluate
 
@@ -63,18 +67,19 @@ def sampling_times(policy: PI0Policy, repeats: int = 20) -> dict[str, float]:
     return times
 
 
-def served_versus_local(policy_dir: Path, env_id: str, episodes: int, num_envs: int, threads: int) -> None:
+def served_versus_local(policy_dir: Path, env_id: str, episodes: int, num_envs: int, threads: int,
+                        noise_scale: float) -> None:
     """The same evaluation in this process and through `pi0-torch serve` (its own process) on loopback."""
     settings = EvalSettings(env=env_id, episodes=episodes, num_envs=num_envs)
     start = time.perf_counter()
-    local = evaluate(LocalPolicy(PI0Policy.from_pretrained(policy_dir, device="cpu")), settings)
+    local = evaluate(LocalPolicy(PI0Policy.from_pretrained(policy_dir, device="cpu", noise_scale=noise_scale)), settings)
     local_s = time.perf_counter() - start
     with socket.socket() as probe:
         probe.bind(("127.0.0.1", 0))
         port = probe.getsockname()[1]
     server = subprocess.Popen(
         [sys.executable, "-m", "pi0_torch.cli", "serve", "--model", str(policy_dir), "--port", str(port), "--device", "cpu",
-         "--max-batch-size", str(num_envs), "--log-level", "WARNING"],
+         "--max-batch-size", str(num_envs), "--noise-scale", str(noise_scale), "--log-level", "WARNING"],
         env={**os.environ, "OMP_NUM_THREADS": str(threads)},
     )
     try:
@@ -104,10 +109,11 @@ _WORKER: dict = {}
 
 
 def _load_worker(policy_dirs: dict[str, Path], episodes: int, num_envs: int, replan_steps: int, threads: int,
-                 env_kwargs: dict) -> None:
+                 env_kwargs: dict, noise_scale: float) -> None:
     """Per worker process: load every policy once (cells then only evaluate)."""
     torch.set_num_threads(threads)
-    _WORKER.update(policies={label: PI0Policy.from_pretrained(path, device="cpu") for label, path in policy_dirs.items()},
+    _WORKER.update(policies={label: PI0Policy.from_pretrained(path, device="cpu", noise_scale=noise_scale)
+                             for label, path in policy_dirs.items()},
                    episodes=episodes, num_envs=num_envs, replan_steps=replan_steps, env_kwargs=env_kwargs)
 
 
@@ -120,7 +126,7 @@ def _run_cell(cell: tuple[str, str, str, int]) -> tuple[dict, str, float]:
         env=env_id, episodes=_WORKER["episodes"], num_envs=_WORKER["num_envs"], execution=mode, inference_delay=delay,
         replan_steps=_WORKER["replan_steps"], env_kwargs=_WORKER["env_kwargs"]))
     row = {"policy": label, "env": env_id, "env_kwargs": _WORKER["env_kwargs"], "execution": mode,
-           "inference_delay": delay, "success_rate": result.success_rate, "success_ci95": result.success_ci95,
+           "inference_delay": delay, "noise_scale": _WORKER["policies"][label].noise_scale, "success_rate": result.success_rate, "success_ci95": result.success_ci95,
            "boundary_jerk": result.boundary_jerk, "interior_jerk": result.interior_jerk,
            "mean_steps": result.mean_steps, "episodes": result.episodes}
     return row, result.summary(), time.time() - start
@@ -129,13 +135,16 @@ def _run_cell(cell: tuple[str, str, str, int]) -> tuple[dict, str, float]:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--policy", type=Path, default=Path("pi0_torch/demo_policy"))
-    parser.add_argument("--policy-plain", type=Path, help="a policy trained without --rtc-max-delay")
+    parser.add_argument("--policy-plain", type=Path, help="a second policy (the documented run: the one trained "
+                        "without --rtc-max-delay)")
     parser.add_argument("--envs", nargs="+", default=list(DEFAULT_ENVS))
     parser.add_argument("--delays", nargs="+", type=int, default=[0, 1, 2, 4, 8])
     parser.add_argument("--modes", nargs="+", default=list(EXECUTION_MODES), choices=EXECUTION_MODES)
     parser.add_argument("--episodes", type=int, default=100)
     parser.add_argument("--num-envs", type=int, default=25)
     parser.add_argument("--replan-steps", type=int, default=8)
+    parser.add_argument("--noise-scale", type=float, default=DEMO_NOISE_SCALE,
+                        help="standard deviation of the noise chunks are sampled from (1: openpi's sampler)")
     parser.add_argument("--env-kwargs", type=json.loads, default={}, metavar="JSON",
                         help='passed to gymnasium.make for every env, e.g. \'{"num_objects": 1}\'')
     parser.add_argument("--output", type=Path, default=Path("benchmarks/results/closed_loop"))
@@ -145,12 +154,16 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     if args.served:
-        served_versus_local(args.policy, args.served, args.episodes, args.num_envs, args.threads)
+        served_versus_local(args.policy, args.served, args.episodes, args.num_envs, args.threads, args.noise_scale)
         return 0
 
-    policy_dirs = {"rtc-trained policy": args.policy}
-    if args.policy_plain:
-        policy_dirs["plain policy"] = args.policy_plain
+    policy_dirs: dict[str, Path] = {}
+    for policy_dir in filter(None, (args.policy, args.policy_plain)):
+        label = "rtc-trained policy" if PI0Config.from_pretrained(policy_dir).rtc_max_delay > 0 else "plain policy"
+        if label in policy_dirs:
+            parser.error(f"--policy {args.policy} and --policy-plain {args.policy_plain} are both a {label}; "
+                         "compare one trained with --rtc-max-delay and one without")
+        policy_dirs[label] = policy_dir
     jobs = []
     for label, policy_dir in policy_dirs.items():
         policy = PI0Policy.from_pretrained(policy_dir, device="cpu")
@@ -159,7 +172,7 @@ def main(argv: list[str] | None = None) -> int:
         trained_delay = policy.model.config.rtc_max_delay
         jobs += [(label, env_id, mode, delay) for env_id in args.envs for mode in args.modes for delay in args.delays
                   if mode != "rtc-trained" or 0 < trained_delay and delay <= trained_delay]
-    options = (policy_dirs, args.episodes, args.num_envs, args.replan_steps, args.threads, args.env_kwargs)
+    options = (policy_dirs, args.episodes, args.num_envs, args.replan_steps, args.threads, args.env_kwargs, args.noise_scale)
     with concurrent.futures.ProcessPoolExecutor(args.workers, initializer=_load_worker, initargs=options) as pool:
         rows = []
         for row, summary, seconds in pool.map(_run_cell, jobs):

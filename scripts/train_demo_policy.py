@@ -16,8 +16,10 @@
    after the first stage (the shipped policy is plain: with `D = 8` the same recipe reached 69% / 1% / 11% on
    Reach / PickPlace / Conveyor instead of 80% / 20% / 34%);
 3. evaluates it in closed loop on held-out seeds (`pi0-torch eval`'s `evaluate`, from seed 1,000,000, executing
-   `DEMO_REPLAN_STEPS` actions of each chunk) and copies the model, the processor and `demo_metrics.json` into the
-   destination.
+   `DEMO_REPLAN_STEPS` actions of each chunk, sampled from noise of standard deviation `DEMO_NOISE_SCALE`) and copies
+   the model, the processor and `demo_metrics.json` into the destination.
+
+A stage whose finished model has the same settings is reused, so a second invocation only evaluates.
 
 Seeded throughout. The instructions' words are in the tokenizer's training text, so prompts stay short.
 """
@@ -38,7 +40,7 @@ import gymnasium
 import torch
 
 from pi0_torch.data.lerobot_writer import EpisodeRecord, write_lerobot_dataset
-from pi0_torch.demo import DEMO_REPLAN_STEPS
+from pi0_torch.demo import DEMO_NOISE_SCALE, DEMO_REPLAN_STEPS
 from pi0_torch.envs import ENV_IDS
 from pi0_torch.envs.demos import ACTION_NAMES, STATE_NAMES, expert_episode
 from pi0_torch.processing.tokenization import build_test_tokenizer
@@ -126,7 +128,7 @@ def record(root: Path, episodes: dict[tuple[str, int], int]) -> None:
 
 def closed_loop_success(policy_dir: Path, episodes: int) -> dict[str, dict]:
     """Success of the policy on held-out seeds of every task (what `demo_metrics.json` records)."""
-    policy = LocalPolicy(PI0Policy.from_pretrained(policy_dir, device="cpu"))
+    policy = LocalPolicy(PI0Policy.from_pretrained(policy_dir, device="cpu", noise_scale=DEMO_NOISE_SCALE))
     success = {}
     for env_id in ENV_IDS:
         settings = EvalSettings(env=env_id, episodes=episodes, num_envs=25, seed=HELDOUT_SEED, replan_steps=DEMO_REPLAN_STEPS)
@@ -134,6 +136,7 @@ def closed_loop_success(policy_dir: Path, episodes: int) -> dict[str, dict]:
         print(outcome.summary())
         success[env_id] = {"success_rate": outcome.success_rate, "success_ci95": outcome.success_ci95,
                            "episodes": outcome.episodes, "seed": HELDOUT_SEED, "replan_steps": DEMO_REPLAN_STEPS,
+                           "noise_scale": DEMO_NOISE_SCALE,
                            "successes": [int(e["success"]) for e in outcome.episodes_detail]}
     return success
 
@@ -177,7 +180,7 @@ def main(argv: list[str] | None = None) -> int:
     tokenizer = args.work_dir / "tokenizer.model"
     build_test_tokenizer(extra_sentences=instructions() * 20, save_to=tokenizer)
 
-    start, model, loss = time.time(), None, []
+    start, model, loss, reused = time.time(), None, [], []
     steps = [max(1, round(stage.steps * args.steps_scale)) for stage in STAGES]
     episodes = [{key: max(1, round(count * args.episodes_scale)) for key, count in stage.episodes.items()} for stage in STAGES]
     datasets = [dataset_folder(args.work_dir, stage_episodes) for stage_episodes in episodes]  # all recorded first
@@ -195,6 +198,7 @@ def main(argv: list[str] | None = None) -> int:
         if trained_with(settings):  # e.g. the shared first stage, trained by the other policy's run
             print(f"stage {stage.name}: reusing {run_dir}, trained with the same settings")
             log_history = json.loads(trainer_state(settings).read_text())["log_history"]
+            reused.append(stage.name)
         else:
             if run_dir.exists():
                 shutil.rmtree(run_dir)
@@ -214,7 +218,8 @@ def main(argv: list[str] | None = None) -> int:
         "demo_episodes": {stage.name: {f"{env_id} x{objects}": count for (env_id, objects), count in stage_episodes.items()}
                           for stage, stage_episodes in zip(STAGES, episodes)},
         "steps": {stage.name: stage_steps for stage, stage_steps in zip(STAGES, steps)},
-        "train_minutes": round(minutes, 1),
+        "train_minutes": round(minutes, 1),  # recording and training in this invocation, without reused stages
+        "reused_stages": reused,
         "rtc_max_delay": args.rtc_max_delay,
         "train_loss": loss,
         "torch": torch.__version__,

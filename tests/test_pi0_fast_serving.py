@@ -37,6 +37,8 @@ def test_policy_turns_decoded_tokens_into_robot_actions(fast_model_dir: Path, tm
     loaded = PI0Policy.from_pretrained(fast_model_dir, device="cpu")
     assert isinstance(loaded, PI0FastPolicy) and loaded.metadata["model_type"] == "pi0_fast"
     assert loaded.num_steps == loaded.model.config.max_decoding_steps
+    with pytest.raises(ValueError, match="noise_scale applies to flow-matching .* is a π0-FAST model"):
+        PI0Policy.from_pretrained(fast_model_dir, device="cpu", noise_scale=0.25)
     tokenizer = atomic_tail_tokenizer(tmp_path / "tail.model")
     skip = sentencepiece.SentencePieceProcessor(model_file=str(tokenizer)).get_piece_size() - 516
     processor = PI0FastProcessor.from_config(loaded.model.config, tokenizer, FAST_DIR / "fast_tokenizer", fast_model_dir, fast_skip_tokens=skip)

@@ -178,6 +178,27 @@ def test_policy_continues_a_chunk_in_robot_units() -> None:
         policy.prepare({**observation, "inference_delay": 2})
 
 
+def test_noise_scale_scales_the_noise_the_flow_starts_from() -> None:
+    """`noise_scale` 1 samples exactly as the model's own sampler did; s multiplies the (seeded) noise; 0 gives one
+    chunk per observation whatever the seed; a bad value is refused with its name."""
+    policy = tiny_policy()
+    observation = {"images": {"base_0_rgb": np.zeros((32, 32, 3), np.uint8)}, "state": np.ones(3), "prompt": "reach"}
+    batch = policy.prepare(observation).inputs
+    model, shape = policy.model, (1, HORIZON, 4)
+    with torch.no_grad():
+        plain = model.generate_actions(**batch, num_steps=2, generator=torch.Generator().manual_seed(0))
+        np.testing.assert_array_equal(policy.model_actions(batch), plain.numpy())  # (policy seeded with 0)
+        policy.noise_scale = 0.5
+        scaled = model.generate_actions(**batch, num_steps=2, noise=0.5 * torch.randn(shape, generator=torch.Generator().manual_seed(7)))
+        np.testing.assert_array_equal(policy._generate([policy.prepare({**observation, "noise_seed": 7})], None), scaled.numpy())
+    policy.noise_scale = 0.0
+    first, second = (policy.infer({**observation, "noise_seed": seed})["actions"] for seed in (1, 2))
+    np.testing.assert_array_equal(first, second)
+    assert policy.metadata["noise_scale"] == 0.0
+    with pytest.raises(ValueError, match=r"noise_scale must be a finite number >= 0, got -1.0"):
+        PI0Policy(policy.model, policy.processor, noise_scale=-1.0)
+
+
 def test_mismatches_are_named() -> None:
     with pytest.raises(ValueError, match=r"action dims differ: the policy acts in 2 dims, the env .* takes 3"):
         evaluate(LocalPolicy(tiny_policy(action_dim=2)), EvalSettings(env="pi0_torch/Reach-v0", episodes=1))
@@ -201,12 +222,14 @@ def test_eval_command_on_gym_pusht(tmp_path: Path) -> None:
     env = {**os.environ, "SDL_VIDEODRIVER": "dummy", "PYTHONPATH": str(REPO)}
     command = [sys.executable, "-m", "pi0_torch.cli", "eval", "--policy", str(tmp_path / "policy"),
                "--env", "gym_pusht/PushT-v0", "--episodes", "2", "--num-envs", "2", "--max-steps", "10",
-               "--prompt", "push the T onto the target", "--output-dir", str(tmp_path / "out"), "--video"]
+               "--prompt", "push the T onto the target", "--output-dir", str(tmp_path / "out"), "--video",
+               "--noise-scale", "0.5"]
     done = subprocess.run(command, capture_output=True, text=True, env=env, timeout=300, check=False)
     assert done.returncode == 0, done.stderr[-2000:]
     assert "gym_pusht/PushT-v0 sync d=0 s=8: success" in done.stdout
     result = json.loads((tmp_path / "out" / "eval.json").read_text())
     assert result["episodes"] == 2 and all(e["steps"] == 10 for e in result["episodes_detail"])
+    assert result["policy"]["noise_scale"] == 0.5
     assert (tmp_path / "out" / "rollout_1000000.mp4").stat().st_size > 0
     assert (tmp_path / "out" / "rollout_1000000.png").stat().st_size > 0
     bad = subprocess.run([*command[:6], "--env", "gym_nothing/Nope-v0"], capture_output=True, text=True, env=env,

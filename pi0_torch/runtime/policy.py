@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import time
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -91,6 +92,11 @@ class PI0Policy:
         rtc_method: how chunks continue a `previous_actions` (default: "conditioning" for a model trained with delays,
             `config.rtc_max_delay > 0`, else "guidance").
         rtc_max_guidance: the guidance weight's clip (beta) for "guidance".
+        noise_scale: the standard deviation of the noise each chunk's flow starts from (1: the training
+            distribution, openpi's sampler). Below 1 the flow starts nearer the middle of the noise and returns
+            actions nearer the most likely chunk; a small policy that grasps imprecisely gains from it (the demo
+            policy samples at `pi0_torch.demo.DEMO_NOISE_SCALE` = 0.25, docs/closed_loop.md, measured). 0 gives one
+            deterministic chunk per observation.
         compile: run sampling through `torch.compile` ([`PI0ForActionGeneration.compile_sampling`]), as one CUDA
             graph on CUDA. The first chunk of each batch size compiles (tens of seconds): call [`warmup`] first.
     """
@@ -109,8 +115,12 @@ class PI0Policy:
         compile: bool = False,
         rtc_method: str | None = None,
         rtc_max_guidance: float = DEFAULT_MAX_GUIDANCE,
+        noise_scale: float = 1.0,
     ) -> None:
         self.model = model.eval()
+        if not (math.isfinite(noise_scale) and noise_scale >= 0):
+            raise ValueError(f"noise_scale must be a finite number >= 0, got {noise_scale}")
+        self.noise_scale = float(noise_scale)
         self.rtc_method = rtc_method or ("conditioning" if getattr(model.config, "rtc_max_delay", 0) > 0 else "guidance")
         if self.rtc_method not in METHODS:
             raise ValueError(f"rtc_method must be one of {METHODS}, got {self.rtc_method!r}")
@@ -138,12 +148,14 @@ class PI0Policy:
         default_prompt: str | None = None,
         compile: bool = False,
         rtc_method: str | None = None,
+        noise_scale: float = 1.0,
     ) -> PI0Policy:
         """Load the model and processor saved in `directory` (by `save_pretrained` or the converter).
 
         `device` defaults to CUDA when available, else CPU; `dtype` ("float32" / "bfloat16" or a torch dtype)
         defaults to bfloat16 on CUDA and float32 on CPU. `default_prompt` replaces the processor's (used for
-        observations without a prompt). `compile` and `rtc_method` as in the class.
+        observations without a prompt). `compile`, `rtc_method` and `noise_scale` as in the class (a π0-FAST folder
+        decodes tokens and takes no `noise_scale`).
         """
         if not Path(directory).is_dir():
             raise FileNotFoundError(f"model folder not found: {directory} (a folder written by save_pretrained or "
@@ -159,7 +171,10 @@ class PI0Policy:
         model = policy_class.model_class.from_pretrained(directory, dtype=dtype).to(device)
         overrides = {"default_prompt": default_prompt} if default_prompt is not None else {}
         processor = policy_class.processor_class.from_pretrained(directory, **overrides)
-        options = {"rtc_method": rtc_method} if policy_class.continues_chunks else {}
+        if noise_scale != 1.0 and not policy_class.continues_chunks:
+            raise ValueError(f"noise_scale applies to flow-matching π0 / π0.5 sampling; {directory} is a π0-FAST "
+                             "model, which decodes tokens (see its temperature)")
+        options = {"rtc_method": rtc_method, "noise_scale": noise_scale} if policy_class.continues_chunks else {}
         return policy_class(model, processor, num_steps=num_steps, seed=seed, compile=compile, **options)
 
     @property
@@ -178,6 +193,7 @@ class PI0Policy:
             "action_dim": self.processor.action_dim_robot,
             "action_horizon": config.action_horizon,
             "num_steps": self.num_steps,
+            **({"noise_scale": self.noise_scale} if self.continues_chunks else {}),
             "default_prompt": self.processor.default_prompt,
             "device": str(self.device),
             "dtype": str(self.model.dtype).removeprefix("torch."),
@@ -260,7 +276,7 @@ class PI0Policy:
         options: dict[str, Any] = {}
         if self.continues_chunks and any(p.noise_seed is not None for p in prepared):  # (FAST decodes greedily)
             shape = (1, config.action_horizon, config.action_dim)
-            options["noise"] = torch.cat([
+            options["noise"] = self.noise_scale * torch.cat([
                 torch.randn(shape, generator=torch.Generator().manual_seed(p.noise_seed)).to(self.device)
                 if p.noise_seed is not None else torch.randn(shape, generator=self.generator, device=self.device)
                 for p in prepared
@@ -279,10 +295,14 @@ class PI0Policy:
     def model_actions(self, batch: Mapping[str, torch.Tensor], warmup: bool = False, **options: Any) -> np.ndarray:
         """Model-space action chunks `[B, horizon, action_dim]` (float32 numpy) for a batch of model inputs.
         `options` go to `generate_actions` (`noise`, real-time chunking); without `noise` the policy's seeded
-        generator draws it, which a warm-up run leaves untouched."""
+        generator draws it (times `noise_scale`), which a warm-up run leaves untouched."""
         if warmup:
             config = self.model.config
             options = {"noise": torch.zeros(len(batch["input_ids"]), config.action_horizon, config.action_dim, device=self.device)}
+        elif "noise" not in options and self.continues_chunks:
+            config = self.model.config
+            shape = (len(batch["input_ids"]), config.action_horizon, config.action_dim)
+            options["noise"] = self.noise_scale * torch.randn(shape, generator=self.generator, device=self.device)
         elif "noise" not in options:
             options["generator"] = self.generator
         return self.model.generate_actions(**batch, num_steps=self.num_steps, **options).float().cpu().numpy()

@@ -543,6 +543,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="weights dtype (default: bfloat16 on cuda, float32 on cpu)")
     parser.add_argument("--num-steps", type=int, default=None, help="Euler steps per action chunk "
                         "(default: the model config's num_inference_steps)")
+    parser.add_argument("--noise-scale", type=float, default=1.0, help="standard deviation of the noise each "
+                        "chunk's flow starts from (default 1, openpi's sampler; below 1 nearer the most likely chunk)")
     parser.add_argument("--obs-format", type=_observation_format, default="default", metavar="default|libero|droid|aloha|PATH.json",
                         help="observation layout the robot sends (default: the pi0-torch layout)")
     parser.add_argument("--default-prompt", default=None, help="prompt used when an observation has none "
@@ -596,7 +598,7 @@ def run(args: argparse.Namespace) -> int:
         logger.info("loading %s", args.model)
         policy = PI0Policy.from_pretrained(
             args.model, device=args.device, dtype=args.dtype, num_steps=args.num_steps, seed=args.seed,
-            default_prompt=args.default_prompt, compile=args.compile,
+            default_prompt=args.default_prompt, compile=args.compile, noise_scale=args.noise_scale,
         )
         server = PolicyServer(
             policy,
