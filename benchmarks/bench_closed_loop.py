@@ -2,14 +2,15 @@
 
     .venv/bin/python benchmarks/bench_closed_loop.py --policy outputs/demo_policy_rtc8 --policy-plain pi0_torch/demo_policy \
         [--envs pi0_torch/Conveyor-v0 pi0_torch/PickPlace-v0] [--delays 0 1 2 4 8] [--episodes 100] \
-        [--replan-steps 8] [--noise-scale 0.25] [--env-kwargs '{"num_objects": 1}'] [--workers 2] \
+        [--replan-steps 8] [--noise-scale 0.25] [--rtc-schedules exp ones] [--env-kwargs '{"num_objects": 1}'] [--workers 2] \
         [--output benchmarks/results/closed_loop]
 
 Delays are simulated in control steps (`pi0-torch eval --inference-delay`), so the numbers do not depend on this
 machine's speed; every cell uses the same held-out seeds. `--policy` and `--policy-plain` (optional) are two policies,
 labelled by their config: one trained with `--rtc-max-delay` (`scripts/train_demo_policy.py --rtc-max-delay 8
 --destination outputs/demo_policy_rtc8`) runs every mode, `rtc-trained` included; a plain one every mode but
-`rtc-trained`. Chunks are sampled from noise of standard deviation `--noise-scale` (default: the demo policy's).
+`rtc-trained`. Chunks are sampled from noise of standard deviation `--noise-scale` (default: the demo policy's);
+`rtc` runs once per soft-mask schedule of `--rtc-schedules` (default: the paper's `exp`, then `ones`).
 `--workers` evaluates cells in that many processes side by side. Prints a markdown table (success [95% CI], jerk at
 chunk boundaries / inside chunks), writes `<output>.json` and a plot `<output>.png`. Also times one chunk of plain,
 guided and conditioned sampling.
@@ -36,6 +37,7 @@ import torch
 from pi0_torch.demo import DEMO_NOISE_SCALE
 from pi0_torch.runtime.chunking import EXECUTION_MODES
 from pi0_torch.models.configuration_pi0 import PI0Config
+from pi0_torch.models.rtc import SCHEDULES
 from pi0_torch.runtime.policy import PI0Policy
 from pi0_torch.runtime.rollout import EvalSettings, LocalPolicy, RemotePolicy, evaluate
 
@@ -117,19 +119,31 @@ def _load_worker(policy_dirs: dict[str, Path], episodes: int, num_envs: int, rep
                    episodes=episodes, num_envs=num_envs, replan_steps=replan_steps, env_kwargs=env_kwargs)
 
 
-def _run_cell(cell: tuple[str, str, str, int]) -> tuple[dict, str, float]:
-    """One (policy, env, execution mode, delay) cell over the held-out seeds: its row of the results, its summary
-    line and the seconds it took."""
-    label, env_id, mode, delay = cell
+def _run_cell(cell: tuple[str, str, str, int, str | None]) -> tuple[dict, str, float]:
+    """One (policy, env, execution mode, delay, guidance schedule of `rtc`) cell over the held-out seeds: its row of
+    the results, its summary line and the seconds it took."""
+    label, env_id, mode, delay, schedule = cell
     start = time.time()
-    result = evaluate(LocalPolicy(_WORKER["policies"][label]), EvalSettings(
+    policy = _WORKER["policies"][label]
+    policy.rtc_schedule = schedule or "exp"
+    result = evaluate(LocalPolicy(policy), EvalSettings(
         env=env_id, episodes=_WORKER["episodes"], num_envs=_WORKER["num_envs"], execution=mode, inference_delay=delay,
         replan_steps=_WORKER["replan_steps"], env_kwargs=_WORKER["env_kwargs"]))
     row = {"policy": label, "env": env_id, "env_kwargs": _WORKER["env_kwargs"], "execution": mode,
-           "inference_delay": delay, "noise_scale": _WORKER["policies"][label].noise_scale, "success_rate": result.success_rate, "success_ci95": result.success_ci95,
+           "rtc_schedule": schedule, "inference_delay": delay, "noise_scale": policy.noise_scale, "success_rate": result.success_rate, "success_ci95": result.success_ci95,
            "boundary_jerk": result.boundary_jerk, "interior_jerk": result.interior_jerk,
            "mean_steps": result.mean_steps, "episodes": result.episodes}
-    return row, result.summary(), time.time() - start
+    return row, f"{result.summary()}{f' ({schedule})' if schedule else ''}", time.time() - start
+
+
+def _mode_label(row: dict) -> str:
+    """`rtc` with the paper's schedule, `rtc (ones)` with another, the other modes as they are."""
+    schedule = row.get("rtc_schedule")
+    return row["execution"] if schedule in (None, "exp") else f"{row['execution']} ({schedule})"
+
+
+def _mode_order(row: dict, schedules: list[str]) -> tuple[int, int]:
+    return EXECUTION_MODES.index(row["execution"]), schedules.index(row["rtc_schedule"]) if row.get("rtc_schedule") else 0
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -143,6 +157,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--episodes", type=int, default=100)
     parser.add_argument("--num-envs", type=int, default=25)
     parser.add_argument("--replan-steps", type=int, default=8)
+    parser.add_argument("--rtc-schedules", nargs="+", default=["exp", "ones"], choices=SCHEDULES,
+                        help="soft masks of the rtc cells (one row each)")
     parser.add_argument("--noise-scale", type=float, default=DEMO_NOISE_SCALE,
                         help="standard deviation of the noise chunks are sampled from (1: openpi's sampler)")
     parser.add_argument("--env-kwargs", type=json.loads, default={}, metavar="JSON",
@@ -170,8 +186,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{label}: chunk ms (batch 1, CPU, {args.threads} thread):",
               {k: round(v, 1) for k, v in sampling_times(policy).items()})
         trained_delay = policy.model.config.rtc_max_delay
-        jobs += [(label, env_id, mode, delay) for env_id in args.envs for mode in args.modes for delay in args.delays
-                  if mode != "rtc-trained" or 0 < trained_delay and delay <= trained_delay]
+        jobs += [(label, env_id, mode, delay, schedule) for env_id in args.envs for mode in args.modes
+                 for schedule in (args.rtc_schedules if mode == "rtc" else [None]) for delay in args.delays
+                 if mode != "rtc-trained" or 0 < trained_delay and delay <= trained_delay]
     options = (policy_dirs, args.episodes, args.num_envs, args.replan_steps, args.threads, args.env_kwargs, args.noise_scale)
     with concurrent.futures.ProcessPoolExecutor(args.workers, initializer=_load_worker, initargs=options) as pool:
         rows = []
@@ -181,11 +198,12 @@ def main(argv: list[str] | None = None) -> int:
 
     print(f"\n| policy | env | execution | {' | '.join(f'd={d}' for d in args.delays)} |")
     print(f"|---|---|---|{'---|' * len(args.delays)}")
-    keys = sorted({(r["policy"], r["env"], r["execution"]) for r in rows}, key=lambda k: (k[0], k[1], EXECUTION_MODES.index(k[2])))
+    order = {_mode_label(r): _mode_order(r, args.rtc_schedules) for r in rows}
+    keys = sorted({(r["policy"], r["env"], _mode_label(r)) for r in rows}, key=lambda k: (k[0], k[1], order[k[2]]))
     for key in keys:
         cells = []
         for delay in args.delays:
-            match = [r for r in rows if (r["policy"], r["env"], r["execution"]) == key and r["inference_delay"] == delay]
+            match = [r for r in rows if (r["policy"], r["env"], _mode_label(r)) == key and r["inference_delay"] == delay]
             if not match:
                 cells.append("-")
                 continue
@@ -211,15 +229,15 @@ def plot(rows: list[dict], delays: list[int], path: Path) -> None:
     envs = sorted({r["env"] for r in rows})
     figure, axes = plt.subplots(2, len(envs), figsize=(6 * len(envs), 7), squeeze=False)
     for column, env_id in enumerate(envs):
-        for (policy, mode) in sorted({(r["policy"], r["execution"]) for r in rows if r["env"] == env_id}):
-            series = sorted((r for r in rows if (r["env"], r["policy"], r["execution"]) == (env_id, policy, mode)),
+        for (policy, mode) in sorted({(r["policy"], _mode_label(r)) for r in rows if r["env"] == env_id}):
+            series = sorted((r for r in rows if (r["env"], r["policy"], _mode_label(r)) == (env_id, policy, mode)),
                             key=lambda r: r["inference_delay"])
             x = [r["inference_delay"] for r in series]
             label = mode if policy.startswith("rtc-trained") else f"{mode} (plain policy)"
             style = "-o" if policy.startswith("rtc-trained") else "--s"
             success = np.array([r["success_rate"] for r in series]) * 100
-            low = success - np.array([r["success_ci95"][0] for r in series]) * 100
-            high = np.array([r["success_ci95"][1] for r in series]) * 100 - success
+            low = np.maximum(success - np.array([r["success_ci95"][0] for r in series]) * 100, 0)  # (rounding at 0%)
+            high = np.maximum(np.array([r["success_ci95"][1] for r in series]) * 100 - success, 0)
             axes[0, column].errorbar(x, success, yerr=[low, high], fmt=style, capsize=3, label=label)
             axes[1, column].plot(x, [r["boundary_jerk"] for r in series], style, label=label)
         axes[0, column].set_title(env_id)

@@ -199,6 +199,24 @@ def test_noise_scale_scales_the_noise_the_flow_starts_from() -> None:
         PI0Policy(policy.model, policy.processor, noise_scale=-1.0)
 
 
+def test_policy_guides_with_its_rtc_schedule(monkeypatch: pytest.MonkeyPatch) -> None:
+    """`rtc_schedule` reaches the model's guidance (and changes the chunk); the metadata says which; bad names fail."""
+    policy = tiny_policy(rtc_max_delay=0)
+    observation = {"images": {"base_0_rgb": np.zeros((32, 32, 3), np.uint8)}, "state": np.ones(3), "prompt": "reach",
+                   "previous_actions": np.linspace(-1, 1, HORIZON * 3, dtype=np.float32).reshape(HORIZON, 3),
+                   "execution_horizon": 2, "inference_delay": 2, "noise_seed": 3}
+    seen, generate = [], policy.model.generate_actions
+    monkeypatch.setattr(policy.model, "generate_actions", lambda **kw: seen.append(kw["rtc_schedule"]) or generate(**kw))
+    chunks = {}
+    for schedule in ("exp", "ones"):
+        policy.rtc_schedule = schedule
+        chunks[schedule] = policy.infer(observation)["actions"]
+    assert seen == ["exp", "ones"] and not np.allclose(chunks["exp"], chunks["ones"])
+    assert policy.metadata["real_time_chunking"]["guidance_schedule"] == "ones"
+    with pytest.raises(ValueError, match=r"rtc_schedule must be one of \('exp', 'linear', 'ones', 'hard'\), got 'flat'"):
+        PI0Policy(policy.model, policy.processor, rtc_schedule="flat")
+
+
 def test_mismatches_are_named() -> None:
     with pytest.raises(ValueError, match=r"action dims differ: the policy acts in 2 dims, the env .* takes 3"):
         evaluate(LocalPolicy(tiny_policy(action_dim=2)), EvalSettings(env="pi0_torch/Reach-v0", episodes=1))

@@ -38,7 +38,7 @@ import torch
 
 from pi0_torch import __version__
 from pi0_torch.models.modeling_pi0 import PI0ForActionGeneration
-from pi0_torch.models.rtc import DEFAULT_MAX_GUIDANCE, METHODS
+from pi0_torch.models.rtc import DEFAULT_MAX_GUIDANCE, METHODS, SCHEDULES
 from pi0_torch.runtime.observation_formats import CHUNK_FIELDS, ObservationError
 from pi0_torch.processing.processing_pi0 import PI0Processor
 from pi0_torch.utils.validation import check_int
@@ -92,6 +92,10 @@ class PI0Policy:
         rtc_method: how chunks continue a `previous_actions` (default: "conditioning" for a model trained with delays,
             `config.rtc_max_delay > 0`, else "guidance").
         rtc_max_guidance: the guidance weight's clip (beta) for "guidance".
+        rtc_schedule: the soft mask of "guidance" over the overlap with the previous chunk (`SCHEDULES`): "exp" (the
+            paper's exponential decay), "linear", "ones" (full weight on the whole overlap) or "hard" (the delayed
+            steps only). On the demo's Conveyor, "ones" had half the jerk at chunk boundaries of "exp"
+            (docs/closed_loop.md).
         noise_scale: the standard deviation of the noise each chunk's flow starts from (1: the training
             distribution, openpi's sampler). Below 1 the flow starts nearer the middle of the noise and returns
             actions nearer the most likely chunk; a small policy that grasps imprecisely gains from it (the demo
@@ -115,6 +119,7 @@ class PI0Policy:
         compile: bool = False,
         rtc_method: str | None = None,
         rtc_max_guidance: float = DEFAULT_MAX_GUIDANCE,
+        rtc_schedule: str = "exp",
         noise_scale: float = 1.0,
     ) -> None:
         self.model = model.eval()
@@ -125,6 +130,9 @@ class PI0Policy:
         if self.rtc_method not in METHODS:
             raise ValueError(f"rtc_method must be one of {METHODS}, got {self.rtc_method!r}")
         self.rtc_max_guidance = rtc_max_guidance
+        if rtc_schedule not in SCHEDULES:
+            raise ValueError(f"rtc_schedule must be one of {SCHEDULES}, got {rtc_schedule!r}")
+        self.rtc_schedule = rtc_schedule
         self.processor = processor
         self.num_steps = num_steps if num_steps is not None else model.config.num_inference_steps
         if self.num_steps < 1:
@@ -148,14 +156,15 @@ class PI0Policy:
         default_prompt: str | None = None,
         compile: bool = False,
         rtc_method: str | None = None,
+        rtc_schedule: str = "exp",
         noise_scale: float = 1.0,
     ) -> PI0Policy:
         """Load the model and processor saved in `directory` (by `save_pretrained` or the converter).
 
         `device` defaults to CUDA when available, else CPU; `dtype` ("float32" / "bfloat16" or a torch dtype)
         defaults to bfloat16 on CUDA and float32 on CPU. `default_prompt` replaces the processor's (used for
-        observations without a prompt). `compile`, `rtc_method` and `noise_scale` as in the class (a π0-FAST folder
-        decodes tokens and takes no `noise_scale`).
+        observations without a prompt). `compile`, `rtc_method`, `rtc_schedule` and `noise_scale` as in the class (a
+        π0-FAST folder decodes tokens and takes no `noise_scale`).
         """
         if not Path(directory).is_dir():
             raise FileNotFoundError(f"model folder not found: {directory} (a folder written by save_pretrained or "
@@ -174,7 +183,7 @@ class PI0Policy:
         if noise_scale != 1.0 and not policy_class.continues_chunks:
             raise ValueError(f"noise_scale applies to flow-matching π0 / π0.5 sampling; {directory} is a π0-FAST "
                              "model, which decodes tokens (see its temperature)")
-        options = {"rtc_method": rtc_method, "noise_scale": noise_scale} if policy_class.continues_chunks else {}
+        options = dict(rtc_method=rtc_method, rtc_schedule=rtc_schedule, noise_scale=noise_scale) if policy_class.continues_chunks else {}
         return policy_class(model, processor, num_steps=num_steps, seed=seed, compile=compile, **options)
 
     @property
@@ -198,6 +207,7 @@ class PI0Policy:
             "device": str(self.device),
             "dtype": str(self.model.dtype).removeprefix("torch."),
             "real_time_chunking": {"methods": list(METHODS), "default_method": self.rtc_method,
+                                   "guidance_schedule": self.rtc_schedule,
                                    "rtc_max_delay": config.rtc_max_delay} if self.continues_chunks else None,
         }
 
@@ -289,6 +299,7 @@ class PI0Policy:
                 execution_horizon=torch.tensor([c.execution_horizon for c in continuations]),
                 rtc_method=method,
                 rtc_max_guidance=self.rtc_max_guidance,
+                rtc_schedule=self.rtc_schedule,
             )
         return self.model_actions(batch, **options)
 

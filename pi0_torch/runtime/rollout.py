@@ -438,16 +438,18 @@ def _even(frame: np.ndarray) -> np.ndarray:
 
 
 def load_policy(spec: str, connections: int, api_key: str | None = None, device: str | None = None,
-                num_steps: int | None = None, noise_scale: float = 1.0) -> ChunkPolicy:
+                num_steps: int | None = None, noise_scale: float = 1.0, rtc_schedule: str = "exp") -> ChunkPolicy:
     """A folder (loaded here), `ws://host:port` (a running server), or `expert` / `random` ([`ScriptedPolicy`]).
-    `device`, `num_steps` and `noise_scale` apply to a folder (a server samples with its own settings)."""
+    `device`, `num_steps`, `noise_scale` and `rtc_schedule` apply to a folder (a server samples with its own
+    settings)."""
     if spec.startswith(("ws://", "wss://")):
         return RemotePolicy(spec, connections, api_key=api_key)
     if spec in ("expert", "random"):
         return ScriptedPolicy(spec)
     from pi0_torch.runtime.policy import PI0Policy
 
-    return LocalPolicy(PI0Policy.from_pretrained(spec, device=device, num_steps=num_steps, noise_scale=noise_scale))
+    return LocalPolicy(PI0Policy.from_pretrained(spec, device=device, num_steps=num_steps, noise_scale=noise_scale,
+                                                   rtc_schedule=rtc_schedule))
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -477,6 +479,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--num-steps", type=int, help="Euler steps per chunk (local policy)")
     parser.add_argument("--noise-scale", type=float, default=1.0, help="standard deviation of the noise each chunk's "
                         "flow starts from (local policy; default 1, openpi's sampler; the demo policy uses 0.25)")
+    parser.add_argument("--rtc-schedule", default="exp", help="soft mask of --execution rtc over the previous "
+                        "chunk: exp (default, the paper's), linear, ones or hard (local policy)")
     parser.add_argument("--device", help="local policy device (default: CUDA if available)")
     parser.add_argument("--api-key", help="for a server started with --api-key")
     parser.add_argument("--output-dir", help="write eval.json (and videos) here")
@@ -496,7 +500,7 @@ def run(args: argparse.Namespace) -> int:
             raise ValueError("--video needs --output-dir")
         make_env(settings.env).close()  # an unknown id fails before the policy loads
         policy = load_policy(args.policy, min(args.num_envs, args.episodes), args.api_key, args.device, args.num_steps,
-                             args.noise_scale)
+                             args.noise_scale, args.rtc_schedule)
         try:
             result = evaluate(policy, settings)
         finally:

@@ -545,6 +545,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "(default: the model config's num_inference_steps)")
     parser.add_argument("--noise-scale", type=float, default=1.0, help="standard deviation of the noise each "
                         "chunk's flow starts from (default 1, openpi's sampler; below 1 nearer the most likely chunk)")
+    parser.add_argument("--rtc-schedule", default="exp", help="soft mask of real-time chunking guidance over the "
+                        "previous chunk: exp (default, the paper's), linear, ones (the whole overlap) or hard")
     parser.add_argument("--obs-format", type=_observation_format, default="default", metavar="default|libero|droid|aloha|PATH.json",
                         help="observation layout the robot sends (default: the pi0-torch layout)")
     parser.add_argument("--default-prompt", default=None, help="prompt used when an observation has none "
@@ -599,6 +601,7 @@ def run(args: argparse.Namespace) -> int:
         policy = PI0Policy.from_pretrained(
             args.model, device=args.device, dtype=args.dtype, num_steps=args.num_steps, seed=args.seed,
             default_prompt=args.default_prompt, compile=args.compile, noise_scale=args.noise_scale,
+            rtc_schedule=args.rtc_schedule,
         )
         server = PolicyServer(
             policy,
