@@ -130,7 +130,8 @@ def _run_cell(cell: tuple[str, str, str, int, str | None]) -> tuple[dict, str, f
         env=env_id, episodes=_WORKER["episodes"], num_envs=_WORKER["num_envs"], execution=mode, inference_delay=delay,
         replan_steps=_WORKER["replan_steps"], env_kwargs=_WORKER["env_kwargs"]))
     row = {"policy": label, "env": env_id, "env_kwargs": _WORKER["env_kwargs"], "execution": mode,
-           "rtc_schedule": schedule, "inference_delay": delay, "noise_scale": policy.noise_scale, "success_rate": result.success_rate, "success_ci95": result.success_ci95,
+           "rtc_schedule": schedule, "inference_delay": delay, "noise_scale": policy.noise_scale,
+           "success_rate": result.success_rate, "success_ci95": result.success_ci95,
            "boundary_jerk": result.boundary_jerk, "interior_jerk": result.interior_jerk,
            "mean_steps": result.mean_steps, "episodes": result.episodes}
     return row, f"{result.summary()}{f' ({schedule})' if schedule else ''}", time.time() - start

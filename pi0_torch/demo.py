@@ -3,7 +3,8 @@
     pi0-torch demo [--policy DIR] [--episodes 20] [--output-dir outputs/demo]
 
 1. loads the demo policy shipped inside the package (`pi0_torch/demo_policy/`, a ~0.3 M-parameter π0 trained from
-   scratch on scripted-expert demonstrations by `scripts/train_demo_policy.py`) with `PI0Policy.from_pretrained`;
+   scratch on scripted-expert demonstrations by `scripts/train_demo_policy.py`) with `PI0Policy.from_pretrained`,
+   sampling chunks from noise of standard deviation `DEMO_NOISE_SCALE`;
 2. runs it in closed loop on held-out seeds of `pi0_torch/Reach-v0` and `pi0_torch/PickPlace-v0` (the camera image, the
    instruction and the gripper state in, action chunks out, half of each chunk executed before the next;
    `pi0_torch.runtime.rollout.evaluate`), next to the scripted expert;

@@ -51,9 +51,9 @@ def test_evaluate_notebook_runs(tmp_path: Path) -> None:
     assert "pi0_torch/PickPlace-v0" in table and "expert" in table and "random" in table
 
 
-def test_demo_recipe_runs_end_to_end_and_shares_its_first_stage(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_demo_recipe_runs_end_to_end_and_shares_its_plain_stages(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """`scripts/train_demo_policy.py` at a tiny scale: records, trains the three stages, evaluates, writes the policy;
-    a second run with `--rtc-max-delay` reuses the first stage (trained without RTC) and conditions the rest."""
+    a second run with `--rtc-max-delay` reuses the three plain stages and fine-tunes with delays in a fourth."""
     script = runpy.run_path(str(EXAMPLES.parent / "scripts" / "train_demo_policy.py"))
     threads = torch.get_num_threads()
     tiny = ["--work-dir", str(tmp_path), "--steps-scale", "0.001", "--episodes-scale", "0.001", "--eval-episodes", "1"]
@@ -63,8 +63,10 @@ def test_demo_recipe_runs_end_to_end_and_shares_its_first_stage(tmp_path: Path, 
     finally:
         torch.set_num_threads(threads)
     out = capsys.readouterr().out
-    assert out.count("stage reach: reusing") == 1 and "stage tasks: reusing" not in out
-    for name, delay in (("plain", 0), ("rtc", 2)):
+    assert all(out.count(f"stage {name}: reusing") == 1 for name in ("reach", "tasks", "pickplace"))
+    assert "stage delays: reusing" not in out
+    for name, delay, stages in (("plain", 0, ["reach", "tasks", "pickplace"]), ("rtc", 2, ["reach", "tasks", "pickplace", "delays"])):
         metrics = json.loads((tmp_path / name / "demo_metrics.json").read_text())
-        assert list(metrics["steps"]) == ["reach", "tasks", "pickplace"] and metrics["rtc_max_delay"] == delay
+        assert list(metrics["steps"]) == stages and metrics["rtc_max_delay"] == delay
+        assert metrics["reused_stages"] == ([] if delay == 0 else ["reach", "tasks", "pickplace"])
         assert json.loads((tmp_path / name / "config.json").read_text())["rtc_max_delay"] == delay

@@ -183,7 +183,8 @@ class PI0Policy:
         if noise_scale != 1.0 and not policy_class.continues_chunks:
             raise ValueError(f"noise_scale applies to flow-matching π0 / π0.5 sampling; {directory} is a π0-FAST "
                              "model, which decodes tokens (see its temperature)")
-        options = dict(rtc_method=rtc_method, rtc_schedule=rtc_schedule, noise_scale=noise_scale) if policy_class.continues_chunks else {}
+        options = (dict(rtc_method=rtc_method, rtc_schedule=rtc_schedule, noise_scale=noise_scale)
+                   if policy_class.continues_chunks else {})
         return policy_class(model, processor, num_steps=num_steps, seed=seed, compile=compile, **options)
 
     @property
