@@ -12,7 +12,8 @@ labelled by their config: one trained with `--rtc-max-delay` (`scripts/train_dem
 `rtc-trained`. Chunks are sampled from noise of standard deviation `--noise-scale` (default: the demo policy's);
 `rtc` runs once per soft-mask schedule of `--rtc-schedules` (default: the paper's `exp`, then `ones`).
 `--workers` evaluates cells in that many processes side by side. Prints a markdown table (success [95% CI], jerk at
-chunk boundaries / inside chunks), writes `<output>.json` and a plot `<output>.png`. Also times one chunk of plain,
+chunk boundaries / inside chunks), writes `<output>.json` and a plot `<output>.png` (`--replot` redraws it from
+the JSON). Also times one chunk of plain,
 guided and conditioned sampling.
 
 `--served ENV` instead compares one evaluation run locally and through a `pi0-torch serve` process on loopback:
@@ -168,7 +169,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--threads", type=int, default=1, help="torch threads per worker process")
     parser.add_argument("--workers", type=int, default=1, help="processes that evaluate cells side by side")
     parser.add_argument("--served", metavar="ENV", help="compare a local and a served evaluation on ENV instead")
+    parser.add_argument("--replot", action="store_true", help="only redraw <output>.png from <output>.json")
     args = parser.parse_args(argv)
+    if args.replot:
+        plot(json.loads(args.output.with_suffix(".json").read_text()), args.delays, args.output.with_suffix(".png"))
+        return 0
     torch.set_num_threads(args.threads)
     if args.served:
         served_versus_local(args.policy, args.served, args.episodes, args.num_envs, args.threads, args.noise_scale)
@@ -228,27 +233,30 @@ def plot(rows: list[dict], delays: list[int], path: Path) -> None:
     import matplotlib.pyplot as plt
 
     envs = sorted({r["env"] for r in rows})
-    figure, axes = plt.subplots(2, len(envs), figsize=(6 * len(envs), 7), squeeze=False)
+    modes = sorted({_mode_label(r) for r in rows}, key=lambda mode: (EXECUTION_MODES.index(mode.split(" ")[0]), mode))
+    colors = {mode: plt.get_cmap("tab10")(i) for i, mode in enumerate(modes)}  # one color per mode, a line style per policy
+    figure, axes = plt.subplots(2, len(envs), figsize=(6 * len(envs), 8), squeeze=False)
     for column, env_id in enumerate(envs):
         for (policy, mode) in sorted({(r["policy"], _mode_label(r)) for r in rows if r["env"] == env_id}):
             series = sorted((r for r in rows if (r["env"], r["policy"], _mode_label(r)) == (env_id, policy, mode)),
                             key=lambda r: r["inference_delay"])
             x = [r["inference_delay"] for r in series]
-            label = mode if policy.startswith("rtc-trained") else f"{mode} (plain policy)"
+            label = f"{mode} ({policy})"
             style = "-o" if policy.startswith("rtc-trained") else "--s"
             success = np.array([r["success_rate"] for r in series]) * 100
             low = np.maximum(success - np.array([r["success_ci95"][0] for r in series]) * 100, 0)  # (rounding at 0%)
             high = np.maximum(np.array([r["success_ci95"][1] for r in series]) * 100 - success, 0)
-            axes[0, column].errorbar(x, success, yerr=[low, high], fmt=style, capsize=3, label=label)
-            axes[1, column].plot(x, [r["boundary_jerk"] for r in series], style, label=label)
+            axes[0, column].errorbar(x, success, yerr=[low, high], fmt=style, capsize=3, label=label, color=colors[mode])
+            axes[1, column].plot(x, [r["boundary_jerk"] for r in series], style, label=label, color=colors[mode])
         axes[0, column].set_title(env_id)
         axes[0, column].set_ylabel("success % (95% CI)")
         axes[1, column].set_ylabel("jerk at chunk boundaries")
         axes[1, column].set_xlabel("inference delay d (control steps)")
         for row in (0, 1):
             axes[row, column].set_xticks(delays)
-    axes[0, 0].legend(fontsize=8)
-    figure.tight_layout()
+    handles, labels = axes[0, 0].get_legend_handles_labels()
+    figure.legend(handles, labels, loc="lower center", ncol=4, fontsize=8)
+    figure.tight_layout(rect=(0, 0.1, 1, 1))
     figure.savefig(path, dpi=100)
     plt.close(figure)
 
