@@ -2,8 +2,8 @@
 
     .venv/bin/python benchmarks/bench_closed_loop.py --policy outputs/demo_policy_rtc8 --policy-plain pi0_torch/demo_policy \
         [--envs pi0_torch/Conveyor-v0 pi0_torch/PickPlace-v0] [--delays 0 1 2 4 8] [--episodes 100] \
-        [--replan-steps 8] [--noise-scale 0.25] [--rtc-schedules exp ones] [--env-kwargs '{"num_objects": 1}'] [--workers 2] \
-        [--output benchmarks/results/closed_loop]
+        [--replan-steps 8] [--noise-scale 0.25] [--rtc-schedules exp ones] [--env-kwargs '{"num_objects": 1}'] \
+        [--workers 2] [--output benchmarks/results/closed_loop] [--replot]
 
 Delays are simulated in control steps (`pi0-torch eval --inference-delay`), so the numbers do not depend on this
 machine's speed; every cell uses the same held-out seeds. `--policy` and `--policy-plain` (optional) are two policies,
@@ -13,8 +13,7 @@ labelled by their config: one trained with `--rtc-max-delay` (`scripts/train_dem
 `rtc` runs once per soft-mask schedule of `--rtc-schedules` (default: the paper's `exp`, then `ones`).
 `--workers` evaluates cells in that many processes side by side. Prints a markdown table (success [95% CI], jerk at
 chunk boundaries / inside chunks), writes `<output>.json` and a plot `<output>.png` (`--replot` redraws it from
-the JSON). Also times one chunk of plain,
-guided and conditioned sampling.
+the JSON). Also times one chunk of plain, guided and conditioned sampling.
 
 `--served ENV` instead compares one evaluation run locally and through a `pi0-torch serve` process on loopback:
 the same seeds must give the same episodes; prints both wall times.
