@@ -94,8 +94,8 @@ class PI0Policy:
         rtc_max_guidance: the guidance weight's clip (beta) for "guidance".
         rtc_schedule: the soft mask of "guidance" over the overlap with the previous chunk (`SCHEDULES`): "exp" (the
             paper's exponential decay), "linear", "ones" (full weight on the whole overlap) or "hard" (the delayed
-            steps only). On the demo's Conveyor, "ones" had half the jerk at chunk boundaries of "exp"
-            (docs/closed_loop.md).
+            steps only). In the demo's closed-loop benchmark at d = 4, "ones" had 0.45-0.65x the jerk at chunk
+            boundaries of "exp" (docs/closed_loop.md).
         noise_scale: the standard deviation of the noise each chunk's flow starts from (1: the training
             distribution, openpi's sampler). Below 1 the flow starts nearer the middle of the noise and returns
             actions nearer the most likely chunk; a small policy that grasps imprecisely gains from it (the demo
