@@ -173,8 +173,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--episodes-scale", type=float, default=1.0, help="fraction of every stage's episodes")
     parser.add_argument("--eval-episodes", type=int, default=100)
     parser.add_argument("--destination", type=Path, default=REPO / "pi0_torch" / "demo_policy")
-    parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (the shipped policy: 1; a second "
-                        "run, e.g. the RTC-trained policy, fits on the other core)")
+    parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (the shipped policy: 1, with another "
+                        "run on the other core)")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     args.work_dir.mkdir(parents=True, exist_ok=True)
@@ -197,7 +197,7 @@ def main(argv: list[str] | None = None) -> int:
             logging_steps=100, save_steps=stage_steps, seed=0, rtc_max_delay=rtc_max_delay or None,
             delta_action_mask=DELTA_ACTION_MASK,
         )
-        if trained_with(settings):  # e.g. the shared first stage, trained by the other policy's run
+        if trained_with(settings):  # e.g. the plain stages, trained by the plain policy's run
             print(f"stage {stage.name}: reusing {run_dir}, trained with the same settings")
             log_history = json.loads(trainer_state(settings).read_text())["log_history"]
             reused.append(stage.name)
