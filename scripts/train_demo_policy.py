@@ -26,7 +26,6 @@ Seeded throughout. The instructions' words are in the tokenizer's training text,
 from __future__ import annotations
 
 import argparse
-import itertools
 import json
 import shutil
 import sys
@@ -41,7 +40,7 @@ import torch
 from pi0_torch.data.lerobot_writer import EpisodeRecord, write_lerobot_dataset
 from pi0_torch.demo import DEMO_NOISE_SCALE, DEMO_REPLAN_STEPS
 from pi0_torch.envs import ENV_IDS
-from pi0_torch.envs.demos import ACTION_NAMES, STATE_NAMES, expert_episode
+from pi0_torch.envs.demos import ACTION_NAMES, STATE_NAMES, successful_episodes
 from pi0_torch.processing.tokenization import build_test_tokenizer
 from pi0_torch.runtime.policy import PI0Policy
 from pi0_torch.runtime.rollout import EvalSettings, LocalPolicy, evaluate
@@ -111,15 +110,9 @@ def record(root: Path, episodes: dict[tuple[str, int], int]) -> None:
     def stream() -> Iterator[EpisodeRecord]:
         for (env_id, num_objects), count in episodes.items():
             env = gymnasium.make(env_id, num_objects=num_objects)
-            kept = 0
-            for seed in itertools.count():
-                if kept == count:
-                    break
-                episode, success = expert_episode(env, seed)
-                if success:
-                    kept += 1
-                    episode.extra.update(env=env_id, num_objects=num_objects)
-                    yield episode
+            for episode in successful_episodes(env, count):
+                episode.extra.update(env=env_id, num_objects=num_objects)
+                yield episode
             env.close()
 
     write_lerobot_dataset(root, stream(), fps=10, vector_names={"observation.state": STATE_NAMES, "action": ACTION_NAMES},

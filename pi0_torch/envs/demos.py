@@ -69,6 +69,26 @@ def expert_episode(env: gymnasium.Env, seed: int) -> tuple[EpisodeRecord, bool]:
     return record, bool(info["is_success"])
 
 
+def successful_episodes(env: gymnasium.Env, count: int, seed: int = 0,
+                        failed_seeds: list[int] | None = None) -> Iterator[EpisodeRecord]:
+    """The first `count` successful expert episodes of `env` from seeds `seed`, `seed + 1`, ...; failed seeds are
+    skipped (and appended to `failed_seeds`). Raises once `MAX_ATTEMPTS_FACTOR * count + 10` seeds did not give
+    `count` successes."""
+    failed = [] if failed_seeds is None else failed_seeds
+    kept, limit = 0, seed + MAX_ATTEMPTS_FACTOR * count + 10
+    for next_seed in range(seed, limit):
+        if kept == count:
+            return
+        record, success = expert_episode(env, next_seed)
+        if not success:
+            failed.append(next_seed)
+            continue
+        kept += 1
+        yield record
+    if kept < count:
+        raise RuntimeError(f"the expert failed {len(failed)} of {limit - seed} episodes of {getattr(env.spec, 'id', env)}")
+
+
 def record_demos(
     env_id: str,
     num_episodes: int,
@@ -94,15 +114,7 @@ def record_demos(
 
     def episodes() -> Iterator[EpisodeRecord]:
         bar = tqdm(total=num_episodes, desc=env_id, unit="episode", disable=not progress)
-        next_seed, limit = seed, seed + MAX_ATTEMPTS_FACTOR * num_episodes + 10
-        while summary.episodes < num_episodes:
-            if next_seed >= limit:
-                raise RuntimeError(f"the expert failed {len(summary.failed_seeds)} of {next_seed - seed} episodes of {env_id}")
-            record, success = expert_episode(env, next_seed)
-            next_seed += 1
-            if not success:
-                summary.failed_seeds.append(next_seed - 1)
-                continue
+        for record in successful_episodes(env, num_episodes, seed, summary.failed_seeds):
             summary.episodes += 1
             summary.frames += len(record)
             bar.update()
