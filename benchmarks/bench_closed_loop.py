@@ -36,7 +36,6 @@ import torch
 
 from pi0_torch.demo import DEMO_NOISE_SCALE
 from pi0_torch.runtime.chunking import EXECUTION_MODES
-from pi0_torch.models.configuration_pi0 import PI0Config
 from pi0_torch.models.rtc import SCHEDULES
 from pi0_torch.runtime.policy import PI0Policy
 from pi0_torch.runtime.rollout import EvalSettings, LocalPolicy, RemotePolicy, evaluate
@@ -143,8 +142,9 @@ def _mode_label(row: dict) -> str:
     return row["execution"] if schedule in (None, "exp") else f"{row['execution']} ({schedule})"
 
 
-def _mode_order(row: dict, schedules: list[str]) -> tuple[int, int]:
-    return EXECUTION_MODES.index(row["execution"]), schedules.index(row["rtc_schedule"]) if row.get("rtc_schedule") else 0
+def _mode_order(label: str) -> tuple[int, str]:
+    """Sort key of a `_mode_label`: the execution modes in their order, `rtc` before `rtc (ones)`."""
+    return EXECUTION_MODES.index(label.split(" ")[0]), label
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -179,18 +179,17 @@ def main(argv: list[str] | None = None) -> int:
         return 0
 
     policy_dirs: dict[str, Path] = {}
+    jobs = []
     for policy_dir in filter(None, (args.policy, args.policy_plain)):
-        label = "rtc-trained policy" if PI0Config.from_pretrained(policy_dir).rtc_max_delay > 0 else "plain policy"
+        policy = PI0Policy.from_pretrained(policy_dir, device="cpu")
+        trained_delay = policy.model.config.rtc_max_delay
+        label = "rtc-trained policy" if trained_delay > 0 else "plain policy"
         if label in policy_dirs:
             parser.error(f"--policy {args.policy} and --policy-plain {args.policy_plain} are both a {label}; "
                          "compare one trained with --rtc-max-delay and one without")
         policy_dirs[label] = policy_dir
-    jobs = []
-    for label, policy_dir in policy_dirs.items():
-        policy = PI0Policy.from_pretrained(policy_dir, device="cpu")
         print(f"{label}: chunk ms (batch 1, CPU, {args.threads} thread):",
               {k: round(v, 1) for k, v in sampling_times(policy).items()})
-        trained_delay = policy.model.config.rtc_max_delay
         jobs += [(label, env_id, mode, delay, schedule) for env_id in args.envs for mode in args.modes
                  for schedule in (args.rtc_schedules if mode == "rtc" else [None]) for delay in args.delays
                  if mode != "rtc-trained" or 0 < trained_delay and delay <= trained_delay]
@@ -203,8 +202,7 @@ def main(argv: list[str] | None = None) -> int:
 
     print(f"\n| policy | env | execution | {' | '.join(f'd={d}' for d in args.delays)} |")
     print(f"|---|---|---|{'---|' * len(args.delays)}")
-    order = {_mode_label(r): _mode_order(r, args.rtc_schedules) for r in rows}
-    keys = sorted({(r["policy"], r["env"], _mode_label(r)) for r in rows}, key=lambda k: (k[0], k[1], order[k[2]]))
+    keys = sorted({(r["policy"], r["env"], _mode_label(r)) for r in rows}, key=lambda k: (k[0], k[1], _mode_order(k[2])))
     for key in keys:
         cells = []
         for delay in args.delays:
@@ -232,7 +230,7 @@ def plot(rows: list[dict], delays: list[int], path: Path) -> None:
     import matplotlib.pyplot as plt
 
     envs = sorted({r["env"] for r in rows})
-    modes = sorted({_mode_label(r) for r in rows}, key=lambda mode: (EXECUTION_MODES.index(mode.split(" ")[0]), mode))
+    modes = sorted({_mode_label(r) for r in rows}, key=_mode_order)
     colors = {mode: plt.get_cmap("tab10")(i) for i, mode in enumerate(modes)}  # one color per mode, a line style per policy
     figure, axes = plt.subplots(2, len(envs), figsize=(6 * len(envs), 8), squeeze=False)
     for column, env_id in enumerate(envs):
