@@ -172,7 +172,6 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(args.threads)
     args.work_dir.mkdir(parents=True, exist_ok=True)
     tokenizer = args.work_dir / "tokenizer.model"
-    build_test_tokenizer(extra_sentences=instructions() * 20, save_to=tokenizer)
 
     start, model, loss, reused = time.time(), None, [], []
     stages = (*STAGES, RTC_STAGE) if args.rtc_max_delay else STAGES
@@ -197,6 +196,8 @@ def main(argv: list[str] | None = None) -> int:
         else:
             if run_dir.exists():
                 shutil.rmtree(run_dir)
+            if model is None:  # the first stage builds the model, and its tokenizer, from scratch
+                build_test_tokenizer(extra_sentences=instructions() * 20, save_to=tokenizer)
             log_history = train_policy(settings)["log_history"]
         loss.append({"stage": stage.name, "loss": [[e["step"], round(e["loss"], 4)] for e in log_history if "loss" in e]})
         model = run_dir
