@@ -4,7 +4,7 @@
     python benchmarks/bench_envs.py --seeds 100 --skip-delays
 
 Tables (printed as markdown):
-1. env steps per second on one core: `env.step` at `--image-size` (dynamics + rendering + task checks), without
+1. env steps per second on one core: `env.step` at `--image-size` (dynamics + both cameras + task checks), without
    rendering (the world's dynamics and the task checks only), and with the scripted expert choosing every action;
 2. scripted-expert success over seeds 0 .. N-1 with 95% Wilson intervals, mean / max episode length and slips;
 3. delay sensitivity: the expert acts for 8 steps, then the robot waits k steps (holding its last action, what a
@@ -98,7 +98,7 @@ def main() -> None:
     args = parser.parse_args()
 
     if not args.skip_speed:
-        print(f"\n### Steps per second (one process, {args.image_size}x{args.image_size} camera)\n")
+        print(f"\n### Steps per second (one process, table and wrist cameras of {args.image_size}x{args.image_size})\n")
         print("| env | env.step (rendered) | dynamics only | expert + env.step |")
         print("|---|---:|---:|---:|")
         for env_id in ENV_IDS:

@@ -7,7 +7,9 @@ import numpy as np
 import pytest
 
 from pi0_torch.envs import ENV_IDS, ConveyorEnv, PickPlaceEnv, ReachEnv, make_expert
-from pi0_torch.envs.tabletop import GRASP_RADIUS, MAX_SPEED, PALETTE, Renderer, World, Zone
+from pi0_torch.envs.tabletop import (
+    GRASP_RADIUS, MAX_SPEED, OFF_TABLE_COLOR, PALETTE, TABLE_COLOR, Renderer, World, Zone,
+)
 from pi0_torch.envs.tasks import BELT_SPEED
 
 
@@ -91,9 +93,10 @@ def test_sync_vector_env_batches_the_prompt_as_a_tuple():
     assert isinstance(observations["prompt"], tuple) and len(observations["prompt"]) == 3
     assert all(isinstance(prompt, str) for prompt in observations["prompt"])
     observations, _, _, _, infos = envs.step(np.zeros((3, 3), np.float32))
+    images = {camera: frames[0] for camera, frames in observations["images"].items()}
+    assert sorted(images) == ["base_0_rgb", "left_wrist_0_rgb"]
     assert infos["is_success"].shape == (3,) and envs.single_observation_space.contains(
-        {"images": {"base_0_rgb": observations["images"]["base_0_rgb"][0]}, "state": observations["state"][0],
-         "prompt": observations["prompt"][0]}
+        {"images": images, "state": observations["state"][0], "prompt": observations["prompt"][0]}
     )
 
 
@@ -220,6 +223,31 @@ def test_renderer_draws_objects_zones_and_both_gripper_states():
     assert tuple(image[15, 48]) != (255, 255, 255)  # the open gripper is a ring
     world.step(world.effector, 1.0)
     assert tuple(renderer.draw(world)[15, 48]) == (255, 255, 255)  # closed: filled
+
+
+def test_wrist_view_follows_the_effector_magnified_and_shows_the_table_edge():
+    world = World(["red"], np.array([[0.2, 0.0]]), effector=np.array([0.0, 0.0]))
+    wrist = Renderer(64, wrist_zoom=2.0)  # 64 pixels see a square of side 1 around the effector
+    image = wrist.draw(world)
+    # the effector sits between pixels 31 and 32; its open ring spans 2.9 to 5.1 pixels from there, on every side
+    assert [tuple(image[32, column]) for column in (28, 31, 36)] == [(255, 255, 255), TABLE_COLOR, (255, 255, 255)]
+    assert tuple(image[28, 32]) == (255, 255, 255) and tuple(image[36, 32]) == (255, 255, 255)
+    # the object 0.2 to the right: its centre 12.8 pixels right of the effector's, its radius 0.1 = 6.4 pixels
+    red = [column for column in range(64) if tuple(image[32, column]) == PALETTE["red"]]
+    assert (red[0], red[-1]) == (38, 50)
+    world.effector = np.array([0.9, -0.9])  # near the top-right corner: beyond the table is black
+    corner = wrist.draw(world)
+    assert tuple(corner[0, 63]) == OFF_TABLE_COLOR and tuple(corner[63, 0]) == TABLE_COLOR
+    with pytest.raises(ValueError, match="wrist_zoom must be >= 1"):
+        Renderer(64, wrist_zoom=0.5)
+
+
+def test_wrist_camera_is_optional():
+    env = gymnasium.make("pi0_torch/Reach-v0", image_size=32, wrist_camera=False)
+    observation, _ = env.reset(seed=0)
+    assert list(observation["images"]) == ["base_0_rgb"] and list(env.observation_space["images"]) == ["base_0_rgb"]
+    assert list(gymnasium.make("pi0_torch/Reach-v0", image_size=32).reset(seed=0)[0]["images"]) == [
+        "base_0_rgb", "left_wrist_0_rgb"]
 
 
 @pytest.mark.parametrize("env_id", ENV_IDS)

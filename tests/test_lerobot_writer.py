@@ -16,8 +16,10 @@ from pi0_torch.cli import main
 from pi0_torch.data.lerobot_dataset import LeRobotEpisodeDataset, read_info
 from pi0_torch.data.lerobot_writer import EpisodeRecord, write_lerobot_dataset
 from pi0_torch.envs import make_expert
-from pi0_torch.envs.demos import CAMERA_KEY, record_demos
+from pi0_torch.envs.demos import record_demos
 from pi0_torch.models.modeling_pi0 import PI0ForActionGeneration
+
+CAMERA_KEY, WRIST_KEY = "observation.images.base_0_rgb", "observation.images.left_wrist_0_rgb"
 
 HORIZON = 4
 VECTORS = {"observation.state": ["x", "y", "gripper"], "action": ["target_x", "target_y", "gripper"]}
@@ -47,7 +49,8 @@ def test_demos_round_trip_through_our_reader(tmp_path: Path, storage: str) -> No
     assert summary.episodes == 3 and summary.failed_seeds == []
     info = read_info(root)
     assert info["codebase_version"] == "v3.0" and info["fps"] == 10 and info["total_episodes"] == 3
-    assert info["features"][CAMERA_KEY]["dtype"] == storage and info["features"][CAMERA_KEY]["shape"] == [32, 32, 3]
+    for key in (CAMERA_KEY, WRIST_KEY):  # both of the env's cameras
+        assert info["features"][key]["dtype"] == storage and info["features"][key]["shape"] == [32, 32, 3]
     assert info["features"]["action"]["names"] == VECTORS["action"] and info["total_frames"] == summary.frames
     assert (root / "data" / "chunk-000" / "file-001.parquet").is_file()  # two episodes per file
     assert ((root / "videos" / CAMERA_KEY / "chunk-000" / "file-001.mp4").is_file()) == (storage == "video")
@@ -97,8 +100,9 @@ def test_demos_cli_writes_a_dataset_that_trains(tmp_path: Path, capsys: pytest.C
         image_size=28, vision_hidden_size=16, vision_intermediate_size=32, vision_num_layers=1, vision_num_heads=2,
         vlm_hidden_size=32, vlm_intermediate_size=64, expert_hidden_size=16, expert_intermediate_size=32,
         num_hidden_layers=2, num_attention_heads=2, num_key_value_heads=1, head_dim=8, vocab_size=512,
-        action_dim=3, action_horizon=HORIZON, max_token_len=16, camera_names=["base_0_rgb"],
+        action_dim=3, action_horizon=HORIZON, max_token_len=16, camera_names=["base_0_rgb", "left_wrist_0_rgb"],
     )
+    assert sorted(LeRobotEpisodeDataset(root, HORIZON, progress=False).camera_keys) == [CAMERA_KEY, WRIST_KEY]
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:

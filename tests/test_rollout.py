@@ -26,10 +26,11 @@ REPO = Path(__file__).resolve().parents[1]
 HORIZON = 8
 
 
-def tiny_policy(action_dim: int = 3, rtc_max_delay: int = 3, low: float = -1.0, high: float = 1.0) -> PI0Policy:
+def tiny_policy(action_dim: int = 3, rtc_max_delay: int = 3, low: float = -1.0, high: float = 1.0,
+                cameras: tuple[str, ...] = ("base_0_rgb", "left_wrist_0_rgb")) -> PI0Policy:
     torch.manual_seed(0)
     config = PI0Config.from_preset(
-        "pi0_small", image_size=28, max_token_len=16, action_horizon=HORIZON, action_dim=4, camera_names=["base_0_rgb"],
+        "pi0_small", image_size=28, max_token_len=16, action_horizon=HORIZON, action_dim=4, camera_names=list(cameras),
         vision_num_layers=1, num_hidden_layers=2, rtc_max_delay=rtc_max_delay, vocab_size=512,
     )
     centre, spread = np.full(action_dim, (low + high) / 2), np.full(action_dim, (high - low) / 4)
@@ -220,6 +221,12 @@ def test_policy_guides_with_its_rtc_schedule(monkeypatch: pytest.MonkeyPatch) ->
 def test_mismatches_are_named() -> None:
     with pytest.raises(ValueError, match=r"action dims differ: the policy acts in 2 dims, the env .* takes 3"):
         evaluate(LocalPolicy(tiny_policy(action_dim=2)), EvalSettings(env="pi0_torch/Reach-v0", episodes=1))
+    top_camera_only = LocalPolicy(tiny_policy(cameras=("base_0_rgb",)))
+    with pytest.raises(ValueError, match=r"cameras differ: the env gives \['base_0_rgb', 'left_wrist_0_rgb'\], the policy "
+                                         r"knows \['base_0_rgb'\]"):
+        evaluate(top_camera_only, EvalSettings(env="pi0_torch/Reach-v0", episodes=1))
+    assert evaluate(top_camera_only, EvalSettings(env="pi0_torch/Reach-v0", episodes=1, max_steps=2,
+                                                  env_kwargs={"wrist_camera": False})).episodes == 1
     with pytest.raises(ValueError, match=r"unknown environment id 'pi0_torch/Nope-v0'; known: pi0_torch/Conveyor-v0"):
         evaluate(ScriptedPolicy("expert"), EvalSettings(env="pi0_torch/Nope-v0", episodes=1))
     with pytest.raises(ValueError, match=r"rtc-trained needs a policy trained with --rtc-max-delay >= 5"):

@@ -6,9 +6,9 @@ pi0-torch demos --env pi0_torch/PickPlace-v0 --episodes 500 --output-dir data/pi
 ```
 
 The expert runs with seeds S, S+1, ... until `--episodes` episodes have succeeded (failed seeds are skipped; each
-episode's seed is the `seed` column of `meta/episodes`). Features: `observation.images.base_0_rgb` (video or PNG
-images), `observation.state` `[x, y, gripper]`, `action` `[target_x, target_y, gripper]`; one task per
-instruction; fps = the env's control rate.
+episode's seed is the `seed` column of `meta/episodes`). Features: `observation.images.base_0_rgb` and
+`observation.images.left_wrist_0_rgb` (video or PNG images; the env's cameras), `observation.state`
+`[x, y, gripper]`, `action` `[target_x, target_y, gripper]`; one task per instruction; fps = the env's control rate.
 
 >>> import tempfile
 >>> summary = record_demos("pi0_torch/Reach-v0", 2, tempfile.mkdtemp() + "/reach", image_size=32, storage="image")
@@ -30,9 +30,6 @@ from tqdm.auto import tqdm
 
 from pi0_torch.data.lerobot_writer import EpisodeRecord, Storage, write_lerobot_dataset
 from pi0_torch.envs import ENV_IDS, make_expert
-from pi0_torch.envs.tasks import CAMERA
-
-CAMERA_KEY = f"observation.images.{CAMERA}"
 STATE_NAMES = ["x", "y", "gripper"]
 ACTION_NAMES = ["target_x", "target_y", "gripper"]
 MAX_ATTEMPTS_FACTOR = 2  # give up after this many times the wanted episodes (plus 10) without enough successes
@@ -53,17 +50,19 @@ def expert_episode(env: gymnasium.Env, seed: int) -> tuple[EpisodeRecord, bool]:
     observation, info = env.reset(seed=seed)
     expert = make_expert(env)
     expert.reset(seed)
-    frames, states, actions = [], [], []
+    frames: dict[str, list[np.ndarray]] = {camera: [] for camera in observation["images"]}
+    states, actions = [], []
     done = False
     while not done:
         action = expert.act(env)
-        frames.append(observation["images"][CAMERA])
+        for camera, frame in observation["images"].items():
+            frames[camera].append(frame)
         states.append(observation["state"])
         actions.append(action)
         observation, _, terminated, truncated, info = env.step(action)
         done = terminated or truncated
     record = EpisodeRecord(
-        observation["prompt"], {CAMERA_KEY: np.stack(frames)},
+        observation["prompt"], {f"observation.images.{camera}": np.stack(shots) for camera, shots in frames.items()},
         {"observation.state": np.stack(states), "action": np.stack(actions)}, {"seed": seed},
     )
     return record, bool(info["is_success"])

@@ -53,6 +53,7 @@ BIN_COLOR = (200, 200, 200)  # the conveyor's bin: a light grey zone
 EFFECTOR_COLOR = (255, 255, 255)
 EFFECTOR_INNER_RADIUS = 0.045  # the open gripper: a white ring from here out to GRASP_RADIUS
 CLOSED_EFFECTOR_RADIUS = 0.06  # the closed gripper: a filled white disc (a held object shows around it)
+OFF_TABLE_COLOR = (0, 0, 0)  # what a zoomed view shows beyond the table's edge
 
 
 @dataclass(frozen=True)
@@ -156,19 +157,25 @@ def _tint(rgb: tuple[int, int, int], background: tuple[int, int, int], amount: f
 
 
 class Renderer:
-    """Draws a `World` seen from above into uint8 `[size, size, 3]` frames.
+    """Draws a `World` seen from above into uint8 `[size, size, 3]` frames: the whole table (the base camera), or with
+    `wrist_zoom` a window of the table magnified that many times and centred on the effector (the wrist camera; beyond
+    the table's edge it shows `OFF_TABLE_COLOR`).
 
     The static layer (table, belt, zones) depends only on the zones and the belt, so it is drawn once per layout
     (`set_layout`); `draw` copies it and paints the objects, then the effector on top (a held object lies under it).
     """
 
-    def __init__(self, size: int) -> None:
+    def __init__(self, size: int, wrist_zoom: float | None = None) -> None:
         if size < 8:
             raise ValueError(f"image size must be >= 8 pixels, got {size}")
+        if wrist_zoom is not None and not wrist_zoom >= 1.0:
+            raise ValueError(f"wrist_zoom must be >= 1, got {wrist_zoom}")
         self.size = size
-        self.scale = size / 2.0  # pixels per world unit
-        self._static = np.empty((size, size, 3), np.uint8)
-        self._pixels = np.arange(size, dtype=np.float64)  # pixel indices, rows and columns alike
+        self.wrist_zoom = wrist_zoom
+        self.scale = size * (wrist_zoom or 1.0) / 2.0  # pixels per world unit
+        self.table_size = round(2.0 * self.scale)  # side of the whole table in pixels (= size without zoom)
+        self._static = np.empty((self.table_size, self.table_size, 3), np.uint8)
+        self._pixels = np.arange(size, dtype=np.float64)  # pixel indices of a frame, rows and columns alike
         self._layout: tuple[tuple[Zone, ...], Belt | None] | None = None
         self.set_layout((), None)
 
@@ -191,13 +198,15 @@ class Renderer:
             image[r0 + border:r1 - border, c0 + border:c1 - border] = _tint(zone.rgb, TABLE_COLOR, 0.3)
 
     def _row(self, coordinate: float) -> int:
-        """The pixel index holding world coordinate `coordinate` (rows and columns alike), clipped to the image."""
-        return int(np.clip(np.floor((coordinate + 1.0) * self.scale), 0, self.size - 1))
+        """The table pixel holding world coordinate `coordinate` (rows and columns alike), clipped to the table."""
+        return int(np.clip(np.floor((coordinate + 1.0) * self.scale), 0, self.table_size - 1))
 
-    def _disc(self, image: np.ndarray, center: np.ndarray, outer: float, inner: float, rgb: tuple[int, int, int]) -> None:
-        """Paint the pixels whose centres lie at distance in [inner, outer] (world units) from `center`."""
-        cx = (float(center[0]) + 1.0) * self.scale - 0.5  # pixel coordinates of the centre
-        cy = (float(center[1]) + 1.0) * self.scale - 0.5
+    def _disc(self, image: np.ndarray, center: np.ndarray, outer: float, inner: float, rgb: tuple[int, int, int],
+              origin: tuple[int, int]) -> None:
+        """Paint the frame pixels whose centres lie at distance in [inner, outer] (world units) from `center`; the
+        frame's top-left pixel is table pixel `origin` (row, column)."""
+        cx = (float(center[0]) + 1.0) * self.scale - 0.5 - origin[1]  # frame pixel coordinates of the centre
+        cy = (float(center[1]) + 1.0) * self.scale - 0.5 - origin[0]
         radius = outer * self.scale
         c0, c1 = max(math.floor(cx - radius), 0), min(math.ceil(cx + radius) + 1, self.size)
         r0, r1 = max(math.floor(cy - radius), 0), min(math.ceil(cy + radius) + 1, self.size)
@@ -214,12 +223,22 @@ class Renderer:
     def draw(self, world: World) -> np.ndarray:
         """The camera frame, uint8 `[size, size, 3]` (a new array)."""
         self.set_layout(world.zones, world.belt)
-        image = self._static.copy()
+        if self.wrist_zoom is not None:
+            top, left = (np.floor((world.effector[::-1] + 1.0) * self.scale) - self.size // 2).astype(int)
+            image = np.empty((self.size, self.size, 3), np.uint8)
+            image[:] = OFF_TABLE_COLOR
+            r0, r1 = max(top, 0), min(top + self.size, self.table_size)
+            c0, c1 = max(left, 0), min(left + self.size, self.table_size)
+            if r0 < r1 and c0 < c1:
+                image[r0 - top:r1 - top, c0 - left:c1 - left] = self._static[r0:r1, c0:c1]
+            origin = (int(top), int(left))
+        else:
+            image, origin = self._static.copy(), (0, 0)
         order = [i for i in range(len(world.colors)) if i != world.held] + ([world.held] if world.held >= 0 else [])
         for index in order:
-            self._disc(image, world.positions[index], OBJECT_RADIUS, 0.0, PALETTE[world.colors[index]])
+            self._disc(image, world.positions[index], OBJECT_RADIUS, 0.0, PALETTE[world.colors[index]], origin)
         if world.gripper_closed:
-            self._disc(image, world.effector, CLOSED_EFFECTOR_RADIUS, 0.0, EFFECTOR_COLOR)
+            self._disc(image, world.effector, CLOSED_EFFECTOR_RADIUS, 0.0, EFFECTOR_COLOR, origin)
         else:
-            self._disc(image, world.effector, GRASP_RADIUS, EFFECTOR_INNER_RADIUS, EFFECTOR_COLOR)
+            self._disc(image, world.effector, GRASP_RADIUS, EFFECTOR_INNER_RADIUS, EFFECTOR_COLOR, origin)
         return image

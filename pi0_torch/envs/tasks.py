@@ -9,10 +9,11 @@
   (terminated) when it leaves the table (x > 1) first.
 
 Observation (the server's default format, what `PI0Policy.infer` takes):
-`{"images": {"base_0_rgb": uint8 [H, W, 3]}, "state": float32 [3], "prompt": str}` with state `[x, y, gripper]`.
-Object and zone positions are only in the image. Action: float32 `[target_x, target_y, gripper_command]`, an
-absolute position target (clipped to the table) and a gripper command (> 0 close); repeating the last action keeps
-the robot still once it has reached the target.
+`{"images": {"base_0_rgb": uint8 [H, W, 3], "left_wrist_0_rgb": uint8 [H, W, 3]}, "state": float32 [3], "prompt": str}`
+with state `[x, y, gripper]` (the wrist camera only with `wrist_camera=True`, the default). Object and zone positions
+are only in the images. Action: float32 `[target_x, target_y, gripper_command]`, an absolute position target
+(clipped to the table) and a gripper command (> 0 close); repeating the last action keeps the robot still once it
+has reached the target.
 
 Episodes are truncated by gymnasium's `TimeLimit` (the registered ids carry each task's `default_max_episode_steps`;
 `gymnasium.make(id, max_episode_steps=N)` overrides it). `reset(seed=s)` fully determines the layout and instruction.
@@ -49,7 +50,9 @@ from pi0_torch.envs.tabletop import (
     Zone,
 )
 
-CAMERA = "base_0_rgb"
+CAMERA = "base_0_rgb"  # the whole table, seen from above
+WRIST_CAMERA = "left_wrist_0_rgb"  # the effector's surroundings, magnified (π0's name for a single arm's wrist camera)
+WRIST_ZOOM = 2.5  # the wrist camera sees a square of side 2 / WRIST_ZOOM = 0.8 centred on the effector
 NUM_OBJECTS = 3
 OBJECT_SPACING = 2 * OBJECT_RADIUS + 0.1  # minimum distance between object centres at the start
 BELT_SPEED = 0.025  # conveyor: +x per step
@@ -82,6 +85,8 @@ class TabletopEnv(gymnasium.Env):
         render_mode: None or "rgb_array" (`render()` returns the frame).
         render_size: side of the frame `render()` returns (default `image_size`).
         num_objects: objects on the table, 1 to 3 (default 3, the benchmark; fewer make easier training scenes).
+        wrist_camera: also observe `left_wrist_0_rgb`, a view centred on the effector, magnified `WRIST_ZOOM` times
+            (same size as `base_0_rgb`).
     """
 
     metadata: ClassVar[dict[str, Any]] = {"render_modes": ["rgb_array"], "render_fps": CONTROL_HZ}
@@ -96,6 +101,7 @@ class TabletopEnv(gymnasium.Env):
         render_mode: str | None = None,
         render_size: int | None = None,
         num_objects: int = NUM_OBJECTS,
+        wrist_camera: bool = True,
     ) -> None:
         if not 1 <= num_objects <= NUM_OBJECTS:
             raise ValueError(f"num_objects must lie in [1, {NUM_OBJECTS}], got {num_objects}")
@@ -109,9 +115,12 @@ class TabletopEnv(gymnasium.Env):
         self.render_mode = render_mode
         self._renderer = Renderer(self.image_size)
         self._render_renderer = Renderer(render_size) if render_size and render_size != self.image_size else self._renderer
+        self._wrist_renderer = Renderer(self.image_size, WRIST_ZOOM) if wrist_camera else None
+        frame = spaces.Box(0, 255, (self.image_size, self.image_size, 3), np.uint8)
+        self.camera_names = [CAMERA, WRIST_CAMERA] if wrist_camera else [CAMERA]
         self.observation_space = spaces.Dict(
             {
-                "images": spaces.Dict({CAMERA: spaces.Box(0, 255, (self.image_size, self.image_size, 3), np.uint8)}),
+                "images": spaces.Dict({name: frame for name in self.camera_names}),
                 "state": spaces.Box(np.array([-1, -1, 0], np.float32), np.array([1, 1, 1], np.float32), dtype=np.float32),
                 "prompt": spaces.Text(PROMPT_MAX_LENGTH, min_length=1, charset=PROMPT_CHARSET),
             }
@@ -179,7 +188,10 @@ class TabletopEnv(gymnasium.Env):
 
     def _observation(self) -> dict[str, Any]:
         assert self.world is not None
-        return {"images": {CAMERA: self._renderer.draw(self.world)}, "state": self.world.state(), "prompt": self.prompt}
+        images = {CAMERA: self._renderer.draw(self.world)}
+        if self._wrist_renderer is not None:
+            images[WRIST_CAMERA] = self._wrist_renderer.draw(self.world)
+        return {"images": images, "state": self.world.state(), "prompt": self.prompt}
 
     def _info(self, success: bool | None = None) -> dict[str, Any]:
         assert self.world is not None and self.layout is not None
