@@ -2,7 +2,7 @@
 
     .venv/bin/python benchmarks/bench_closed_loop.py --policy outputs/demo_policy_rtc8 --policy-plain pi0_torch/demo_policy \
         [--envs pi0_torch/Conveyor-v0 pi0_torch/PickPlace-v0] [--delays 0 1 2 4 8] [--episodes 100] \
-        [--replan-steps 8] [--noise-scale 0.25] [--rtc-schedules exp ones] [--env-kwargs '{"num_objects": 1}'] \
+        [--replan-steps 8] [--noise-scale 0.1] [--rtc-schedules exp ones] [--env-kwargs '{"num_objects": 1}'] \
         [--workers 2] [--output benchmarks/results/closed_loop] [--replot]
 
 Delays are simulated in control steps (`pi0-torch eval --inference-delay`), so the numbers do not depend on this

@@ -1,6 +1,6 @@
 """`make demo`: the shipped demo policy acts in closed loop on held-out tabletop episodes (the code is `pi0_torch/demo.py`).
 
-    python examples/demo.py [--policy DIR] [--episodes 20] [--output-dir outputs/demo]
+    python examples/demo.py [--policy DIR] [--episodes 100] [--output-dir outputs/demo]
 """
 
 import sys

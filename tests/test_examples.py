@@ -52,9 +52,10 @@ def test_evaluate_notebook_runs(tmp_path: Path) -> None:
 
 
 def test_demo_recipe_runs_end_to_end_and_shares_its_plain_stages(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    """`scripts/train_demo_policy.py` at a tiny scale: records, trains the three stages, evaluates, writes the policy;
-    a second run with `--rtc-max-delay` reuses the three plain stages and fine-tunes with delays in a fourth."""
+    """`scripts/train_demo_policy.py` at a tiny scale: records, trains the plain stages, evaluates, writes the policy;
+    a second run with `--rtc-max-delay` reuses the plain stages and fine-tunes with delays in one more."""
     script = runpy.run_path(str(EXAMPLES.parent / "scripts" / "train_demo_policy.py"))
+    plain = [stage.name for stage in script["STAGES"]]
     threads = torch.get_num_threads()
     tiny = ["--work-dir", str(tmp_path), "--steps-scale", "0.001", "--episodes-scale", "0.001", "--eval-episodes", "1"]
     try:
@@ -63,10 +64,10 @@ def test_demo_recipe_runs_end_to_end_and_shares_its_plain_stages(tmp_path: Path,
     finally:
         torch.set_num_threads(threads)
     out = capsys.readouterr().out
-    assert all(out.count(f"stage {name}: reusing") == 1 for name in ("reach", "tasks", "pickplace"))
+    assert all(out.count(f"stage {name}: reusing") == 1 for name in plain)
     assert "stage delays: reusing" not in out
-    for name, delay, stages in (("plain", 0, ["reach", "tasks", "pickplace"]), ("rtc", 2, ["reach", "tasks", "pickplace", "delays"])):
+    for name, delay, stages in (("plain", 0, plain), ("rtc", 2, [*plain, "delays"])):
         metrics = json.loads((tmp_path / name / "demo_metrics.json").read_text())
         assert list(metrics["steps"]) == stages and metrics["rtc_max_delay"] == delay
-        assert metrics["reused_stages"] == ([] if delay == 0 else ["reach", "tasks", "pickplace"])
+        assert metrics["reused_stages"] == ([] if delay == 0 else plain)
         assert json.loads((tmp_path / name / "config.json").read_text())["rtc_max_delay"] == delay

@@ -99,7 +99,7 @@ class PI0Policy:
         noise_scale: the standard deviation of the noise each chunk's flow starts from (1: the training
             distribution, openpi's sampler). Below 1 the flow starts nearer the middle of the noise and returns
             actions nearer the most likely chunk; a small policy that grasps imprecisely gains from it (the demo
-            policy samples at `pi0_torch.demo.DEMO_NOISE_SCALE` = 0.25, docs/closed_loop.md, measured). 0 gives one
+            policy samples at `pi0_torch.demo.DEMO_NOISE_SCALE` = 0.1, docs/closed_loop.md, measured). 0 gives one
             deterministic chunk per observation.
         compile: run sampling through `torch.compile` ([`PI0ForActionGeneration.compile_sampling`]), as one CUDA
             graph on CUDA. The first chunk of each batch size compiles (tens of seconds): call [`warmup`] first.

@@ -478,7 +478,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--prompt", help="instruction for envs whose observations hold none")
     parser.add_argument("--num-steps", type=int, help="Euler steps per chunk (local policy)")
     parser.add_argument("--noise-scale", type=float, default=1.0, help="standard deviation of the noise each chunk's "
-                        "flow starts from (local policy; default 1, openpi's sampler; the demo policy uses 0.25)")
+                        "flow starts from (local policy; default 1, openpi's sampler; the demo policy uses 0.1)")
     parser.add_argument("--rtc-schedule", default="exp", help="soft mask of --execution rtc over the previous "
                         "chunk: exp (default, the paper's), linear, ones or hard (local policy)")
     parser.add_argument("--device", help="local policy device (default: CUDA if available)")
