@@ -253,8 +253,12 @@ def _check_match(policy: ChunkPolicy, env: Any, observation: Mapping[str, Any]) 
         raise ValueError(f"state dims differ: the policy expects {meta['state_dim']}, the env gives {state_dim}")
     cameras, policy_cameras = sorted(observation["images"]), list(meta.get("camera_names", []))
     if policy_cameras and not set(cameras) <= set(policy_cameras):
-        raise ValueError(f"cameras differ: the env gives {cameras}, the policy knows {policy_cameras} (map them with "
-                         "--obs-format)")
+        from pi0_torch.envs.tasks import TabletopEnv
+
+        way_out = "map them with --obs-format"
+        if isinstance(env.unwrapped, TabletopEnv):  # its wrist camera can be switched off
+            way_out += """, or drop the wrist camera with --env-kwargs '{"wrist_camera": false}'"""
+        raise ValueError(f"cameras differ: the env gives {cameras}, the policy knows {policy_cameras} ({way_out})")
 
 
 def _noise_seed(episode_seed: int, chunk: int) -> int:
