@@ -69,13 +69,14 @@ class Stage:
 # scenes beside the benchmark's three. Stage 3 weights PickPlace, the slowest to learn, while keeping the other two
 # (a stage on PickPlace alone forgets the conveyor); stage 4 continues it at a lower learning rate.
 # docs/training.md has what each choice changed, measured.
+PICK_PLACE_MIX = {(PICK_PLACE, 3): 3000, (REACH, 3): 1000, (CONVEYOR, 3): 1500}
 STAGES = (
     Stage("reach", {(REACH, 3): 4000}, steps=3000),
     Stage("tasks", {(REACH, 3): 3000, (PICK_PLACE, 3): 3000, (CONVEYOR, 3): 3000,
                     (REACH, 1): 1500, (PICK_PLACE, 1): 1000, (CONVEYOR, 1): 1000,
                     (REACH, 2): 1000, (PICK_PLACE, 2): 1000, (CONVEYOR, 2): 1000}, steps=4000),
-    Stage("pickplace", {(PICK_PLACE, 3): 3000, (REACH, 3): 1000, (CONVEYOR, 3): 1500}, steps=3000, learning_rate=1e-3),
-    Stage("polish", {(PICK_PLACE, 3): 3000, (REACH, 3): 1000, (CONVEYOR, 3): 1500}, steps=2000, learning_rate=5e-4),
+    Stage("pickplace", PICK_PLACE_MIX, steps=3000, learning_rate=1e-3),
+    Stage("polish", PICK_PLACE_MIX, steps=2000, learning_rate=5e-4),
 )
 # With --rtc-max-delay D, the finished plain policy is fine-tuned with training-time RTC on the last stage's
 # episodes, as one would fine-tune a pretrained π0 (the plain stages are shared with the plain policy). Training with
