@@ -42,6 +42,7 @@ from pi0_torch.data.lerobot_writer import EpisodeRecord, write_lerobot_dataset
 from pi0_torch.demo import DEMO_NOISE_SCALE, DEMO_REPLAN_STEPS
 from pi0_torch.envs import ENV_IDS
 from pi0_torch.envs.demos import ACTION_NAMES, STATE_NAMES, successful_episodes
+from pi0_torch.envs.tasks import CAMERA, WRIST_CAMERA
 from pi0_torch.processing.tokenization import build_test_tokenizer
 from pi0_torch.runtime.policy import PI0Policy
 from pi0_torch.runtime.rollout import EvalSettings, LocalPolicy, evaluate
@@ -92,7 +93,7 @@ DEMO_POLICY_CONFIG = dict(
     vlm_hidden_size=64, vlm_intermediate_size=128, expert_hidden_size=48, expert_intermediate_size=96,
     num_hidden_layers=3, num_attention_heads=2, num_key_value_heads=1, head_dim=32, vocab_size=512,
     action_dim=3, action_horizon=16, max_token_len=16, num_inference_steps=10,
-    camera_names=["base_0_rgb", "left_wrist_0_rgb"],
+    camera_names=[CAMERA, WRIST_CAMERA],
 )
 DELTA_ACTION_MASK = [True, True, False]  # the position target is learned relative to the effector (openpi's DeltaActions)
 HELDOUT_SEED = 1_000_000
@@ -166,7 +167,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--work-dir", type=Path, default=REPO / "outputs" / "demo_training")
     parser.add_argument("--rtc-max-delay", type=int, default=0,
                         help="fine-tune the plain policy with training-time real-time chunking (delays up to D) in a "
-                        "fourth stage (the shipped policy: 0)")
+                        "fifth stage (the shipped policy: 0)")
     parser.add_argument("--steps-scale", type=float, default=1.0, help="fraction of every stage's steps (quick checks)")
     parser.add_argument("--episodes-scale", type=float, default=1.0, help="fraction of every stage's episodes")
     parser.add_argument("--eval-episodes", type=int, default=300)

@@ -117,10 +117,10 @@ class TabletopEnv(gymnasium.Env):
         self._render_renderer = Renderer(render_size) if render_size and render_size != self.image_size else self._renderer
         self._wrist_renderer = Renderer(self.image_size, WRIST_ZOOM) if wrist_camera else None
         frame = spaces.Box(0, 255, (self.image_size, self.image_size, 3), np.uint8)
-        self.camera_names = [CAMERA, WRIST_CAMERA] if wrist_camera else [CAMERA]
+        cameras = [CAMERA, WRIST_CAMERA] if wrist_camera else [CAMERA]
         self.observation_space = spaces.Dict(
             {
-                "images": spaces.Dict({name: frame for name in self.camera_names}),
+                "images": spaces.Dict({name: frame for name in cameras}),
                 "state": spaces.Box(np.array([-1, -1, 0], np.float32), np.array([1, 1, 1], np.float32), dtype=np.float32),
                 "prompt": spaces.Text(PROMPT_MAX_LENGTH, min_length=1, charset=PROMPT_CHARSET),
             }
