@@ -147,10 +147,10 @@ def test_empty_frames_are_refused_and_thin_strips_are_resized() -> None:
 @pytest.mark.parametrize(
     ("overrides", "message"),
     [
-        (dict(num_key_value_heads=0), "num_key_value_heads must be an integer >= 1, got 0"),  # was ZeroDivisionError
-        (dict(patch_size=0), "patch_size must be an integer >= 1, got 0"),  # was ZeroDivisionError
-        (dict(expert_hidden_size="48"), r"expert_hidden_size must be an integer >= 1, got '48' \(str\)"),  # TypeError
-        (dict(action_horizon=8.0), r"action_horizon must be an integer >= 1, got 8.0 \(float\)"),
+        (dict(num_key_value_heads=0), r"num_key_value_heads must be an integer in \[1, 256\], got 0"),  # was ZeroDivisionError
+        (dict(patch_size=0), r"patch_size must be an integer in \[1, 2048\], got 0"),  # was ZeroDivisionError
+        (dict(expert_hidden_size="48"), r"expert_hidden_size must be an integer in \[1, 16384\], got '48' \(str\)"),  # TypeError
+        (dict(action_horizon=8.0), r"action_horizon must be an integer in \[1, 1024\], got 8.0 \(float\)"),
         (dict(rope_theta=-1.0), "rope_theta must be a finite number > 0, got -1.0"),  # was NaN actions
         (dict(rms_norm_eps=-1e-6), "rms_norm_eps must be a finite number > 0"),  # was NaN actions
         (dict(time_max_period=0.0), "time_max_period must be a finite number > 0, got 0.0"),  # was NaN actions
@@ -176,7 +176,7 @@ def test_config_json_is_checked_on_load(tmp_path: Path, caplog: pytest.LogCaptur
     with pytest.raises(ValueError, match=r"config.json must hold a JSON object of settings, got a JSON list"):
         PI0Config.from_pretrained(folder)
     (folder / "config.json").write_text(json.dumps({**saved, "num_key_value_heads": 0}))
-    with pytest.raises(ValueError, match="num_key_value_heads must be an integer >= 1"):
+    with pytest.raises(ValueError, match="num_key_value_heads must be an integer in \\[1, 256\\]"):
         PI0Config.from_pretrained(folder)
     with pytest.raises(ValueError, match="pi05 must be true or false, got 'false'"):
         PI0Config.from_dict({**saved, "pi05": "false"})

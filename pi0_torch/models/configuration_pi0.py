@@ -13,12 +13,44 @@ from typing import Any
 
 from transformers import PretrainedConfig
 
+from pi0_torch.models import auto_registration
 from pi0_torch.utils.validation import check_float, check_int, check_pretrained_location, hub_errors
 
 logger = logging.getLogger(__name__)
 
 DEFAULT_CAMERA_NAMES = ("base_0_rgb", "left_wrist_0_rgb", "right_wrist_0_rgb")
 PALIGEMMA_VOCAB_SIZE = 257_152
+
+# The largest value of every size and count (π0 and π0-FAST configs): far above any released model (π0: widths up to
+# 16,384, 27 + 18 layers, 50 actions, 10 steps), low enough that a typo (`action_horizon: 100000000`,
+# `num_hidden_layers: 1e6`, `num_inference_steps: 1e9`) is refused by name before anything is allocated or run.
+SIZE_LIMITS: dict[str, int] = {
+    "image_size": 2_048,
+    "patch_size": 2_048,
+    "vision_hidden_size": 16_384,
+    "vision_intermediate_size": 65_536,
+    "vision_num_layers": 256,
+    "vision_num_heads": 256,
+    "vlm_hidden_size": 16_384,
+    "vlm_intermediate_size": 65_536,
+    "expert_hidden_size": 16_384,
+    "expert_intermediate_size": 65_536,
+    "hidden_size": 16_384,  # π0-FAST's decoder
+    "intermediate_size": 65_536,
+    "num_hidden_layers": 256,
+    "num_attention_heads": 256,
+    "num_key_value_heads": 256,
+    "head_dim": 1_024,
+    "vocab_size": 1_048_576,
+    "action_dim": 256,
+    "action_horizon": 1_024,
+    "max_token_len": 8_192,
+    "num_inference_steps": 1_000,
+    "max_decoding_steps": 8_192,
+}
+MAX_ACTION_DIM = SIZE_LIMITS["action_dim"]
+MAX_ACTION_HORIZON = SIZE_LIMITS["action_horizon"]
+MAX_INFERENCE_STEPS = SIZE_LIMITS["num_inference_steps"]
 
 # Sizes of the vision tower, the VLM Gemma (expert 0) and the action expert (expert 1) for each preset.
 # "pi0"/"pi05" are the released sizes (SigLIP So400m/14, Gemma 2B, Gemma 300M); "small" matches the openpi test
@@ -140,16 +172,18 @@ class PI0Config(PretrainedConfig):
             raise ValueError(f"camera_names must be a list of camera names, got {camera_names!r}")
         self.camera_names = list(camera_names)
         self.rtc_max_delay = rtc_max_delay
+        check_dtype_setting(kwargs)
         super().__init__(**kwargs)
         unknown = sorted(set(kwargs) - _TRANSFORMERS_KEYS)
         if unknown:  # transformers keeps them as attributes; nothing in pi0-torch reads them
             logger.warning("PI0Config: ignoring unknown settings %s%s", unknown, _suggestions(unknown))
         self._check()
+        auto_registration.register_models()  # AutoModel maps a config to its model class once one exists
 
     def _check(self) -> None:
         """Types and ranges of every setting (presets, `from_pretrained`, `from_dict` and overrides all come here)."""
         for name in _POSITIVE_INTS:
-            check_int(name, getattr(self, name), minimum=1)
+            check_int(name, getattr(self, name), minimum=1, maximum=SIZE_LIMITS[name])
         for name in _POSITIVE_FLOATS:
             check_float(name, getattr(self, name), minimum=0.0, exclusive_minimum=True)
         check_float("time_offset", self.time_offset, minimum=0.0)
@@ -187,6 +221,35 @@ class PI0Config(PretrainedConfig):
     def prefix_len(self) -> int:
         """Tokens in the prefix: every camera's image tokens, then the text tokens."""
         return self.num_cameras * self.tokens_per_image + self.max_token_len
+
+    def estimated_parameters(self) -> int:
+        """The model's parameter count from its sizes (within a fraction of a percent: norms and biases are left
+        out), for a memory estimate before a model is built.
+
+        ```python
+        >>> round(PI0Config.pi0().estimated_parameters() / 3_238_048_528, 3)  # the released π0 and π0.5
+        1.0
+        >>> round(PI0Config.pi05().estimated_parameters() / 3_353_433_872, 3)
+        1.0
+
+        ```
+        """
+        vision = vision_parameters(self.image_size, self.patch_size, self.vision_hidden_size,
+                                   self.vision_intermediate_size, self.vision_num_layers)
+        attention = self.num_attention_heads * self.head_dim
+        key_value = 2 * self.num_key_value_heads * self.head_dim
+
+        def expert(width: int, intermediate: int) -> int:
+            return width * (attention + key_value) + attention * width + 3 * width * intermediate
+
+        per_layer = expert(self.vlm_hidden_size, self.vlm_intermediate_size) + expert(
+            self.expert_hidden_size, self.expert_intermediate_size)
+        heads = 4 * self.action_dim * self.expert_hidden_size + 3 * self.expert_hidden_size**2
+        if self.pi05:  # adaRMS: scale, shift and gate of both norms of every expert layer and of its final norm
+            per_layer += 6 * self.expert_hidden_size**2
+            heads += 3 * self.expert_hidden_size**2
+        return (vision + self.vision_hidden_size * self.vlm_hidden_size + self.vocab_size * self.vlm_hidden_size
+                + self.num_hidden_layers * per_layer + heads)
 
     @property
     def suffix_len(self) -> int:
@@ -259,6 +322,25 @@ _TRANSFORMERS_KEYS = {field.name for field in dataclasses.fields(PretrainedConfi
     "model_type", "transformers_version", "name_or_path", "_name_or_path", "_commit_hash", "torch_dtype",
     "attn_implementation", "experts_implementation", "output_attentions", "num_labels", "auto_map", "use_cache",
 }
+
+
+def check_dtype_setting(settings: Mapping[str, Any]) -> None:
+    """A `dtype` (or `torch_dtype`) among a config's settings (what transformers loads the weights as) must name a
+    torch floating-point dtype: `"float7"` would otherwise fail inside transformers with an `AttributeError`."""
+    import torch
+
+    dtype = settings.get("dtype", settings.get("torch_dtype"))
+    if isinstance(dtype, str) and dtype != "auto":
+        resolved = getattr(torch, dtype, None)
+        if not isinstance(resolved, torch.dtype) or not resolved.is_floating_point:
+            raise ValueError(f"dtype must name a torch floating-point dtype (float32, bfloat16, float16) or 'auto', "
+                             f"got {dtype!r:.60}")
+
+
+def vision_parameters(image_size: int, patch_size: int, width: int, intermediate: int, layers: int) -> int:
+    """SigLIP's parameter count (patch embedding, position table, and per layer attention and MLP)."""
+    tokens = (image_size // patch_size) ** 2
+    return 3 * patch_size**2 * width + tokens * width + layers * (4 * width * width + 2 * width * intermediate)
 
 
 def _suggestions(names: Sequence[str]) -> str:

@@ -7,7 +7,9 @@ from typing import Any
 
 from transformers import PretrainedConfig
 
-from pi0_torch.models.configuration_pi0 import PALIGEMMA_VOCAB_SIZE
+from pi0_torch.models import auto_registration
+from pi0_torch.models.configuration_pi0 import PALIGEMMA_VOCAB_SIZE, SIZE_LIMITS, check_dtype_setting, vision_parameters
+from pi0_torch.utils.validation import check_float, check_int
 
 FAST_CAMERA_NAMES = ("base_0_rgb", "base_1_rgb", "wrist_0_rgb")  # openpi's π0-FAST camera slots, in model order
 PALIGEMMA_EOS_TOKEN = 1
@@ -125,10 +127,18 @@ class PI0FastConfig(PretrainedConfig):
         self.fast_skip_tokens = fast_skip_tokens
         self.decoding_position_offset = decoding_position_offset
         self.camera_names = list(camera_names)
+        check_dtype_setting(kwargs)
         super().__init__(eos_token_id=eos_token_id, **kwargs)
         self._check()
+        auto_registration.register_models()  # AutoModel maps a config to its model class once one exists
 
     def _check(self) -> None:
+        """Types and ranges of every setting (each size and count within `SIZE_LIMITS`, named when not)."""
+        for name in _SIZES_CHECKED:
+            check_int(name, getattr(self, name), minimum=1, maximum=SIZE_LIMITS[name])
+        for name in ("rms_norm_eps", "rope_theta"):
+            check_float(name, getattr(self, name), minimum=0.0, exclusive_minimum=True)
+        check_int("fast_skip_tokens", self.fast_skip_tokens, minimum=0, maximum=self.vocab_size - 1)
         if self.num_attention_heads % self.num_key_value_heads:
             raise ValueError(
                 f"num_attention_heads ({self.num_attention_heads}) must be a multiple of "
@@ -140,13 +150,7 @@ class PI0FastConfig(PretrainedConfig):
             raise ValueError(f"image_size ({self.image_size}) must be a multiple of patch_size ({self.patch_size})")
         if not self.camera_names or len(set(self.camera_names)) != len(self.camera_names):
             raise ValueError(f"camera_names must be non-empty and unique, got {self.camera_names}")
-        if not 0 <= self.fast_skip_tokens < self.vocab_size:
-            raise ValueError(f"fast_skip_tokens must be in [0, vocab_size={self.vocab_size}), got {self.fast_skip_tokens}")
-        if self.decoding_position_offset not in (0, 1):
-            raise ValueError(f"decoding_position_offset must be 0 or 1, got {self.decoding_position_offset}")
-        for name in ("action_dim", "action_horizon", "max_token_len", "max_decoding_steps"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        check_int("decoding_position_offset", self.decoding_position_offset, minimum=0, maximum=1)
 
     @property
     def num_cameras(self) -> int:
@@ -161,6 +165,17 @@ class PI0FastConfig(PretrainedConfig):
         """Tokens the decoder sees before decoding: every camera's image tokens, then the prompt tokens."""
         return self.num_cameras * self.tokens_per_image + self.max_token_len
 
+    def estimated_parameters(self) -> int:
+        """The model's parameter count from its sizes (norms left out), for a memory estimate before a model is
+        built (see `PI0Config.estimated_parameters`)."""
+        vision = vision_parameters(self.image_size, self.patch_size, self.vision_hidden_size,
+                                   self.vision_intermediate_size, self.vision_num_layers)
+        attention = self.num_attention_heads * self.head_dim
+        layer = (self.hidden_size * (attention + 2 * self.num_key_value_heads * self.head_dim)
+                 + attention * self.hidden_size + 3 * self.hidden_size * self.intermediate_size)
+        return (vision + self.vision_hidden_size * self.hidden_size + self.vocab_size * self.hidden_size
+                + self.num_hidden_layers * layer)
+
     @classmethod
     def from_preset(cls, name: str, **overrides: Any) -> PI0FastConfig:
         """Build a preset: `pi0_fast` (openpi's `pi0_fast_base`), `pi0_fast_droid`, `pi0_fast_libero` (released
@@ -170,6 +185,13 @@ class PI0FastConfig(PretrainedConfig):
         size, task = _PRESETS[name]
         settings = {**_SIZES[size], **(_SMALL_TASK if size == "small" else _TASKS[task])}
         return cls(**{**settings, **overrides})
+
+
+_SIZES_CHECKED = (
+    "image_size", "patch_size", "vision_hidden_size", "vision_intermediate_size", "vision_num_layers", "vision_num_heads",
+    "hidden_size", "intermediate_size", "num_hidden_layers", "num_attention_heads", "num_key_value_heads", "head_dim",
+    "vocab_size", "action_dim", "action_horizon", "max_token_len", "max_decoding_steps",
+)
 
 
 def fast_preset_names() -> list[str]:

@@ -4,7 +4,11 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
+
+from pi0_torch.models.configuration_pi0 import MAX_INFERENCE_STEPS
+from pi0_torch.utils.validation import check_int
 
 
 def sincos_time_embedding(time: torch.Tensor, dim: int, min_period: float, max_period: float) -> torch.Tensor:
@@ -44,13 +48,13 @@ def euler_times(num_steps: int) -> list[float]:
     """Flow times visited by openpi's Euler sampler: from t = 1 with dt = -1/num_steps while t >= -dt/2.
 
     The arithmetic is float32, exactly as openpi's loop, so the times match its trajectory bit for bit.
+    `num_steps` is an integer in `[1, MAX_INFERENCE_STEPS]` (2.5 or True are refused, naming it).
     """
-    if num_steps < 1:
-        raise ValueError(f"num_steps must be >= 1, got {num_steps}")
-    dt = torch.tensor(-1.0 / num_steps, dtype=torch.float32)
-    t = torch.tensor(1.0, dtype=torch.float32)
+    check_int("num_steps", num_steps, minimum=1, maximum=MAX_INFERENCE_STEPS)
+    dt = np.float32(-1.0 / num_steps)
+    t = np.float32(1.0)
     times = []
-    while t >= -dt / 2:
-        times.append(t.item())
-        t = t + dt
+    while t >= -dt / np.float32(2):
+        times.append(float(t))
+        t = np.float32(t + dt)
     return times
