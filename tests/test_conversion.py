@@ -104,7 +104,8 @@ def test_bfloat16_conversion_reproduces_openpi_bf16_inference(variant: str, conv
 
 def test_output_folder(converted: dict) -> None:
     folder = converted["pi0_small", "bfloat16"]
-    assert sorted(p.name for p in folder.iterdir()) == ["config.json", "model.safetensors", "norm_stats.json"]
+    assert sorted(p.name for p in folder.iterdir()) == [files.MANIFEST_FILE, "config.json", "model.safetensors",
+                                                         "norm_stats.json"]
     config = json.loads((folder / "config.json").read_text())
     assert (config["model_type"], config["architectures"], config["dtype"]) == ("pi0_torch", ["PI0ForActionGeneration"], "bfloat16")
     with safe_open(folder / "model.safetensors", framework="pt") as handle:
@@ -262,16 +263,23 @@ def test_bad_input_gives_one_error_line_and_no_output(damage: str, message: str,
 
 
 def test_existing_output_and_overwrite(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """A non-empty output folder is replaced only with --overwrite, and only when pi0-torch wrote all of it (issue
+    28.1: an `--overwrite` once deleted whatever the folder held)."""
     out = tmp_path / "out"
-    out.mkdir()
-    (out / "keep.txt").write_text("mine")
-    assert run_cli("--from", "openpi", "--input", str(step_dir("pi0_small")), "--output-dir", str(out)) == 1
+    convert = ("--from", "openpi", "--input", str(step_dir("pi0_small")), "--output-dir", str(out))
+    assert run_cli(*convert) == 0
+    capsys.readouterr()
+    assert run_cli(*convert) == 1
     assert "exists and is not empty (pass --overwrite" in capsys.readouterr().err
-    assert (out / "keep.txt").read_text() == "mine"
-    assert run_cli("--from", "openpi", "--input", str(step_dir("pi0_small")), "--output-dir", str(out), "--overwrite", "--dtype", "bfloat16") == 0
+    assert run_cli(*convert, "--overwrite", "--dtype", "bfloat16") == 0  # an earlier conversion: replaced
     assert "π0, " in capsys.readouterr().out
-    assert sorted(p.name for p in out.iterdir()) == ["config.json", "model.safetensors", "norm_stats.json"]
+    assert sorted(p.name for p in out.iterdir()) == [files.MANIFEST_FILE, "config.json", "model.safetensors", "norm_stats.json"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+    (out / "keep.txt").write_text("mine")  # a file of the user's: never replaced, even with --overwrite
+    assert run_cli(*convert, "--overwrite") == 1
+    err = capsys.readouterr().err
+    assert "holds files that pi0-torch did not write (keep.txt)" in err and err.count("\n") == 1, err
+    assert (out / "keep.txt").read_text() == "mine" and (out / "model.safetensors").is_file()
 
 
 def tree_digest(folder: Path) -> dict[str, int]:
@@ -294,7 +302,8 @@ def test_output_overlapping_the_input_is_refused_even_with_overwrite(where: str,
     }[where]
     assert run_cli("--from", "openpi", "--input", str(given_input), "--output-dir", str(output), "--overwrite") == 1
     err = capsys.readouterr().err.strip()
-    assert err.startswith("error: output folder") and "the input" in err and "\n" not in err, err
+    # (the assets folder holds the input's files: refused for that before its overlap is even looked at)
+    assert err.startswith("error: output folder") and ("the input" in err or "did not write" in err) and "\n" not in err, err
     assert tree_digest(tmp_path / "run") == before  # nothing deleted, nothing added
 
 

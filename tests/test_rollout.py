@@ -196,7 +196,7 @@ def test_noise_scale_scales_the_noise_the_flow_starts_from() -> None:
     first, second = (policy.infer({**observation, "noise_seed": seed})["actions"] for seed in (1, 2))
     np.testing.assert_array_equal(first, second)
     assert policy.metadata["noise_scale"] == 0.0
-    with pytest.raises(ValueError, match=r"noise_scale must be a finite number >= 0, got -1.0"):
+    with pytest.raises(ValueError, match=r"noise_scale must be a finite number >= 0 and <= 10, got -1.0"):
         PI0Policy(policy.model, policy.processor, noise_scale=-1.0)
 
 

@@ -10,6 +10,12 @@ episode's seed is the `seed` column of `meta/episodes`). Features: `observation.
 `observation.images.left_wrist_0_rgb` (video or PNG images; the env's cameras), `observation.state`
 `[x, y, gripper]`, `action` `[target_x, target_y, gripper]`; one task per instruction; fps = the env's control rate.
 
+Nothing recorded is lost: episodes are written in files of `EPISODES_PER_FILE`, each flushed to disk with a progress
+record, into `.NAME.partial-resumable` beside the output folder, which appears whole at the end
+([`pi0_torch.data.lerobot_writer.LeRobotDatasetWriter`]). After a kill, a full disk or Ctrl-C, the same command with
+`--resume` continues after the last flushed file. `--overwrite` replaces only a folder pi0-torch wrote, never one
+with other files in it, the working directory or its parents (`pi0_torch.utils.files.check_output_dir`).
+
 >>> import tempfile
 >>> summary = record_demos("pi0_torch/Reach-v0", 2, tempfile.mkdtemp() + "/reach", image_size=32, storage="image")
 >>> summary.episodes, summary.failed_seeds
@@ -19,7 +25,7 @@ episode's seed is the `seed` column of `meta/episodes`). Features: `observation.
 from __future__ import annotations
 
 import argparse
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -28,11 +34,16 @@ import gymnasium
 import numpy as np
 from tqdm.auto import tqdm
 
-from pi0_torch.data.lerobot_writer import EpisodeRecord, Storage, write_lerobot_dataset
+from pi0_torch.data.lerobot_writer import EpisodeRecord, LeRobotDatasetWriter, Storage, partial_dataset_episodes
 from pi0_torch.envs import ENV_IDS, make_expert
+from pi0_torch.utils.validation import MAX_SEED, check_int, first_line
+
 STATE_NAMES = ["x", "y", "gripper"]
 ACTION_NAMES = ["target_x", "target_y", "gripper"]
 MAX_ATTEMPTS_FACTOR = 2  # give up after this many times the wanted episodes (plus 10) without enough successes
+EPISODES_PER_FILE = 50  # episodes per data file, flushed together: what an interruption can cost
+MAX_EPISODES = 1_000_000
+MAX_IMAGE_SIZE = 1_024
 
 
 @dataclass
@@ -96,35 +107,53 @@ def record_demos(
     seed: int = 0,
     image_size: int = 96,
     storage: Storage = "video",
-    episodes_per_file: int = 100,
+    episodes_per_file: int = EPISODES_PER_FILE,
     overwrite: bool = False,
+    resume: bool = False,
     progress: bool = False,
-    env_kwargs: dict[str, Any] | None = None,
+    env_kwargs: Mapping[str, Any] | None = None,
 ) -> DemosSummary:
-    """Write `num_episodes` successful expert episodes of `env_id` (seeds `seed`, `seed + 1`, ...) to `output_dir`."""
+    """Write `num_episodes` successful expert episodes of `env_id` (seeds `seed`, `seed + 1`, ...) to `output_dir`.
+
+    Every setting is checked before anything is recorded. Episodes are flushed in files of `episodes_per_file`;
+    after an interruption, `resume=True` continues the partial dataset (same settings) after its last flushed file
+    (see the module docstring)."""
     if env_id not in ENV_IDS:
         raise ValueError(f"unknown env {env_id!r}; known: {', '.join(ENV_IDS)}")
-    if num_episodes < 1:
-        raise ValueError(f"episodes must be >= 1, got {num_episodes}")
+    check_int("--episodes", num_episodes, 1, MAX_EPISODES)
+    check_int("--seed", seed, 0, MAX_SEED - MAX_ATTEMPTS_FACTOR * num_episodes - 10)  # every seed it may try fits int64
+    check_int("--image-size", image_size, 8, MAX_IMAGE_SIZE)
     if storage == "video" and image_size % 2:
         raise ValueError(f"image size must be even for video storage (yuv420p), got {image_size}")
-    env = gymnasium.make(env_id, image_size=image_size, **(env_kwargs or {}))
+    if env_kwargs is not None and not isinstance(env_kwargs, Mapping):
+        raise ValueError(f"env_kwargs must be a dict of env settings, got {type(env_kwargs).__name__}")
+    try:
+        env = gymnasium.make(env_id, image_size=image_size, **(env_kwargs or {}))
+    except TypeError as error:  # a setting the env does not take
+        raise ValueError(f"{env_id} cannot be made with the settings {sorted(env_kwargs or {})}: {first_line(error)}") from None
     summary = DemosSummary(Path(output_dir))
-
-    def episodes() -> Iterator[EpisodeRecord]:
-        bar = tqdm(total=num_episodes, desc=env_id, unit="episode", disable=not progress)
-        for record in successful_episodes(env, num_episodes, seed, summary.failed_seeds):
+    run = {"env": env_id, "seed": seed, "image_size": image_size, "env_kwargs": dict(env_kwargs or {})}
+    with LeRobotDatasetWriter(
+        output_dir, fps=env.unwrapped.control_hz, vector_names={"observation.state": STATE_NAMES, "action": ACTION_NAMES},
+        storage=storage, episodes_per_file=episodes_per_file, robot_type="pi0_torch_tabletop", overwrite=overwrite,
+        resumable=True, resume=resume, run_settings=run,
+    ) as writer:
+        summary.episodes = writer.episodes_written
+        summary.frames = writer.total_frames
+        summary.failed_seeds = list(writer.run_state.get("failed_seeds", []))
+        remaining = num_episodes - writer.episodes_written
+        if remaining < 0:
+            raise ValueError(f"--resume: the partial dataset already holds {writer.episodes_written} episodes, more than "
+                             f"--episodes {num_episodes}")
+        bar = tqdm(total=num_episodes, initial=writer.episodes_written, desc=env_id, unit="episode", disable=not progress)
+        start = writer.run_state.get("next_seed", seed)
+        for record in successful_episodes(env, remaining, start, summary.failed_seeds):
             summary.episodes += 1
             summary.frames += len(record)
             bar.update()
-            yield record
+            writer.add(record, run_state={"next_seed": record.extra["seed"] + 1, "failed_seeds": list(summary.failed_seeds)})
         bar.close()
-
-    write_lerobot_dataset(
-        output_dir, episodes(), fps=env.unwrapped.control_hz,
-        vector_names={"observation.state": STATE_NAMES, "action": ACTION_NAMES}, storage=storage,
-        episodes_per_file=episodes_per_file, robot_type="pi0_torch_tabletop", overwrite=overwrite,
-    )
+        writer.finish()
     return summary
 
 
@@ -135,17 +164,23 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--storage", choices=["video", "image"], default="video", help="camera as mp4 video or PNG images in the parquet")
     parser.add_argument("--seed", type=int, default=0, help="seed of the first episode (then seed+1, ...)")
     parser.add_argument("--image-size", type=int, default=96, help="camera image side in pixels")
-    parser.add_argument("--overwrite", action="store_true", help="replace a non-empty --output-dir")
+    parser.add_argument("--overwrite", action="store_true", help="replace a non-empty --output-dir that pi0-torch "
+                        "wrote (never a folder with other files), or discard the partial dataset of an interrupted run")
+    parser.add_argument("--resume", action="store_true", help="continue the partial dataset an interrupted run of "
+                        "this command left (after its last flushed file of episodes)")
 
 
 def run(args: argparse.Namespace) -> int:
     try:
         summary = record_demos(
             args.env, args.episodes, args.output_dir, seed=args.seed, image_size=args.image_size, storage=args.storage,
-            overwrite=args.overwrite, progress=True,
+            overwrite=args.overwrite, resume=args.resume, progress=True,
         )
-    except ValueError as error:
-        raise SystemExit(f"pi0-torch demos: error: {error}") from None
+    except (ValueError, OSError, RuntimeError, KeyboardInterrupt) as error:  # settings, disk, expert: one line
+        reason = "interrupted" if isinstance(error, KeyboardInterrupt) else first_line(error)
+        kept = partial_dataset_episodes(args.output_dir)
+        hint = f"; {kept} episodes are kept: run the same command with --resume to continue" if kept else ""
+        raise SystemExit(f"pi0-torch demos: error: {reason}{hint}") from None
     attempts = summary.episodes + len(summary.failed_seeds)
     print(
         f"wrote {summary.episodes} episodes ({summary.frames} frames) of {args.env} to {summary.root}; "

@@ -6,6 +6,12 @@ Inference delay is simulated in control steps ([`ChunkSchedule`]): the numbers d
 speed, and every chunk's noise comes from `noise_seed` (episode seed, chunk number), so the same seeds give the same
 episodes locally, through `pi0-torch serve`, and with any `--num-envs`.
 
+Nothing is lost when the policy fails part way (a server that drops the connection, sends no reply within
+`--timeout`, or replies without actions): the episodes finished so far are summarized, written to `eval.json` (marked
+`"complete": false` with the reason) and the error is one line ([`EvaluationStopped`]). The output folder is checked
+before the first episode ([`pi0_torch.utils.files.check_output_dir`]: absent, empty, or with `--overwrite` a folder
+pi0-torch wrote) and is never the evaluated policy's folder.
+
 ```python
 >>> [round(bound, 3) for bound in wilson_interval(45, 50)]  # 95% interval of a 90% success rate over 50 episodes
 [0.786, 0.957]
@@ -19,6 +25,7 @@ import argparse
 import concurrent.futures
 import importlib
 import json
+import logging
 import math
 import sys
 import time
@@ -36,7 +43,21 @@ from pi0_torch.runtime.chunking import (
     continuation_fields,
     second_differences,
 )
+from pi0_torch.cli import json_object
+from pi0_torch.demo import policy_location
 from pi0_torch.runtime.observation_formats import ObservationFormat
+from pi0_torch.utils.extras import require_extra
+from pi0_torch.utils.files import check_output_dir, check_separate
+from pi0_torch.utils.threads import add_threads_argument, set_threads
+from pi0_torch.utils.validation import MAX_SEED, check_finite, check_float, check_int, first_line
+
+logger = logging.getLogger(__name__)
+
+DEFAULT_TIMEOUT_S = 600.0  # per reply of a policy server (a CPU-served full-size π0 batch takes minutes)
+MAX_EPISODES = 1_000_000
+MAX_NUM_ENVS = 1_024
+MAX_INFERENCE_DELAY = 10_000  # control steps
+MAX_EPISODE_STEPS = 10_000_000
 
 # Third-party simulators: the keyword arguments that make them emit images, and their observation layout.
 KNOWN_ENVS: dict[str, tuple[dict[str, Any], str]] = {
@@ -94,11 +115,13 @@ class ScriptedPolicy:
 
 
 class LocalPolicy:
-    """A [`PI0Policy`] running in this process; a group of observations is one batched model call."""
+    """A [`PI0Policy`] running in this process; a group of observations is one batched model call. `source`: the
+    folder it was loaded from (evaluation outputs are never written into it)."""
 
-    def __init__(self, policy: Any) -> None:
+    def __init__(self, policy: Any, source: str | Path | None = None) -> None:
         self.policy = policy
         self.metadata = policy.metadata
+        self.source = source
 
     def __call__(self, observations: Sequence[Mapping[str, Any]]) -> list[np.ndarray]:
         prepared = [self.policy.prepare(observation) for observation in observations]
@@ -107,31 +130,66 @@ class LocalPolicy:
 
 class RemotePolicy:
     """A `pi0-torch serve` (or any openpi-protocol server) reached over websockets: one connection per environment,
-    a group's requests sent concurrently so that the server can batch them."""
+    a group's requests sent concurrently so that the server can batch them.
 
-    def __init__(self, url: str, connections: int, api_key: str | None = None, timeout: float = 600.0) -> None:
+    Everything the server sends is checked: its metadata (an `action_horizon`), and each reply (float `actions`
+    `[horizon, action dims]`, finite). A closed connection, a reply later than `timeout` seconds, or a malformed
+    reply raises a one-line `ConnectionError` / `ValueError` naming the server."""
+
+    def __init__(self, url: str, connections: int, api_key: str | None = None, timeout: float = DEFAULT_TIMEOUT_S) -> None:
+        require_extra("serve", f"a ws:// policy ({url})")
         from websockets.exceptions import WebSocketException
         from websockets.sync.client import connect
 
         from pi0_torch.runtime.serving import pack_message, unpack_message
 
+        self.url = url
+        self.timeout = check_float("--timeout", timeout, minimum=0.0, exclusive_minimum=True)
         self._pack, self._unpack = pack_message, unpack_message
         headers = {"Authorization": f"Api-Key {api_key}"} if api_key else None
         try:
             self.sockets = [connect(url, max_size=None, additional_headers=headers, open_timeout=timeout)
                             for _ in range(connections)]
-        except (OSError, WebSocketException) as error:  # refused, unreachable, or a handshake the server rejected
-            raise ConnectionError(f"cannot reach the policy server at {url}: {error}") from None
-        self.metadata = [self._unpack(socket.recv(timeout)) for socket in self.sockets][0]
-        self.timeout = timeout
+            metadata = [self._unpack(socket.recv(timeout)) for socket in self.sockets][0]
+        except (OSError, WebSocketException) as error:  # refused, unreachable, a rejected handshake, no metadata
+            raise ConnectionError(f"cannot reach the policy server at {url}: {first_line(error) or type(error).__name__}") from None
+        self.metadata = _checked_metadata(metadata, url)
         self.pool = concurrent.futures.ThreadPoolExecutor(max_workers=connections)
 
     def _ask(self, socket: Any, observation: Mapping[str, Any]) -> np.ndarray:
-        socket.send(self._pack(dict(observation)))
-        reply = socket.recv(self.timeout)
+        from websockets.exceptions import ConnectionClosed, WebSocketException
+
+        try:
+            socket.send(self._pack(dict(observation)))
+            reply = socket.recv(self.timeout)
+        except TimeoutError:
+            raise ConnectionError(f"the policy server at {self.url} sent no reply within {self.timeout:g} s "
+                                  "(--timeout)") from None
+        except ConnectionClosed as error:
+            closed = error.rcvd or error.sent
+            why = f"code {closed.code}{', ' + closed.reason if closed.reason else ''}" if closed else "no close frame"
+            raise ConnectionError(f"the policy server at {self.url} closed the connection ({why})") from None
+        except (OSError, WebSocketException) as error:
+            raise ConnectionError(f"the policy server at {self.url} failed: {first_line(error)}") from None
         if isinstance(reply, str):  # the server's one-line error
             raise ValueError(f"policy server: {reply}")
-        return np.asarray(self._unpack(reply)["actions"], np.float32)
+        return self._actions(reply)
+
+    def _actions(self, reply: bytes) -> np.ndarray:
+        """The `actions` of a reply, checked: a finite float array `[horizon, action dims]`."""
+        message = self._unpack(reply)
+        if not isinstance(message, Mapping) or "actions" not in message:
+            keys = sorted(map(str, message)) if isinstance(message, Mapping) else type(message).__name__
+            raise ValueError(f"policy server at {self.url}: a reply without 'actions' (got {keys})")
+        actions = np.asarray(message["actions"])
+        dims = self.metadata.get("action_dim")
+        if actions.dtype.kind not in "iuf" or actions.ndim != 2 or not actions.shape[0] or (
+                dims is not None and actions.shape[1] != dims):
+            raise ValueError(f"policy server at {self.url}: reply 'actions' must be numbers [horizon, "
+                             f"{dims if dims is not None else 'action dims'}], got shape {list(actions.shape)} "
+                             f"dtype {actions.dtype}")
+        check_finite(f"policy server at {self.url}: reply 'actions'", actions)
+        return actions.astype(np.float32)
 
     def __call__(self, observations: Sequence[Mapping[str, Any]]) -> list[np.ndarray]:
         futures = [self.pool.submit(self._ask, socket, obs) for socket, obs in zip(self.sockets, observations)]
@@ -141,6 +199,26 @@ class RemotePolicy:
         for socket in self.sockets:
             socket.close()
         self.pool.shutdown()
+
+
+def _checked_metadata(metadata: Any, url: str) -> dict[str, Any]:
+    """The metadata a server sent on connect, with the fields evaluation reads checked."""
+    from pi0_torch.models.configuration_pi0 import MAX_ACTION_DIM, MAX_ACTION_HORIZON
+
+    where = f"policy server at {url}: metadata"
+    if not isinstance(metadata, Mapping):
+        raise ValueError(f"{where} must be a dict, got {type(metadata).__name__}")
+    if "action_horizon" not in metadata:
+        raise ValueError(f"{where} lacks 'action_horizon' (got {sorted(map(str, metadata))})")
+    checked = dict(metadata)
+    checked["action_horizon"] = check_int(f"{where} action_horizon", metadata["action_horizon"], 1, MAX_ACTION_HORIZON)
+    for name in ("action_dim", "state_dim"):
+        if metadata.get(name) is not None:
+            checked[name] = check_int(f"{where} {name}", metadata[name], 1, MAX_ACTION_DIM)
+    cameras = metadata.get("camera_names")
+    if cameras is not None and (not isinstance(cameras, list) or not all(isinstance(c, str) for c in cameras)):
+        raise ValueError(f"{where} camera_names must be a list of strings, got {cameras!r:.80}")
+    return checked
 
 
 def wilson_interval(successes: int, trials: int, z: float = 1.959964) -> tuple[float, float]:
@@ -155,7 +233,8 @@ def wilson_interval(successes: int, trials: int, z: float = 1.959964) -> tuple[f
 
 def make_env(env_id: str, **kwargs: Any) -> Any:
     """`gymnasium.make(env_id)` after importing the id's namespace package (`pi0_torch/...`, `gym_pusht/...`);
-    an unknown id is a `ValueError` listing the known ones."""
+    an id whose package is not installed, or an unknown id, is a `ValueError` naming the package or the known ids."""
+    require_extra("envs", f"the environment {env_id}")
     import gymnasium
 
     namespace = env_id.split("/")[0] if "/" in env_id else None
@@ -164,14 +243,21 @@ def make_env(env_id: str, **kwargs: Any) -> Any:
     elif namespace is not None and env_id not in gymnasium.registry:
         try:
             importlib.import_module(namespace)
-        except ImportError:
-            pass
+        except ModuleNotFoundError as error:
+            if error.name != namespace:
+                raise
+            raise ValueError(f"the environment {env_id} needs the package {namespace}, which is not installed: "
+                             f"pip install {namespace.replace('_', '-')}") from None
     if env_id not in gymnasium.registry:
         importlib.import_module("pi0_torch.envs")
         known = sorted(i for i in gymnasium.registry if i.startswith("pi0_torch/")) + sorted(KNOWN_ENVS)
         raise ValueError(f"unknown environment id {env_id!r}; known: {', '.join(known)} (a third-party id needs its "
                          "package installed, e.g. pip install gym-pusht)")
-    return gymnasium.make(env_id, **{**KNOWN_ENVS.get(env_id, ({}, ""))[0], **kwargs})
+    try:
+        return gymnasium.make(env_id, **{**KNOWN_ENVS.get(env_id, ({}, ""))[0], **kwargs})
+    except TypeError as error:  # an argument the env does not take (--env-kwargs)
+        raise ValueError(f"{env_id} cannot be made with the settings {sorted(kwargs)}: {first_line(error)} "
+                         "(--env-kwargs)") from None
 
 
 @dataclass
@@ -191,6 +277,7 @@ class EvalSettings:
     prompt: str | None = None
     video_episodes: int = 0
     output_dir: str | None = None
+    overwrite: bool = False  # replace a non-empty output_dir that pi0-torch wrote
     progress: bool = False
 
 
@@ -221,6 +308,8 @@ class EvalResult:
     interior_jerk: float | None
     policy: dict[str, Any]
     episodes_detail: list[dict[str, Any]]
+    complete: bool = True  # False: the evaluation stopped early; these are the episodes finished before
+    stopped_by: str | None = None  # why it stopped (one line)
 
     def summary(self) -> str:
         low, high = self.success_ci95
@@ -229,7 +318,25 @@ class EvalResult:
                        (("at chunk boundaries", self.boundary_jerk), ("inside chunks", self.interior_jerk)) if value is not None)
         return (f"{self.env} {self.execution} d={self.inference_delay} s={self.replan_steps}: success "
                 f"{100 * self.success_rate:.1f}% [{100 * low:.1f}, {100 * high:.1f}] over {self.episodes} episodes, "
-                f"{steps} steps per success, policy {self.latency_ms:.0f} ms per call{jerk}")
+                f"{steps} steps per success, policy {self.latency_ms:.0f} ms per call{jerk}"
+                + ("" if self.complete else f" (incomplete: stopped by {self.stopped_by})"))
+
+
+class EvaluationStopped(RuntimeError):
+    """An evaluation that stopped before its last episode (the policy or an env failed, or Ctrl-C); the message
+    says why and where the finished episodes were written. `result` summarizes them."""
+
+    def __init__(self, message: str, result: EvalResult) -> None:
+        super().__init__(message)
+        self.result = result
+
+
+class _GroupStopped(Exception):
+    """A group of episodes interrupted by `cause`; `results` / `frames`: its episodes finished before."""
+
+    def __init__(self, results: list[EpisodeResult], frames: dict[int, list[np.ndarray]], cause: BaseException) -> None:
+        super().__init__(first_line(cause))
+        self.results, self.frames, self.cause = results, frames, cause
 
 
 def _hold_action(observation: Mapping[str, Any], action_dim: int) -> np.ndarray:
@@ -259,21 +366,56 @@ def _check_match(policy: ChunkPolicy, env: Any, observation: Mapping[str, Any]) 
         if isinstance(env.unwrapped, TabletopEnv):  # its wrist camera can be switched off
             way_out += """, or drop the wrist camera with --env-kwargs '{"wrist_camera": false}'"""
         raise ValueError(f"cameras differ: the env gives {cameras}, the policy knows {policy_cameras} ({way_out})")
+    unseen = [camera for camera in policy_cameras if camera not in cameras]
+    if unseen:  # (once per evaluation) a policy trained with them acts blind on their side
+        logger.warning("the env gives no frames for the policy's cameras %s: they are fed as absent (masked) in every "
+                       "request; a policy trained with them may act worse than it can", unseen)
 
 
 def _noise_seed(episode_seed: int, chunk: int) -> int:
     return int(np.random.SeedSequence([episode_seed, chunk]).generate_state(2, np.uint64)[0] >> np.uint64(1))
 
 
+def check_eval_settings(settings: EvalSettings, horizon: int) -> int:
+    """Refuse settings no evaluation can use (`ValueError` naming the `pi0-torch eval` option); returns the replan
+    steps (default: the horizon in `sync`, else horizon - delay)."""
+    check_int("--episodes", settings.episodes, 1, MAX_EPISODES)
+    check_int("--num-envs", settings.num_envs, 1, MAX_NUM_ENVS)
+    check_int("--seed", settings.seed, 0, MAX_SEED - settings.episodes)
+    if settings.execution not in EXECUTION_MODES:
+        raise ValueError(f"--execution must be one of {EXECUTION_MODES}, got {settings.execution!r}")
+    delay = check_int("--inference-delay", settings.inference_delay, 0, MAX_INFERENCE_DELAY)
+    if settings.replan_steps is None:
+        replan = horizon if settings.execution == "sync" else max(1, horizon - delay)
+    else:
+        replan = check_int("--replan-steps", settings.replan_steps, 1, horizon)
+    if settings.max_steps is not None:
+        check_int("--max-steps", settings.max_steps, 1, MAX_EPISODE_STEPS)
+    check_int("--video", settings.video_episodes, 0, settings.episodes)
+    if not isinstance(settings.env_kwargs, Mapping):
+        raise ValueError(f"--env-kwargs must be a JSON object, got {type(settings.env_kwargs).__name__}")
+    return replan
+
+
+def check_eval_output(settings: EvalSettings, policy_source: str | Path | None) -> None:
+    """Refuse an output folder evaluation may not write: see [`pi0_torch.utils.files.check_output_dir`]; never the
+    evaluated policy's folder (nor one inside or around it)."""
+    if not settings.output_dir:
+        return
+    if policy_source is not None and Path(policy_source).is_dir():
+        check_separate(policy_source, settings.output_dir)
+    check_output_dir(settings.output_dir, settings.overwrite)
+
+
 def evaluate(policy: ChunkPolicy, settings: EvalSettings) -> EvalResult:
-    """Run `settings.episodes` closed-loop episodes and summarize them (see the module docstring)."""
+    """Run `settings.episodes` closed-loop episodes and summarize them (see the module docstring).
+
+    When the policy or an env fails part way, the finished episodes are summarized (and written to `output_dir`)
+    and [`EvaluationStopped`] says why; when none had finished, the failure itself is raised."""
     horizon = int(policy.metadata["action_horizon"])
+    replan = check_eval_settings(settings, horizon)
+    check_eval_output(settings, getattr(policy, "source", None))
     mode, delay = settings.execution, settings.inference_delay
-    if mode not in EXECUTION_MODES:
-        raise ValueError(f"execution must be one of {EXECUTION_MODES}, got {mode!r}")
-    if settings.episodes < 1 or settings.num_envs < 1:
-        raise ValueError(f"episodes and num_envs must be >= 1, got {settings.episodes} and {settings.num_envs}")
-    replan = settings.replan_steps or (horizon if mode == "sync" else max(1, horizon - delay))
     schedule = ChunkSchedule(mode, horizon, replan, delay)
     if mode == "rtc-trained" and delay > policy.metadata.get("real_time_chunking", {}).get("rtc_max_delay", 0):
         raise ValueError(f"--execution rtc-trained needs a policy trained with --rtc-max-delay >= {delay}")
@@ -281,6 +423,7 @@ def evaluate(policy: ChunkPolicy, settings: EvalSettings) -> EvalResult:
     if settings.max_steps is not None:
         kwargs["max_episode_steps"] = settings.max_steps
     if settings.video_episodes:
+        require_extra("envs", "recording videos", modules=("av",))  # before the episodes run, not after
         kwargs.setdefault("render_mode", "rgb_array")
     envs = [make_env(settings.env, **kwargs) for _ in range(min(settings.num_envs, settings.episodes))]
     obs_format = ObservationFormat.from_preset(
@@ -304,23 +447,32 @@ def evaluate(policy: ChunkPolicy, settings: EvalSettings) -> EvalResult:
         progress = tqdm(total=settings.episodes, desc=f"eval {settings.env}", unit="episode")
     results: list[EpisodeResult] = []
     latencies: list[float] = []
-    frames: list[list[np.ndarray]] = []
+    frames: dict[int, list[np.ndarray]] = {}  # episode seed -> its rendered frames
+    stopped: BaseException | None = None
     try:
         for first in range(0, settings.episodes, len(envs)):
             seeds = [settings.seed + i for i in range(first, min(first + len(envs), settings.episodes))]
             group = envs[: len(seeds)]
-            wave, wave_frames = _run_group(policy, group, seeds, schedule, observe, action_dim, latencies,
-                                           record=max(0, settings.video_episodes - len(frames)))
+            try:
+                wave, wave_frames = _run_group(policy, group, seeds, schedule, observe, action_dim, latencies,
+                                               record=max(0, settings.video_episodes - len(frames)))
+            except _GroupStopped as interrupted:
+                wave, wave_frames, stopped = interrupted.results, interrupted.frames, interrupted.cause
             results += wave
-            frames += wave_frames
+            frames.update(wave_frames)
             if progress is not None:
-                progress.update(len(seeds))
-                progress.set_postfix(success=f"{np.mean([r.success for r in results]):.0%}")
+                progress.update(len(wave))
+                if results:
+                    progress.set_postfix(success=f"{np.mean([r.success for r in results]):.0%}")
+            if stopped is not None:
+                break
     finally:
         if progress is not None:
             progress.close()
         for env in envs:
             env.close()
+    if stopped is not None and not results:
+        raise stopped
     successes = sum(r.success for r in results)
     boundary = [j for r in results for j in r.boundary_jerk]
     interior = [j for r in results for j in r.interior_jerk]
@@ -334,9 +486,15 @@ def evaluate(policy: ChunkPolicy, settings: EvalSettings) -> EvalResult:
         interior_jerk=float(np.mean(interior)) if interior else None,
         policy={k: v for k, v in policy.metadata.items() if isinstance(v, (str, int, float, list))},
         episodes_detail=[{"seed": r.seed, "success": r.success, "steps": r.steps} for r in results],
+        complete=stopped is None,
+        stopped_by=None if stopped is None else f"{type(stopped).__name__}: {first_line(stopped)}",
     )
     if settings.output_dir:
-        write_outputs(result, frames, Path(settings.output_dir), fps=_control_hz(envs[0]))
+        write_outputs(result, frames, Path(settings.output_dir), fps=_control_hz(envs[0]), overwrite=settings.overwrite)
+    if stopped is not None:
+        written = f"; eval.json in {settings.output_dir} holds them" if settings.output_dir else ""
+        raise EvaluationStopped(f"{result.stopped_by} (stopped after {len(results)} finished episodes of "
+                                f"{settings.episodes}{written})", result) from stopped
     return result
 
 
@@ -353,21 +511,66 @@ def _run_group(
     action_dim: int,
     latencies: list[float],
     record: int,
-) -> tuple[list[EpisodeResult], list[list[np.ndarray]]]:
-    """Episodes of one group of environments in lockstep (they share the chunk schedule)."""
+) -> tuple[list[EpisodeResult], dict[int, list[np.ndarray]]]:
+    """Episodes of one group of environments in lockstep (they share the chunk schedule): their results and the
+    frames of the first `record` episodes (by seed). A failure part way raises [`_GroupStopped`] holding the
+    episodes finished before it."""
+    done = [False] * len(envs)
+    success = [False] * len(envs)
+    executed: list[list[np.ndarray]] = [[] for _ in envs]
+    switches: list[list[int]] = [[] for _ in envs]  # steps at which a new chunk took over
+    frames: list[list[np.ndarray]] = [[] for _ in envs]
+
+    def episode(i: int) -> EpisodeResult:
+        motion = np.stack(executed[i])  # jerk of the motion dims where the env names them (not a gripper switch)
+        dims = getattr(envs[i].unwrapped, "motion_action_dims", None)
+        motion = motion if dims is None else motion[:, list(dims)]
+        jerk = second_differences(motion)  # index t - 1 is the second difference centred at t
+        at_switch = {t - 1 for t in switches[i] if 2 <= t <= len(executed[i]) - 1}  # centred on the last old action
+        return EpisodeResult(
+            seed=seeds[i], success=success[i], steps=len(executed[i]),
+            boundary_jerk=[float(jerk[t - 1]) for t in sorted(at_switch)],
+            interior_jerk=[float(j) for t, j in enumerate(jerk, start=1) if t not in at_switch],
+        )
+
+    def finished(indices: Sequence[int]) -> tuple[list[EpisodeResult], dict[int, list[np.ndarray]]]:
+        return [episode(i) for i in indices], {seeds[i]: frames[i] for i in indices if frames[i]}
+
+    try:
+        _step_group(policy, envs, seeds, schedule, observe, action_dim, latencies, record,
+                    done, success, executed, switches, frames)
+    except (Exception, KeyboardInterrupt) as error:
+        raise _GroupStopped(*finished([i for i in range(len(envs)) if done[i]]), error) from error
+    return finished(range(len(envs)))
+
+
+def _step_group(
+    policy: ChunkPolicy,
+    envs: Sequence[Any],
+    seeds: Sequence[int],
+    schedule: ChunkSchedule,
+    observe: Any,
+    action_dim: int,
+    latencies: list[float],
+    record: int,
+    done: list[bool],
+    success: list[bool],
+    executed: list[list[np.ndarray]],
+    switches: list[list[int]],
+    frames: list[list[np.ndarray]],
+) -> None:
+    """The closed loop of [`_run_group`], filling its per-episode lists as it goes."""
     observations = [observe(env.reset(seed=seed)[0]) for env, seed in zip(envs, seeds)]
     holds = [_hold_action(o, action_dim) if schedule.mode == "sync" or schedule.inference_delay else None
              for o in observations]
     stitchers = [ChunkStitcher(schedule.mode, schedule.replan_steps) for _ in envs]
     pending: list[list[tuple[int, int, np.ndarray]]] = [[] for _ in envs]  # (arrival, anchor, chunk)
-    executed: list[list[np.ndarray]] = [[] for _ in envs]
-    switches: list[list[int]] = [[] for _ in envs]  # steps at which a new chunk took over
-    done = [False] * len(envs)
-    success = [False] * len(envs)
     if hasattr(policy, "start_group"):
         policy.start_group(envs, seeds, done)
-    frames: list[list[np.ndarray]] = [[envs[i].render()] if i < record else [] for i in range(len(envs))]
+    for i in range(min(record, len(envs))):
+        frames[i].append(envs[i].render())
     chunk_count, step = 0, 0
+
     def deliver(i: int) -> None:  # chunks that have arrived by this step take over
         while pending[i] and pending[i][0][0] <= step:
             _, anchor, chunk = pending[i].pop(0)
@@ -404,33 +607,22 @@ def _run_group(
             if terminated or truncated:
                 done[i], success[i] = True, bool(info.get("is_success", False))
         step += 1
-    results = []
-    for i, seed in enumerate(seeds):
-        motion = np.stack(executed[i])  # jerk of the motion dims where the env names them (not a gripper switch)
-        dims = getattr(envs[i].unwrapped, "motion_action_dims", None)
-        motion = motion if dims is None else motion[:, list(dims)]
-        jerk = second_differences(motion)  # index t - 1 is the second difference centred at t
-        at_switch = {t - 1 for t in switches[i] if 2 <= t <= len(executed[i]) - 1}  # centred on the last old action
-        results.append(EpisodeResult(
-            seed=seed, success=success[i], steps=len(executed[i]),
-            boundary_jerk=[float(jerk[t - 1]) for t in sorted(at_switch)],
-            interior_jerk=[float(j) for t, j in enumerate(jerk, start=1) if t not in at_switch],
-        ))
-    return results, [f for f in frames if f]
 
 
-def write_outputs(result: EvalResult, frames: list[list[np.ndarray]], output_dir: Path, fps: int) -> None:
-    """`eval.json`, and for recorded episodes `rollout_<seed>.mp4` plus one `rollout_<seed>.png` strip, written
-    aside and moved into place."""
+def write_outputs(result: EvalResult, frames: Mapping[int, list[np.ndarray]], output_dir: Path, fps: int,
+                  overwrite: bool = False) -> None:
+    """`eval.json`, and for recorded episodes (`frames`: seed -> frames) `rollout_<seed>.mp4` plus one
+    `rollout_<seed>.png` strip, written aside and moved into place ([`pi0_torch.utils.files.atomic_output_dir`]:
+    a non-empty `output_dir` only with `overwrite`, and only when pi0-torch wrote it)."""
     from PIL import Image
 
-    from pi0_torch.data.lerobot_writer import encode_video
+    from pi0_torch.data.video import encode_video
     from pi0_torch.utils.files import atomic_output_dir
 
-    with atomic_output_dir(output_dir, overwrite=True) as staging:
+    with atomic_output_dir(output_dir, overwrite=overwrite) as staging:
         (staging / "eval.json").write_text(json.dumps(asdict(result), indent=2) + "\n")
-        for frames_of_episode, detail in zip(frames, result.episodes_detail):
-            name = f"rollout_{detail['seed']}"
+        for seed, frames_of_episode in frames.items():
+            name = f"rollout_{seed}"
             encode_video(staging / f"{name}.mp4", [_even(f) for f in frames_of_episode], fps, "libx264")
             picks = np.linspace(0, len(frames_of_episode) - 1, num=min(8, len(frames_of_episode))).round().astype(int)
             Image.fromarray(np.concatenate([frames_of_episode[i] for i in picks], axis=1)).save(staging / f"{name}.png")
@@ -442,18 +634,20 @@ def _even(frame: np.ndarray) -> np.ndarray:
 
 
 def load_policy(spec: str, connections: int, api_key: str | None = None, device: str | None = None,
-                num_steps: int | None = None, noise_scale: float = 1.0, rtc_schedule: str = "exp") -> ChunkPolicy:
-    """A folder (loaded here), `ws://host:port` (a running server), or `expert` / `random` ([`ScriptedPolicy`]).
-    `device`, `num_steps`, `noise_scale` and `rtc_schedule` apply to a folder (a server samples with its own
-    settings)."""
+                num_steps: int | None = None, noise_scale: float = 1.0, rtc_schedule: str = "exp",
+                timeout: float = DEFAULT_TIMEOUT_S) -> ChunkPolicy:
+    """A folder (loaded here; `demo`: the demo policy shipped with the package), `ws://host:port` (a running server;
+    `timeout`: seconds to wait for each reply), or `expert` / `random` ([`ScriptedPolicy`]). `device`, `num_steps`,
+    `noise_scale` and `rtc_schedule` apply to a folder (a server samples with its own settings)."""
     if spec.startswith(("ws://", "wss://")):
-        return RemotePolicy(spec, connections, api_key=api_key)
+        return RemotePolicy(spec, connections, api_key=api_key, timeout=timeout)
     if spec in ("expert", "random"):
         return ScriptedPolicy(spec)
     from pi0_torch.runtime.policy import PI0Policy
 
-    return LocalPolicy(PI0Policy.from_pretrained(spec, device=device, num_steps=num_steps, noise_scale=noise_scale,
-                                                   rtc_schedule=rtc_schedule))
+    folder = policy_location(spec)
+    return LocalPolicy(PI0Policy.from_pretrained(folder, device=device, num_steps=num_steps, noise_scale=noise_scale,
+                                                   rtc_schedule=rtc_schedule), source=folder)
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -463,8 +657,9 @@ def load_policy(spec: str, connections: int, api_key: str | None = None, device:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of `pi0-torch eval`."""
-    parser.add_argument("--policy", required=True, help="a model folder, ws://HOST:PORT of pi0-torch serve, or "
-                        "'expert' / 'random' (references: the env's scripted expert, uniform random actions)")
+    parser.add_argument("--policy", required=True, help="a model folder, demo (the policy shipped with the package), "
+                        "ws://HOST:PORT of pi0-torch serve, or 'expert' / 'random' (references: the env's scripted "
+                        "expert, uniform random actions)")
     parser.add_argument("--env", required=True, help="gymnasium id, e.g. pi0_torch/PickPlace-v0 or gym_pusht/PushT-v0")
     parser.add_argument("--episodes", type=int, default=50)
     parser.add_argument("--num-envs", type=int, default=8, help="environments stepped together (one batched call)")
@@ -478,7 +673,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-steps", type=int, help="override the env's step limit")
     parser.add_argument("--obs-format", help="observation layout of the env (a pi0-torch serve preset or .json; "
                         "default: from the env id)")
-    parser.add_argument("--env-kwargs", type=json.loads, default={}, metavar="JSON", help="passed to gymnasium.make")
+    parser.add_argument("--env-kwargs", type=json_object, default={}, metavar="JSON",
+                        help="a JSON object passed to gymnasium.make")
     parser.add_argument("--prompt", help="instruction for envs whose observations hold none")
     parser.add_argument("--num-steps", type=int, help="Euler steps per chunk (local policy)")
     parser.add_argument("--noise-scale", type=float, default=1.0, help="standard deviation of the noise each chunk's "
@@ -486,8 +682,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rtc-schedule", default="exp", help="soft mask of --execution rtc over the previous "
                         "chunk: exp (default, the paper's), linear, ones or hard (local policy)")
     parser.add_argument("--device", help="local policy device (default: CUDA if available)")
+    add_threads_argument(parser)
     parser.add_argument("--api-key", help="for a server started with --api-key")
-    parser.add_argument("--output-dir", help="write eval.json (and videos) here")
+    parser.add_argument("--timeout", type=float, default=DEFAULT_TIMEOUT_S, metavar="SECONDS",
+                        help=f"seconds to wait for each reply of a policy server (default {DEFAULT_TIMEOUT_S:g})")
+    parser.add_argument("--output-dir", help="write eval.json (and videos) here: a new or empty folder (see --overwrite)")
+    parser.add_argument("--overwrite", action="store_true", help="replace a non-empty --output-dir that pi0-torch "
+                        "wrote (a folder with files of others is never replaced)")
     parser.add_argument("--video", nargs="?", type=int, const=1, default=0, metavar="N",
                         help="record the first N episodes (default 1) as mp4 and PNG strips (needs --output-dir)")
 
@@ -497,21 +698,24 @@ def run(args: argparse.Namespace) -> int:
         env=args.env, episodes=args.episodes, num_envs=args.num_envs, seed=args.seed,
         replan_steps=args.replan_steps, execution=args.execution, inference_delay=args.inference_delay,
         max_steps=args.max_steps, obs_format=args.obs_format, env_kwargs=args.env_kwargs, prompt=args.prompt,
-        video_episodes=args.video, output_dir=args.output_dir, progress=True,
+        video_episodes=args.video, output_dir=args.output_dir, overwrite=args.overwrite, progress=True,
     )
     try:
         if settings.video_episodes and not settings.output_dir:
             raise ValueError("--video needs --output-dir")
-        make_env(settings.env).close()  # an unknown id fails before the policy loads
+        check_eval_output(settings, policy_location(args.policy))  # before the policy loads and the episodes run
+        make_env(settings.env, **settings.env_kwargs).close()  # an unknown id or setting fails before the policy loads
         policy = load_policy(args.policy, min(args.num_envs, args.episodes), args.api_key, args.device, args.num_steps,
-                             args.noise_scale, args.rtc_schedule)
+                             args.noise_scale, args.rtc_schedule, args.timeout)
+        if isinstance(policy, LocalPolicy):
+            set_threads(args.threads, policy.policy.model)
         try:
             result = evaluate(policy, settings)
         finally:
             if isinstance(policy, RemotePolicy):
                 policy.close()
-    except (ValueError, FileNotFoundError, ConnectionError) as error:
-        print(f"pi0-torch eval: error: {error}", file=sys.stderr)
+    except (ValueError, OSError, EvaluationStopped) as error:  # settings, files, the server: one line
+        print(f"pi0-torch eval: error: {first_line(error)}", file=sys.stderr)
         return 2
     print(result.summary())
     if settings.output_dir:

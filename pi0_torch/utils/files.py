@@ -5,6 +5,16 @@ checkpoint, a dataset) is first written into a hidden *partial* folder beside it
 `.{name}.partial-{tag}`, and renamed into place only once it is complete. A rename within one file system is atomic,
 so a reader sees either nothing or the whole folder.
 
+Before the rename, every file and folder of the partial folder is flushed to disk (`fsync`), and the parent folder
+after it, so that a power loss cannot publish a folder of empty or truncated files.
+
+**What may be replaced.** A command writes only where [`check_output_dir`] allows: an absent or empty folder; a
+non-empty one only with `overwrite` (`--overwrite`), and only when everything in it was written by pi0-torch. Each
+folder written here carries a manifest, `.pi0-torch-manifest.json`, listing its files ([`record_written`]); a file
+that is not listed (a user's notes, another project's output, an older folder without a manifest) makes the folder
+off-limits even with `overwrite`. The working directory, its parents, the home folder and a file-system root are
+never written or replaced.
+
 A run that is killed (SIGKILL, out of memory, a lost node) cannot remove its partial folder. Each partial folder
 therefore holds an owner file naming the process that writes it (host, pid and that process's start time, so a
 recycled pid is not mistaken for the owner). The next run that writes beside it removes partial folders whose owner
@@ -19,21 +29,26 @@ left alone.
 ...     _ = (folder / "weights.bin").write_bytes(b"...")
 >>> sorted(p.name for p in parent.iterdir())  # only the finished folder; the owner file is gone too
 ['model']
->>> sorted(p.name for p in (parent / "model").iterdir())
-['weights.bin']
+>>> sorted(p.name for p in (parent / "model").iterdir())  # and the manifest of what pi0-torch wrote
+['.pi0-torch-manifest.json', 'weights.bin']
+>>> with atomic_output_dir(parent / "model") as folder:  # a non-empty folder needs overwrite=True
+...     pass
+Traceback (most recent call last):
+pi0_torch.utils.files.OutputPathError: output folder .../model exists and is not empty (pass --overwrite to replace it)
 
 ```
 """
 
 from __future__ import annotations
 
+import itertools
 import json
 import logging
 import os
 import shutil
 import socket
 import uuid
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -42,6 +57,8 @@ import psutil
 logger = logging.getLogger(__name__)
 
 OWNER_FILE = ".pi0-torch-owner.json"
+MANIFEST_FILE = ".pi0-torch-manifest.json"  # the files pi0-torch wrote into a folder (see the module docstring)
+SHOWN_FOREIGN_FILES = 5  # foreign files named in a refusal
 PARTIAL_MARKER = ".partial-"
 RESUMABLE_TAG = "resumable"  # the fixed tag of a partial folder that a later run continues (a download)
 
@@ -69,12 +86,114 @@ def check_separate(input_path: str | os.PathLike[str], output_path: str | os.Pat
         raise OutputPathError(f"output folder {output_path} lies inside the input {input_path}; choose another --output-dir")
 
 
-def check_output_dir(output_dir: Path, overwrite: bool) -> None:
-    """An output folder may be absent or empty; a non-empty one only with `overwrite`."""
+def check_output_dir(output_dir: str | os.PathLike[str], overwrite: bool) -> None:
+    """Refuse (`OutputPathError`) an output folder this package may not write or replace.
+
+    Allowed: an absent or empty folder; a non-empty one only with `overwrite`, and only when every file in it is
+    listed in its manifest (written by pi0-torch). Never a file, the working directory or one of its parents, the
+    home folder or a file-system root (symlinks resolved)."""
+    output_dir = Path(output_dir).expanduser()
     if output_dir.exists() and not output_dir.is_dir():
         raise OutputPathError(f"output path {output_dir} exists and is not a folder")
-    if output_dir.is_dir() and any(output_dir.iterdir()) and not overwrite:
+    protected = _protected_reason(output_dir)
+    if protected:
+        raise OutputPathError(f"output folder {output_dir} is {protected}; pi0-torch never writes or replaces it "
+                              "(choose a new folder)")
+    if not output_dir.is_dir() or not any(output_dir.iterdir()):
+        return
+    foreign = list(itertools.islice(foreign_files(output_dir), SHOWN_FOREIGN_FILES + 1))
+    if foreign:
+        shown = ", ".join(foreign[:SHOWN_FOREIGN_FILES]) + (" ..." if len(foreign) > SHOWN_FOREIGN_FILES else "")
+        raise OutputPathError(f"output folder {output_dir} holds files that pi0-torch did not write ({shown}); "
+                              "choose a new or empty folder (pi0-torch replaces only folders it wrote, and never "
+                              "with files of others in them, even with --overwrite)")
+    if not overwrite:
         raise OutputPathError(f"output folder {output_dir} exists and is not empty (pass --overwrite to replace it)")
+
+
+def _protected_reason(path: Path) -> str | None:
+    """Why `path` may never be an output folder, or None."""
+    resolved = path.resolve()
+    if resolved.parent == resolved:
+        return "a file-system root"
+    if resolved == Path.home().resolve():
+        return "the home folder"
+    working = Path.cwd().resolve()
+    if working == resolved:
+        return "the working directory"
+    if working.is_relative_to(resolved):
+        return "a parent of the working directory"
+    return None
+
+
+def written_files(folder: Path) -> set[str]:
+    """The files (paths relative to `folder`, with `/`) that its manifest lists; empty without a readable one."""
+    try:
+        listed = json.loads((folder / MANIFEST_FILE).read_text())["files"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return set()
+    return {name for name in listed if isinstance(name, str)} if isinstance(listed, list) else set()
+
+
+def record_written(folder: Path, paths: Iterable[Path]) -> None:
+    """Add the files at or under `paths` (inside `folder`) to `folder`'s manifest, which is replaced atomically.
+
+    Entries of files deleted since stay listed: a listed name only ever allows replacing what sits there."""
+    listed = written_files(folder)
+    for path in paths:
+        for file in [path] if path.is_file() or path.is_symlink() else _files_under(path):
+            listed.add(file.relative_to(folder).as_posix())
+    listed.discard(MANIFEST_FILE)
+    manifest = folder / MANIFEST_FILE
+    staged = manifest.with_name(f"{MANIFEST_FILE}.{uuid.uuid4().hex[:8]}.tmp")
+    staged.write_text(json.dumps({"written_by": "pi0-torch", "files": sorted(listed)}, indent=0) + "\n")
+    _fsync_file(staged)
+    staged.replace(manifest)
+
+
+def foreign_files(folder: Path) -> Iterator[str]:
+    """The files under `folder` that its manifest does not list (relative paths; symlinks count as files), lazily:
+    a refusal needs only the first few of a large folder."""
+    listed = written_files(folder) | {MANIFEST_FILE}
+    return (name for file in _files_under(folder) if (name := file.relative_to(folder).as_posix()) not in listed)
+
+
+def _files_under(folder: Path) -> Iterator[Path]:
+    """Every file and symlink under `folder` (symlinked folders are not followed)."""
+    for root, folders, names in os.walk(folder):
+        base = Path(root)
+        yield from (base / name for name in names)
+        yield from (base / name for name in folders if (base / name).is_symlink())
+
+
+def sync_tree(folder: Path) -> None:
+    """Flush every file under `folder` and every folder (itself included) to disk (`fsync`)."""
+    for root, _, names in os.walk(folder):
+        for name in names:
+            path = Path(root) / name
+            if not path.is_symlink():
+                _fsync_file(path)
+        sync_folder(Path(root))
+
+
+def _fsync_file(path: Path) -> None:
+    with open(path, "rb") as handle:
+        os.fsync(handle.fileno())
+
+
+def sync_folder(folder: Path) -> None:
+    """Flush a folder's entries (names created, renamed or removed in it) to disk; a no-op where folders cannot be
+    opened (Windows)."""
+    try:
+        descriptor = os.open(folder, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(descriptor)
+    except OSError:
+        pass  # some file systems refuse fsync on folders
+    finally:
+        os.close(descriptor)
 
 
 def claim(folder: Path) -> None:
@@ -101,6 +220,11 @@ def _owner_is_dead(folder: Path) -> bool:
         return False
 
 
+def in_use(partial: Path) -> bool:
+    """Whether a live run (or one on another host) holds the partial folder `partial` (its owner file says so)."""
+    return (partial / OWNER_FILE).exists() and not _owner_is_dead(partial)
+
+
 def remove_stale_partials(parent: str | os.PathLike[str]) -> list[Path]:
     """Remove the partial folders in `parent` whose owner died on this host; returns what was removed.
 
@@ -119,8 +243,10 @@ def remove_stale_partials(parent: str | os.PathLike[str]) -> list[Path]:
 
 
 def publish(partial: Path, final: Path) -> None:
-    """Rename a finished partial folder to `final` (replacing an existing `final`), dropping its owner file."""
+    """Rename a finished partial folder to `final` (replacing an existing `final`), dropping its owner file. Its
+    files and folders are flushed to disk first, and the parent folder after the rename."""
     (partial / OWNER_FILE).unlink(missing_ok=True)
+    sync_tree(partial)
     if final.exists():
         retired = final.with_name(partial_name(final.name, "old-" + uuid.uuid4().hex[:8]))
         final.rename(retired)
@@ -128,13 +254,15 @@ def publish(partial: Path, final: Path) -> None:
         shutil.rmtree(retired, ignore_errors=True)
     else:
         partial.rename(final)
+    sync_folder(final.parent)
 
 
 @contextmanager
 def atomic_output_dir(output_dir: str | os.PathLike[str], overwrite: bool = False) -> Iterator[Path]:
-    """Yield a fresh partial folder next to `output_dir`; on success it replaces `output_dir`, on failure it is
-    removed (with any parent folders created for it), so a failed run leaves nothing behind. Stale partial folders
-    of dead runs beside it are removed first."""
+    """Yield a fresh partial folder next to `output_dir`; on success it replaces `output_dir` (with a manifest of
+    its files), on failure it is removed (with any parent folders created for it), so a failed run leaves nothing
+    behind. `output_dir` must pass [`check_output_dir`] (before and after the block). Stale partial folders of dead
+    runs beside it are removed first."""
     output_dir = Path(output_dir).expanduser().absolute()
     check_output_dir(output_dir, overwrite)
     created = [p for p in (output_dir.parent, *output_dir.parent.parents) if not p.exists()]
@@ -146,6 +274,8 @@ def atomic_output_dir(output_dir: str | os.PathLike[str], overwrite: bool = Fals
         claim(partial)
         yield partial
         check_output_dir(output_dir, overwrite)  # it may have appeared meanwhile
+        (partial / OWNER_FILE).unlink(missing_ok=True)
+        record_written(partial, [partial])
         publish(partial, output_dir)
     except BaseException:
         shutil.rmtree(partial, ignore_errors=True)
@@ -164,7 +294,7 @@ def resumable_output_dir(output_dir: str | os.PathLike[str]) -> Iterator[Path]:
     succeeds. Refuses (`OutputPathError`) when a live run (or one on another host) holds the partial folder."""
     output_dir = Path(output_dir).expanduser().absolute()
     partial = output_dir.with_name(partial_name(output_dir.name, RESUMABLE_TAG))
-    if partial.is_dir() and (partial / OWNER_FILE).exists() and not _owner_is_dead(partial):
+    if partial.is_dir() and in_use(partial):
         raise OutputPathError(f"{partial} is being written by another run (see its {OWNER_FILE}); wait for it, or remove the folder if that run is gone")
     partial.mkdir(parents=True, exist_ok=True)
     claim(partial)
@@ -173,4 +303,6 @@ def resumable_output_dir(output_dir: str | os.PathLike[str]) -> Iterator[Path]:
     except BaseException:
         (partial / OWNER_FILE).unlink(missing_ok=True)  # free for the next run, which continues it
         raise
+    (partial / OWNER_FILE).unlink(missing_ok=True)
+    record_written(partial, [partial])
     publish(partial, output_dir)

@@ -32,6 +32,8 @@ from huggingface_hub.utils import HFValidationError, validate_repo_id
 
 FLOAT32_MAX = float(np.finfo(np.float32).max)
 MAX_ERROR_CHARS = 500
+PACKAGE_NAMESPACE = "pi0_torch"  # `pi0_torch/<folder>` names a folder of this package, not a hub repository
+MAX_SEED = 2**63 - 1  # seeds are stored as int64 (dataset columns) and fed to numpy's generators
 
 
 # --------------------------------------------------------------------------------------------- messages
@@ -121,10 +123,15 @@ def check_tensor(
     if dtypes and value.dtype not in dtypes:
         raise ValueError(f"{name} must have dtype in {[str(d) for d in dtypes]}, got {value.dtype}")
     if floating and finite and not bool(torch.isfinite(value).all()):
-        bad = (~torch.isfinite(value)).nonzero()
-        count = bad.shape[0]
-        raise ValueError(f"{name} must be finite, got {count} NaN/inf value{'s' if count > 1 else ''} "
-                         f"(the first at index {tuple(bad[0].tolist())})")
+        raise nonfinite_error(name, value)
+
+
+def nonfinite_error(name: str, value: torch.Tensor) -> ValueError:
+    """The error for a tensor with NaN/inf values: how many, and the index of the first."""
+    bad = (~torch.isfinite(value)).nonzero()
+    count = bad.shape[0]
+    return ValueError(f"{name} must be finite, got {count} NaN/inf value{'s' if count > 1 else ''} "
+                      f"(the first at index {tuple(bad[0].tolist())})")
 
 
 def check_finite(name: str, values: np.ndarray) -> None:
@@ -159,11 +166,14 @@ def is_hub_id(name_or_path: Any) -> bool:
     `--` or `..`), that is not an existing path, and whose first part is not an existing local folder
     (`converted/pi05_droid` next to a local `converted/` folder means that folder). `Path` objects, absolute and
     relative paths (`/x`, `./x`, `../x`, `~/x`) and bare names without a namespace are local: pi0-torch models on the
-    hub always have an owner.
+    hub always have an owner. `pi0_torch/...` names this package's own folders (`pi0_torch/demo_policy`), never
+    the hub.
 
     ```python
     >>> is_hub_id("someone/pi05_droid"), is_hub_id("pi05_droid"), is_hub_id("/data/pi05_droid"), is_hub_id("./x/y")
     (True, False, False, False)
+    >>> is_hub_id("pi0_torch/demo_policy")
+    False
 
     ```
     """
@@ -174,7 +184,7 @@ def is_hub_id(name_or_path: Any) -> bool:
     except HFValidationError:
         return False
     namespace = name_or_path.split("/")[0]
-    return not Path(name_or_path).exists() and not Path(namespace).is_dir()
+    return namespace != PACKAGE_NAMESPACE and not Path(name_or_path).exists() and not Path(namespace).is_dir()
 
 
 def check_pretrained_location(name_or_path: Any, required_file: str | None, what: str) -> None:
@@ -191,6 +201,9 @@ def check_pretrained_location(name_or_path: Any, required_file: str | None, what
     convert_hint = (f"a {what} folder is written by `pi0-torch convert` (from openpi, LeRobot or transformers "
                     "checkpoints) or by save_pretrained")
     if not path.exists():
+        if path.parts[:1] == (PACKAGE_NAMESPACE,):  # the docs' path of the shipped policy, outside a clone
+            convert_hint = ("the demo policy shipped with the package is pi0_torch.demo_policy_dir() "
+                            "(--policy demo on the command line)")
         raise FileNotFoundError(f"no {what} folder at {path} (and {str(name_or_path)!r} is not a hub id 'namespace/name'); "
                                 f"{convert_hint}")
     if not path.is_dir():
@@ -198,6 +211,9 @@ def check_pretrained_location(name_or_path: Any, required_file: str | None, what
     if required_file is not None and not (path / required_file).is_file():
         present = sorted(p.name for p in path.iterdir())
         listing = ", ".join(present[:8]) + (" ..." if len(present) > 8 else "") if present else "nothing"
+        if what == "processor" and "config.json" in present:  # a model converted without a tokenizer
+            convert_hint = ("the model was converted without a processor: convert again with --tokenizer "
+                            "(PaliGemma's SentencePiece file, or test offline), or build one with PI0Processor.from_config")
         raise FileNotFoundError(f"{path / required_file} is missing, so {path} is not a {what} folder "
                                 f"(it holds {listing}); {convert_hint}")
 
