@@ -1,7 +1,9 @@
 """The `pi0-torch` console command: `pi0-torch {convert,consolidate,demo,demos,eval,serve,train,bench} ...`.
 
 Each subcommand lives in its own module, which defines `add_arguments(parser)` and `run(args) -> int`; the module is
-imported only when its subcommand runs, so `pi0-torch --help` stays fast.
+imported only when its subcommand runs, so `pi0-torch --help` stays fast (it imports neither torch nor transformers).
+A subcommand whose pip extra is missing stops with one line naming it (`pi0_torch.utils.extras`), e.g.
+`pi0-torch serve needs websockets: pip install 'pi0-torch[serve]'`.
 """
 
 from __future__ import annotations
@@ -12,11 +14,13 @@ import json
 import sys
 from typing import Any
 
+from pi0_torch.utils.extras import MissingExtraError
+
 # subcommand -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
-    "demo": ("pi0_torch.demo", "Run the committed demo policy on held-out synthetic scenes and plot its action chunks."),
+    "demo": ("pi0_torch.demo", "Run the shipped demo policy in closed loop on held-out tabletop episodes: success rates and a video."),
     "convert": ("pi0_torch.conversion.convert", "Convert openpi / LeRobot / transformers checkpoints to pi0-torch folders (and π0 to transformers)."),
-    "train": ("pi0_torch.training.trainer", "Fine-tune π0 / π0.5 on a LeRobot dataset with the Hugging Face Trainer (openpi's recipe)."),
+    "train": ("pi0_torch.training.trainer", "Fine-tune π0 / π0.5 / π0-FAST on a LeRobot dataset with the Hugging Face Trainer (openpi's recipe)."),
     "eval": ("pi0_torch.runtime.rollout", "Closed-loop rollouts of a policy (local or ws://) in gymnasium envs: success with 95% intervals."),
     "consolidate": ("pi0_torch.training.fsdp", "Turn a sharded checkpoint of `train --fsdp` into a model folder (one process)."),
     "serve": ("pi0_torch.runtime.serving", "Serve a policy over openpi's websocket protocol (openpi-client compatible)."),
@@ -48,7 +52,8 @@ def build_parser(argv: list[str]) -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="pi0-torch", description="π0 / π0.5 in PyTorch: everyday jobs.")
     subparsers = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name, (module_name, help_text) in COMMANDS.items():
-        sub = subparsers.add_parser(name, help=help_text, description=help_text)
+        # argparse %-formats help strings (not descriptions): a literal % ("95% intervals") must be doubled there
+        sub = subparsers.add_parser(name, help=help_text.replace("%", "%%"), description=help_text)
         sub.set_defaults(_module=module_name)
         if argv[:1] == [name]:  # only the chosen command's module is imported
             importlib.import_module(module_name).add_arguments(sub)
@@ -57,8 +62,12 @@ def build_parser(argv: list[str]) -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
-    args = build_parser(argv).parse_args(argv)
-    return int(importlib.import_module(args._module).run(args) or 0)
+    try:
+        args = build_parser(argv).parse_args(argv)
+        return int(importlib.import_module(args._module).run(args) or 0)
+    except MissingExtraError as error:  # the command's module, or what it runs, needs an extra that is not installed
+        print(error.message(f"pi0-torch {argv[0]}"), file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":

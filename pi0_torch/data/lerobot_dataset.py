@@ -40,15 +40,19 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
-import av
-import datasets
 import numpy as np
-import pyarrow as pa
-import pyarrow.compute as pc
-import pyarrow.parquet as pq
 import torch
 from PIL import Image
 from tqdm.auto import tqdm
+
+from pi0_torch.utils.extras import require_extra
+
+require_extra("train", __name__)
+import av
+import datasets
+import pyarrow as pa
+import pyarrow.compute as pc
+import pyarrow.parquet as pq
 
 from pi0_torch.masks import generate_chunk_data
 from pi0_torch.utils.validation import first_line

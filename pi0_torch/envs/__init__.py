@@ -1,7 +1,8 @@
 """Closed-loop tabletop environments (gymnasium) and their scripted experts.
 
 Importing this package registers the ids `pi0_torch/Reach-v0`, `pi0_torch/PickPlace-v0` and `pi0_torch/Conveyor-v0`
-(`gymnasium.make("pi0_torch.envs:pi0_torch/Reach-v0")` imports it for you). See `docs/envs.md`.
+(`gymnasium.make("pi0_torch.envs:pi0_torch/Reach-v0")` imports it for you). See `docs/envs.md`. Needs
+`pip install 'pi0-torch[envs]'`.
 
 >>> import gymnasium
 >>> env = gymnasium.make("pi0_torch/Conveyor-v0", image_size=64)
@@ -11,6 +12,9 @@ Importing this package registers the ids `pi0_torch/Reach-v0`, `pi0_torch/PickPl
 
 from __future__ import annotations
 
+from pi0_torch.utils.extras import require_extra
+
+require_extra("envs", __name__)
 import gymnasium
 
 from pi0_torch.envs.experts import ScriptedExpert, make_expert

@@ -39,6 +39,8 @@ from transformers import AutoTokenizer, PreTrainedTokenizerBase
 SENTENCEPIECE_FILE = "tokenizer.model"
 NUM_STATE_BINS = 256
 MIN_TEST_VOCAB = 320
+TEST_TOKENIZER = "test"  # what `pi0-torch train` / `convert --tokenizer` accept for [`build_test_tokenizer`]
+TEST_TOKENIZER_VOCAB = 512  # its vocabulary there (at most the model's)
 Truncation = Literal["warn", "error"]
 TokenizerSource = Union["PromptTokenizer", sentencepiece.SentencePieceProcessor, PreTrainedTokenizerBase, str, Path]
 

@@ -53,14 +53,19 @@ import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from typing import Any, Protocol
 
-import msgpack
 import numpy as np
+
+from pi0_torch.utils.extras import require_extra
+
+require_extra("serve", __name__)
+import msgpack
 import websockets
 from websockets.asyncio.server import Request, Response, ServerConnection, serve
 from websockets.protocol import State
 
 from pi0_torch.cli import json_object
 from pi0_torch.runtime.observation_formats import ObservationError, ObservationFormat
+from pi0_torch.utils.threads import add_threads_argument, set_threads
 from pi0_torch.utils.validation import check_float, check_int, first_line, one_line
 
 logger = logging.getLogger(__name__)
@@ -535,10 +540,11 @@ def _peer(connection: ServerConnection) -> str:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--model", required=True, help="folder written by save_pretrained / the converter "
-                        "(model weights, config and processor files)")
+                        "(model weights, config and processor files), or demo (the policy shipped with the package)")
     parser.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1; 0.0.0.0 for all)")
     parser.add_argument("--port", type=int, default=8000, help="TCP port (default 8000; 0 picks a free one)")
     parser.add_argument("--device", default=None, help="torch device (default: cuda if available, else cpu)")
+    add_threads_argument(parser)
     parser.add_argument("--dtype", default=None, choices=("float32", "bfloat16"),
                         help="weights dtype (default: bfloat16 on cuda, float32 on cpu)")
     parser.add_argument("--num-steps", type=int, default=None, help="Euler steps per action chunk "
@@ -589,6 +595,7 @@ def _observation_format(name_or_path: str) -> ObservationFormat:
 def run(args: argparse.Namespace) -> int:
     logging.basicConfig(level=args.log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     logging.getLogger("websockets").setLevel(max(logging.WARNING, logging.getLevelName(args.log_level)))  # we log connections
+    from pi0_torch.demo import policy_location
     from pi0_torch.runtime.policy import PI0Policy  # imports torch: only when the command runs
 
     try:
@@ -599,10 +606,11 @@ def run(args: argparse.Namespace) -> int:
         )
         logger.info("loading %s", args.model)
         policy = PI0Policy.from_pretrained(
-            args.model, device=args.device, dtype=args.dtype, num_steps=args.num_steps, seed=args.seed,
+            policy_location(args.model), device=args.device, dtype=args.dtype, num_steps=args.num_steps, seed=args.seed,
             default_prompt=args.default_prompt, compile=args.compile, noise_scale=args.noise_scale,
             rtc_schedule=args.rtc_schedule,
         )
+        logger.info("torch uses %d CPU threads (--threads)", set_threads(args.threads, policy.model))
         server = PolicyServer(
             policy,
             host=args.host,

@@ -1,17 +1,36 @@
-"""Fine-tuning with the Hugging Face `Trainer` (one process or many through `accelerate`).
+"""Fine-tuning with the Hugging Face `Trainer` (one process or many through `accelerate`); imported on first use,
+and needs `pip install 'pi0-torch[train]'`.
 
 `python -m pi0_torch.training ...` is `pi0-torch train ...` (handy after `accelerate launch -m`).
 """
 
-from pi0_torch.training.trainer import (
-    EMACallback,
-    PI0DataCollator,
-    PI0Trainer,
-    TrainSettings,
-    apply_lora,
-    freeze,
-    merge_lora,
-    train_policy,
-)
+from __future__ import annotations
 
-__all__ = ["EMACallback", "PI0DataCollator", "PI0Trainer", "TrainSettings", "apply_lora", "freeze", "merge_lora", "train_policy"]
+from typing import TYPE_CHECKING
+
+from pi0_torch.utils.lazy import lazy_exports
+
+if TYPE_CHECKING:
+    from pi0_torch.training.trainer import (
+        EMACallback,
+        PI0DataCollator,
+        PI0Trainer,
+        TrainSettings,
+        apply_lora,
+        freeze,
+        merge_lora,
+        train_policy,
+    )
+
+_EXPORTS = {
+    "EMACallback": "pi0_torch.training.trainer",
+    "PI0DataCollator": "pi0_torch.training.trainer",
+    "PI0Trainer": "pi0_torch.training.trainer",
+    "TrainSettings": "pi0_torch.training.trainer",
+    "apply_lora": "pi0_torch.training.trainer",
+    "freeze": "pi0_torch.training.trainer",
+    "merge_lora": "pi0_torch.training.trainer",
+    "train_policy": "pi0_torch.training.trainer",
+}
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)
+__all__ = sorted(_EXPORTS)

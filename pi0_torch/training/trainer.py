@@ -34,6 +34,7 @@ import argparse
 import json
 import logging
 import math
+import os
 import re
 import shutil
 import sys
@@ -42,6 +43,10 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+from pi0_torch.utils.extras import require_extra
+
+# all of it: the Trainer needs accelerate, LoRA peft, the loss plot matplotlib, which a run would reach only later
+require_extra("train", __name__)
 import numpy as np
 import torch
 from safetensors.torch import load_file, save_file
@@ -61,9 +66,10 @@ from pi0_torch.processing.normalization import compute_norm_stats, load_openpi_n
 from pi0_torch.processing.processing_pi0 import PI0Processor
 from pi0_torch.processing.processing_pi0_fast import PI0FastProcessor
 from pi0_torch.processing.robot_spaces import CONVERSIONS, get_conversion
-from pi0_torch.processing.tokenization import build_test_tokenizer
+from pi0_torch.processing.tokenization import TEST_TOKENIZER, TEST_TOKENIZER_VOCAB, build_test_tokenizer
 from pi0_torch.training.fast import build_fast_processor
 from pi0_torch.utils import files
+from pi0_torch.utils.threads import add_threads_argument, set_threads
 from pi0_torch.utils.validation import check_float, check_int, first_line
 
 logger = logging.getLogger(__name__)
@@ -590,6 +596,7 @@ class TrainSettings:
     save_total_limit: int | None = None
     eval_steps: int | None = None
     num_workers: int = 0
+    threads: int | None = None  # CPU threads of torch per process; None: auto (pi0_torch.utils.threads)
     resume_from_checkpoint: str | None = None
     cpu: bool = False
     report_to: str = "none"
@@ -654,9 +661,9 @@ def build_processor(settings: TrainSettings, config: PI0Config | PI0FastConfig, 
     if settings.resume_from_checkpoint and (Path(settings.resume_from_checkpoint) / "processor_config.json").is_file():
         return processor_class.from_pretrained(settings.resume_from_checkpoint)
     model_has_processor = _is_model_folder(settings.model) and (Path(settings.model) / "processor_config.json").is_file()
-    if settings.tokenizer == "test":
+    if settings.tokenizer == TEST_TOKENIZER:
         prompts = sorted(set(dataset.tasks.values()))
-        tokenizer: Any = build_test_tokenizer(vocab_size=min(512, config.vocab_size), extra_sentences=prompts)
+        tokenizer: Any = build_test_tokenizer(vocab_size=min(TEST_TOKENIZER_VOCAB, config.vocab_size), extra_sentences=prompts)
     elif settings.tokenizer:
         tokenizer = settings.tokenizer
     elif model_has_processor:
@@ -799,6 +806,7 @@ def train_policy(settings: TrainSettings) -> dict[str, Any]:
     processor = build_processor(settings, config, train_dataset)
     camera_map = default_camera_map(train_dataset.camera_keys, config.camera_names, settings.camera_map)
     model = build_model(settings, config)
+    logger.info("torch uses %d CPU threads per process (--threads)", set_threads(settings.threads, model))
 
     args = TrainingArguments(
         output_dir=settings.output_dir,
@@ -988,6 +996,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                            help="a checkpoint-N folder of an earlier run with the same settings, or 'latest' (the newest "
                                 "complete one in --output-dir; a fresh run when there is none)")
     run_group.add_argument("--cpu", action="store_true", help="train on CPU even when a GPU is present")
+    add_threads_argument(run_group)
     run_group.add_argument("--report-to", default="none", help="Trainer integrations (tensorboard, wandb, ...)")
 
 
@@ -1000,7 +1009,10 @@ def settings_from_args(args: argparse.Namespace) -> TrainSettings:
 
 
 def run(args: argparse.Namespace) -> int:
-    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    # under torchrun / accelerate launch every process runs this: INFO lines from the first one only
+    first_process = int(os.environ.get("RANK", "0")) == 0
+    logging.basicConfig(level=logging.INFO if first_process else logging.WARNING,
+                        format="%(levelname)s %(name)s: %(message)s")
     try:
         result = train_policy(settings_from_args(args))
     except (ValueError, OSError) as error:  # settings, config, dataset files: one line (the traceback at DEBUG)
