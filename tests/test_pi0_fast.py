@@ -16,7 +16,7 @@ from pi0_torch import PI0FastConfig, PI0FastForActionGeneration
 from pi0_torch.conversion.openpi_weights import config_from_openpi_shapes, load_openpi_params
 from pi0_torch.masks import prefix_lm_mask
 from pi0_torch.models.modeling_pi0_fast import token_log_probs
-from pi0_torch.processing.fast_tokenizer import FASTActionTokenizer
+from pi0_torch.processing.fast_tokenizer import FASTActionTokenizer, dct, idct
 from pi0_torch.processing.normalization import NormStats
 from pi0_torch.processing.processing_pi0_fast import PI0FastProcessor
 
@@ -107,6 +107,26 @@ def test_fit_save_and_reload(tmp_path: Path) -> None:
         FASTActionTokenizer.fit(chunks, scale=20, vocab_size=8)
     with pytest.raises(FileNotFoundError, match="processor_config.json"):
         FASTActionTokenizer.from_pretrained(tmp_path)
+
+
+def test_dct_is_scipys_orthonormal_dct() -> None:
+    """FAST's DCT-II / DCT-III (a float64 matrix product) against scipy's, which openpi's FAST tokenizer uses:
+    the same to 1e-12; the same FAST coefficients after scaling and rounding for float64 chunks; for float32 chunks
+    (scipy computes in float32) a rounding differs only where the coefficient lies within float32 error of a tie."""
+    scipy_fft = pytest.importorskip("scipy.fft")
+    rng = np.random.default_rng(0)
+    for shape, axis in (((10, 8), 0), ((3, 50, 32), 1), ((1, 1), 0), ((7, 5, 2), 2)):
+        values = rng.normal(0, 3, shape)
+        np.testing.assert_allclose(dct(values, axis), scipy_fft.dct(values, axis=axis, norm="ortho"), rtol=0, atol=1e-12)
+        np.testing.assert_allclose(idct(values, axis), scipy_fft.idct(values, axis=axis, norm="ortho"), rtol=0, atol=1e-12)
+    chunks = np.cumsum(rng.normal(0, 0.3, (2000, 10, 8)), axis=1)  # smooth, like action chunks
+    for scale in (10, 100):
+        assert np.array_equal(np.around(dct(chunks, 1) * scale), np.around(scipy_fft.dct(chunks, axis=1, norm="ortho") * scale))
+        chunks32 = chunks.astype(np.float32)
+        exact = dct(chunks32, 1) * scale
+        differ = np.around(exact) != np.around(scipy_fft.dct(chunks32, axis=1, norm="ortho") * scale)
+        distance_to_tie = np.abs(np.abs(exact - np.floor(exact)) - 0.5)
+        assert differ.sum() <= 5 and (distance_to_tie[differ] < 1e-4).all()
 
 
 def test_prompt_tokenization_matches_openpi(fast_reference: FastReference) -> None:
