@@ -19,11 +19,12 @@ from pi0_torch import PI0Config, PI0ForActionGeneration
 from pi0_torch.cli import build_parser
 from pi0_torch.data.synthetic_data import write_synthetic_dataset
 from pi0_torch.training import fsdp
+from pi0_torch.utils import files
 from pi0_torch.training.trainer import (
     TrainSettings,
     apply_lora,
+    checkpoint_problem,
     freeze,
-    is_complete_checkpoint,
     resolve_resume_checkpoint,
     train_policy,
 )
@@ -144,9 +145,9 @@ def test_sharded_checkpoints_resume_and_consolidate(runs: dict, tmp_path: Path) 
                 "trainer_state.json", "scheduler.pt", "rng_state_0.pth", "rng_state_1.pth"} <= names
         assert "model.safetensors" not in names
         assert sorted(p.name for p in (checkpoint / "model_sharded").iterdir()) == [".metadata", "__0_0.distcp", "__1_0.distcp"]
-        assert is_complete_checkpoint(checkpoint) and fsdp.is_sharded_checkpoint(checkpoint)
+        assert checkpoint_problem(checkpoint) is None and fsdp.is_sharded_checkpoint(checkpoint)
     assert resolve_resume_checkpoint(two, "latest") == str(two / "checkpoint-6")
-    assert not any(p.name.startswith(".") for p in two.iterdir())  # every checkpoint was published whole
+    assert [p.name for p in two.iterdir() if p.name.startswith(".")] == [files.MANIFEST_FILE]  # all published whole
 
     resumed = runs["resumed"]
     assert sorted(resumed) == list(range(1, 7))  # steps 1-3 from the checkpoint's trainer state

@@ -317,3 +317,31 @@ def test_decodes_av1_video_lerobots_default_codec(tmp_path: Path) -> None:
     for index in range(len(png)):
         a, b = av1[index]["images"][CAMERA_KEY], png[index]["images"][CAMERA_KEY]
         assert np.abs(a.astype(int) - b.astype(int)).mean() < 8
+
+
+# ---------------------------------------------------------------------------------------------------- paths (issue 28.10)
+
+
+@pytest.mark.parametrize("where", ["image cell", "image cell, absolute", "data_path", "video_path"])
+def test_paths_the_dataset_names_stay_inside_it(where: str, copy_of, tmp_path: Path) -> None:
+    """An image cell `../../../../../etc/passwd` was opened outside the dataset root. Every path a dataset's own
+    files name (image cells, the data and video path templates) is refused when it leads out of the root."""
+    secret = tmp_path / "secret.png"
+    secret.write_bytes(b"not for the reader")
+    root = copy_of("video" if where == "video_path" else "image")
+    if where.startswith("image cell"):
+        target = str(secret) if where.endswith("absolute") else "../" * 8 + str(secret).lstrip("/")
+        for path in sorted((root / "data").glob("chunk-*/*.parquet")):
+            table = pq.read_table(path)
+            cells = pa.array([{"bytes": None, "path": target}] * len(table), table.schema.field(CAMERA_KEY).type)
+            pq.write_table(table.set_column(table.schema.get_field_index(CAMERA_KEY), CAMERA_KEY, cells), path)
+        dataset = LeRobotEpisodeDataset(root, HORIZON, progress=False)
+        with pytest.raises(LeRobotDatasetError, match="image cell path .* leads outside the dataset folder"):
+            dataset[0]
+        return
+    info = json.loads((root / "meta" / "info.json").read_text())
+    key = "data_path" if where == "data_path" else "video_path"
+    info[key] = "../" + info[key]
+    (root / "meta" / "info.json").write_text(json.dumps(info))
+    with pytest.raises(LeRobotDatasetError, match=f"meta/info.json {key} '../.*' leads outside the dataset folder"):
+        LeRobotEpisodeDataset(root, HORIZON, progress=False)

@@ -34,6 +34,7 @@ import io
 import json
 import logging
 import math
+import os
 from collections import OrderedDict
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
@@ -61,6 +62,9 @@ logger = logging.getLogger(__name__)
 
 SUPPORTED_MAJOR_VERSIONS = (2, 3)
 ShortEpisodePolicy = Literal["pad", "skip", "error"]
+# A handful of values (1 in 10,000 frames, at least one) whose removal shrinks a dimension's std by this factor
+# dominate its normalization statistics: every other value would normalize to about 0 ([`check_value_spread`]).
+DOMINATING_STD_FACTOR = 100.0
 
 
 class LeRobotDatasetError(ValueError):
@@ -112,6 +116,18 @@ def read_info(root: Path) -> dict[str, Any]:
     if major not in SUPPORTED_MAJOR_VERSIONS:
         raise LeRobotDatasetError(f"{path}: codebase_version {version} is not supported (v2.x and v3.x are)")
     return info
+
+
+def inside_root(root: Path, relative: Any, what: str) -> Path:
+    """`root / relative` for a path the dataset's own files name (a path template, an image cell); refused
+    (`LeRobotDatasetError`) when it is absolute or its `..` parts lead out of `root`. Symlinks inside `root` (a hub
+    cache's) are not resolved: the check is on the path as written."""
+    if not isinstance(relative, str) or not relative:
+        raise LeRobotDatasetError(f"{what} must be a relative path inside {root}, got {relative!r:.80}")
+    path = Path(os.path.normpath(root / relative))
+    if Path(relative).is_absolute() or not path.is_relative_to(os.path.normpath(root)):
+        raise LeRobotDatasetError(f"{what} {relative!r:.80} leads outside the dataset folder {root}; refused")
+    return path
 
 
 def _major_version(info: dict[str, Any]) -> int:
@@ -197,18 +213,17 @@ def _read_episodes_v3(root: Path, info: dict[str, Any], video_keys: list[str]) -
             data_path = info["data_path"].format(chunk_index=row["data/chunk_index"], file_index=row["data/file_index"])
             videos = {
                 key: VideoSegment(
-                    root / info["video_path"].format(
+                    inside_root(root, info["video_path"].format(
                         video_key=key,
                         chunk_index=row[f"videos/{key}/chunk_index"],
                         file_index=row[f"videos/{key}/file_index"],
-                    ),
+                    ), "meta/info.json video_path"),
                     float(row[f"videos/{key}/from_timestamp"]),
                 )
                 for key in video_keys
             }
-            episodes.append(
-                Episode(int(row["episode_index"]), int(row["length"]), tuple(row["tasks"] or ()), root / data_path, videos)
-            )
+            episodes.append(Episode(int(row["episode_index"]), int(row["length"]), tuple(row["tasks"] or ()),
+                                    inside_root(root, data_path, "meta/info.json data_path"), videos))
     return episodes
 
 
@@ -218,8 +233,9 @@ def _read_episodes_v2(root: Path, info: dict[str, Any], video_keys: list[str]) -
     for row in _read_jsonl(root / "meta" / "episodes.jsonl"):
         index = int(row["episode_index"])
         names = dict(episode_chunk=index // chunks_size, episode_index=index)
-        videos = {key: VideoSegment(root / info["video_path"].format(video_key=key, **names), 0.0) for key in video_keys}
-        data_path = root / info["data_path"].format(**names)
+        videos = {key: VideoSegment(inside_root(root, info["video_path"].format(video_key=key, **names),
+                                                "meta/info.json video_path"), 0.0) for key in video_keys}
+        data_path = inside_root(root, info["data_path"].format(**names), "meta/info.json data_path")
         episodes.append(Episode(index, int(row["length"]), tuple(row.get("tasks", ())), data_path, videos))
     return episodes
 
@@ -448,12 +464,40 @@ def _read_frames(
     return _Frames(state, action, timestamp, task_index, image_columns, image_rows)
 
 
+def dominating_rows(values: np.ndarray) -> tuple[int, int] | None:
+    """(row, dim) of the most extreme value of the first dimension of `values` `[N, D]` whose std is dominated by a
+    handful of values: removing its `max(1, N // 10_000)` values farthest from the median shrinks the std more than
+    `DOMINATING_STD_FACTOR` times (the remaining std floored at 1e-3 of the remaining values' magnitude, so that a
+    dimension that is constant but for one real change, e.g. a gripper closing once, is left alone). None if none.
+
+    >>> data = np.zeros((1000, 2)); data[:, 0] = np.linspace(0, 1, 1000); data[:, 1] = 0.5
+    >>> dominating_rows(data) is None
+    True
+    >>> data[417, 0] = 3e38
+    >>> dominating_rows(data)
+    (417, 0)
+    """
+    values = np.asarray(values, np.float64)
+    if len(values) < 2:
+        return None
+    extremes = max(1, len(values) // 10_000)
+    for dim in range(values.shape[1]):
+        column = values[:, dim]
+        deviation = np.abs(column - np.median(column))
+        farthest = np.argpartition(deviation, len(column) - extremes)[-extremes:]
+        rest = np.delete(column, farthest)
+        floor = 1e-3 * max(1.0, float(np.abs(rest).max()))
+        if column.std() > DOMINATING_STD_FACTOR * max(float(rest.std()), floor):
+            return int(farthest[np.argmax(deviation[farthest])]), dim
+    return None
+
+
 def _decode_image_cell(cell: dict[str, Any], root: Path) -> np.ndarray:
     """A `{bytes, path}` image cell (HF `datasets.Image` storage) -> uint8 RGB `[H, W, 3]`."""
     if cell.get("bytes") is not None:
         image = Image.open(io.BytesIO(cell["bytes"]))
     elif cell.get("path"):
-        image = Image.open(root / cell["path"])
+        image = Image.open(inside_root(root, cell["path"], "image cell path"))
     else:
         raise LeRobotDatasetError("image cell has neither bytes nor path")
     return np.asarray(image.convert("RGB"))
@@ -671,6 +715,23 @@ class LeRobotEpisodeDataset(torch.utils.data.Dataset):
         for position in range(len(self.episodes)):
             start, end = int(self._episode_start[position]), int(self._episode_start[position + 1])
             yield {"state": self._frames.state[start:end], "actions": self.episode_chunks(position)[0]}
+
+    def check_value_spread(self) -> None:
+        """Refuse (`LeRobotDatasetError`) state or action values that would dominate normalization statistics
+        computed from this data, naming the episode, frame, dimension and value: one corrupt action of 3e38 among
+        values of about 1 gives a std of 3.9e37, and every real action then normalizes to about 0 ([`dominating_rows`])."""
+        for key, values in ((self.state_key, self._frames.state), (self.action_key, self._frames.action)):
+            found = dominating_rows(values)
+            if found:
+                row, dim = found
+                position = int(self._episode_of_frame[row])
+                frame = row - int(self._episode_start[position])
+                others = np.delete(values[:, dim], row)
+                raise LeRobotDatasetError(
+                    f"{self.root}: {key!r} dim {dim} is {values[row, dim]:.4g} at episode {self.episodes[position].index} "
+                    f"frame {frame}, while its other values span [{others.min():.4g}, {others.max():.4g}]: it would "
+                    "dominate the normalization statistics (a corrupt value?); fix or drop that episode, or give "
+                    "statistics with --norm-stats")
 
     # -- pickling for DataLoader workers ---------------------------------------------------------------------------
 

@@ -68,8 +68,8 @@ def build_fast_processor(
                          "--fast-tokenizer fit to fit one to the training episodes")
     if isinstance(action_tokenizer, str) and action_tokenizer == FIT:
         encoder = PI0Processor(
-            tokenizer, camera_names=config.camera_names, norm_mode="quantile", norm_stats=norm_stats,
-            model_action_dim=config.action_dim, action_horizon=config.action_horizon, **settings,
+            tokenizer, camera_names=config.camera_names, norm_stats=norm_stats, model_action_dim=config.action_dim,
+            action_horizon=config.action_horizon, **{"norm_mode": "quantile", **settings},
         )
         room = encoder.tokenizer.vocab_size - 1 - config.fast_skip_tokens
         action_tokenizer = fit_action_tokenizer(encoder, dataset, vocab_size=min(FAST_VOCAB, room))

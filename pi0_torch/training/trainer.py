@@ -31,6 +31,7 @@ gradient-carrying parameters static.
 from __future__ import annotations
 
 import argparse
+import inspect
 import json
 import logging
 import math
@@ -90,6 +91,7 @@ LORA_RANK_EXPERT = 32
 LORA_TARGETS = ("qkv_proj", "o_proj", "gate_up_proj", "down_proj")
 EMA_FILE = "ema_weights.safetensors"
 TRAIN_SETTINGS_FILE = "pi0_train_settings.json"
+FINAL_STEP_KEY = "final_step"  # in TRAIN_SETTINGS_FILE: the step of the final model beside it
 LOSS_PLOT_FILE = "loss.png"
 _CHECKPOINTING_ARGUMENT = (
     "activation_checkpointing" if "activation_checkpointing" in TrainingArguments.__dataclass_fields__ else "gradient_checkpointing"
@@ -264,6 +266,7 @@ class PI0Trainer(Trainer):
         if self.args.should_save:
             files.publish(staging / final.name, final)
             shutil.rmtree(staging, ignore_errors=True)
+            files.record_written(run_dir, [final])
             rotate_checkpoints(
                 str(run_dir), save_total_limit=self.args.save_total_limit,
                 best_model_checkpoint=self.state.best_model_checkpoint, use_mtime=True,
@@ -598,6 +601,7 @@ class TrainSettings:
     num_workers: int = 0
     threads: int | None = None  # CPU threads of torch per process; None: auto (pi0_torch.utils.threads)
     resume_from_checkpoint: str | None = None
+    overwrite: bool = False  # replace an earlier run in output_dir (only a folder pi0-torch wrote)
     cpu: bool = False
     report_to: str = "none"
     progress: bool = False  # progress bars (the command line turns them on)
@@ -653,45 +657,86 @@ def _processor_class(config: PI0Config | PI0FastConfig) -> type[PI0Processor]:
     return PI0FastProcessor if isinstance(config, PI0FastConfig) else PI0Processor
 
 
+# Processor settings a fine-tuning run takes over from the model folder's processor (unless a flag overrides them):
+# what the model was trained to read and to predict. Sizes come from the config, robot dims from the dataset.
+INHERITED_PROCESSOR_SETTINGS = (
+    "norm_mode", "delta_action_mask", "value_conversion", "min_norm_scale", "float_image_range", "required_cameras",
+    "default_prompt", "truncation",
+)
+
+
+def run_processor_settings(settings: TrainSettings, model_processor: PI0Processor | None) -> dict[str, Any]:
+    """The processor settings of a run: the model folder's (`INHERITED_PROCESSOR_SETTINGS`), with
+    `--delta-action-mask` / `--value-conversion` on top when given (`"none"` turns a value conversion off). A flag
+    that changes an inherited setting logs a warning naming both values."""
+    saved = model_processor.to_dict() if model_processor is not None else {}
+    chosen = {name: saved[name] for name in INHERITED_PROCESSOR_SETTINGS if name in saved}
+    flags = {"delta_action_mask": settings.delta_action_mask, "value_conversion": settings.value_conversion}
+    for name, value in flags.items():
+        if value is None:
+            continue
+        value = None if value == "none" else value
+        if name in chosen and chosen[name] != value:
+            logger.warning("--%s %s replaces the %s %s that %s was trained with", name.replace("_", "-"),
+                           "none" if value is None else value, name, chosen[name], settings.model)
+        chosen[name] = value
+    kept = [f"{name}={value}" for name, value in chosen.items() if name in saved and flags.get(name) is None]
+    if kept:
+        logger.info("processor settings of %s kept: %s (--delta-action-mask / --value-conversion override those two)",
+                    settings.model, ", ".join(kept))
+    return chosen
+
+
 def build_processor(settings: TrainSettings, config: PI0Config | PI0FastConfig, dataset: LeRobotEpisodeDataset) -> PI0Processor:
     """The processor of a run: tokenizer from `--tokenizer` (or the model folder), norm stats from the dataset (or
-    the model folder's processor, or an openpi `norm_stats.json`), robot dims from the dataset; for π0-FAST the
-    FAST tokenizer from `--fast-tokenizer` (a folder, or `fit`), else the model folder's."""
+    the model folder's processor, or an openpi `norm_stats.json`), robot dims from the dataset, and every other
+    setting from the model folder's processor unless a flag overrides it ([`run_processor_settings`]); for π0-FAST
+    the FAST tokenizer from `--fast-tokenizer` (a folder, or `fit`), else the model folder's. A resumed run takes
+    the checkpoint's processor, which must fit the dataset."""
     processor_class = _processor_class(config)
     if settings.resume_from_checkpoint and (Path(settings.resume_from_checkpoint) / "processor_config.json").is_file():
-        return processor_class.from_pretrained(settings.resume_from_checkpoint)
-    model_has_processor = _is_model_folder(settings.model) and (Path(settings.model) / "processor_config.json").is_file()
+        processor = processor_class.from_pretrained(settings.resume_from_checkpoint)
+        for name, ours, theirs in (("state_dim", processor.state_dim, dataset.state_dim),
+                                   ("action_dim_robot", processor.action_dim_robot, dataset.action_dim)):
+            if ours != theirs:
+                raise ValueError(f"--resume-from-checkpoint {settings.resume_from_checkpoint}: its processor has "
+                                 f"{name} {ours}, the dataset {theirs}; resume with the run's dataset")
+        return processor
+    model_processor = None
+    if _is_model_folder(settings.model) and (Path(settings.model) / "processor_config.json").is_file():
+        model_processor = processor_class.from_pretrained(settings.model)
     if settings.tokenizer == TEST_TOKENIZER:
         prompts = sorted(set(dataset.tasks.values()))
         tokenizer: Any = build_test_tokenizer(vocab_size=min(TEST_TOKENIZER_VOCAB, config.vocab_size), extra_sentences=prompts)
     elif settings.tokenizer:
         tokenizer = settings.tokenizer
-    elif model_has_processor:
-        tokenizer = processor_class.from_pretrained(settings.model).tokenizer
+    elif model_processor is not None:
+        tokenizer = model_processor.tokenizer
     else:
         raise ValueError("no tokenizer: pass --tokenizer PATH (PaliGemma's SentencePiece model), or --tokenizer test for a tiny demo model")
 
+    chosen = run_processor_settings(settings, model_processor)
     if settings.norm_stats == "dataset":
+        dataset.check_value_spread()  # one corrupt value would make every other one normalize to about 0
         chunks: Iterable[dict[str, np.ndarray]] = dataset.iter_state_action_chunks()
-        if settings.value_conversion is not None:  # the statistics of what the model sees
-            conversion = get_conversion(settings.value_conversion)
+        if chosen.get("value_conversion") is not None:  # the statistics of what the model sees
+            conversion = get_conversion(chosen["value_conversion"])
             chunks = ({"state": conversion.state_to_model(c["state"]), "actions": conversion.actions_to_model(c["actions"])}
                       for c in chunks)
         norm_stats = compute_norm_stats(
-            chunks, delta_action_mask=settings.delta_action_mask, total=len(dataset.episodes), progress=settings.progress,
+            chunks, delta_action_mask=chosen.get("delta_action_mask"), total=len(dataset.episodes), progress=settings.progress,
         )
     elif settings.norm_stats == "model":
-        if not model_has_processor:
+        if model_processor is None:
             raise ValueError(f"--norm-stats model: {settings.model} has no processor with norm stats")
-        norm_stats = processor_class.from_pretrained(settings.model).norm_stats
+        norm_stats = model_processor.norm_stats
     else:
         norm_stats = load_openpi_norm_stats(settings.norm_stats)
-    robot = dict(state_dim=dataset.state_dim, action_dim_robot=dataset.action_dim, delta_action_mask=settings.delta_action_mask,
-                 value_conversion=settings.value_conversion)
+    robot = dict(state_dim=dataset.state_dim, action_dim_robot=dataset.action_dim, **chosen)
     if isinstance(config, PI0FastConfig):
         action_tokenizer: Any = settings.fast_tokenizer
-        if action_tokenizer is None and model_has_processor:
-            action_tokenizer = PI0FastProcessor.from_pretrained(settings.model).action_tokenizer
+        if action_tokenizer is None and model_processor is not None:
+            action_tokenizer = model_processor.action_tokenizer
         return build_fast_processor(config, tokenizer, norm_stats, dataset, action_tokenizer, **robot)
     return PI0Processor.from_config(config, tokenizer, norm_stats, **robot)
 
@@ -702,6 +747,7 @@ def build_model(settings: TrainSettings, config: PI0Config | PI0FastConfig) -> n
     if _is_model_folder(settings.model):  # with the run's config: it may add training choices (rtc_max_delay)
         model = model_class.from_pretrained(settings.model, config=config, dtype=torch.float32)
     else:
+        check_memory(config)
         torch.manual_seed(settings.seed)
         model = model_class(config)
     for group in settings.freeze:
@@ -717,11 +763,57 @@ def build_model(settings: TrainSettings, config: PI0Config | PI0FastConfig) -> n
 
 # (the last: the sharded model of an --fsdp run, a DCP folder complete once its .metadata is written)
 WEIGHT_FILES = ("model.safetensors", "model.safetensors.index.json", "adapter_model.safetensors", "model_sharded/.metadata")
+TORCH_STATE_SUFFIXES = (".pt", ".pth")  # optimizer, scheduler, RNG and scaler states, loaded when resuming
 
 
-def is_complete_checkpoint(folder: Path) -> bool:
-    """A checkpoint folder with its trainer state and its weights (what resuming needs first)."""
-    return (folder / TRAINER_STATE_NAME).is_file() and any((folder / name).is_file() for name in WEIGHT_FILES)
+def checkpoint_problem(folder: Path) -> str | None:
+    """Why resuming from the checkpoint `folder` would fail (None when it would not): a missing or unreadable
+    trainer state, no weights, or a weights / optimizer / scheduler / RNG file that is truncated or not what its name
+    says. The files are opened the way resuming opens them (safetensors headers; `torch.load` with `weights_only` and
+    memory mapping, so nothing large is read and nothing is unpickled), and the reason never suggests unpickling."""
+    state_path = folder / TRAINER_STATE_NAME
+    if not state_path.is_file():
+        return f"no {TRAINER_STATE_NAME}"
+    try:
+        state = json.loads(state_path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        return f"{TRAINER_STATE_NAME} is not valid JSON"
+    if not isinstance(state, dict) or not isinstance(state.get("global_step"), int) or state["global_step"] < 0:
+        return f"{TRAINER_STATE_NAME} holds no step count (global_step)"
+    if not any((folder / name).is_file() for name in WEIGHT_FILES):
+        return "no weights"
+    for path in sorted(folder.iterdir()):
+        problem = None
+        if path.suffix == ".safetensors":
+            problem = _safetensors_problem(path)
+        elif path.suffix in TORCH_STATE_SUFFIXES:
+            problem = _torch_state_problem(path)
+        if problem:
+            return f"{path.name} {problem}"
+    return None
+
+
+def _safetensors_problem(path: Path) -> str | None:
+    from safetensors import SafetensorError, safe_open
+
+    try:
+        with safe_open(str(path), "pt"):
+            return None
+    except (SafetensorError, OSError) as error:
+        return f"is not a readable safetensors file ({first_line(error)})"
+
+
+def _torch_state_problem(path: Path) -> str | None:
+    import pickle
+
+    from transformers.trainer_pt_utils import safe_globals
+
+    try:
+        with safe_globals():
+            torch.load(path, map_location="cpu", weights_only=True, mmap=True)
+        return None
+    except (RuntimeError, OSError, ValueError, EOFError, pickle.UnpicklingError):
+        return "is not a readable torch state file (truncated, empty or corrupt)"
 
 
 def _checkpoint_step(folder: Path) -> int | None:
@@ -730,11 +822,11 @@ def _checkpoint_step(folder: Path) -> int | None:
 
 
 def resolve_resume_checkpoint(output_dir: str | Path, requested: str | None) -> str | None:
-    """The checkpoint a run resumes from: `requested` is None (a fresh run), `"latest"` (the newest complete
+    """The checkpoint a run resumes from: `requested` is None (a fresh run), `"latest"` (the newest readable
     `checkpoint-N` in `output_dir`, or a fresh run when there is none) or a `checkpoint-N` folder.
 
-    An incomplete checkpoint (no trainer state or no weights: written in place and killed by an older version) is
-    skipped with a log line, falling back to the newest complete one before it in the same folder.
+    A checkpoint that cannot be resumed from ([`checkpoint_problem`]: incomplete, truncated, garbage) is skipped
+    with a warning naming it and why, falling back to the newest readable one before it in the same folder.
     """
     if requested is None:
         return None
@@ -744,10 +836,11 @@ def resolve_resume_checkpoint(output_dir: str | Path, requested: str | None) -> 
         given = Path(requested)
         if not given.is_dir():
             raise ValueError(f"--resume-from-checkpoint {requested}: no such folder")
-        if is_complete_checkpoint(given):
+        problem = checkpoint_problem(given)
+        if problem is None:
             return str(given)
         folder, before = given.parent, _checkpoint_step(given)
-        logger.warning("%s is incomplete (no %s or no weights): looking for an earlier complete checkpoint", given, TRAINER_STATE_NAME)
+        logger.warning("%s cannot be resumed from (%s): looking for an earlier readable checkpoint", given, problem)
     candidates = sorted(
         ((step, path) for path in (folder.iterdir() if folder.is_dir() else ()) if (step := _checkpoint_step(path)) is not None),
         reverse=True,
@@ -755,14 +848,110 @@ def resolve_resume_checkpoint(output_dir: str | Path, requested: str | None) -> 
     for step, path in candidates:
         if before is not None and step >= before:
             continue
-        if is_complete_checkpoint(path):
+        problem = checkpoint_problem(path)
+        if problem is None:
             logger.info("resuming from %s", path)
             return str(path)
-        logger.warning("skipping %s: incomplete (no %s or no weights)", path, TRAINER_STATE_NAME)
+        logger.warning("skipping %s: it cannot be resumed from (%s)", path, problem)
     if requested == "latest":
-        logger.info("no complete checkpoint in %s: starting a fresh run", folder)
+        if candidates:
+            raise ValueError(f"--resume-from-checkpoint latest: none of the {len(candidates)} checkpoints in {folder} "
+                             "can be resumed from (see the warnings); move them aside to start afresh")
+        logger.info("no checkpoint in %s: starting a fresh run", folder)
         return None
-    raise ValueError(f"--resume-from-checkpoint {requested} is incomplete and {folder} holds no complete checkpoint before it")
+    raise ValueError(f"--resume-from-checkpoint {requested} cannot be resumed from and {folder} holds no readable "
+                     "checkpoint before it")
+
+
+def check_run_folder(settings: TrainSettings) -> None:
+    """Refuse an `--output-dir` this run may not write (a `ValueError` naming why), before anything is loaded.
+
+    A run that continues a checkpoint of `--output-dir` writes there (without `--overwrite`: the two contradict).
+    Any other run needs the folder absent or empty, or `--overwrite` and a folder pi0-torch wrote
+    ([`pi0_torch.utils.files.check_output_dir`]): another run's checkpoints and final model are never mixed with
+    this one's. The folder never overlaps the model folder or the dataset."""
+    output = Path(settings.output_dir)
+    for source in (settings.model, settings.dataset):
+        if Path(source).is_dir():
+            files.check_separate(source, output)
+    if _continues_in_place(settings):
+        if settings.overwrite:
+            raise ValueError(f"--overwrite starts {output} over, --resume-from-checkpoint "
+                             f"{settings.resume_from_checkpoint} continues its run: pass one of them")
+        return
+    files.check_output_dir(output, settings.overwrite)
+
+
+def _continues_in_place(settings: TrainSettings) -> bool:
+    resume = settings.resume_from_checkpoint
+    return resume is not None and Path(resume).resolve().parent == Path(settings.output_dir).resolve()
+
+
+def clear_run_folder(folder: Path) -> None:
+    """Empty an output folder that [`check_run_folder`] let `--overwrite` replace (everything in it is pi0-torch's)."""
+    for entry in folder.iterdir() if folder.is_dir() else ():
+        if entry.is_dir() and not entry.is_symlink():
+            shutil.rmtree(entry)
+        else:
+            entry.unlink()
+    logger.info("--overwrite: removed the earlier run in %s", folder)
+
+
+def trained_step(checkpoint: str | Path) -> int:
+    """The optimizer steps a checkpoint holds (its trainer state's `global_step`; checked by [`checkpoint_problem`])."""
+    return int(json.loads((Path(checkpoint) / TRAINER_STATE_NAME).read_text())["global_step"])
+
+
+def final_step(output_dir: str | Path) -> int | None:
+    """The step of the final model in `output_dir`, from its run settings file (written last); None without one."""
+    try:
+        step = json.loads((Path(output_dir) / TRAIN_SETTINGS_FILE).read_text()).get(FINAL_STEP_KEY)
+    except (OSError, ValueError, AttributeError):
+        return None
+    return step if isinstance(step, int) else None
+
+
+# settings a checkpoint's processor_config.json records of the model config (LoRA checkpoints hold no config.json)
+PROCESSOR_CONFIG_SETTINGS = {"camera_names": "camera_names", "image_size": "image_size", "max_token_len": "max_token_len",
+                             "model_action_dim": "action_dim", "action_horizon": "action_horizon"}
+
+
+def check_resume_settings(config: PI0Config | PI0FastConfig, checkpoint: str | Path) -> None:
+    """Refuse resuming a checkpoint trained with other model settings, naming each (`action_horizon 4 there, 8
+    now`), instead of failing later on a tensor shape: every config setting when the checkpoint has its
+    `config.json`, else those its processor records."""
+    checkpoint = Path(checkpoint)
+    if (checkpoint / "config.json").is_file():
+        saved_config = type(config).from_pretrained(checkpoint)
+        names = [name for name, parameter in inspect.signature(type(config).__init__).parameters.items()
+                 if name != "self" and parameter.kind is not inspect.Parameter.VAR_KEYWORD]
+        saved = {name: getattr(saved_config, name) for name in names}
+    else:
+        recorded = json.loads((checkpoint / "processor_config.json").read_text())
+        saved = {name: recorded[key] for key, name in PROCESSOR_CONFIG_SETTINGS.items() if key in recorded}
+    differing = [f"{name} {value!r} there, {getattr(config, name)!r} now" for name, value in saved.items()
+                 if value != getattr(config, name)]
+    if differing:
+        raise ValueError(f"--resume-from-checkpoint {checkpoint} was trained with other model settings: "
+                         f"{'; '.join(differing)} (--model / --config-overrides / --rtc-max-delay); resume with the "
+                         "run's settings, or start a new --output-dir")
+
+
+def check_memory(config: PI0Config | PI0FastConfig) -> None:
+    """Before a model is built from a config: refuse one whose float32 weights alone exceed this machine's memory,
+    and warn when weights, gradients and AdamW's two moments (16 bytes a parameter) would."""
+    import psutil
+
+    parameters = config.estimated_parameters()
+    available = psutil.virtual_memory().total
+    if 4 * parameters > available:
+        raise ValueError(f"this config has about {parameters / 1e9:.1f} B parameters, {4 * parameters / 2**30:.1f} GiB "
+                         f"of float32 weights alone; this machine has {available / 2**30:.1f} GiB of memory "
+                         "(--config-overrides)")
+    if 16 * parameters > available:
+        logger.warning("this config has about %.2f B parameters: training needs about %.1f GiB for weights, gradients "
+                       "and AdamW state, more than this machine's %.1f GiB", parameters / 1e9,
+                       16 * parameters / 2**30, available / 2**30)
 
 
 def _has_accelerator() -> bool:
@@ -788,9 +977,20 @@ def train_policy(settings: TrainSettings) -> dict[str, Any]:
         raise ValueError("--ema-decay with --lora: an average of the LoRA factors A and B is not the average of the "
                          "weight update B @ A, so openpi turns EMA off for LoRA fine-tuning; drop one of the two")
     settings = replace(settings, resume_from_checkpoint=resolve_resume_checkpoint(settings.output_dir, settings.resume_from_checkpoint))
+    check_run_folder(settings)
     sharding.check_settings(settings.fsdp, settings.model, settings.resume_from_checkpoint)
     set_seed(settings.seed)
     config = load_config(settings)
+    done = trained_step(settings.resume_from_checkpoint) if settings.resume_from_checkpoint else 0
+    if settings.resume_from_checkpoint:
+        check_resume_settings(config, settings.resume_from_checkpoint)
+        finished = final_step(settings.output_dir)
+        if done >= settings.max_steps and _continues_in_place(settings) and finished is not None and finished >= done:
+            logger.info("%s holds the final model of step %d (--max-steps %d): nothing to train", settings.output_dir,
+                        finished, settings.max_steps)
+            state = TrainerState.load_from_json(str(Path(settings.resume_from_checkpoint) / TRAINER_STATE_NAME))
+            return {"output_dir": settings.output_dir, "log_history": state.log_history, "trainable_parameters": None,
+                    "steps_trained": 0}
     dataset_options = dict(
         state_key=settings.state_key, action_key=settings.action_key, short_episodes=settings.short_episodes,
         progress=settings.progress,
@@ -869,17 +1069,38 @@ def train_policy(settings: TrainSettings) -> dict[str, Any]:
         lr_schedule=dict(warmup_steps=settings.warmup_steps, decay_steps=settings.decay_steps, end_lr=settings.end_learning_rate),
     )
     if trainer.args.should_save:
+        if settings.overwrite and not _continues_in_place(settings):
+            clear_run_folder(Path(settings.output_dir))  # (check_run_folder found only pi0-torch's files there)
         files.remove_stale_partials(settings.output_dir)  # checkpoints of a killed run that never finished
+    trainer.accelerator.wait_for_everyone()
     trainable = count_trainable(model)
     logger.info("trainable parameters: %d of %d", trainable, sum(p.numel() for p in model.parameters()))
-    trainer.train(resume_from_checkpoint=settings.resume_from_checkpoint)
+    if done >= settings.max_steps:  # the Trainer would train one more step: write the checkpoint's final model
+        logger.info("%s already holds step %d (--max-steps %d): writing its final model without training",
+                    settings.resume_from_checkpoint, done, settings.max_steps)
+        _load_checkpoint_for_final(trainer, settings.resume_from_checkpoint)
+    else:
+        trainer.train(resume_from_checkpoint=settings.resume_from_checkpoint)
 
     final = sharding.gather_model(trainer.model) if settings.fsdp else merge_lora(trainer.model)  # (all processes)
     if trainer.is_world_process_zero():
-        _save_final(final, processor, settings)
+        _save_final(final, processor, settings, trainer.state.global_step)
         plot_losses(trainer.state.log_history, Path(settings.output_dir) / LOSS_PLOT_FILE)
+        files.record_written(Path(settings.output_dir), [Path(settings.output_dir) / LOSS_PLOT_FILE])
     trainer.accelerator.wait_for_everyone()
-    return {"output_dir": settings.output_dir, "log_history": trainer.state.log_history, "trainable_parameters": trainable}
+    return {"output_dir": settings.output_dir, "log_history": trainer.state.log_history, "trainable_parameters": trainable,
+            "steps_trained": trainer.state.global_step - done}
+
+
+def _load_checkpoint_for_final(trainer: PI0Trainer, checkpoint: str) -> None:
+    """Put a finished checkpoint's weights (and, with EMA, its averages) into the trainer's model and its trainer
+    state into the trainer, as training to its step would have left them."""
+    trainer.state = TrainerState.load_from_json(str(Path(checkpoint) / TRAINER_STATE_NAME))
+    trainer._load_from_checkpoint(checkpoint)
+    for callback in trainer.callback_handler.callbacks:
+        if isinstance(callback, EMACallback):
+            callback.on_train_begin(trainer.args, trainer.state, trainer.control, model=trainer.model)
+            callback.on_train_end(trainer.args, trainer.state, trainer.control, model=trainer.model)
 
 
 def scaled_warmup_steps(max_steps: int) -> int:
@@ -912,12 +1133,30 @@ def plot_losses(log_history: Sequence[Mapping[str, Any]], path: Path) -> None:
     FigureCanvasAgg(figure).print_png(str(path))
 
 
-def _save_final(model: PI0ForActionGeneration, processor: PI0Processor, settings: TrainSettings) -> None:
-    """Model + processor + the run's settings into `output_dir` (next to the checkpoint folders)."""
+def _save_final(model: PI0ForActionGeneration, processor: PI0Processor, settings: TrainSettings, step: int) -> None:
+    """Model + processor + the run's settings (with the final `step`) into `output_dir`, next to the checkpoint
+    folders: written into a hidden folder, flushed to disk, and moved into place with the settings file last, so a
+    run killed while saving never leaves a half-written final model that looks finished ([`final_step`])."""
     output = Path(settings.output_dir)
-    model.save_pretrained(output)
-    processor.save_pretrained(output)
-    (output / TRAIN_SETTINGS_FILE).write_text(json.dumps(vars(settings), indent=2, default=str) + "\n")
+    staging = output / files.partial_name("final", "save")
+    shutil.rmtree(staging, ignore_errors=True)  # an earlier attempt
+    staging.mkdir(parents=True)
+    files.claim(staging)
+    model.save_pretrained(staging)
+    processor.save_pretrained(staging)
+    record = {**vars(settings), FINAL_STEP_KEY: step}
+    (staging / TRAIN_SETTINGS_FILE).write_text(json.dumps(record, indent=2, default=str) + "\n")
+    files.sync_tree(staging)
+    (output / TRAIN_SETTINGS_FILE).unlink(missing_ok=True)  # the earlier final model is no longer the finished one
+    entries = sorted((e for e in staging.iterdir() if e.name != files.OWNER_FILE), key=lambda e: e.name == TRAIN_SETTINGS_FILE)
+    for entry in entries:
+        if entry.is_dir():
+            files.publish(entry, output / entry.name)
+        else:
+            os.replace(entry, output / entry.name)
+    files.sync_folder(output)
+    shutil.rmtree(staging)
+    files.record_written(output, [output / entry.name for entry in entries])
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -945,9 +1184,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     data.add_argument("--short-episodes", choices=("pad", "skip", "error"), default="pad",
                       help="episodes shorter than the action horizon: pad with the last action (default), skip, or fail")
     data.add_argument("--delta-action-mask", type=bool_mask, metavar="1,1,...,0",
-                      help="action dims predicted relative to the state (openpi DeltaActions)")
-    data.add_argument("--value-conversion", choices=sorted(CONVERSIONS), help="convert the robot's state and actions "
-                      "into the base model's space, as openpi does for ALOHA data (adapt_to_pi); saved with the processor")
+                      help="action dims predicted relative to the state (openpi DeltaActions; default: the model "
+                      "folder's)")
+    data.add_argument("--value-conversion", choices=[*sorted(CONVERSIONS), "none"], help="convert the robot's state and "
+                      "actions into the base model's space, as openpi does for ALOHA data (adapt_to_pi); saved with the "
+                      "processor (default: the model folder's; 'none' turns it off)")
     data.add_argument("--num-workers", type=int, default=0, help="DataLoader workers per process")
 
     model = parser.add_argument_group("model")
@@ -975,7 +1216,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=f"keep an EMA of the weights (bare flag: openpi's {OPENPI_EMA_DECAY}); the final model is the EMA")
     recipe.add_argument("--rtc-max-delay", type=int, metavar="D",
                         help="training-time real-time chunking: each sample takes its first d ~ U{0..D} actions as "
-                             "given, so the policy can continue a chunk with --rtc-method conditioning (0 turns it off)")
+                             "given, so that the policy continues the executing chunk from its committed actions "
+                             "(eval --execution rtc-trained; PI0Policy then uses rtc_method='conditioning' by default; "
+                             "0 turns it off)")
     recipe.add_argument("--lora", action="store_true", help="LoRA on the Gemma experts (openpi's low-memory fine-tune)")
     recipe.add_argument("--lora-rank-vlm", type=int, default=LORA_RANK_VLM)
     recipe.add_argument("--lora-rank-expert", type=int, default=LORA_RANK_EXPERT)
@@ -994,7 +1237,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     run_group.add_argument("--eval-steps", type=int)
     run_group.add_argument("--resume-from-checkpoint", metavar="DIR|latest",
                            help="a checkpoint-N folder of an earlier run with the same settings, or 'latest' (the newest "
-                                "complete one in --output-dir; a fresh run when there is none)")
+                                "readable one in --output-dir; a fresh run when there is none)")
+    run_group.add_argument("--overwrite", action="store_true", help="replace an earlier run in --output-dir (only a "
+                           "folder pi0-torch wrote; without it, a fresh run needs an absent or empty folder)")
     run_group.add_argument("--cpu", action="store_true", help="train on CPU even when a GPU is present")
     add_threads_argument(run_group)
     run_group.add_argument("--report-to", default="none", help="Trainer integrations (tensorboard, wandb, ...)")
@@ -1019,7 +1264,10 @@ def run(args: argparse.Namespace) -> int:
         logger.debug("training failed", exc_info=True)
         print(f"error: {first_line(error)}", file=sys.stderr)
         return 1
-    print(f"saved the fine-tuned policy to {result['output_dir']}")
+    if result["trainable_parameters"] is None:
+        print(f"nothing to train: {result['output_dir']} already holds this run's final model")
+    else:
+        print(f"saved the fine-tuned policy to {result['output_dir']}")
     return 0
 
 
