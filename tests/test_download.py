@@ -20,12 +20,13 @@ from collections.abc import Iterator
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 
+import huggingface_hub.constants
 import psutil
 import pytest
 import torch
 from conftest import FIXTURES
 
-from pi0_torch import PI0Config, PI0Processor
+from pi0_torch import PI0Config, PI0FastConfig, PI0FastProcessor, PI0Processor
 from pi0_torch.cli import main as cli_main
 from pi0_torch.conversion.download import (
     CACHE_ENV,
@@ -126,10 +127,11 @@ class _Handler(BaseHTTPRequestHandler):
 
 
 def _fixture_objects(tmp_path: Path) -> dict[tuple[str, str], bytes]:
-    """pi0_small as checkpoints/pi0_droid and pi05_small as checkpoints/pi05_droid (norm stats under assets/droid),
-    and a small SentencePiece model as PaliGemma's tokenizer."""
+    """pi0_small as checkpoints/pi0_droid, pi05_small as checkpoints/pi05_droid and pi0_fast_small as
+    checkpoints/pi0_fast_droid (norm stats under assets/droid), and a small SentencePiece model as PaliGemma's
+    tokenizer."""
     objects = {}
-    for variant, name in (("pi0_small", "pi0_droid"), ("pi05_small", "pi05_droid")):
+    for variant, name in (("pi0_small", "pi0_droid"), ("pi05_small", "pi05_droid"), ("pi0_fast_small", "pi0_fast_droid")):
         step = FIXTURES / variant / "ckpt" / "0"
         for path in sorted(p for p in step.rglob("*") if p.is_file()):
             relative = path.relative_to(step).as_posix().replace("assets/reference/", "assets/droid/")
@@ -235,10 +237,10 @@ def test_checksum_mismatch_is_refused_and_nothing_is_left_half_written(bucket: F
 
 
 def test_refusals_before_downloading(bucket: FakeBucket, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
-    """π0-FAST checkpoints, asset ids the checkpoint does not have, and an occupied output folder fail before any
-    file is downloaded."""
-    assert cli_main(["convert", "--checkpoint", "pi0_fast_droid", "--output-dir", str(tmp_path / "out")]) == 1
-    assert "π0-FAST" in capsys.readouterr().err and bucket.requests == []
+    """A checkpoint pi0-torch cannot convert yet (pi05_libero), asset ids the checkpoint does not have, and an
+    occupied output folder fail before any file is downloaded."""
+    assert cli_main(["convert", "--checkpoint", "pi05_libero", "--output-dir", str(tmp_path / "out")]) == 1
+    assert "without the state in its prompt" in capsys.readouterr().err and bucket.requests == []
     with pytest.raises(DownloadError, match="no norm stats for asset id 'trossen'; choices: droid"):
         fetch_openpi_checkpoint(URL, asset_id="trossen")
     assert all(path.startswith("/storage/v1/") for path, _ in bucket.requests)  # the listing only
@@ -246,7 +248,29 @@ def test_refusals_before_downloading(bucket: FakeBucket, tmp_path: Path, capsys:
     (tmp_path / "busy" / "file").write_text("x")
     bucket.requests.clear()
     assert cli_main(["convert", "--checkpoint", "pi0_droid", "--output-dir", str(tmp_path / "busy")]) == 1
-    assert "not empty" in capsys.readouterr().err and bucket.requests == []
+    assert "holds files that pi0-torch did not write" in capsys.readouterr().err and bucket.requests == []
+
+
+def test_published_fast_checkpoint_converts_with_its_settings(
+    bucket: FakeBucket, tmp_path: Path, capsys: pytest.CaptureFixture, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """`convert --checkpoint pi0_fast_droid`: the checkpoint comes from the bucket, the FAST tokenizer from the
+    Hugging Face hub or `--fast-tokenizer`; openpi's pi0_fast_droid settings apply (8 action dims, 10 steps, asset id
+    droid). When the hub cannot be reached and no copy is given, the error says so before the checkpoint downloads."""
+    monkeypatch.setattr(huggingface_hub.constants, "HF_HUB_OFFLINE", True)  # never the real hub, here or elsewhere
+    monkeypatch.setattr(huggingface_hub.constants, "HF_HUB_CACHE", str(tmp_path / "hub"))
+    fast = FIXTURES / "pi0_fast_small"
+    command = ["convert", "--checkpoint", "pi0_fast_droid", "--tokenizer", str(fast / "tokenizer.model"), "--no-progress"]
+    assert cli_main([*command, "--output-dir", str(tmp_path / "offline")]) == 1
+    error = capsys.readouterr().err
+    assert "FAST tokenizer physical-intelligence/fast" in error and "--fast-tokenizer DIR" in error
+    assert len(error.strip().splitlines()) == 1 and bucket.requests == [] and not (tmp_path / "offline").exists()
+
+    assert cli_main([*command, "--fast-tokenizer", str(fast / "fast_tokenizer"), "--output-dir", str(tmp_path / "out")]) == 0
+    config = PI0FastConfig.from_pretrained(tmp_path / "out")
+    assert (config.action_dim, config.action_horizon) == (8, 10)
+    processor = PI0FastProcessor.from_pretrained(tmp_path / "out")
+    assert processor.action_tokenizer.vocab_size == 512 and "norm stats: " in capsys.readouterr().out
 
 
 def test_readme_quick_start_runs_as_written(bucket: FakeBucket, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
@@ -264,6 +288,32 @@ def test_readme_quick_start_runs_as_written(bucket: FakeBucket, tmp_path: Path, 
     exec(compile(code, "README.md", "exec"), names)
     assert tuple(names["chunk"].shape) == (1, 15, 32) and tuple(names["actions"].shape) == (1, 15, 8)
     assert torch.isfinite(names["loss"])
+
+
+def test_readme_offline_quick_start_runs_as_written(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture) -> None:
+    """The README's "Quick start without a network", verbatim: its command converts this clone's π0.5 fixture with a
+    test tokenizer and no download; the quick start's Python then runs on the result. Converted without
+    `--tokenizer`, the folder has no processor: the summary says so, and loading one says how to add it."""
+    readme = (Path(__file__).parents[1] / "README.md").read_text()
+    section = readme.split("## Quick start without a network", 1)[1].split("\n## ", 1)[0]
+    (command,) = re.findall(r"```bash\n(.*?)```", section, flags=re.S)
+    (code,) = re.findall(r"```python\n(.*?)```", readme.split("## Quick start\n", 1)[1], flags=re.S)[:1]
+    program, *arguments = shlex.split(command)
+    assert program == ".venv/bin/pi0-torch" and arguments[-2:] == ["--tokenizer", "test"]
+    (tmp_path / "tests").symlink_to(Path(__file__).parent)  # the clone's fixtures, where the command expects them
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv(ENDPOINT_ENV, "http://127.0.0.1:9")  # nothing listens there: a download would fail
+    assert cli_main(arguments) == 0
+    assert "processor: written" in capsys.readouterr().out
+    names: dict = {}
+    exec(compile(code.replace("converted/pi05_droid", "converted/pi05_small"), "README.md", "exec"), names)
+    assert tuple(names["chunk"].shape) == (1, 50, 32) and tuple(names["actions"].shape) == (1, 50, 8)
+
+    bare = [*arguments[: arguments.index("--output-dir")], "--output-dir", "converted/bare"]
+    assert cli_main(bare) == 0
+    assert "processor: none (it needs norm stats and --tokenizer" in capsys.readouterr().out
+    with pytest.raises(FileNotFoundError, match="converted without a processor: convert again with --tokenizer"):
+        PI0Processor.from_pretrained("converted/bare")
 
 
 def test_a_download_held_by_a_live_run_is_left_alone(bucket: FakeBucket, tmp_path: Path) -> None:

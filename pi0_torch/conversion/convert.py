@@ -67,6 +67,7 @@ from pi0_torch.processing.fast_tokenizer import FASTActionTokenizer
 from pi0_torch.processing.processing_pi0 import NORM_STATS_FILE, PI0Processor
 from pi0_torch.processing.processing_pi0_fast import FAST_TOKENIZER_DIR, PI0FastProcessor
 from pi0_torch.processing.robot_spaces import CONVERSIONS
+from pi0_torch.processing.tokenization import TEST_TOKENIZER, TEST_TOKENIZER_VOCAB, PromptTokenizer, build_test_tokenizer
 from pi0_torch.utils.files import OutputPathError, atomic_output_dir, check_output_dir, check_separate
 
 logger = logging.getLogger(__name__)
@@ -348,9 +349,14 @@ def lerobot_norm_stats(folder: Path) -> tuple[Path, dict[str, NormStats]] | None
     return found[0], stats
 
 
-def _check_tokenizer(tokenizer: str | Path | None) -> Path | None:
+def _check_tokenizer(tokenizer: str | Path | None, config: PI0Config | PI0FastConfig) -> Path | PromptTokenizer | None:
+    """The prompt tokenizer to save with the processor: a SentencePiece file, or for `test` (`TEST_TOKENIZER`) a
+    small one trained here, offline (as `pi0-torch train --tokenizer test`; for trials and tests, not for real
+    checkpoints, whose embeddings expect PaliGemma's)."""
     if tokenizer is None:
         return None
+    if str(tokenizer) == TEST_TOKENIZER:
+        return build_test_tokenizer(vocab_size=min(TEST_TOKENIZER_VOCAB, config.vocab_size))
     path = Path(tokenizer).expanduser()
     if not path.exists():
         raise ConversionError(f"tokenizer {path} does not exist")
@@ -374,6 +380,7 @@ class ConversionResult:
     weight_bytes: int
     norm_stats: Path | None = None
     dropped: list[str] = field(default_factory=list)  # source tensors deliberately not converted
+    processor: bool = False  # whether the processor files (tokenizer, norm stats, settings) were written
 
     def summary(self) -> str:
         kind = "π0-FAST" if isinstance(self.config, PI0FastConfig) else "π0.5" if self.config.pi05 else "π0"
@@ -382,6 +389,8 @@ class ConversionResult:
             f"wrote {self.output_dir}: {kind}, {_human(params)} parameters, {_human(self.weight_bytes)}B of "
             f"{str(self.dtype).removeprefix('torch.')} weights in {len(self.weight_files)} file(s)",
             f"norm stats: {self.norm_stats or 'none found'}",
+            "processor: " + ("written (PI0Processor.from_pretrained loads it)" if self.processor else
+                             "none (it needs norm stats and --tokenizer: PaliGemma's SentencePiece file, or test)"),
         ]
         if self.dropped:
             lines.append(f"not converted (unused by the model): {_names(self.dropped, 6)}")
@@ -508,7 +517,7 @@ def convert_openpi_checkpoint(
         logger.warning(f"no assets/<asset_id>/norm_stats.json in {checkpoint.step_dir}: the output has no norm stats")
     if action_tokenizer is not None and not isinstance(config, PI0FastConfig):
         raise ConversionError(f"--fast-tokenizer is for π0-FAST checkpoints; {checkpoint.params_dir} holds a π0/π0.5 model")
-    tokenizer = _check_tokenizer(tokenizer)
+    tokenizer = _check_tokenizer(tokenizer, config)
     processor = _build_processor(config, norm_stats, tokenizer, processor_options, action_tokenizer)
     plan = planned_shapes(config)
     itemsize = torch.empty((), dtype=torch_dtype).element_size()
@@ -532,7 +541,8 @@ def convert_openpi_checkpoint(
         _write_processor_files(folder, processor, norm_stats, tokenizer)
         if processor is None and action_tokenizer is not None:
             action_tokenizer.save_pretrained(folder / FAST_TOKENIZER_DIR)
-    return ConversionResult(output_dir, config, torch_dtype, [output_dir / n for n in writer.filenames], writer.total_bytes, norm_stats_path)
+    return ConversionResult(output_dir, config, torch_dtype, [output_dir / n for n in writer.filenames], writer.total_bytes,
+                            norm_stats_path, processor=processor is not None)
 
 
 def _load_fast_tokenizer(folder: str | os.PathLike[str] | None) -> FASTActionTokenizer | None:
@@ -848,7 +858,7 @@ def convert_hf_checkpoint(
         stats = _read_norm_stats(stats_path)
     else:
         stats_path, stats = lerobot_norm_stats(folder) or (None, None)
-    tokenizer = _check_tokenizer(tokenizer)
+    tokenizer = _check_tokenizer(tokenizer, config)
     processor = _build_processor(config, stats, tokenizer, processor_options)
     itemsize = torch.empty((), dtype=torch_dtype).element_size()
     _check_disk_space(output_dir, sum(math.prod(s) for s in plan.values()) * itemsize)
@@ -871,7 +881,8 @@ def convert_hf_checkpoint(
             handles.clear()
         _save_config(config, torch_dtype, out)
         _write_processor_files(out, processor, stats, tokenizer)
-    return ConversionResult(output_dir, config, torch_dtype, [output_dir / n for n in writer.filenames], writer.total_bytes, stats_path, weights.dropped)
+    return ConversionResult(output_dir, config, torch_dtype, [output_dir / n for n in writer.filenames], writer.total_bytes,
+                            stats_path, weights.dropped, processor=processor is not None)
 
 
 def _hf_export_names(name: str, config: PI0Config) -> list[tuple[str, int, int]]:
@@ -1020,7 +1031,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--asset-id", help="openpi: which assets/<asset_id>/norm_stats.json to use (needed when there are several)")
     parser.add_argument("--norm-stats", help="lerobot/transformers: an openpi norm_stats.json for the processor files (default for a LeRobot "
                         "folder: its policy_preprocessor_step_*_normalizer_processor.safetensors)")
-    parser.add_argument("--tokenizer", help="PaliGemma SentencePiece model (e.g. paligemma_tokenizer.model) to save with the processor")
+    parser.add_argument("--tokenizer", help="PaliGemma SentencePiece model (e.g. paligemma_tokenizer.model) to save with the "
+                        "processor, or test: a small tokenizer trained offline (trials and tests only, as train --tokenizer test)")
     parser.add_argument("--fast-tokenizer", help="openpi π0-FAST: the FAST action tokenizer folder (physical-intelligence/fast "
                         "layout), saved in the output's fast_tokenizer/")
     parser.add_argument("--action-horizon", type=int, help="actions per chunk (not stored in the weights; π0-FAST DROID / "
@@ -1051,8 +1063,10 @@ def run(args: argparse.Namespace) -> int:
                 raise ConversionError("--checkpoint NAME and gs:// inputs are openpi checkpoints: give one of them, with --from openpi or no --from")
             check_output_dir(Path(args.output_dir).expanduser(), args.overwrite)  # before a download of many GB
             fetched = fetch_openpi_checkpoint(args.input or checkpoint_url(args.checkpoint), asset_id=args.asset_id,
-                                              tokenizer=args.tokenizer, progress=not args.no_progress)
+                                              tokenizer=args.tokenizer, fast_tokenizer=args.fast_tokenizer,
+                                              progress=not args.no_progress)
             args.source, args.input, args.asset_id, args.tokenizer = "openpi", fetched.folder, fetched.asset_id, fetched.tokenizer
+            args.fast_tokenizer = fetched.fast_tokenizer
             options = {**fetched.processor_options, **{k: v for k, v in options.items() if v is not None}}
             overrides = fetched.config_overrides
         if args.source is None or args.input is None:

@@ -1,4 +1,5 @@
-"""Download openpi's published checkpoints and PaliGemma's tokenizer from their public Google Cloud Storage buckets.
+"""Download openpi's published checkpoints and PaliGemma's tokenizer from their public Google Cloud Storage buckets
+(and, for π0-FAST, the FAST tokenizer `physical-intelligence/fast` from the Hugging Face hub).
 
 openpi publishes its checkpoints at `gs://openpi-assets/checkpoints/<name>/` (orbax `params/` plus the norm stats
 under `assets/<asset_id>/`) and the PaliGemma tokenizer at `gs://big_vision/paligemma_tokenizer.model`. Both buckets
@@ -20,7 +21,11 @@ a download:
 
 The endpoint can be redirected with `$PI0_TORCH_GCS_ENDPOINT` (the tests serve a fixture checkpoint from 127.0.0.1).
 `PUBLISHED_CHECKPOINTS` records, for openpi's published checkpoints, the settings openpi's training config gives them
-that the weights do not store (asset id of the norm stats, action horizon, processor options).
+that the weights do not store (asset id of the norm stats, action horizon, for π0-FAST the action dims and prompt
+length, processor options).
+
+Offline, or behind a firewall: copy a checkpoint folder (`<step>/` with `params/` and `assets/`) and the tokenizer
+by other means, and convert with `pi0-torch convert --from openpi --input DIR --tokenizer FILE` (docs/conversion.md).
 
 ```python
 >>> parse_gcs_url("gs://openpi-assets/checkpoints/pi05_droid/")
@@ -53,6 +58,7 @@ from tqdm.auto import tqdm
 
 from pi0_torch.conversion.orbax_reader import CheckpointError
 from pi0_torch.utils.files import resumable_output_dir
+from pi0_torch.utils.validation import first_line
 
 logger = logging.getLogger(__name__)
 
@@ -62,6 +68,8 @@ CACHE_ENV = "PI0_TORCH_CACHE"
 DEFAULT_CACHE = "~/.cache/pi0_torch"
 CHECKPOINTS_URL = "gs://openpi-assets/checkpoints"
 TOKENIZER_URL = "gs://big_vision/paligemma_tokenizer.model"
+FAST_TOKENIZER_REPO = "physical-intelligence/fast"  # on the Hugging Face hub: openpi's FASTTokenizer default
+FAST_TOKENIZER_FILES = ["processor_config.json", "tokenizer.json", "tokenizer_config.json", "special_tokens_map.json"]
 MANIFEST_FILE = ".pi0-torch-download.json"  # the verified listing, written into a finished checkpoint folder
 PART_SUFFIX = ".part"
 RETRIES = 3  # resumed requests after a cut connection, within one call
@@ -85,7 +93,10 @@ class PublishedCheckpoint:
     """What openpi's training config of a published checkpoint sets that its weights do not store."""
 
     asset_id: str | None = None  # assets/<asset_id>/norm_stats.json; None: the checkpoint's only one (or --asset-id)
-    action_horizon: int | None = None  # None: the model's default (50)
+    action_horizon: int | None = None  # None: the model's default (π0: 50; π0-FAST: 32)
+    action_dim: int | None = None  # π0-FAST: the dims a FAST chunk decodes to (None: 32)
+    max_token_len: int | None = None  # None: the model's default
+    fast: bool = False  # π0-FAST: converted with the FAST tokenizer physical-intelligence/fast
     delta_action_mask: tuple[bool, ...] | None = None
     value_conversion: str | None = None
     unsupported: str | None = None  # why pi0-torch cannot convert it yet
@@ -95,22 +106,28 @@ class PublishedCheckpoint:
                    "value_conversion": self.value_conversion}
         return {key: value for key, value in options.items() if value is not None}
 
+    def config_overrides(self) -> dict[str, Any]:
+        """The model settings the weights do not store (`convert_openpi_checkpoint`'s keyword arguments)."""
+        settings = {"action_horizon": self.action_horizon, "action_dim": self.action_dim, "max_token_len": self.max_token_len}
+        return {key: value for key, value in settings.items() if value is not None}
 
-_FAST = "π0-FAST checkpoints are not supported by pi0-torch yet"
+
+_LIBERO_DELTAS = (True,) * 6 + (False,)  # openpi's LIBERO configs: the 6 joint actions relative to the state
 # From openpi's README checkpoint list and src/openpi/training/config.py (the config of the same name).
 PUBLISHED_CHECKPOINTS: dict[str, PublishedCheckpoint] = {
     "pi0_base": PublishedCheckpoint(),
     "pi05_base": PublishedCheckpoint(),
-    "pi0_fast_base": PublishedCheckpoint(unsupported=_FAST),
+    "pi0_fast_base": PublishedCheckpoint(fast=True),
     "pi0_droid": PublishedCheckpoint(asset_id="droid", action_horizon=10),
     "pi05_droid": PublishedCheckpoint(asset_id="droid", action_horizon=15),
-    "pi0_fast_droid": PublishedCheckpoint(unsupported=_FAST),
-    "pi0_libero": PublishedCheckpoint(asset_id="physical-intelligence/libero", delta_action_mask=(True,) * 6 + (False,)),
+    "pi0_fast_droid": PublishedCheckpoint(asset_id="droid", action_horizon=10, action_dim=8, fast=True),
+    "pi0_libero": PublishedCheckpoint(asset_id="physical-intelligence/libero", delta_action_mask=_LIBERO_DELTAS),
     "pi05_libero": PublishedCheckpoint(
         unsupported="pi05_libero was trained without the state in its prompt (openpi's discrete_state_input=False), "
         "which PI0Processor does not support yet"
     ),
-    "pi0_fast_libero": PublishedCheckpoint(unsupported=_FAST),
+    "pi0_fast_libero": PublishedCheckpoint(asset_id="physical-intelligence/libero", action_horizon=10, action_dim=7,
+                                           max_token_len=180, delta_action_mask=_LIBERO_DELTAS, fast=True),
     "pi0_aloha_sim": PublishedCheckpoint(value_conversion="aloha"),
     "pi0_aloha_towel": PublishedCheckpoint(asset_id="trossen", delta_action_mask=_ALOHA_DELTAS, value_conversion="aloha"),
     "pi0_aloha_tupperware": PublishedCheckpoint(asset_id="trossen", delta_action_mask=_ALOHA_DELTAS, value_conversion="aloha"),
@@ -171,7 +188,8 @@ def _open(url: str, headers: dict[str, str] | None = None) -> http.client.HTTPRe
         raise DownloadError(f"{url}: HTTP {error.code} {error.reason}") from None
     except (urllib.error.URLError, OSError) as error:
         reason = getattr(error, "reason", error)
-        raise DownloadError(f"cannot reach {url}: {reason} (no network? set {ENDPOINT_ENV} for a mirror)") from None
+        raise DownloadError(f"cannot reach {url}: {reason} (no network? set {ENDPOINT_ENV} for a mirror, or convert a "
+                            "copy made elsewhere: pi0-torch convert --from openpi --input DIR --tokenizer FILE)") from None
 
 
 def list_objects(bucket: str, prefix: str, endpoint: str | None = None) -> list[RemoteObject]:
@@ -310,6 +328,18 @@ def download_file(url: str, *, endpoint: str | None = None, progress: bool = Fal
     return target
 
 
+def download_fast_tokenizer() -> Path:
+    """The FAST tokenizer folder `physical-intelligence/fast` from the Hugging Face hub (its settings and BPE only,
+    never its code), in the hub's cache. Raises `DownloadError` saying how to give a copy instead."""
+    from huggingface_hub import snapshot_download
+
+    try:
+        return Path(snapshot_download(FAST_TOKENIZER_REPO, allow_patterns=FAST_TOKENIZER_FILES))
+    except Exception as error:  # offline, unreachable, rate-limited: whatever the hub client raises
+        raise DownloadError(f"cannot download the FAST tokenizer {FAST_TOKENIZER_REPO} from the Hugging Face hub: "
+                            f"{first_line(error) or type(error).__name__}; give a copy of it with --fast-tokenizer DIR") from None
+
+
 @dataclass(frozen=True)
 class FetchedCheckpoint:
     """A downloaded openpi checkpoint with what its conversion needs."""
@@ -319,20 +349,26 @@ class FetchedCheckpoint:
     asset_id: str | None
     processor_options: dict[str, Any]
     config_overrides: dict[str, Any]
+    fast_tokenizer: Path | None = None  # π0-FAST: the FAST tokenizer folder
 
 
 def fetch_openpi_checkpoint(
     url: str, *, asset_id: str | None = None, tokenizer: str | os.PathLike[str] | None = None,
-    endpoint: str | None = None, progress: bool = False,
+    fast_tokenizer: str | os.PathLike[str] | None = None, endpoint: str | None = None, progress: bool = False,
 ) -> FetchedCheckpoint:
     """Download an openpi checkpoint and PaliGemma's tokenizer (unless `tokenizer` is given) into the cache, with
-    the settings openpi gives a published checkpoint (`asset_id` overrides its asset id). Refuses a published
-    checkpoint that pi0-torch cannot convert yet before downloading it."""
+    the settings openpi gives a published checkpoint (`asset_id` overrides its asset id); for a published π0-FAST
+    checkpoint also the FAST tokenizer (unless `fast_tokenizer` is given), before the checkpoint. Refuses a
+    published checkpoint that pi0-torch cannot convert yet before downloading it."""
     published = published_checkpoint(url) or PublishedCheckpoint()
     if published.unsupported:
         raise DownloadError(f"{url}: {published.unsupported}")
     asset_id = asset_id or published.asset_id
+    if fast_tokenizer is not None:
+        fast_tokenizer = Path(fast_tokenizer)
+    elif published.fast:
+        fast_tokenizer = download_fast_tokenizer()  # small, and it fails fast when the hub is out of reach
     folder = download_checkpoint(url, asset_id=asset_id, endpoint=endpoint, progress=progress)
     local_tokenizer = Path(tokenizer) if tokenizer is not None else download_file(TOKENIZER_URL, endpoint=endpoint, progress=progress)
-    overrides = {"action_horizon": published.action_horizon} if published.action_horizon else {}
-    return FetchedCheckpoint(folder, local_tokenizer, asset_id, published.processor_options(), overrides)
+    return FetchedCheckpoint(folder, local_tokenizer, asset_id, published.processor_options(), published.config_overrides(),
+                             fast_tokenizer)

@@ -827,16 +827,18 @@ class PI0ForActionGeneration(SiglipImageEmbedding, PI0PreTrainedModel):
         rtc_max_guidance: float,
         rtc_schedule: str,
     ) -> ChunkPrefix:
-        """Check the real-time chunking arguments of `generate_actions` and build the new chunk's prefix."""
+        """Check the real-time chunking arguments of `generate_actions` (previous chunk and guidance clip within
+        `pi0_torch.models.rtc`'s bounds) and build the new chunk's prefix."""
+        from pi0_torch.models.rtc import check_rtc_inputs
+
         config = self.config
         _check_tensor("previous_actions", previous_actions, (batch, config.action_horizon, config.action_dim), floating=True)
         if execution_horizon is None:
             raise ValueError("execution_horizon is required with previous_actions: the steps of the previous chunk executed "
                              "between its inference start and this one's")
-        if rtc_method not in METHODS:
-            raise ValueError(f"rtc_method must be one of {METHODS}, got {rtc_method!r}")
-        if not rtc_max_guidance >= 0:
-            raise ValueError(f"rtc_max_guidance must be >= 0, got {rtc_max_guidance}")
+        if not isinstance(rtc_method, str) or rtc_method not in METHODS:
+            raise ValueError(f"rtc_method must be one of {METHODS}, got {rtc_method!r:.60}")
+        check_rtc_inputs("previous_actions", previous_actions, rtc_max_guidance)
         prefix = chunk_prefix(previous_actions.to(self.device), inference_delay, execution_horizon, rtc_schedule)
         longest = int(prefix.committed.sum(dim=1).max())
         if rtc_method == "conditioning" and longest > config.rtc_max_delay:
