@@ -11,6 +11,9 @@ CUDA allocator's peak on GPU, the process's peak resident set size (sampled ever
     pi0-torch bench --side-by-side                      # against transformers' PI0, identical weights
     pi0-torch bench --loading                           # peak RSS of from_pretrained on a full-size bf16 checkpoint
     pi0-torch bench --fast --compile                    # π0-FAST decoding (tokens/s, ms per chunk) after π0's rows
+
+bfloat16 rows are skipped, with a note, on a device without native bfloat16 matmuls ([`bf16_unsupported`]): there
+bfloat16 is emulated, many times slower than float32, and its rows would time the emulation.
 """
 
 from __future__ import annotations
@@ -18,6 +21,7 @@ from __future__ import annotations
 import argparse
 import gc
 import statistics
+import sys
 import tempfile
 import threading
 import time
@@ -35,6 +39,7 @@ from pi0_torch.models.modeling_pi0 import PI0ForActionGeneration
 from pi0_torch.models.modeling_pi0_fast import PI0FastForActionGeneration
 
 TEXT_TOKENS = 48
+BF16_MAX_SLOWDOWN = 4.0  # a bfloat16 matmul this many times slower than the float32 one is emulated
 
 
 # -- measuring ------------------------------------------------------------------------------------------------------------
@@ -120,6 +125,25 @@ def matmul_throughput(device: torch.device, dtype: torch.dtype, size: int | None
     b = torch.randn(size, size, device=device, dtype=dtype)
     timing = time_call(lambda: a @ b, device, repeats)
     return 2 * size**3 / timing.minimum
+
+
+def bf16_unsupported(device: torch.device, size: int = 512, repeats: int = 3) -> str | None:
+    """Why `device` cannot run bfloat16 natively (None when it can). On CUDA, torch knows; on a CPU, a bfloat16
+    matmul is timed against a float32 one: without AVX512-BF16 / AMX (x86) or BF16 (Arm) instructions it is
+    emulated, and more than `BF16_MAX_SLOWDOWN` times slower."""
+    if device.type == "cuda":
+        return None if torch.cuda.is_bf16_supported(including_emulation=False) else \
+            f"{torch.cuda.get_device_name(device)} has no native bfloat16"
+    if device.type != "cpu":
+        return None
+    a, b = torch.randn(size, size), torch.randn(size, size)
+    a16, b16 = a.bfloat16(), b.bfloat16()
+    float32_times, bfloat16_times = time_alternating([lambda: a @ b, lambda: a16 @ b16], device, repeats)
+    slowdown = min(bfloat16_times) / min(float32_times)
+    if slowdown <= BF16_MAX_SLOWDOWN:
+        return None
+    return (f"this CPU has no native bfloat16 matmul (a {size} x {size} one took {slowdown:.0f}x the float32 time; "
+            "it needs AVX512-BF16 or AMX on x86, BF16 on Arm)")
 
 
 def generate_flops(config: PI0Config, cameras: int, batch: int, text_tokens: int = TEXT_TOKENS, steps: int | None = None) -> float:
@@ -287,7 +311,8 @@ def bench_side_by_side(args: argparse.Namespace, device: torch.device) -> None:
     their_inputs = transformers_pi0_inputs(inputs, config)
     eager_sample = theirs.sample_actions
     modes = [(mode, torch.float32, arguments) for mode, arguments in generate_modes(args.compile, device).items()]
-    modes.append(("eager", torch.bfloat16, None))  # last: the weights are rounded to bf16 in place
+    if not args.bf16_note:
+        modes.append(("eager", torch.bfloat16, None))  # last: the weights are rounded to bf16 in place
     print(f"{'mode':10s} {'dtype':9s} {'ours ms':>15s} {'transformers ms':>17s} {'speedup':>8s} {'max |diff|':>11s}")
     for label, dtype, compile_arguments in modes:  # both models compiled alike
         ours.compile_sampling(**(compile_arguments if compile_arguments is not None else {"disable": True}))
@@ -353,28 +378,39 @@ def _csv(kind: Callable[[str], object]) -> Callable[[str], list]:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--presets", type=_csv(str), default=["pi0_small", "pi0_medium"], help=f"comma list of {preset_names()}")
-    parser.add_argument("--dtypes", type=_csv(str), default=["float32", "bfloat16"], help="comma list: float32,bfloat16")
-    parser.add_argument("--cameras", type=_csv(int), default=[1, 3])
-    parser.add_argument("--batches", type=_csv(int), default=[1, 8])
-    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
-    parser.add_argument("--repeats", type=int, default=5)
+    parser.formatter_class = argparse.ArgumentDefaultsHelpFormatter  # --help shows every default
+    parser.add_argument("--presets", type=_csv(str), default="pi0_small,pi0_medium", help=f"comma list of {preset_names()}")
+    parser.add_argument("--dtypes", type=_csv(str), default="float32,bfloat16",
+                        help="comma list of float32, bfloat16 (bfloat16 is skipped, with a note, where the device "
+                             "has no native bfloat16)")
+    parser.add_argument("--cameras", type=_csv(int), default="1,3", help="comma list of camera counts")
+    parser.add_argument("--batches", type=_csv(int), default="1,8", help="comma list of batch sizes")
+    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu", help="torch device")
+    parser.add_argument("--repeats", type=int, default=5, help="timed runs per row, after warm-up")
     parser.add_argument("--compile", action="store_true", help="also time compiled sampling (and on CUDA, compiled as one CUDA graph)")
     parser.add_argument("--train", action="store_true", help="also time a training step")
     parser.add_argument("--side-by-side", action="store_true", help="also compare with transformers' PI0")
-    parser.add_argument("--side-by-side-preset", default="pi0_medium")
+    parser.add_argument("--side-by-side-preset", default="pi0_medium", help="preset of --side-by-side")
     parser.add_argument("--loading", action="store_true", help="also measure from_pretrained peak RSS")
-    parser.add_argument("--loading-preset", default="pi0")
+    parser.add_argument("--loading-preset", default="pi0", help="preset of --loading")
     parser.add_argument("--tmp-dir", default=None, help="where --loading writes its checkpoint")
-    parser.add_argument("--skip-generate", action="store_true")
+    parser.add_argument("--skip-generate", action="store_true", help="leave out the generate_actions table")
     parser.add_argument("--fast", action="store_true", help="also time π0-FAST decoding (generate_tokens)")
-    parser.add_argument("--fast-presets", type=_csv(str), default=["pi0_fast_small", "pi0_fast_medium"],
+    parser.add_argument("--fast-presets", type=_csv(str), default="pi0_fast_small,pi0_fast_medium",
                         help=f"comma list of {fast_preset_names()}")
     parser.add_argument("--fast-tokens", type=int, default=60, help="tokens decoded per π0-FAST chunk (no EOS stop)")
 
 
 def run(args: argparse.Namespace) -> int:
     device = torch.device(args.device)
+    unknown = sorted(set(args.dtypes) - {"float32", "bfloat16"})
+    if unknown:
+        print(f"pi0-torch bench: error: --dtypes: expected float32 and/or bfloat16, got {', '.join(unknown)}", file=sys.stderr)
+        return 2
+    args.bf16_note = bf16_unsupported(device) if "bfloat16" in args.dtypes or args.side_by_side else None
+    if args.bf16_note:
+        print(f"bfloat16 rows skipped: {args.bf16_note}")
+        args.dtypes = [dtype for dtype in args.dtypes if dtype != "bfloat16"]
     with torch.inference_mode(False):
         if not args.skip_generate:
             bench_generate(args, device)

@@ -42,3 +42,22 @@ def test_fast_decoding_table(capsys: pytest.CaptureFixture[str]) -> None:
     assert len(rows) == 1, out
     chunk_ms, prefill_ms, _, _ = rows[0]
     assert float(chunk_ms) > 0 and float(prefill_ms) > 0
+
+
+def test_bfloat16_is_skipped_with_a_note_where_the_device_has_no_native_bfloat16(
+    capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The probe times a bf16 matmul against a float32 one; here every slowdown counts as emulation, so the bf16
+    rows (which would time the emulation for minutes) are left out with a one-line note."""
+    monkeypatch.setattr(benchmark, "BF16_MAX_SLOWDOWN", 0.0)
+    out = bench(capsys, "--presets", "pi0_small", "--dtypes", "float32,bfloat16", "--cameras", "1", "--batches", "1")
+    assert re.search(r"^bfloat16 rows skipped: this CPU has no native bfloat16 matmul \(a 512 x 512 one took \d+x the "
+                     r"float32 time", out, re.MULTILINE), out
+    assert "measured matmul ceiling: float32 " in out and "bfloat16 " not in out.split("measured matmul ceiling")[1]
+
+
+def test_help_shows_the_defaults(capsys: pytest.CaptureFixture[str]) -> None:
+    parser = argparse.ArgumentParser()
+    benchmark.add_arguments(parser)
+    text = " ".join(parser.format_help().split())
+    assert "(default: float32,bfloat16)" in text and "(default: pi0_small,pi0_medium)" in text and "(default: 1,8)" in text
