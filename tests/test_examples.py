@@ -22,7 +22,7 @@ def test_quickstart_runs(capsys: pytest.CaptureFixture[str]) -> None:
 def test_demo_reproduces_the_recorded_closed_loop_success(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """`make demo` / `pi0-torch demo` (`examples/demo.py` wraps `pi0_torch.demo`): the shipped policy acts in closed
     loop; its episodes are the ones recorded when the checkpoint was made (same seeds, same noise seeds)."""
-    from pi0_torch.demo import DEFAULT_POLICY, main
+    from pi0_torch.demo import demo_policy_dir, main
 
     threads = torch.get_num_threads()
     try:
@@ -30,7 +30,7 @@ def test_demo_reproduces_the_recorded_closed_loop_success(tmp_path: Path, capsys
     finally:
         torch.set_num_threads(threads)  # the demo runs on one thread
     out = capsys.readouterr().out
-    recorded = json.loads((DEFAULT_POLICY / "demo_metrics.json").read_text())["closed_loop"]
+    recorded = json.loads((demo_policy_dir() / "demo_metrics.json").read_text())["closed_loop"]
     for env_id in ("pi0_torch/Reach-v0", "pi0_torch/PickPlace-v0"):
         shown = float(re.search(rf"{re.escape(env_id)}\s+([0-9.]+)%", out).group(1)) / 100
         first_ten = recorded[env_id]["successes"][:10]
@@ -40,12 +40,14 @@ def test_demo_reproduces_the_recorded_closed_loop_success(tmp_path: Path, capsys
 
 
 def test_evaluate_notebook_runs(tmp_path: Path) -> None:
-    """`examples/evaluate.ipynb` executes top to bottom (nbclient, a real kernel) and shows its table."""
+    """`examples/evaluate.ipynb` executes top to bottom (nbclient, a real kernel) and shows its table; nothing is
+    written to stderr (with ipywidgets installed, as the notebook asks, tqdm has no IProgress warning)."""
     nbformat = pytest.importorskip("nbformat")
     nbclient = pytest.importorskip("nbclient")
     notebook = nbformat.read(EXAMPLES / "evaluate.ipynb", as_version=4)
     nbclient.NotebookClient(notebook, timeout=600, kernel_name="python3", resources={"metadata": {"path": str(tmp_path)}}).execute()
     outputs = [output for cell in notebook.cells if cell.cell_type == "code" for output in cell.get("outputs", [])]
+    assert [output for output in outputs if output.get("name") == "stderr"] == []
     assert any("image/png" in output.get("data", {}) for output in outputs)  # the rollout strip, inline
     table = outputs[-1]["data"]["text/plain"]
     assert "pi0_torch/PickPlace-v0" in table and "expert" in table and "random" in table

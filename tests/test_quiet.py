@@ -47,7 +47,7 @@ def test_a_notebook_cell_that_loads_and_runs_a_model_shows_nothing(tmp_path: Pat
     pytest.importorskip("ipykernel")
     config = PI0Config.from_preset("pi0_small")
     PI0ForActionGeneration(config).save_pretrained(tmp_path / "model")
-    imports = "import torch, transformers"  # tqdm warns here when the kernel has no ipywidgets: not ours to hide
+    imports = "import torch, transformers"  # no IProgress warning from tqdm: [dev] brings ipywidgets
     cell = f"""from pi0_torch import PI0ForActionGeneration
 model = PI0ForActionGeneration.from_pretrained({str(tmp_path / "model")!r}).eval()
 c = model.config
@@ -57,5 +57,5 @@ with torch.no_grad():
         attention_mask=torch.ones(1, 8, dtype=torch.bool), state=torch.zeros(1, c.action_dim), num_steps=2)"""
     notebook = nbformat.v4.new_notebook(cells=[nbformat.v4.new_code_cell(source) for source in (imports, cell, "tuple(chunk.shape)")])
     nbclient.NotebookClient(notebook, timeout=600, kernel_name="python3", resources={"metadata": {"path": str(tmp_path)}}).execute()
-    assert notebook.cells[1].outputs == []
+    assert notebook.cells[0].outputs == [] and notebook.cells[1].outputs == []
     assert notebook.cells[2].outputs[0]["data"]["text/plain"] == f"(1, {config.action_horizon}, {config.action_dim})"
