@@ -230,6 +230,9 @@ def test_mismatches_are_named() -> None:
                                                   env_kwargs={"wrist_camera": False})).episodes == 1
     with pytest.raises(ValueError, match=r"unknown environment id 'pi0_torch/Nope-v0'; known: pi0_torch/Conveyor-v0"):
         evaluate(ScriptedPolicy("expert"), EvalSettings(env="pi0_torch/Nope-v0", episodes=1))
+    with pytest.raises(ValueError, match=r"^the environment no_such_sim/Env-v0 needs the package no_such_sim, which is "
+                                         r"not installed: pip install no-such-sim$"):
+        evaluate(ScriptedPolicy("expert"), EvalSettings(env="no_such_sim/Env-v0", episodes=1))
     with pytest.raises(ValueError, match=r"rtc-trained needs a policy trained with --rtc-max-delay >= 5"):
         evaluate(LocalPolicy(tiny_policy()), EvalSettings(env="pi0_torch/Reach-v0", episodes=1,
                                                            execution="rtc-trained", inference_delay=5, replan_steps=2))
@@ -240,7 +243,7 @@ def test_mismatches_are_named() -> None:
 
 def test_eval_command_on_gym_pusht(tmp_path: Path) -> None:
     """`pi0-torch eval` end to end on LeRobot's PushT simulator (pygame rendering off-screen): a few steps, video,
-    PNG strip and eval.json; an unknown id is one line."""
+    PNG strip and eval.json; an id whose package is not installed is one line naming it."""
     pytest.importorskip("gym_pusht")
     policy = tiny_policy(action_dim=2, low=0.0, high=512.0)
     policy.model.save_pretrained(tmp_path / "policy")
@@ -260,4 +263,5 @@ def test_eval_command_on_gym_pusht(tmp_path: Path) -> None:
     assert (tmp_path / "out" / "rollout_1000000.png").stat().st_size > 0
     bad = subprocess.run([*command[:6], "--env", "gym_nothing/Nope-v0"], capture_output=True, text=True, env=env,
                          timeout=120, check=False)
-    assert bad.returncode == 2 and bad.stderr.strip().count("\n") == 0 and "unknown environment id" in bad.stderr
+    assert bad.returncode == 2 and bad.stderr.strip().count("\n") == 0
+    assert "needs the package gym_nothing, which is not installed: pip install gym-nothing" in bad.stderr

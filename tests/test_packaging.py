@@ -1,0 +1,155 @@
+"""How the package installs and starts: every third-party import declared (core or its extra), a missing extra is
+one line, `import pi0_torch` and `pi0-torch --help` import no torch, AutoModel knows the models, every command's
+help works, and the shipped policy has a name that works from anywhere. (`.ci/install-check` does the same from a
+wheel in a clean virtualenv.)"""
+
+from __future__ import annotations
+
+import ast
+import importlib
+import re
+import subprocess
+import sys
+import tomllib
+from pathlib import Path
+
+import pytest
+
+from pi0_torch.cli import COMMANDS, main
+from pi0_torch.utils.extras import EXTRAS, MissingExtraError, require_extra
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGE = ROOT / "pi0_torch"
+DISTRIBUTIONS = {"PIL": "pillow"}  # import name -> pip name, where they differ
+LAZY_PACKAGES = ("pi0_torch", "pi0_torch.models", "pi0_torch.processing", "pi0_torch.runtime", "pi0_torch.data",
+                 "pi0_torch.training", "pi0_torch.conversion")
+
+
+def _requirement_name(requirement: str) -> str:
+    return re.split(r"[<>=!~\[; ]", requirement, maxsplit=1)[0].lower().replace("_", "-")
+
+
+def _python(code: str, cwd: Path) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-c", code], cwd=cwd, capture_output=True, text=True, check=False)
+
+
+def test_every_third_party_import_is_declared_in_the_core_or_an_extra() -> None:
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    core = {_requirement_name(r) for r in project["dependencies"]}
+    extras = {name: {_requirement_name(r) for r in requirements} for name, requirements in project["optional-dependencies"].items()}
+    declared = core | set().union(*(extras[name] for name in EXTRAS))  # not [dev]: the package never needs test tools
+    imported: dict[str, set[str]] = {}
+    for path in PACKAGE.rglob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Import):
+                names = [alias.name for alias in node.names]
+            elif isinstance(node, ast.ImportFrom) and not node.level and node.module:
+                names = [node.module]
+            else:
+                continue
+            for name in names:
+                top = name.split(".")[0]
+                if top not in sys.stdlib_module_names and top != "pi0_torch":
+                    imported.setdefault(top, set()).add(str(path.relative_to(ROOT)))
+    undeclared = {m: sorted(files) for m, files in imported.items()
+                  if DISTRIBUTIONS.get(m, m).lower().replace("_", "-") not in declared}
+    assert undeclared == {}
+    assert {"tokenizers", "huggingface_hub", "torch", "transformers"} <= set(imported)  # the scan sees imports
+    for extra, modules in EXTRAS.items():  # utils/extras.py checks exactly what pyproject.toml installs
+        assert {m.replace("_", "-") for m in modules} == extras[extra], extra
+    assert extras["all"] == {"pi0-torch"} and "pi0-torch" in extras["dev"]
+
+
+def test_import_and_help_import_neither_torch_nor_transformers(tmp_path: Path) -> None:
+    done = _python("import sys, pi0_torch, pi0_torch.cli\n"
+                   "from pi0_torch.cli import build_parser\n"
+                   "build_parser([])\n"
+                   "print(sorted(m for m in ('torch', 'transformers', 'numpy') if m in sys.modules))", tmp_path)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "[]"
+
+
+@pytest.mark.parametrize("package", LAZY_PACKAGES)
+def test_lazy_packages_export_every_public_name(package: str) -> None:
+    """Each name resolves to the object of the module it names, `dir()` lists it, and the `TYPE_CHECKING` imports
+    (what editors and type checkers see) are exactly the exported names from the same modules."""
+    module = importlib.import_module(package)
+    exports = module._EXPORTS
+    assert set(module.__all__) - {"__version__"} == set(exports)
+    for name, source in exports.items():
+        assert getattr(module, name) is getattr(importlib.import_module(source), name)
+        assert name in dir(module)
+    with pytest.raises(AttributeError, match="has no attribute 'nothing_here'"):
+        module.nothing_here  # noqa: B018
+    tree = ast.parse(Path(module.__file__).read_text())
+    (guard,) = [node for node in tree.body if isinstance(node, ast.If) and ast.unparse(node.test) == "TYPE_CHECKING"]
+    typed = {alias.name: node.module for node in guard.body for alias in node.names}
+    assert typed == exports
+
+
+@pytest.mark.parametrize("transformers_first", [False, True])
+def test_auto_classes_know_the_models_once_pi0_torch_is_imported(tmp_path: Path, transformers_first: bool) -> None:
+    """`import pi0_torch` registers the configs with AutoConfig (when transformers loads its registry, or at once
+    if it already has) and the models with AutoModel (when a config exists): either import order works."""
+    imports = ["import pi0_torch", "from transformers import AutoConfig, AutoModel"]
+    code = "\n".join([*(reversed(imports) if transformers_first else imports),
+                      "from pi0_torch import PI0FastConfig",
+                      "folder = pi0_torch.demo_policy_dir()",
+                      "print(type(AutoConfig.from_pretrained(folder)).__name__)",
+                      "print(type(AutoModel.from_pretrained(folder)).__name__)",
+                      "print(type(AutoModel.from_config(PI0FastConfig.from_preset('pi0_fast_small'))).__name__)"])
+    done = _python(code, tmp_path)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split() == ["PI0Config", "PI0ForActionGeneration", "PI0FastForActionGeneration"]
+
+
+@pytest.mark.parametrize("command", [None, *COMMANDS])
+def test_help_of_every_command(command: str | None, capsys: pytest.CaptureFixture[str]) -> None:
+    """`--help` formats (argparse %-formats help strings: a bare % once broke the top level's)."""
+    with pytest.raises(SystemExit) as exit_:
+        main(["--help"] if command is None else [command, "--help"])
+    assert exit_.value.code == 0
+    out = capsys.readouterr().out
+    assert out.startswith("usage: ") and (command is None or f" {command} " in out.splitlines()[0] + " ")
+    if command is None:
+        assert "95% intervals" in out and all(name in out for name in COMMANDS)
+
+
+@pytest.mark.parametrize(("command", "missing", "extra"), [
+    (["serve", "--model", "demo"], "websockets", "serve"),
+    (["train", "--help"], "datasets", "train"),
+    (["demo"], "gymnasium", "envs"),
+    (["eval", "--policy", "expert", "--env", "pi0_torch/Reach-v0"], "gymnasium", "envs"),
+    (["demos", "--help"], "pandas", "train"),
+])
+def test_a_command_without_its_extra_says_so_in_one_line(tmp_path: Path, command: list[str], missing: str, extra: str) -> None:
+    """A module hidden from this process (as if not installed) makes the command stop with one line naming it and the
+    extra that installs it, before any work."""
+    done = _python(f"import sys\nsys.modules[{missing!r}] = None\n"  # import and find_spec both see it as absent
+                   f"from pi0_torch.cli import main\nsys.exit(main({command!r}))", tmp_path)
+    assert (done.returncode, done.stdout) == (1, "")
+    assert done.stderr == f"pi0-torch {command[0]} needs {missing}: pip install 'pi0-torch[{extra}]'\n"
+
+
+def test_require_extra_names_the_feature_and_the_extra() -> None:
+    with pytest.raises(MissingExtraError) as error:
+        require_extra("serve", "pi0_torch.runtime.serving", modules=("websockets", "no_such_module_here"))
+    assert str(error.value) == "pi0_torch.runtime.serving needs no_such_module_here: pip install 'pi0-torch[serve]'"
+    assert isinstance(error.value, ImportError) and error.value.name == "no_such_module_here"
+    require_extra("envs", "the tabletop envs")  # installed here: nothing raised
+    with pytest.raises(ValueError, match="unknown extra 'gpu'"):
+        require_extra("gpu", "x")
+
+
+def test_the_shipped_policy_is_named_from_anywhere(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """`demo` (eval / serve / demo) and `pi0_torch.demo_policy_dir()` work from any folder; the clone-relative path
+    of older docs fails at once, pointing at them, instead of waiting on the hub."""
+    from pi0_torch import PI0ForActionGeneration, demo_policy_dir
+    from pi0_torch.runtime.rollout import LocalPolicy, load_policy
+
+    monkeypatch.chdir(tmp_path)
+    policy = load_policy("demo", connections=1)
+    assert isinstance(policy, LocalPolicy) and policy.source == demo_policy_dir()
+    assert policy.metadata["action_horizon"] == 16
+    with pytest.raises(FileNotFoundError, match=r"pi0_torch.demo_policy_dir\(\) \(--policy demo"):
+        PI0ForActionGeneration.from_pretrained("pi0_torch/demo_policy")
