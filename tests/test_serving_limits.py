@@ -29,7 +29,7 @@ import websockets.sync.client
 from test_serving import ACTION_DIM, REPO_ROOT, STATE_DIM, client_python, run_client, save_random_model  # noqa: F401
 from websockets.exceptions import InvalidStatus
 
-from pi0_torch.runtime.serving import PolicyServer, ServerLimits, pack_message, unpack_message
+from pi0_torch.runtime.serving import MessageError, PolicyServer, ServerLimits, pack_message, unpack_message
 
 # websockets >= 17 warns when connect() is not used as a context manager; these clients are closed explicitly
 pytestmark = pytest.mark.filterwarnings("ignore:connect\\(\\) must be used as a context manager:DeprecationWarning")
@@ -285,3 +285,118 @@ def test_oversized_requests_cost_neither_memory_nor_other_clients_latency(server
     assert growth < 400, f"server RSS grew by {growth:.0f} MiB"
     # generous (CPU is shared with the attack and, on CI, with other jobs); before: 33 ms -> 21 s (issue 17)
     assert max(attacked) < 3 * max(quiet) + 10.0, (quiet, attacked)
+
+
+def amplifying_frame(outer: int = 10_000, inner: int = 1_600) -> bytes:
+    """Issue 28.3's frame: a map whose `images` is a msgpack array of `outer` arrays of `inner` empty arrays. Every
+    container is under the 10,000-item limit and the frame (15.3 MiB) under the 16 MiB one, but it decodes into 16
+    million lists: 13 s with the event loop blocked and +1.0 GB before."""
+    inner_array = b"\xdc" + inner.to_bytes(2, "big") + b"\x90" * inner
+    return b"\x81\xa6images" + b"\xdd" + outer.to_bytes(4, "big") + inner_array * outer
+
+
+def test_a_frame_that_decodes_into_millions_of_objects_costs_milliseconds(server: ServeProcess) -> None:
+    """Three clients send the amplifying frame while `/healthz` is polled and a good client measures its latency:
+    each is refused within a second naming the bound, the health check and the good client do not wait behind them,
+    and the server's memory does not grow by the decoded size (before: 12.8 s health check, 13.7 s good client,
+    +1.0 GB; three clients +2.3 GB and 38.7 s)."""
+    frame = amplifying_frame()
+    assert 15 * 2**20 < len(frame) < 16 * 2**20
+    good = pack_message(good_observation())
+    health_s: list[float] = []
+    refusals: list[tuple[float, str]] = []
+    stop = threading.Event()
+
+    def poll_health() -> None:
+        while not stop.is_set():
+            start = time.monotonic()
+            with urllib.request.urlopen(f"http://127.0.0.1:{server.port}/healthz", timeout=60) as response:
+                assert response.status == 200
+            health_s.append(time.monotonic() - start)
+            time.sleep(0.01)
+
+    def attack() -> None:
+        with server.connect() as ws:
+            for _ in range(3):
+                start = time.monotonic()
+                reply = ask(ws, frame)
+                refusals.append((time.monotonic() - start, reply))
+
+    with server.connect() as ws:
+        ask(ws, good)
+        quiet = []
+        for _ in range(4):
+            start = time.monotonic()
+            ask(ws, good)
+            quiet.append(time.monotonic() - start)
+        rss_before, peak = server.rss_mib, [server.rss_mib]
+
+        def sample() -> None:
+            while not stop.is_set():
+                with contextlib.suppress(psutil.Error):
+                    peak[0] = max(peak[0], server.rss_mib)
+                time.sleep(0.02)
+
+        helpers = [threading.Thread(target=poll_health), threading.Thread(target=sample)]
+        attackers = [threading.Thread(target=attack) for _ in range(3)]
+        for thread in helpers + attackers:
+            thread.start()
+        attacked = []
+        try:
+            while any(thread.is_alive() for thread in attackers) or not attacked:
+                start = time.monotonic()
+                assert ask(ws, good)["actions"].shape == (50, ACTION_DIM)
+                attacked.append(time.monotonic() - start)
+        finally:
+            for thread in attackers:
+                thread.join(timeout=120)
+            stop.set()
+            for thread in helpers:
+                thread.join(timeout=60)
+    assert len(refusals) == 9
+    for seconds, reply in refusals:
+        assert isinstance(reply, str) and reply.startswith("invalid request: the message holds more than 100000 objects")
+    refused_s = sorted(seconds for seconds, _ in refusals)
+    growth = peak[0] - rss_before
+    print(f"\namplifying 15.3 MiB frames x 9 from 3 clients: refused in {1000 * refused_s[4]:.0f} ms p50 (max "
+          f"{1000 * refused_s[-1]:.0f} ms, round trip of the 15 MiB upload included); /healthz p50 "
+          f"{1000 * np.median(health_s):.0f} ms max {1000 * max(health_s):.0f} ms over {len(health_s)} checks; good client "
+          f"{1000 * np.median(quiet):.0f} ms quiet, {1000 * np.median(attacked):.0f} ms (max {1000 * max(attacked):.0f} ms) "
+          f"under attack; server RSS {rss_before:.0f} MiB, peak +{growth:.0f} MiB")
+    assert refused_s[-1] < 5.0 and max(health_s) < 2.0  # generous for a loaded 2-core machine; before: 13 s, 12.8 s
+    assert growth < 200, f"server RSS grew by {growth:.0f} MiB"  # before: +1.0 GB (one client), +2.3 GB (three)
+    assert max(attacked) < 3 * max(quiet) + 2.0, (quiet, attacked)  # before: 13.7 s
+
+
+def test_two_authorization_headers_are_refused_in_one_line(server: ServeProcess) -> None:
+    """Issue 28.8: two `Authorization` headers gave HTTP 500 and a traceback in the server's log."""
+    with pytest.raises(InvalidStatus) as refused:
+        websockets.sync.client.connect(server.url, additional_headers=[("Authorization", f"Api-Key {API_KEY}"),
+                                                                       ("Authorization", f"Api-Key {API_KEY}")],
+                                       open_timeout=30)
+    assert refused.value.response.status_code == 401 and b"send one header" in refused.value.response.body
+    assert "refused: 2 Authorization headers, not one: API key" in server.log() and "Traceback" not in server.log()
+
+
+@pytest.mark.parametrize("shape", ["lists of empty lists", "lists of small ints", "maps of empty maps", "lists of maps of lists"])
+def test_the_object_bound_stops_any_amplifying_shape_within_milliseconds(shape: str) -> None:
+    """Every way of making a frame within the per-container limits decode into millions of objects stops at the
+    total bound, in milliseconds, whatever the nesting; an openpi observation stays far below it."""
+    count = 2_000
+    if shape == "lists of empty lists":
+        frame = amplifying_frame(outer=count, inner=count)
+    elif shape == "lists of small ints":
+        frame = b"\xdd" + count.to_bytes(4, "big") + (b"\xdc" + count.to_bytes(2, "big") + b"\x01" * count) * count
+    elif shape == "maps of empty maps":
+        keys = [b"\xa4" + f"{i:04x}".encode() for i in range(count)]
+        inner = b"\xde" + count.to_bytes(2, "big") + b"".join(key + b"\x80" for key in keys)
+        frame = b"\xdf" + count.to_bytes(4, "big") + b"".join(key + inner for key in keys)
+    else:  # lists of maps of lists
+        keys = b"".join(b"\xa4" + f"{i:04x}".encode() + b"\x92\x90\x90" for i in range(100))
+        frame = b"\xdc" + count.to_bytes(2, "big") + (b"\xde" + (100).to_bytes(2, "big") + keys) * count
+    start = time.monotonic()
+    with pytest.raises(MessageError, match="more than 100000 objects in lists and maps"):
+        unpack_message(frame, max_items=10_000, max_objects=ServerLimits().max_objects)
+    assert time.monotonic() - start < 1.0
+    observation = {**good_observation(), "previous_actions": np.zeros((50, ACTION_DIM), np.float32), "noise_seed": 3}
+    assert unpack_message(pack_message(observation), max_items=10_000, max_objects=1_000)["noise_seed"] == 3

@@ -14,6 +14,12 @@ Two ways to make the new chunk agree with `Y` (conventions of `pi0_torch.models.
 - *conditioning* (training-time RTC, Black, Ren, Equi, Levine 2025): a model trained with simulated delays takes the
   first `d` actions as given (flow time 0 per token) and only integrates the rest; no guidance cost.
 
+Bounds ([`check_rtc_inputs`]): the previous chunk must lie within `MAX_PREVIOUS_ACTION` of zero in the model's
+normalized action space (a chunk a policy returned lies within a few units there: z-scores, or the q01..q99 span
+mapped to [-1, 1]; a value of 1e3 is not one, and guidance toward it returned actions of 980 even past the overlap,
+toward 1e20 all NaN), and the guidance clip `beta` within `[0, MAX_GUIDANCE]` (inf or 1e30 returned NaN; the paper
+uses 5).
+
 ```python
 >>> import torch
 >>> prefix = chunk_prefix(torch.arange(8.0).view(1, 8, 1), inference_delay=2, execution_horizon=3)
@@ -31,12 +37,17 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import torch
+
+from pi0_torch.utils.validation import check_float
 
 SCHEDULES = ("exp", "linear", "ones", "hard")
 METHODS = ("guidance", "conditioning")
 DEFAULT_MAX_GUIDANCE = 5.0  # the paper's beta
+MAX_GUIDANCE = 100.0  # 20 times the paper's beta; 1e3 still behaved, 1e30 gave NaN
+MAX_PREVIOUS_ACTION = 100.0  # |previous action| in the model's normalized space (see the module docstring)
 
 
 @dataclass
@@ -46,6 +57,20 @@ class ChunkPrefix:
     target: torch.Tensor  # [B, H, A] float32: prev[s + i] on the overlap, 0 after it
     weights: torch.Tensor  # [B, H] float32 soft mask W
     committed: torch.Tensor  # [B, H] bool: i < d, the steps executed while this chunk is computed
+
+
+def check_rtc_inputs(name: str, previous_actions: Any, max_guidance: Any) -> None:
+    """Refuse (`ValueError` naming the argument) a previous chunk (model space, finite) beyond
+    `MAX_PREVIOUS_ACTION` or a guidance clip outside `[0, MAX_GUIDANCE]`: inputs that drive the guided flow to huge
+    or NaN actions."""
+    check_float("rtc_max_guidance", max_guidance, minimum=0.0, maximum=MAX_GUIDANCE)
+    values = torch.as_tensor(previous_actions)
+    largest = float(values.abs().max()) if values.numel() else 0.0
+    if largest > MAX_PREVIOUS_ACTION:
+        where = tuple(int(i) for i in (values.abs() == values.abs().max()).nonzero()[0])
+        raise ValueError(f"{name}: values up to {largest:.3g} (at index {where}) in the model's normalized action "
+                         f"space; a chunk this policy returned lies within ±{MAX_PREVIOUS_ACTION:g} (wrong units, "
+                         "another robot's chunk, or a corrupted message?)")
 
 
 def per_sample_steps(value: int | torch.Tensor, batch: int, name: str, device: torch.device) -> torch.Tensor:

@@ -445,7 +445,7 @@ class PI0Processor:
             "state": self._pad(normalized_state),
         }
         if sample.get("actions") is not None:
-            encoded["actions"] = self._encode_actions(sample["actions"], state, where)
+            encoded["actions"] = self._encode_actions(sample["actions"], state, f"{where}actions")
         return encoded
 
     def _prompt(self, sample: Mapping[str, Any], where: str) -> str:
@@ -483,21 +483,28 @@ class PI0Processor:
             masks.append(name in present)
         return np.stack(frames), np.asarray(masks, bool)  # [C, 3, H, W], [C]
 
-    def _encode_actions(self, actions: Any, state: np.ndarray, where: str) -> np.ndarray:
+    def encode_actions(self, actions: Any, state: Any, name: str = "actions") -> np.ndarray:
+        """One chunk of robot actions `[horizon, action_dim_robot]` -> model space `[horizon, model_action_dim]`
+        (float32): converted, relative to the robot's raw `state` on the delta dims, normalized, padded. Errors name
+        the field `name` (e.g. a policy's `previous_actions`)."""
+        state = self._model_space_state(self._check_vector(state, "state", self.state_dim))
+        return self._encode_actions(actions, state, name)
+
+    def _encode_actions(self, actions: Any, state: np.ndarray, name: str) -> np.ndarray:
         """Robot actions `[horizon, action_dim_robot]` -> model targets; `state` is already in model space."""
-        values = _as_numeric(actions, f"{where}actions")
+        values = _as_numeric(actions, name)
         horizon = self.action_horizon if self.action_horizon is not None else "horizon"
         if values.ndim != 2 or values.shape[1] != self.action_dim_robot or (
             self.action_horizon is not None and values.shape[0] != self.action_horizon
         ):
-            raise ValueError(f"{where}actions: expected shape [{horizon}, {self.action_dim_robot}], got {values.shape}")
-        check_finite(f"{where}actions", values)
+            raise ValueError(f"{name}: expected shape [{horizon}, {self.action_dim_robot}], got {values.shape}")
+        check_finite(name, values)
         if self._conversion is not None:
             values = self._conversion.actions_to_model(values)
         if self.delta_action_mask is not None:
             values = apply_delta(values, state, self.delta_action_mask)
         normalized = self._pad(self._normalize(values, self._action_stats))
-        check_finite(f"{where}actions (normalized)", normalized)
+        check_finite(f"{name} (normalized)", normalized)
         return normalized
 
     def _check_vector(self, value: Any, name: str, dim: int) -> np.ndarray:

@@ -26,8 +26,6 @@ This is the object a policy server wraps, and the shortest way to run a saved mo
 from __future__ import annotations
 
 import dataclasses
-import json
-import math
 import time
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -35,15 +33,19 @@ from typing import Any, ClassVar
 
 import numpy as np
 import torch
+from safetensors import SafetensorError
 
 from pi0_torch import __version__
 from pi0_torch.models.modeling_pi0 import PI0ForActionGeneration
-from pi0_torch.models.rtc import DEFAULT_MAX_GUIDANCE, METHODS, SCHEDULES
+from pi0_torch.models.configuration_pi0 import MAX_INFERENCE_STEPS, SIZE_LIMITS
+from pi0_torch.models.rtc import DEFAULT_MAX_GUIDANCE, MAX_GUIDANCE, METHODS, SCHEDULES, check_rtc_inputs
+from pi0_torch.runtime.action_safety import UnsafeActionsError, non_finite_count
 from pi0_torch.runtime.observation_formats import CHUNK_FIELDS, ObservationError
 from pi0_torch.processing.processing_pi0 import PI0Processor
-from pi0_torch.utils.validation import check_int
+from pi0_torch.utils.validation import check_float, check_int, first_line
 
 _DTYPES = {"float32": torch.float32, "bfloat16": torch.bfloat16}
+MAX_NOISE_SCALE = 10.0  # ten times the training noise; 1e30 gave NaN actions
 
 
 @dataclasses.dataclass
@@ -101,14 +103,19 @@ class PI0Policy:
             actions nearer the most likely chunk; a small policy that grasps imprecisely gains from it (the demo
             policy samples at `pi0_torch.demo.DEMO_NOISE_SCALE` = 0.1, docs/closed_loop.md, measured). 0 gives one
             deterministic chunk per observation.
-        compile: run sampling through `torch.compile` ([`PI0ForActionGeneration.compile_sampling`]), as one CUDA
-            graph on CUDA. The first chunk of each batch size compiles (tens of seconds): call [`warmup`] first.
+        compile: compile the model's repeated layers with `torch.compile` ([`PI0ForActionGeneration.compile_sampling`];
+            on CUDA the sampling also replays as a CUDA graph). The first chunk compiles (seconds): call [`warmup`].
+        cuda_graph: on CUDA, replay each chunk's sampling as one CUDA graph, captured by hand without a compiler
+            ([`PI0ForActionGeneration.capture_sampling`]); the first chunk of each batch size and prompt-length bucket
+            captures it (about two eager calls): call [`warmup`] first. Chunks guided by real-time chunking
+            ("guidance") run eagerly.
     """
 
     model_class: Any = PI0ForActionGeneration
     processor_class: Any = PI0Processor
 
     continues_chunks: ClassVar[bool] = True  # real-time chunking requests (see the class docstring)
+    max_num_steps: ClassVar[int] = MAX_INFERENCE_STEPS
 
     def __init__(
         self,
@@ -121,22 +128,20 @@ class PI0Policy:
         rtc_max_guidance: float = DEFAULT_MAX_GUIDANCE,
         rtc_schedule: str = "exp",
         noise_scale: float = 1.0,
+        cuda_graph: bool = False,
     ) -> None:
         self.model = model.eval()
-        if not (math.isfinite(noise_scale) and noise_scale >= 0):
-            raise ValueError(f"noise_scale must be a finite number >= 0, got {noise_scale}")
-        self.noise_scale = float(noise_scale)
+        self.noise_scale = check_float("noise_scale", noise_scale, minimum=0.0, maximum=MAX_NOISE_SCALE)
         self.rtc_method = rtc_method or ("conditioning" if getattr(model.config, "rtc_max_delay", 0) > 0 else "guidance")
         if self.rtc_method not in METHODS:
             raise ValueError(f"rtc_method must be one of {METHODS}, got {self.rtc_method!r}")
-        self.rtc_max_guidance = rtc_max_guidance
+        self.rtc_max_guidance = check_float("rtc_max_guidance", rtc_max_guidance, minimum=0.0, maximum=MAX_GUIDANCE)
         if rtc_schedule not in SCHEDULES:
             raise ValueError(f"rtc_schedule must be one of {SCHEDULES}, got {rtc_schedule!r}")
         self.rtc_schedule = rtc_schedule
         self.processor = processor
-        self.num_steps = num_steps if num_steps is not None else model.config.num_inference_steps
-        if self.num_steps < 1:
-            raise ValueError(f"num_steps must be >= 1, got {self.num_steps}")
+        self.num_steps = check_int("num_steps", num_steps if num_steps is not None else model.config.num_inference_steps,
+                                   minimum=1, maximum=self.max_num_steps)
         self.device = next(model.parameters()).device
         self.generator = torch.Generator(self.device).manual_seed(seed) if seed is not None else None
         if list(processor.camera_names) != list(model.config.camera_names):
@@ -144,6 +149,10 @@ class PI0Policy:
                              f"{list(model.config.camera_names)}")
         if compile:
             model.compile_sampling(**({"mode": "reduce-overhead"} if self.device.type == "cuda" else {}))
+        if cuda_graph:
+            if self.device.type != "cuda":
+                raise ValueError(f"cuda_graph needs a CUDA device; this policy runs on {self.device}")
+            model.capture_sampling()
 
     @classmethod
     def from_pretrained(
@@ -158,17 +167,20 @@ class PI0Policy:
         rtc_method: str | None = None,
         rtc_schedule: str = "exp",
         noise_scale: float = 1.0,
+        cuda_graph: bool = False,
     ) -> PI0Policy:
         """Load the model and processor saved in `directory` (by `save_pretrained` or the converter).
 
         `device` defaults to CUDA when available, else CPU; `dtype` ("float32" / "bfloat16" or a torch dtype)
         defaults to bfloat16 on CUDA and float32 on CPU. `default_prompt` replaces the processor's (used for
-        observations without a prompt). `compile`, `rtc_method`, `rtc_schedule` and `noise_scale` as in the class (a
-        π0-FAST folder decodes tokens and takes no `noise_scale`).
+        observations without a prompt). `compile`, `cuda_graph`, `rtc_method`, `rtc_schedule` and `noise_scale` as in
+        the class (a π0-FAST folder decodes tokens: it takes no `noise_scale`, and `compile` gives its CUDA graphs).
         """
         if not Path(directory).is_dir():
             raise FileNotFoundError(f"model folder not found: {directory} (a folder written by save_pretrained or "
                                     "the openpi converter)")
+        if num_steps is not None:  # before loading: a bad value fails in a moment, not after the weights load
+            check_int("num_steps", num_steps, minimum=1, maximum=max(MAX_INFERENCE_STEPS, SIZE_LIMITS["max_decoding_steps"]))
         device = torch.device(device if device is not None else ("cuda" if torch.cuda.is_available() else "cpu"))
         if dtype is None:
             dtype = torch.bfloat16 if device.type == "cuda" else torch.float32
@@ -177,13 +189,20 @@ class PI0Policy:
                 raise ValueError(f"dtype must be one of {', '.join(_DTYPES)}, got {dtype!r}")
             dtype = _DTYPES[dtype]
         policy_class = _policy_class(directory) if cls is PI0Policy else cls
-        model = policy_class.model_class.from_pretrained(directory, dtype=dtype).to(device)
+        try:
+            model = policy_class.model_class.from_pretrained(directory, dtype=dtype).to(device)
+        except SafetensorError as error:  # truncated or foreign weights: one line naming the folder
+            raise ValueError(f"{directory}: the weights are not a readable safetensors file ({first_line(error)}); "
+                             "the folder is damaged (convert or copy it again)") from None
         overrides = {"default_prompt": default_prompt} if default_prompt is not None else {}
         processor = policy_class.processor_class.from_pretrained(directory, **overrides)
         if noise_scale != 1.0 and not policy_class.continues_chunks:
             raise ValueError(f"noise_scale applies to flow-matching π0 / π0.5 sampling; {directory} is a π0-FAST "
                              "model, which decodes tokens (see its temperature)")
-        options = (dict(rtc_method=rtc_method, rtc_schedule=rtc_schedule, noise_scale=noise_scale)
+        if cuda_graph and not policy_class.continues_chunks:
+            raise ValueError(f"{directory} is a π0-FAST model, which decodes token by token: compile=True replays its "
+                             "decoding steps as CUDA graphs")
+        options = (dict(rtc_method=rtc_method, rtc_schedule=rtc_schedule, noise_scale=noise_scale, cuda_graph=cuda_graph)
                    if policy_class.continues_chunks else {})
         return policy_class(model, processor, num_steps=num_steps, seed=seed, compile=compile, **options)
 
@@ -206,6 +225,7 @@ class PI0Policy:
             **({"noise_scale": self.noise_scale} if self.continues_chunks else {}),
             "default_prompt": self.processor.default_prompt,
             "device": str(self.device),
+            "cuda_graph": self.captured,
             "dtype": str(self.model.dtype).removeprefix("torch."),
             "real_time_chunking": {"methods": list(METHODS), "default_method": self.rtc_method,
                                    "guidance_schedule": self.rtc_schedule,
@@ -230,17 +250,16 @@ class PI0Policy:
         if chunk_fields and not self.continues_chunks:
             raise ObservationError(f"{', '.join(chunk_fields)}: this {self.model_type} policy decodes tokens; it does "
                                    "not continue chunks")
-        if previous is not None:  # into this observation's model space (delta actions relative to its state)
-            sample["actions"] = previous
+        continuation = None
         try:
             inputs = dict(self.processor(sample, return_tensors="pt"))
             raw_state = np.asarray(state, dtype=np.float32)
+            if previous is not None:  # into this observation's model space (delta actions relative to its state)
+                encoded = self.processor.encode_actions(previous, state, "previous_actions")
+                continuation = self._continuation(observation, torch.from_numpy(encoded)[None])
         except (ValueError, TypeError) as error:
-            raise ObservationError(str(error).replace("actions:", "previous_actions:")) from None
-        continuation = None
-        if previous is not None:
-            continuation = self._continuation(observation, inputs.pop("actions"))
-        elif any(observation.get(name) is not None for name in ("inference_delay", "execution_horizon")):
+            raise ObservationError(str(error)) from None
+        if previous is None and any(observation.get(name) is not None for name in ("inference_delay", "execution_horizon")):
             raise ObservationError("inference_delay / execution_horizon: given without previous_actions")
         seed = observation.get("noise_seed")
         if seed is not None:
@@ -249,9 +268,15 @@ class PI0Policy:
 
     def _continuation(self, observation: Mapping[str, Any], previous: torch.Tensor) -> ChunkContinuation:
         horizon = self.model.config.action_horizon
-        method = observation.get("rtc_method") or self.rtc_method
-        if method not in METHODS:
-            raise ObservationError(f"rtc_method: expected one of {list(METHODS)}, got {method!r}")
+        method = observation.get("rtc_method")
+        if isinstance(method, np.ndarray) and method.ndim == 0:
+            method = method.item()  # a numpy string scalar packed as a 0-d array
+        if method is None:
+            method = self.rtc_method
+        elif not isinstance(method, str) or method not in METHODS:
+            raise ObservationError(f"rtc_method: expected one of {list(METHODS)} (or no field: this policy's "
+                                   f"{self.rtc_method!r}), got {method!r:.60}")
+        check_rtc_inputs("previous_actions (normalized)", previous, self.rtc_max_guidance)
         executed = _step_count(observation.get("execution_horizon"), "execution_horizon", 0, horizon - 1)
         delay = _step_count(observation.get("inference_delay", 0), "inference_delay", 0, horizon - executed)
         if method == "conditioning" and delay > self.model.config.rtc_max_delay:
@@ -261,7 +286,10 @@ class PI0Policy:
 
     @torch.inference_mode()
     def infer_prepared(self, prepared: Sequence[PreparedObservation]) -> list[dict[str, Any]]:
-        """Run the model once on a batch of prepared observations; one action dict per observation."""
+        """Run the model once on a batch of prepared observations; one action dict per observation.
+
+        A chunk with NaN or inf (after unnormalizing) is never handed back: [`UnsafeActionsError`] names its cause,
+        and its `outcomes` hold the other observations' replies."""
         start = time.monotonic()
         actions: list[np.ndarray | None] = [None] * len(prepared)
         groups: dict[str | None, list[int]] = {}  # one model call per way of sampling
@@ -272,13 +300,34 @@ class PI0Policy:
             for index, chunk in zip(members, chunks):
                 actions[index] = chunk
         model_ms = (time.monotonic() - start) * 1000
-        return [
-            {
-                "actions": np.asarray(self.processor.postprocess_actions(chunk, state=p.state), dtype=np.float32),
-                "policy_timing": {"infer_ms": model_ms, "batch_size": len(prepared)},
-            }
-            for chunk, p in zip(actions, prepared)
-        ]
+        outcomes: list[dict[str, Any] | UnsafeActionsError] = []
+        for index, (chunk, p) in enumerate(zip(actions, prepared)):
+            robot = np.asarray(self.processor.postprocess_actions(chunk, state=p.state), dtype=np.float32)
+            bad = non_finite_count(robot)
+            if bad:
+                where = f"observation {index} of a batch of {len(prepared)}: " if len(prepared) > 1 else ""
+                outcomes.append(UnsafeActionsError(f"{where}the action chunk holds {bad} NaN/inf values and was "
+                                                   f"withheld; cause: {self._unsafe_cause(chunk, p)}"))
+            else:
+                outcomes.append({"actions": robot, "policy_timing": {"infer_ms": model_ms, "batch_size": len(prepared)}})
+        unsafe = [outcome for outcome in outcomes if isinstance(outcome, UnsafeActionsError)]
+        if unsafe:
+            raise UnsafeActionsError(str(unsafe[0]), outcomes)
+        return outcomes  # type: ignore[return-value]
+
+    def _unsafe_cause(self, chunk: np.ndarray, prepared: PreparedObservation) -> str:
+        """The likeliest reason an action chunk is not finite (model space `chunk`), for the error withholding it."""
+        if np.isfinite(chunk).all():
+            return "unnormalizing with the processor's action norm stats overflowed float32 (see its norm_stats.json)"
+        broken = next((name for name, value in self.model.named_parameters() if not bool(torch.isfinite(value).all())), None)
+        if broken is not None:
+            return f"the model's weights hold NaN/inf (the first: {broken})"
+        continuation = prepared.continuation
+        if continuation is not None and continuation.method == "guidance":
+            return (f"real-time chunking guidance diverged (rtc_max_guidance {self.rtc_max_guidance:g}, previous_actions "
+                    f"up to {float(continuation.previous_actions.abs().max()):.3g} in model space)")
+        return (f"the model returned NaN/inf from finite inputs ({str(self.model.dtype).removeprefix('torch.')} "
+                f"weights, noise_scale {getattr(self, 'noise_scale', 0.0):g})")
 
     def _generate(self, prepared: Sequence[PreparedObservation], method: str | None) -> np.ndarray:
         """One model call for observations sampled alike (plain, or continued with `method`)."""
@@ -324,15 +373,21 @@ class PI0Policy:
         return self.model.sampling_compiled
 
     @property
+    def captured(self) -> bool:
+        """Whether chunks replay CUDA graphs (`cuda_graph`, or `compile` on CUDA)."""
+        return self.model.sampling_captured
+
+    @property
     def model_type(self) -> str:
         return "pi05" if self.model.config.pi05 else "pi0"
 
     @torch.inference_mode()
     def warmup(self, max_batch_size: int = 1) -> float:
         """Run chunks on a blank observation (black frames, zero state) so that real requests do not pay for
-        compilation, CUDA graph capture or first allocations; returns the seconds it took. A compiled policy runs
-        every batch size up to `max_batch_size` (each is its own graph), an eager one batch 1. The policy's seeded
-        noise is left untouched."""
+        compilation, CUDA graph capture or first allocations; returns the seconds it took. A compiled or captured
+        policy runs every batch size up to `max_batch_size` (each is its own graph), an eager one batch 1. (Graphs are
+        per prompt-length bucket too: a prompt much longer than the default one captures on its first chunk.) The
+        policy's seeded noise is left untouched."""
         start = time.monotonic()
         size = self.processor.image_size
         blank = {
@@ -341,7 +396,7 @@ class PI0Policy:
             "prompt": self.processor.default_prompt or "warm-up",
         }
         one = {name: tensor.to(self.device) for name, tensor in self.prepare(blank).inputs.items()}
-        for batch in range(1, (max_batch_size if self.compiled else 1) + 1):
+        for batch in range(1, (max_batch_size if self.compiled or self.captured else 1) + 1):
             inputs = {name: torch.cat([tensor] * batch) for name, tensor in one.items()}  # laid out as real batches
             self.model_actions(inputs, warmup=True)
         return time.monotonic() - start
@@ -362,11 +417,13 @@ def _step_count(value: Any, name: str, low: int, high: int) -> int:
 
 
 def _policy_class(directory: str | Path) -> type[PI0Policy]:
-    """The policy for the model saved in `directory`, from its `config.json` (π0 / π0.5, or π0-FAST)."""
+    """The policy for the model saved in `directory`, from its `config.json` (π0 / π0.5, or π0-FAST); a file that
+    is not a JSON object is a `ValueError` naming it."""
+    from pi0_torch.models.configuration_pi0 import PI0Config
     from pi0_torch.models.configuration_pi0_fast import PI0FastConfig
 
     config_path = Path(directory) / "config.json"
-    if config_path.is_file() and json.loads(config_path.read_text()).get("model_type") == PI0FastConfig.model_type:
+    if config_path.is_file() and PI0Config._dict_from_json_file(config_path).get("model_type") == PI0FastConfig.model_type:
         from pi0_torch.runtime.policy_fast import PI0FastPolicy
 
         return PI0FastPolicy

@@ -29,9 +29,11 @@ from collections.abc import Mapping
 import numpy as np
 import torch
 
+from pi0_torch.models.configuration_pi0 import SIZE_LIMITS
 from pi0_torch.models.modeling_pi0_fast import PI0FastForActionGeneration
 from pi0_torch.processing.processing_pi0_fast import PI0FastProcessor
 from pi0_torch.runtime.policy import PI0Policy
+from pi0_torch.utils.validation import check_float
 
 
 class PI0FastPolicy(PI0Policy):
@@ -50,6 +52,7 @@ class PI0FastPolicy(PI0Policy):
     model_class = PI0FastForActionGeneration
     processor_class = PI0FastProcessor
     continues_chunks = False  # FAST decodes tokens: no real-time chunking, and noise seeds do not apply
+    max_num_steps = SIZE_LIMITS["max_decoding_steps"]
 
     def __init__(
         self,
@@ -62,15 +65,17 @@ class PI0FastPolicy(PI0Policy):
     ) -> None:
         steps = num_steps if num_steps is not None else model.config.max_decoding_steps
         super().__init__(model, processor, num_steps=steps, seed=seed)  # type: ignore[arg-type]
-        if temperature < 0:
-            raise ValueError(f"temperature must be >= 0, got {temperature}")
-        self.temperature = float(temperature)
+        self.temperature = check_float("temperature", temperature, minimum=0.0)
         if compile:
             model.compile_decoding(**({"mode": "reduce-overhead"} if self.device.type == "cuda" else {}))
 
     @property
     def compiled(self) -> bool:
         return self.model.decoding_compiled
+
+    @property
+    def captured(self) -> bool:
+        return False  # (compile=True is what replays π0-FAST's decoding as CUDA graphs)
 
     @property
     def model_type(self) -> str:

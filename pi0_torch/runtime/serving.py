@@ -18,9 +18,13 @@ unchanged:
 - `GET /healthz` answers `200 OK`, like openpi's server.
 
 Limits ([`ServerLimits`], each a `pi0-torch serve` flag): every request is bounded before any work is done on it
-(frame size, list lengths, prompt characters, image pixels), connections are capped (more get HTTP 503) and closed
-after an idle time, and with an API key the handshake needs the `Authorization: Api-Key <key>` header that
-`WebsocketClientPolicy(api_key=...)` sends (others get HTTP 401 before reaching the model).
+(frame size, list lengths, the total count of decoded objects, prompt characters, image pixels), connections are
+capped (more get HTTP 503) and closed after an idle time, and with an API key the handshake needs exactly one
+`Authorization: Api-Key <key>` header, as `WebsocketClientPolicy(api_key=...)` sends it (others get HTTP 401 before
+reaching the model).
+
+A policy never hands back NaN or inf actions: a request whose chunk is not finite gets the one-line reason instead
+(`no actions: ...`, see `pi0_torch.runtime.action_safety`); the other requests of its batch get theirs.
 
 Before it listens, the server runs a warm-up chunk on a blank observation, on the thread that will run the model
 (with `--compile`, one per batch size up to `max_batch_size`: this is when compilation and CUDA graph capture
@@ -64,6 +68,7 @@ from websockets.asyncio.server import Request, Response, ServerConnection, serve
 from websockets.protocol import State
 
 from pi0_torch.cli import json_object
+from pi0_torch.runtime.action_safety import UnsafeActionsError
 from pi0_torch.runtime.observation_formats import ObservationError, ObservationFormat
 from pi0_torch.utils.threads import add_threads_argument, set_threads
 from pi0_torch.utils.validation import check_float, check_int, first_line, one_line
@@ -139,17 +144,46 @@ def pack_message(obj: Any) -> bytes:
     return msgpack.packb(obj, default=_pack_numpy)
 
 
-def unpack_message(data: bytes, max_items: int | None = None) -> Any:
+class _ObjectBudget:
+    """Counts the objects msgpack builds, as its hooks see each finished list and map, and stops the decoding
+    once there are more than `limit`: nesting can make a small frame decode into millions of objects (10,000 lists
+    of 1,600 empty lists fit in 15 MiB), which per-container limits do not catch."""
+
+    def __init__(self, limit: int) -> None:
+        self.limit, self.count = limit, 1  # the message itself
+
+    def add(self, items: int) -> None:
+        self.count += items
+        if self.count > self.limit:
+            raise MessageError(f"the message holds more than {self.limit} objects in lists and maps; send long or "
+                               "nested sequences as numpy arrays")
+
+    def on_list(self, items: list[Any]) -> list[Any]:
+        self.add(len(items))
+        return items
+
+    def on_map(self, items: dict[Any, Any]) -> Any:
+        self.add(2 * len(items))
+        return _unpack_numpy(items)
+
+
+def unpack_message(data: bytes, max_items: int | None = None, max_objects: int | None = None) -> Any:
     """Decode a frame packed by openpi-client (or [`pack_message`]); raises [`MessageError`] if it is malformed.
 
     Arrays come back read-only, backed by the frame's bytes. Object, void and complex dtypes are refused.
-    `max_items` bounds the length of every list and map before it is built (numpy arrays are not lists).
+    `max_items` bounds the length of every list and map before it is built (numpy arrays are not lists);
+    `max_objects` bounds the total count of list items, map keys and values while decoding (a message beyond it
+    stops within milliseconds, holding at most one more container of `max_items`).
     """
     if not isinstance(data, (bytes, bytearray, memoryview)):
         raise MessageError(f"expected a binary frame, got {type(data).__name__}")
     bounds = {} if max_items is None else {"max_array_len": max_items, "max_map_len": max_items}
+    hooks: dict[str, Any] = {"object_hook": _unpack_numpy}
+    if max_objects is not None:
+        budget = _ObjectBudget(max_objects)
+        hooks = {"object_hook": budget.on_map, "list_hook": budget.on_list}
     try:
-        return msgpack.unpackb(data, object_hook=_unpack_numpy, **bounds)
+        return msgpack.unpackb(data, **hooks, **bounds)
     except MessageError:
         raise
     except Exception as error:  # msgpack raises several unrelated types for corrupt input
@@ -176,6 +210,8 @@ class ServerLimits:
         max_image_pixels: a frame with more pixels (height x width) is refused before it is resized (default: 1080p).
         max_items: lists and maps in a message hold at most this many items (checked while decoding; numpy arrays,
             the way frames and states travel, are bounded by `max_message_bytes` instead).
+        max_objects: a message decodes into at most this many objects in lists and maps, all nesting levels
+            together (an openpi observation holds a few dozen; numpy arrays count as one map each).
         max_connections: connections beyond this many get HTTP 503 in the handshake (the websocket never opens).
         idle_timeout_s: a connection that sends no request for this long is closed (code 1000, reason "idle
             timeout"); None: never. Time spent waiting for the server's own reply does not count.
@@ -185,11 +221,13 @@ class ServerLimits:
     max_prompt_chars: int = 2_000
     max_image_pixels: int = 1920 * 1080
     max_items: int = 10_000
+    max_objects: int = 100_000
     max_connections: int = 16
     idle_timeout_s: float | None = 3600.0
 
     def __post_init__(self) -> None:
-        for name in ("max_message_bytes", "max_prompt_chars", "max_image_pixels", "max_items", "max_connections"):
+        for name in ("max_message_bytes", "max_prompt_chars", "max_image_pixels", "max_items", "max_objects",
+                     "max_connections"):
             check_int(name, getattr(self, name), minimum=1)
         if self.idle_timeout_s is not None:
             check_float("idle_timeout_s", self.idle_timeout_s, minimum=0.0, exclusive_minimum=True)
@@ -367,7 +405,8 @@ class PolicyServer:
         try:
             # on the model thread, where every later inference runs (CUDA graphs are recorded per thread)
             seconds = await asyncio.get_running_loop().run_in_executor(model_thread, self.policy.warmup, self.max_batch_size)
-            logger.info("warm-up in %.1f s", seconds)
+            graphs = f"; CUDA graphs captured for batch sizes 1 to {self.max_batch_size}" if getattr(self.policy, "captured", False) else ""
+            logger.info("warm-up in %.1f s%s", seconds, graphs)
             worker = asyncio.create_task(self._run_model(model_thread))
             async with serve(
                 lambda ws: self._handle(ws, prepare_pool),
@@ -403,10 +442,12 @@ class PolicyServer:
             return connection.respond(http.HTTPStatus.OK, "OK\n")
         peer = _peer(connection)
         if self._expected_authorization is not None:
-            given = (request.headers.get("Authorization") or "").encode()
+            headers = request.headers.get_all("Authorization")
+            given = headers[0].encode() if len(headers) == 1 else b""
             if not hmac.compare_digest(given, self._expected_authorization):
-                logger.warning("%s: refused: %s API key", peer, "wrong" if given else "no")
-                return connection.respond(http.HTTPStatus.UNAUTHORIZED, "missing or wrong API key: send the header "
+                problem = "wrong" if given else "no" if not headers else f"{len(headers)} Authorization headers, not one:"
+                logger.warning("%s: refused: %s API key", peer, problem)
+                return connection.respond(http.HTTPStatus.UNAUTHORIZED, "missing or wrong API key: send one header "
                                           "'Authorization: Api-Key <key>' (WebsocketClientPolicy(api_key=...))\n")
         self._admitted = {c for c in self._admitted if c.state is not State.CLOSED}
         if len(self._admitted) >= self.limits.max_connections:
@@ -471,6 +512,10 @@ class PolicyServer:
             reason = one_line(str(error))
             logger.warning("%s: bad request: %s", peer, reason)
             return f"invalid request: {reason}"
+        except UnsafeActionsError as error:  # withheld by the policy: the reason, no traceback
+            reason = one_line(str(error))
+            logger.error("%s: no actions: %s", peer, reason)
+            return f"no actions: {reason}"
         except _ShuttingDown as error:
             return str(error)
         except Exception as error:  # the traceback stays in the server log
@@ -488,7 +533,7 @@ class PolicyServer:
     def _prepare(self, frame: Any) -> Any:
         if isinstance(frame, str):
             raise MessageError("expected a binary msgpack frame, got a text frame")
-        message = unpack_message(frame, max_items=self.limits.max_items)
+        message = unpack_message(frame, max_items=self.limits.max_items, max_objects=self.limits.max_objects)
         observation = self.obs_format.to_default(message)
         self.limits.check(observation)
         return self.policy.prepare(observation)
@@ -509,19 +554,21 @@ class PolicyServer:
                 replies = await loop.run_in_executor(
                     model_thread, self.policy.infer_prepared, [job.prepared for job in jobs]
                 )
+            except UnsafeActionsError as error:  # only the requests whose chunks were withheld fail
+                outcomes: list[dict[str, Any] | BaseException] = list(error.outcomes) or [error] * len(jobs)
             except Exception as error:
-                outcome: list[dict[str, Any]] | BaseException = error
+                outcomes = [error] * len(jobs)
             else:
-                outcome = replies
+                outcomes = list(replies)
             finished = time.monotonic()
-            for i, job in enumerate(jobs):
+            for job, outcome in zip(jobs, outcomes):
                 job.started, job.finished, job.batch_size = started, finished, len(jobs)
                 if job.future.done():
                     continue
                 if isinstance(outcome, BaseException):
                     job.future.set_exception(outcome)
                 else:
-                    job.future.set_result(outcome[i])
+                    job.future.set_result(outcome)
 
     def _fail_queued(self, error: BaseException) -> None:
         assert self._queue is not None
@@ -563,8 +610,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="extra metadata sent to clients, a JSON object (openpi's ALOHA client reads "
                         "'reset_pose' from it)")
     parser.add_argument("--seed", type=int, default=None, help="seed the sampling noise (reproducible actions)")
-    parser.add_argument("--compile", action="store_true", help="torch.compile the sampling (one CUDA graph on "
-                        "cuda); compiled during the warm-up, before the server listens")
+    parser.add_argument("--compile", action="store_true", help="torch.compile the model's repeated layers (on cuda the "
+                        "sampling also replays as one CUDA graph); compiled during the warm-up, before the server listens")
+    parser.add_argument("--cuda-graph", action=argparse.BooleanOptionalAction, default=None,
+                        help="replay each chunk's sampling as one CUDA graph, captured during the warm-up for every "
+                        "batch size up to --max-batch-size (default: on when the device is cuda; π0 / π0.5 only)")
     parser.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
     defaults = ServerLimits()
     access = parser.add_argument_group("access and limits (docs/serving.md, 'Limits and access')")
@@ -583,6 +633,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=f"longest prompt in characters (default {defaults.max_prompt_chars})")
     access.add_argument("--max-image-pixels", type=int, default=defaults.max_image_pixels,
                         help=f"largest camera frame, height x width (default {defaults.max_image_pixels}: 1920x1080)")
+    access.add_argument("--max-objects", type=int, default=defaults.max_objects,
+                        help=f"most objects in the lists and maps of one message, all nesting levels together "
+                        f"(default {defaults.max_objects}; numpy arrays count as one)")
 
 
 def _observation_format(name_or_path: str) -> ObservationFormat:
@@ -590,6 +643,19 @@ def _observation_format(name_or_path: str) -> ObservationFormat:
         return ObservationFormat.resolve(name_or_path)
     except (ValueError, OSError) as error:
         raise argparse.ArgumentTypeError(str(error)) from None
+
+
+def _cuda_graph(args: argparse.Namespace) -> bool:
+    """--cuda-graph, by default on for a π0 / π0.5 policy on cuda."""
+    if args.cuda_graph is not None:
+        return args.cuda_graph
+    import torch
+
+    from pi0_torch.demo import policy_location
+    from pi0_torch.runtime.policy import PI0Policy, _policy_class
+
+    device = torch.device(args.device if args.device is not None else ("cuda" if torch.cuda.is_available() else "cpu"))
+    return device.type == "cuda" and _policy_class(policy_location(args.model)) is PI0Policy
 
 
 def run(args: argparse.Namespace) -> int:
@@ -601,14 +667,14 @@ def run(args: argparse.Namespace) -> int:
     try:
         limits = ServerLimits(
             max_message_bytes=int(args.max_message_mib * 2**20), max_prompt_chars=args.max_prompt_chars,
-            max_image_pixels=args.max_image_pixels, max_connections=args.max_connections,
+            max_image_pixels=args.max_image_pixels, max_objects=args.max_objects, max_connections=args.max_connections,
             idle_timeout_s=args.idle_timeout or None,
         )
         logger.info("loading %s", args.model)
         policy = PI0Policy.from_pretrained(
             policy_location(args.model), device=args.device, dtype=args.dtype, num_steps=args.num_steps, seed=args.seed,
             default_prompt=args.default_prompt, compile=args.compile, noise_scale=args.noise_scale,
-            rtc_schedule=args.rtc_schedule,
+            rtc_schedule=args.rtc_schedule, cuda_graph=_cuda_graph(args),
         )
         logger.info("torch uses %d CPU threads (--threads)", set_threads(args.threads, policy.model))
         server = PolicyServer(

@@ -1,0 +1,218 @@
+"""Issue 28, class 4 (and the RTC items of class 9): a policy never hands back NaN or inf actions, and refuses, by
+name, the real-time chunking inputs that drove its flow there.
+
+- Out-of-range inputs (a previous chunk far outside the model's action range, a guidance clip of inf or 1e30, a
+  noise scale of 1e30) are refused with a one-line `ValueError` naming the field, at the model API and through the
+  policy and its server.
+- Whatever else makes a chunk non-finite (NaN weights, norm stats that overflow when unnormalizing, a model that
+  diverges), the policy withholds that chunk with an `UnsafeActionsError` naming the cause; the other observations
+  of its batch get their actions, over the websocket too.
+"""
+
+from __future__ import annotations
+
+import threading
+from typing import Any
+
+import numpy as np
+import pytest
+import torch
+import websockets.sync.client
+from test_rollout import HORIZON, tiny_policy
+
+from pi0_torch.models.rtc import MAX_GUIDANCE, MAX_PREVIOUS_ACTION
+from pi0_torch.processing.normalization import NormStats
+from pi0_torch.runtime.action_safety import UnsafeActionsError
+from pi0_torch.runtime.observation_formats import ObservationError
+from pi0_torch.runtime.policy import PI0Policy
+from pi0_torch.runtime.serving import PolicyServer, pack_message, unpack_message
+
+pytestmark = pytest.mark.filterwarnings("ignore:connect\\(\\) must be used as a context manager:DeprecationWarning")
+
+OBSERVATION = {"images": {"base_0_rgb": np.zeros((32, 32, 3), np.uint8)}, "state": np.ones(3), "prompt": "reach"}
+PREVIOUS = np.linspace(-1, 1, HORIZON * 3, dtype=np.float32).reshape(HORIZON, 3)
+CONTINUATION = {"previous_actions": PREVIOUS, "execution_horizon": 2, "inference_delay": 2}
+
+
+@pytest.fixture(scope="module")
+def policy() -> PI0Policy:
+    return tiny_policy(rtc_max_delay=0)
+
+
+# ---------------------------------------------------------------------------------------------------- inputs
+
+
+@pytest.mark.parametrize(("previous", "message"), [
+    (1e3, r"previous_actions \(normalized\): values up to 2e\+03 .* within ±100"),  # returned actions of 980
+    (1e20, r"previous_actions \(normalized\): values up to 2e\+20"),  # returned all-NaN actions
+    (3e38, r"previous_actions \(normalized\): contains NaN or inf"),  # was named 'observation.actions (normalized)'
+    (np.inf, r"previous_actions: contains NaN or inf"),
+])
+def test_previous_actions_beyond_the_models_range_are_refused_by_name(policy: PI0Policy, previous: float, message: str) -> None:
+    chunk = PREVIOUS.copy()
+    chunk[5, 1] = previous
+    with pytest.raises(ObservationError, match=message) as refused:
+        policy.infer({**OBSERVATION, **CONTINUATION, "previous_actions": chunk})
+    assert "\n" not in str(refused.value)
+
+
+@pytest.mark.parametrize("guidance", [np.inf, 1e30, -1.0, MAX_GUIDANCE * 2])
+def test_a_guidance_clip_outside_its_range_is_refused(policy: PI0Policy, guidance: float) -> None:
+    with pytest.raises(ValueError, match=r"rtc_max_guidance must be a finite number >= 0 and <= 100"):
+        PI0Policy(policy.model, policy.processor, rtc_max_guidance=guidance)
+    batch = policy.prepare(OBSERVATION).inputs
+    previous = torch.zeros(1, HORIZON, policy.model.config.action_dim)
+    with pytest.raises(ValueError, match=r"rtc_max_guidance must be a finite number >= 0 and <= 100"):
+        policy.model.generate_actions(**batch, previous_actions=previous, execution_horizon=2, rtc_max_guidance=guidance)
+
+
+def test_the_model_api_refuses_a_previous_chunk_beyond_its_range(policy: PI0Policy) -> None:
+    batch = policy.prepare(OBSERVATION).inputs
+    previous = torch.zeros(1, HORIZON, policy.model.config.action_dim)
+    previous[0, 3, 2] = MAX_PREVIOUS_ACTION * 10
+    with pytest.raises(ValueError, match=r"previous_actions: values up to 1e\+03 \(at index \(0, 3, 2\)\)"):
+        policy.model.generate_actions(**batch, previous_actions=previous, execution_horizon=2)
+    with pytest.raises(ValueError, match=r"rtc_method must be one of \('guidance', 'conditioning'\), got ''"):
+        policy.model.generate_actions(**batch, previous_actions=previous * 0, execution_horizon=2, rtc_method="")
+
+
+@pytest.mark.parametrize("scale", [1e30, np.inf, -1.0])
+def test_a_noise_scale_outside_its_range_is_refused(policy: PI0Policy, scale: float) -> None:
+    with pytest.raises(ValueError, match=r"noise_scale must be a finite number >= 0 and <= 10"):
+        PI0Policy(policy.model, policy.processor, noise_scale=scale)
+
+
+@pytest.mark.parametrize(("method", "message"), [
+    ("", r"rtc_method: expected one of \['guidance', 'conditioning'\] .*, got ''"),  # silently took the default
+    (np.array(["guidance", "guidance"]), r"rtc_method: expected one of .*, got array\("),  # 'The truth value...'
+    (np.array(3), r"rtc_method: expected one of .*, got 3"),
+])
+def test_a_bad_rtc_method_is_named(policy: PI0Policy, method: Any, message: str) -> None:
+    with pytest.raises(ObservationError, match=message):
+        policy.prepare({**OBSERVATION, **CONTINUATION, "rtc_method": method})
+    assert policy.prepare({**OBSERVATION, **CONTINUATION, "rtc_method": np.array("guidance")}).continuation.method == "guidance"
+
+
+# ---------------------------------------------------------------------------------------------------- outputs
+
+
+def _nan_weights(policy: PI0Policy, monkeypatch: pytest.MonkeyPatch) -> None:  # (each test has its own policy)
+    with torch.no_grad():
+        next(iter(policy.model.parameters()))[..., 0] = float("nan")
+
+
+def _overflowing_norm_stats(policy: PI0Policy, monkeypatch: pytest.MonkeyPatch) -> None:
+    huge = NormStats(mean=np.zeros(3), std=np.full(3, 3e38))
+    monkeypatch.setattr(policy.processor, "_action_stats", huge)
+
+
+def _diverging_model(policy: PI0Policy, monkeypatch: pytest.MonkeyPatch) -> None:
+    generate = policy.model.generate_actions
+    monkeypatch.setattr(policy.model, "generate_actions", lambda **kw: generate(**kw) * float("nan"))
+
+
+def _diverging_guidance(policy: PI0Policy, monkeypatch: pytest.MonkeyPatch) -> None:
+    generate = policy.model.generate_actions
+    monkeypatch.setattr(policy.model, "generate_actions",
+                        lambda **kw: generate(**kw) * (float("inf") if "previous_actions" in kw else 1.0))
+
+
+CAUSES = {
+    "NaN weights": (_nan_weights, {}, r"the model's weights hold NaN/inf \(the first: "),
+    "norm stats": (_overflowing_norm_stats, {}, r"unnormalizing with the processor's action norm stats overflowed"),
+    "model": (_diverging_model, {}, r"the model returned NaN/inf from finite inputs \(float32 weights"),
+    "guidance": (_diverging_guidance, CONTINUATION, r"real-time chunking guidance diverged \(rtc_max_guidance 5"),
+}
+
+
+@pytest.mark.parametrize("cause", sorted(CAUSES))
+def test_non_finite_actions_are_withheld_naming_the_cause(cause: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    policy = tiny_policy(rtc_max_delay=0)
+    break_it, fields, message = CAUSES[cause]
+    break_it(policy, monkeypatch)
+    with pytest.raises(UnsafeActionsError, match="the action chunk holds .* NaN/inf values and was withheld; cause: "
+                                                 + message) as withheld:
+        policy.infer({**OBSERVATION, **fields})
+    assert "\n" not in str(withheld.value)
+
+
+def test_a_batch_keeps_the_chunks_that_are_fine(monkeypatch: pytest.MonkeyPatch) -> None:
+    """One observation whose chunk is non-finite fails alone: the others of its batch get exactly the actions they
+    get on their own."""
+    policy = tiny_policy(rtc_max_delay=0)
+    requests = [{**OBSERVATION, "noise_seed": seed} for seed in (1, 2, 3)]
+    alone = [policy.infer(request)["actions"] for request in requests]
+    model_actions = policy.model_actions
+
+    def second_is_nan(batch: Any, **options: Any) -> np.ndarray:
+        chunks = model_actions(batch, **options)
+        chunks[1, 0, 0] = np.nan
+        return chunks
+
+    monkeypatch.setattr(policy, "model_actions", second_is_nan)
+    with pytest.raises(UnsafeActionsError, match="^observation 1 of a batch of 3: ") as withheld:
+        policy.infer_prepared([policy.prepare(request) for request in requests])
+    outcomes = withheld.value.outcomes
+    assert isinstance(outcomes[1], UnsafeActionsError)
+    for index in (0, 2):  # (batched matrix products round differently in the last bits)
+        np.testing.assert_allclose(outcomes[index]["actions"], alone[index], rtol=1e-5, atol=1e-6)
+
+
+def test_the_server_sends_the_reason_instead_of_actions(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Over the websocket, batched with good requests: the client whose chunk was withheld gets one line naming the
+    cause, the others their actions, and the same connection is served next time."""
+    policy = tiny_policy(rtc_max_delay=0)
+    model_actions = policy.model_actions
+
+    def seed_13_is_nan(batch: Any, **options: Any) -> np.ndarray:
+        chunks = model_actions(batch, **options)
+        noise = options.get("noise")
+        if noise is not None:
+            for row in range(len(chunks)):
+                if torch.equal(noise[row], policy.noise_scale * torch.randn(noise.shape[1:], generator=torch.Generator().manual_seed(13))):
+                    chunks[row] = np.nan
+        return chunks
+
+    monkeypatch.setattr(policy, "model_actions", seed_13_is_nan)
+    replies: dict[int, Any] = {}
+    barrier = threading.Barrier(3)
+
+    def client(port: int, seed: int) -> None:
+        with websockets.sync.client.connect(f"ws://127.0.0.1:{port}", max_size=None) as ws:
+            unpack_message(ws.recv(timeout=30))
+            barrier.wait(timeout=30)
+            ws.send(pack_message({**OBSERVATION, "noise_seed": seed}))
+            reply = ws.recv(timeout=60)
+            replies[seed] = reply if isinstance(reply, str) else unpack_message(reply)
+            if seed == 13:
+                ws.send(pack_message({**OBSERVATION, "noise_seed": 14}))
+                replies[14] = unpack_message(ws.recv(timeout=60))
+
+    with PolicyServer(policy, port=0, max_batch_size=3).serve_in_thread() as port:
+        threads = [threading.Thread(target=client, args=(port, seed)) for seed in (12, 13, 15)]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join(120)
+    assert replies[13].startswith("no actions: ") and "cause: the model returned NaN/inf" in replies[13], replies[13]
+    for seed in (12, 14, 15):
+        assert np.isfinite(replies[seed]["actions"]).all() and replies[seed]["actions"].shape == (HORIZON, 3)
+
+
+def test_a_pi0_fast_policy_withholds_non_finite_chunks_too(monkeypatch: pytest.MonkeyPatch) -> None:
+    from pi0_torch import FASTActionTokenizer, PI0FastConfig, PI0FastForActionGeneration, PI0FastProcessor
+    from pi0_torch.processing.tokenization import build_test_tokenizer
+    from pi0_torch.runtime.policy_fast import PI0FastPolicy
+
+    rng = np.random.default_rng(0)
+    fast = FASTActionTokenizer.fit([np.cumsum(rng.normal(0, .1, (10, 8)), 0) for _ in range(100)], vocab_size=256)
+    stats = {key: NormStats(mean=np.zeros(8), std=np.ones(8), q01=-np.ones(8), q99=np.ones(8)) for key in ("state", "actions")}
+    config = PI0FastConfig.from_preset("pi0_fast_small")
+    torch.manual_seed(0)
+    policy = PI0FastPolicy(PI0FastForActionGeneration(config),
+                           PI0FastProcessor.from_config(config, build_test_tokenizer(1024), fast, stats), num_steps=4)
+    observation = {"images": {"base_0_rgb": np.zeros((32, 32, 3), np.uint8)}, "state": np.zeros(8), "prompt": "go"}
+    extract = policy.processor.extract_actions
+    monkeypatch.setattr(policy.processor, "extract_actions", lambda tokens: extract(tokens) * np.nan)
+    with pytest.raises(UnsafeActionsError, match="withheld; cause: the model returned NaN/inf from finite inputs"):
+        policy.infer(observation)
