@@ -17,6 +17,13 @@ import sys
 import traceback
 
 
+def _where(error: Exception) -> str:
+    """`ModuleNotFoundError: No module named 'scipy' (at pi0_torch/processing/fast_tokenizer.py:44)`."""
+    frame = traceback.extract_tb(error.__traceback__)[-1]
+    location = frame.filename.split("site-packages/")[-1]
+    return f"{type(error).__name__}: {error} (at {location}:{frame.lineno})"
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--extras", default="", help="comma list of the extras that are installed")
@@ -39,14 +46,14 @@ def main() -> int:
                 failures += 1
             else:
                 print(f"{name}: {error}")
-        except Exception:
-            print(f"FAIL: {name} does not import:\n{traceback.format_exc()}")
+        except Exception as error:
+            print(f"FAIL: {name} does not import: {_where(error)}")
             failures += 1
     for public in pi0_torch.__all__:  # every public name resolves with the core alone
         try:
             getattr(pi0_torch, public)
-        except Exception:
-            print(f"FAIL: pi0_torch.{public}:\n{traceback.format_exc()}")
+        except Exception as error:
+            print(f"FAIL: pi0_torch.{public}: {_where(error)}")
             failures += 1
     print(f"{len(names)} modules, {len(pi0_torch.__all__)} public names: {failures} failure(s)")
     return 1 if failures else 0
