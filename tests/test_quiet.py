@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
@@ -59,3 +60,18 @@ with torch.no_grad():
     nbclient.NotebookClient(notebook, timeout=600, kernel_name="python3", resources={"metadata": {"path": str(tmp_path)}}).execute()
     assert notebook.cells[0].outputs == [] and notebook.cells[1].outputs == []
     assert notebook.cells[2].outputs[0]["data"]["text/plain"] == f"(1, {config.action_horizon}, {config.action_dim})"
+
+
+def test_saved_weights_have_the_permissions_of_the_other_files(tmp_path: Path) -> None:
+    """safetensors creates its files 0600; save_pretrained gives the weights the mode of the config beside them
+    (the umask's, as every file the converter writes)."""
+    PI0ForActionGeneration(PI0Config.from_preset("pi0_small")).save_pretrained(tmp_path / "model")
+    mode = (tmp_path / "model" / "config.json").stat().st_mode & 0o777
+    assert (tmp_path / "model" / "model.safetensors").stat().st_mode & 0o777 == mode == 0o666 & ~_umask()
+    assert sorted(p.name for p in (tmp_path / "model").iterdir()) == ["config.json", "model.safetensors"]
+
+
+def _umask() -> int:
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask

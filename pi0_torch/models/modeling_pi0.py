@@ -10,6 +10,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import torch
@@ -25,6 +26,7 @@ from pi0_torch.models.flow_matching import euler_times, interpolate, sample_flow
 from pi0_torch.models.rtc import DEFAULT_MAX_GUIDANCE, METHODS, ChunkPrefix, chunk_prefix, guidance_weight, per_sample_steps
 from pi0_torch.utils.validation import check_pretrained_location, describe, hub_errors
 from pi0_torch.utils.validation import check_tensor as _check_tensor  # (the name other model modules import from here)
+from pi0_torch.utils import files
 from pi0_torch.utils.quiet import transformers_progress
 
 # ----------------------------------------------------------------------------------------------------------------------
@@ -317,9 +319,13 @@ class PI0PreTrainedModel(PreTrainedModel):
         return (model, info) if want_info else model
 
     def save_pretrained(self, save_directory: Any, *args: Any, verbose: bool = False, **kwargs: Any) -> Any:
-        """`PreTrainedModel.save_pretrained`, quiet unless `verbose=True` (transformers' "Writing model shards" bar)."""
+        """`PreTrainedModel.save_pretrained`, quiet unless `verbose=True` (transformers' "Writing model shards" bar).
+        The weight files get the permissions of the folder's other files (safetensors would write them 0600)."""
         with transformers_progress(verbose):
-            return super().save_pretrained(save_directory, *args, **kwargs)
+            result = super().save_pretrained(save_directory, *args, **kwargs)
+        for weights in Path(save_directory).glob("model*.safetensors"):
+            files.give_default_mode(weights)
+        return result
 
 
 def _describe_mismatch(item: Any) -> str:

@@ -365,6 +365,7 @@ class EMACallback(TrainerCallback, CheckpointContents):
 
     def write_checkpoint(self, folder: Path, state: TrainerState) -> None:
         save_file({name: t.contiguous() for name, t in self.shadow.items()}, str(folder / EMA_FILE))
+        files.give_default_mode(folder / EMA_FILE)
 
     @torch.no_grad()
     def on_train_end(self, args: TrainingArguments, state: TrainerState, control: TrainerControl, model: nn.Module | None = None, **kwargs: Any) -> None:

@@ -47,6 +47,7 @@ import logging
 import os
 import shutil
 import socket
+import stat
 import uuid
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
@@ -65,6 +66,18 @@ RESUMABLE_TAG = "resumable"  # the fixed tag of a partial folder that a later ru
 
 class OutputPathError(ValueError):
     """An output location that cannot be used (it overlaps the input, or exists and may not be replaced)."""
+
+
+def give_default_mode(path: Path) -> None:
+    """Give the file `path` the permissions a file newly created beside it gets (0o666 less the umask, usually 0644):
+    safetensors' `save_file` creates its files 0600, readable by their owner only, unlike the other files of a model
+    folder and unlike the weights the converter writes."""
+    probe = path.with_name(f".{path.name}.mode-{uuid.uuid4().hex}")
+    os.close(os.open(probe, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o666))
+    try:
+        os.chmod(path, stat.S_IMODE(probe.stat().st_mode))
+    finally:
+        probe.unlink()
 
 
 def partial_name(final_name: str, tag: str | None = None) -> str:
