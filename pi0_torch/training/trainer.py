@@ -748,7 +748,6 @@ def build_model(settings: TrainSettings, config: PI0Config | PI0FastConfig) -> n
     if _is_model_folder(settings.model):  # with the run's config: it may add training choices (rtc_max_delay)
         model = model_class.from_pretrained(settings.model, config=config, dtype=torch.float32)
     else:
-        check_memory(config)
         torch.manual_seed(settings.seed)
         model = model_class(config)
     for group in settings.freeze:
@@ -982,6 +981,8 @@ def train_policy(settings: TrainSettings) -> dict[str, Any]:
     sharding.check_settings(settings.fsdp, settings.model, settings.resume_from_checkpoint)
     set_seed(settings.seed)
     config = load_config(settings)
+    if not _is_model_folder(settings.model):  # before the dataset loads and the model is built
+        check_memory(config)
     done = trained_step(settings.resume_from_checkpoint) if settings.resume_from_checkpoint else 0
     if settings.resume_from_checkpoint:
         check_resume_settings(config, settings.resume_from_checkpoint)

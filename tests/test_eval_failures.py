@@ -1,0 +1,140 @@
+"""Issue 28, classes 7-9 on `pi0-torch eval`: a policy server that drops the connection, stays silent, replies
+without actions or with bad metadata gives one line (and the finished episodes are kept in `eval.json`); settings
+that cannot run are refused by name before the first episode."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import threading
+from collections.abc import Iterator
+from pathlib import Path
+
+
+import numpy as np
+import pytest
+from websockets.sync.server import ServerConnection, serve
+
+from pi0_torch.cli import main
+from pi0_torch.runtime.rollout import EvalSettings, LocalPolicy, ScriptedPolicy, evaluate
+from pi0_torch.runtime.serving import pack_message, unpack_message
+
+pytestmark = pytest.mark.filterwarnings("ignore:connect\\(\\) must be used as a context manager:DeprecationWarning")
+
+HORIZON = 4
+METADATA = {"policy": "fake", "action_horizon": HORIZON, "action_dim": 3, "state_dim": 3,
+            "camera_names": ["base_0_rgb", "left_wrist_0_rgb"]}
+
+
+@contextlib.contextmanager
+def fake_server(mode: str, serve_first: int = 0) -> Iterator[str]:
+    """An openpi-protocol server that answers `serve_first` requests with a still chunk, then misbehaves per `mode`:
+    "drop" closes every connection, "silent" never replies, "no actions" replies without them, "bad metadata"
+    sends metadata without an action horizon."""
+    served = [0]
+    lock = threading.Lock()
+    release = threading.Event()
+
+    def handle(ws: ServerConnection) -> None:
+        ws.send(pack_message({"policy": "fake"} if mode == "bad metadata" else METADATA))
+        for frame in ws:
+            observation = unpack_message(frame)
+            with lock:
+                served[0] += 1
+                misbehave = served[0] > serve_first
+            if not misbehave:
+                ws.send(pack_message({"actions": np.repeat(np.asarray(observation["state"], np.float32)[None], HORIZON, 0)}))
+            elif mode == "drop":
+                ws.close()
+                return
+            elif mode == "silent":
+                release.wait(30)
+                return
+            else:
+                ws.send(pack_message({"policy_timing": {"infer_ms": 1.0}}))
+
+    with serve(handle, "127.0.0.1", 0) as server:
+        thread = threading.Thread(target=server.serve_forever, daemon=True)
+        thread.start()
+        try:
+            yield f"ws://127.0.0.1:{server.socket.getsockname()[1]}"
+        finally:
+            release.set()
+            server.shutdown()
+            thread.join(30)
+
+
+def run_eval(capsys: pytest.CaptureFixture[str], *args: str) -> tuple[int, str]:
+    """`pi0-torch eval` in this process: its status and its last line on stderr (the progress bar writes there too),
+    checked to be the only error line and no traceback."""
+    status = main(["eval", "--env", "pi0_torch/Reach-v0", "--max-steps", "8", *args])
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and err.count("error:") <= 1, err
+    return status, err.strip().splitlines()[-1] if err.strip() else ""
+
+
+def test_a_server_that_drops_mid_evaluation_keeps_the_finished_episodes(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Issue 28.8: `ConnectionClosedError` gave a traceback and no eval.json. Two episodes (4 requests) finish, then
+    the server closes every connection."""
+    with fake_server("drop", serve_first=4) as url:
+        status, err = run_eval(capsys, "--policy", url, "--episodes", "4", "--num-envs", "2",
+                               "--output-dir", str(tmp_path / "out"))
+    assert status == 2 and "\n" not in err, err
+    assert err.startswith(f"pi0-torch eval: error: ConnectionError: the policy server at {url} closed the connection"), err
+    assert "(stopped after 2 finished episodes of 4; eval.json in " in err, err
+    written = json.loads((tmp_path / "out" / "eval.json").read_text())
+    assert written["complete"] is False and written["episodes"] == 2 and "closed the connection" in written["stopped_by"]
+    assert [episode["seed"] for episode in written["episodes_detail"]] == [1_000_000, 1_000_001]
+
+
+@pytest.mark.parametrize(("mode", "message"), [
+    ("silent", "sent no reply within 1 s (--timeout)"),  # waited 600 s per call, with no option
+    ("no actions", r"a reply without 'actions' (got ['policy_timing'])"),  # KeyError
+    ("bad metadata", "metadata lacks 'action_horizon' (got ['policy'])"),  # KeyError
+])
+def test_a_misbehaving_server_is_one_line(mode: str, message: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    with fake_server(mode) as url:
+        status, err = run_eval(capsys, "--policy", url, "--episodes", "1", "--num-envs", "1", "--timeout", "1",
+                               "--output-dir", str(tmp_path / "out"))
+    assert status == 2 and err.startswith("pi0-torch eval: error: ") and message in err and "\n" not in err, err
+    assert not (tmp_path / "out").exists()  # no episode finished: nothing to write
+
+
+@pytest.mark.parametrize(("args", "message"), [
+    (("--replan-steps", "0"), r"--replan-steps must be an integer in [1, 16], got 0"),  # became 16
+    (("--inference-delay", "-1"), r"--inference-delay must be an integer in [0, 10000], got -1"),  # 'replan_steps ... 17'
+    (("--seed", "-1"), "--seed must be an integer in [0, "),
+    (("--episodes", "0"), "--episodes must be an integer in [1, "),
+    (("--env-kwargs", '{"no_such_setting": 1}'), "cannot be made with the settings ['no_such_setting']"),
+    (("--timeout", "0"), "--timeout must be a finite number > 0"),
+])
+def test_settings_that_cannot_run_are_named_before_the_first_episode(args: tuple[str, ...], message: str,
+                                                                     capsys: pytest.CaptureFixture[str]) -> None:
+    policy = "ws://127.0.0.1:9" if args[0] == "--timeout" else "demo"
+    status, err = run_eval(capsys, "--policy", policy, "--episodes", "1", *args)
+    assert status == 2 and err.startswith("pi0-torch eval: error: ") and message in err and "\n" not in err, err
+
+
+def test_env_kwargs_must_be_a_json_object(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit):
+        main(["eval", "--policy", "expert", "--env", "pi0_torch/Reach-v0", "--env-kwargs", "[1, 2]"])
+    err = capsys.readouterr().err
+    assert "argument --env-kwargs: expected a JSON object, got a JSON list" in err and "Traceback" not in err
+
+
+def test_a_policy_camera_the_env_does_not_give_is_a_warning_once(caplog: pytest.LogCaptureFixture) -> None:
+    """Issue 28.9: a two-camera policy evaluated with `{"wrist_camera": false}` silently masked the missing camera."""
+    from test_rollout import tiny_policy
+
+    with caplog.at_level(logging.WARNING, logger="pi0_torch.runtime.rollout"):
+        evaluate(LocalPolicy(tiny_policy()), EvalSettings(env="pi0_torch/Reach-v0", episodes=2, num_envs=1, max_steps=4,
+                                                          env_kwargs={"wrist_camera": False}))
+    warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert len(warnings) == 1 and "no frames for the policy's cameras ['left_wrist_0_rgb']" in warnings[0], warnings
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="pi0_torch.runtime.rollout"):
+        evaluate(ScriptedPolicy("expert"), EvalSettings(env="pi0_torch/Reach-v0", episodes=1, max_steps=4))
+    assert not caplog.records
+
+
