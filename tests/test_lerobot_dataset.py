@@ -243,6 +243,13 @@ def test_hf_datasets_map_style_and_streaming(datasets_dir: Path, tmp_path: Path)
 # ---------------------------------------------------------------------------------------------------- broken datasets
 
 
+def test_a_hub_dataset_id_says_how_to_make_a_local_copy(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(FileNotFoundError, match=r"^lerobot/pusht is no local folder: .* `hf download lerobot/pusht "
+                                                r"--repo-type dataset --local-dir data/pusht` .* --dataset data/pusht$"):
+        LeRobotEpisodeDataset("lerobot/pusht", HORIZON)
+
+
 def test_missing_files_are_named(copy_of, tmp_path: Path) -> None:
     with pytest.raises(FileNotFoundError, match="not a LeRobot dataset"):
         LeRobotEpisodeDataset(tmp_path, HORIZON)

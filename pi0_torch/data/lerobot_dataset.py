@@ -56,7 +56,7 @@ import pyarrow.compute as pc
 import pyarrow.parquet as pq
 
 from pi0_torch.masks import generate_chunk_data
-from pi0_torch.utils.validation import first_line
+from pi0_torch.utils.validation import first_line, is_hub_id
 
 logger = logging.getLogger(__name__)
 
@@ -98,6 +98,11 @@ class Episode:
 def read_info(root: Path) -> dict[str, Any]:
     """`meta/info.json`, checked for the fields the reader needs and a supported `codebase_version`."""
     path = root / "meta" / "info.json"
+    if not path.is_file() and is_hub_id(str(root)):
+        local = Path("data") / root.name
+        raise FileNotFoundError(f"{root} is no local folder: a dataset on the Hugging Face hub is read from a local "
+                                f"copy; make one with `hf download {root} --repo-type dataset --local-dir {local}` "
+                                f"(the hf command comes with huggingface_hub), then pass --dataset {local}")
     if not path.is_file():
         raise FileNotFoundError(f"{root} is not a LeRobot dataset: {path} is missing")
     info = _read_json(path)
