@@ -46,7 +46,7 @@ from pi0_torch.envs.tasks import CAMERA, WRIST_CAMERA
 from pi0_torch.processing.tokenization import build_test_tokenizer
 from pi0_torch.runtime.policy import PI0Policy
 from pi0_torch.runtime.rollout import EvalSettings, LocalPolicy, evaluate
-from pi0_torch.training.trainer import TRAIN_SETTINGS_FILE, TrainSettings, scaled_warmup_steps, train_policy
+from pi0_torch.training.trainer import FINAL_STEP_KEY, TRAIN_SETTINGS_FILE, TrainSettings, scaled_warmup_steps, train_policy
 
 REPO = Path(__file__).resolve().parent.parent
 POLICY_FILES = ("config.json", "model.safetensors", "processor_config.json", "norm_stats.json", "tokenizer.model")
@@ -149,8 +149,10 @@ def trained_with(settings: TrainSettings) -> bool:
     """Whether `settings.output_dir` holds the finished model of a run with exactly these settings."""
     run_dir = Path(settings.output_dir)
     saved = run_dir / TRAIN_SETTINGS_FILE
-    return (run_dir / "model.safetensors").is_file() and trainer_state(settings).is_file() and saved.is_file() \
-        and json.loads(saved.read_text()) == json.loads(json.dumps(vars(settings), default=str))
+    if not ((run_dir / "model.safetensors").is_file() and trainer_state(settings).is_file() and saved.is_file()):
+        return False
+    recorded = {name: value for name, value in json.loads(saved.read_text()).items() if name != FINAL_STEP_KEY}
+    return recorded == json.loads(json.dumps(vars(settings), default=str))
 
 
 def dataset_folder(work_dir: Path, episodes: dict[tuple[str, int], int]) -> Path:
