@@ -100,7 +100,8 @@ def test_fit_save_and_reload(tmp_path: Path) -> None:
     # rounding in the orthonormal DCT space: per-coefficient error <= 1 / (2 scale), so the chunk's L2 error too
     assert np.sqrt(((decoded - np.stack(chunks[:5])) ** 2).sum(axis=(1, 2))).max() <= np.sqrt(48) / 40 + 1e-9
     tokenizer.save_pretrained(tmp_path / "fast")
-    assert sorted(p.name for p in (tmp_path / "fast").iterdir()) == ["processor_config.json", "tokenizer.json", "tokenizer_config.json"]
+    assert sorted(p.name for p in (tmp_path / "fast").iterdir()) == [
+        ".pi0-torch-manifest.json", "processor_config.json", "tokenizer.json", "tokenizer_config.json"]
     reloaded = FASTActionTokenizer.from_pretrained(tmp_path / "fast")
     assert reloaded(np.stack(chunks[:5])) == ids and (reloaded.time_horizon, reloaded.action_dim) == (12, 4)
     with pytest.raises(ValueError, match="vocab_size 8 cannot hold"):

@@ -33,7 +33,8 @@ def test_convert_command_gives_model_and_processor(tmp_path: Path, fast_referenc
     ])
     assert code == 0 and "π0-FAST" in capsys.readouterr().out
     assert sorted(p.name for p in output.iterdir()) == [
-        "config.json", "fast_tokenizer", "model.safetensors", "norm_stats.json", "processor_config.json", "tokenizer.model"
+        ".pi0-torch-manifest.json", "config.json", "fast_tokenizer", "model.safetensors", "norm_stats.json",
+        "processor_config.json", "tokenizer.model",
     ]
     model = AutoModel.from_pretrained(output).eval()
     assert isinstance(model, PI0FastForActionGeneration)
