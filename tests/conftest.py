@@ -13,6 +13,9 @@ import torch
 torch.set_num_threads(min(2, os.cpu_count() or 1))
 
 FIXTURES = Path(__file__).parent / "fixtures" / "openpi"
+# Seconds a test waits for a subprocess, a socket or a kernel before calling it a hang. Generous on purpose: a loaded
+# machine only makes things slower, never wrong (make test's --timeout bounds each whole test at 1800 s).
+HANG_S = 900
 VARIANTS = ("pi0_small", "pi05_small")
 
 

@@ -32,7 +32,7 @@ from pi0_torch.processing.processing_pi0 import PI0Processor
 from pi0_torch.processing.tokenization import build_test_tokenizer
 from pi0_torch.utils import files
 
-from conftest import FIXTURES, VARIANTS, OpenpiReference, relative_error
+from conftest import FIXTURES, HANG_S, VARIANTS, OpenpiReference, relative_error
 from test_orbax_reader import writable_copy
 
 FLOAT32_TOLERANCE = 1e-4
@@ -326,7 +326,7 @@ def test_partial_folder_of_a_killed_conversion_is_removed_by_the_next_run(tmp_pa
         convert.ShardedSafetensorsWriter.write = write_then_die
         convert.convert_openpi_checkpoint({str(step_dir("pi0_small"))!r}, {str(tmp_path / "killed")!r}, progress=False)
     """)
-    finished = subprocess.run([sys.executable, "-c", script], cwd=ROOT, capture_output=True, timeout=300)
+    finished = subprocess.run([sys.executable, "-c", script], cwd=ROOT, capture_output=True, timeout=HANG_S)
     assert finished.returncode == -signal.SIGKILL, finished.stderr
     [stale] = [p for p in tmp_path.iterdir()]
     assert stale.name.startswith(".killed.partial-") and (stale / "model.safetensors").is_file()

@@ -14,6 +14,7 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
+from conftest import HANG_S
 from pi0_torch.cli import main
 from pi0_torch.data import LeRobotEpisodeDataset
 from pi0_torch.data.lerobot_writer import PROGRESS_FILE, LeRobotDatasetWriter, partial_dataset_episodes
@@ -25,7 +26,7 @@ SETTINGS = dict(image_size=16, storage="image", episodes_per_file=2)
 
 def demos(tmp_path: Path, *args: str) -> subprocess.CompletedProcess[str]:
     return subprocess.run([sys.executable, "-m", "pi0_torch.cli", "demos", "--env", "pi0_torch/Reach-v0", *args],
-                          cwd=tmp_path, capture_output=True, text=True, timeout=300, env={**os.environ, "OMP_NUM_THREADS": "1"})
+                          cwd=tmp_path, capture_output=True, text=True, timeout=HANG_S, env={**os.environ, "OMP_NUM_THREADS": "1"})
 
 
 def same_dataset(a: Path, b: Path) -> bool:
@@ -65,7 +66,7 @@ def then_die(self):
 lerobot_writer.LeRobotDatasetWriter._save_progress = then_die
 record_demos("pi0_torch/Reach-v0", 7, {str(root)!r}, **{SETTINGS!r})
 """
-        killed = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
+        killed = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=HANG_S)
         assert killed.returncode == -signal.SIGKILL, killed.stderr[-2000:]
     else:  # the disk fills while the third file is written
         write_table, calls = pq.write_table, [0]

@@ -15,6 +15,7 @@ import pytest
 import torch
 from test_training import TINY, losses, settings
 
+from conftest import HANG_S
 from pi0_torch import PI0Config, PI0ForActionGeneration
 from pi0_torch.cli import build_parser
 from pi0_torch.data.synthetic_data import write_synthetic_dataset
@@ -67,7 +68,7 @@ def launch(launcher: list[str], run: TrainSettings, cpu: bool = True) -> dict[in
     """Run `pi0_torch.training` under `launcher`; the log entry of each step from the last checkpoint's trainer state."""
     command = [sys.executable, *launcher, "-m", "pi0_torch.training", *cli_arguments(run, cpu)]
     finished = subprocess.run(command, check=False, env={**os.environ, "OMP_NUM_THREADS": "1"}, capture_output=True,
-                              text=True, timeout=600)
+                              text=True, timeout=HANG_S)
     assert finished.returncode == 0, finished.stderr[-3000:]
     state = json.loads((Path(run.output_dir) / f"checkpoint-{run.max_steps}" / "trainer_state.json").read_text())
     return {entry["step"]: entry for entry in state["log_history"] if "loss" in entry}

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import FIXTURES
+from conftest import FIXTURES, HANG_S
 from transformers.utils import logging as hf_logging
 
 from pi0_torch import PI0Config, PI0ForActionGeneration, PI0Processor
@@ -57,7 +57,7 @@ with torch.no_grad():
         image_masks=torch.ones(1, c.num_cameras, dtype=torch.bool), input_ids=torch.ones(1, 8, dtype=torch.long),
         attention_mask=torch.ones(1, 8, dtype=torch.bool), state=torch.zeros(1, c.action_dim), num_steps=2)"""
     notebook = nbformat.v4.new_notebook(cells=[nbformat.v4.new_code_cell(source) for source in (imports, cell, "tuple(chunk.shape)")])
-    nbclient.NotebookClient(notebook, timeout=600, kernel_name="python3", resources={"metadata": {"path": str(tmp_path)}}).execute()
+    nbclient.NotebookClient(notebook, timeout=HANG_S, kernel_name="python3", resources={"metadata": {"path": str(tmp_path)}}).execute()
     assert notebook.cells[0].outputs == [] and notebook.cells[1].outputs == []
     assert notebook.cells[2].outputs[0]["data"]["text/plain"] == f"(1, {config.action_horizon}, {config.action_dim})"
 

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 import torch
 
+from conftest import HANG_S
 from pi0_torch import PI0Config, PI0ForActionGeneration, PI0Processor
 from pi0_torch.runtime.policy import PI0Policy
 from pi0_torch.processing.normalization import NormStats
@@ -253,7 +254,7 @@ def test_eval_command_on_gym_pusht(tmp_path: Path) -> None:
                "--env", "gym_pusht/PushT-v0", "--episodes", "2", "--num-envs", "2", "--max-steps", "10",
                "--prompt", "push the T onto the target", "--output-dir", str(tmp_path / "out"), "--video",
                "--noise-scale", "0.5"]
-    done = subprocess.run(command, capture_output=True, text=True, env=env, timeout=300, check=False)
+    done = subprocess.run(command, capture_output=True, text=True, env=env, timeout=HANG_S, check=False)
     assert done.returncode == 0, done.stderr[-2000:]
     assert "gym_pusht/PushT-v0 sync d=0 s=8: success" in done.stdout
     result = json.loads((tmp_path / "out" / "eval.json").read_text())
@@ -262,6 +263,6 @@ def test_eval_command_on_gym_pusht(tmp_path: Path) -> None:
     assert (tmp_path / "out" / "rollout_1000000.mp4").stat().st_size > 0
     assert (tmp_path / "out" / "rollout_1000000.png").stat().st_size > 0
     bad = subprocess.run([*command[:6], "--env", "gym_nothing/Nope-v0"], capture_output=True, text=True, env=env,
-                         timeout=120, check=False)
+                         timeout=HANG_S, check=False)
     assert bad.returncode == 2 and bad.stderr.strip().count("\n") == 0
     assert "needs the package gym_nothing, which is not installed: pip install gym-nothing" in bad.stderr

@@ -29,6 +29,7 @@ import websockets.sync.client
 from test_serving import ACTION_DIM, REPO_ROOT, STATE_DIM, client_python, run_client, save_random_model  # noqa: F401
 from websockets.exceptions import InvalidStatus
 
+from conftest import HANG_S
 from pi0_torch.runtime.serving import MessageError, PolicyServer, ServerLimits, pack_message, unpack_message
 
 # websockets >= 17 warns when connect() is not used as a context manager; these clients are closed explicitly
@@ -57,8 +58,8 @@ class ServeProcess:
         """A client as openpi's (no compression, no size limit, the key as openpi-client sends it); metadata read."""
         headers = {"Authorization": f"Api-Key {api_key}"} if api_key is not None else None
         ws = websockets.sync.client.connect(self.url, compression=None, max_size=None, additional_headers=headers,
-                                            open_timeout=30, **options)
-        unpack_message(ws.recv(timeout=30))
+                                            open_timeout=HANG_S, **options)
+        unpack_message(ws.recv(timeout=HANG_S))
         return ws
 
 
@@ -86,12 +87,12 @@ def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServeProcess]:
 
     threading.Thread(target=drain, daemon=True).start()
     try:
-        assert listening.wait(120) and port, "the server did not start:\n" + "".join(lines)
+        assert listening.wait(HANG_S) and port, "the server did not start:\n" + "".join(lines)
         yield ServeProcess(process, port[0], lines)
     finally:
         process.terminate()
         try:
-            process.wait(timeout=30)
+            process.wait(timeout=30)  # a grace period before the kill, not a limit a test can fail on
         except subprocess.TimeoutExpired:
             process.kill()
             process.wait()
@@ -109,7 +110,7 @@ def good_observation(seed: int = 0) -> dict[str, Any]:
 def ask(ws: websockets.sync.client.ClientConnection, frame: bytes) -> Any:
     """Send one frame; the reply: a dict of actions, or the server's error text."""
     ws.send(frame)
-    reply = ws.recv(timeout=60)
+    reply = ws.recv(timeout=HANG_S)
     return reply if isinstance(reply, str) else unpack_message(reply)
 
 
@@ -123,7 +124,7 @@ def test_api_key_is_checked_in_the_handshake(server: ServeProcess, client_python
         assert refused.value.response.status_code == 401
         assert b"Api-Key" in refused.value.response.body
         assert f"refused: {label} API key" in server.log()
-    with urllib.request.urlopen(f"http://127.0.0.1:{server.port}/healthz", timeout=10) as response:
+    with urllib.request.urlopen(f"http://127.0.0.1:{server.port}/healthz", timeout=HANG_S) as response:
         assert response.status == 200  # health checks need no key
     # openpi's own client sends the header when given api_key=...
     result = run_client(client_python, tmp_path, mode="infer", port=server.port, api_key=API_KEY)
@@ -163,11 +164,11 @@ def test_connection_cap_and_idle_timeout(server: ServeProcess) -> None:
     idle = server.connect()
     start = time.monotonic()
     with pytest.raises(websockets.ConnectionClosed) as closed:
-        idle.recv(timeout=IDLE_TIMEOUT_S + 20)
+        idle.recv(timeout=HANG_S)
     waited = time.monotonic() - start
     assert closed.value.rcvd is not None and closed.value.rcvd.code == 1000
     assert "idle timeout" in closed.value.rcvd.reason
-    assert IDLE_TIMEOUT_S - 0.5 < waited < IDLE_TIMEOUT_S + 10
+    assert waited > IDLE_TIMEOUT_S - 0.5  # not before the idle timeout (after it: as late as the machine's load makes it)
     print(f"\nidle connection closed after {waited:.1f} s (--idle-timeout {IDLE_TIMEOUT_S:g})")
 
 
@@ -194,7 +195,7 @@ def test_error_replies_are_one_line_naming_the_field(server: ServeProcess) -> No
         prompts = ["pick up the fork", "x" * 2_001, "open the drawer"]
         for prompt in prompts:
             ws.send(pack_message({**good_observation(), "prompt": prompt}))
-        replies = [ws.recv(timeout=60) for _ in prompts]
+        replies = [ws.recv(timeout=HANG_S) for _ in prompts]
         assert [type(reply) for reply in replies] == [bytes, str, bytes] and "prompt: 2001 characters" in replies[1]
 
 
@@ -262,7 +263,7 @@ def test_oversized_requests_cost_neither_memory_nor_other_clients_latency(server
             attacked = latencies(ws, 8)
         finally:
             for thread in threads[1:]:
-                thread.join(timeout=120)
+                thread.join(timeout=HANG_S)
             stop.set()
             threads[0].join()
 
@@ -310,7 +311,7 @@ def test_a_frame_that_decodes_into_millions_of_objects_costs_milliseconds(server
     def poll_health() -> None:
         while not stop.is_set():
             start = time.monotonic()
-            with urllib.request.urlopen(f"http://127.0.0.1:{server.port}/healthz", timeout=60) as response:
+            with urllib.request.urlopen(f"http://127.0.0.1:{server.port}/healthz", timeout=HANG_S) as response:
                 assert response.status == 200
             health_s.append(time.monotonic() - start)
             time.sleep(0.01)
@@ -349,10 +350,10 @@ def test_a_frame_that_decodes_into_millions_of_objects_costs_milliseconds(server
                 attacked.append(time.monotonic() - start)
         finally:
             for thread in attackers:
-                thread.join(timeout=120)
+                thread.join(timeout=HANG_S)
             stop.set()
             for thread in helpers:
-                thread.join(timeout=60)
+                thread.join(timeout=HANG_S)
     assert len(refusals) == 9
     for seconds, reply in refusals:
         assert isinstance(reply, str) and reply.startswith("invalid request: the message holds more than 100000 objects")
@@ -373,7 +374,7 @@ def test_two_authorization_headers_are_refused_in_one_line(server: ServeProcess)
     with pytest.raises(InvalidStatus) as refused:
         websockets.sync.client.connect(server.url, additional_headers=[("Authorization", f"Api-Key {API_KEY}"),
                                                                        ("Authorization", f"Api-Key {API_KEY}")],
-                                       open_timeout=30)
+                                       open_timeout=HANG_S)
     assert refused.value.response.status_code == 401 and b"send one header" in refused.value.response.body
     assert "refused: 2 Authorization headers, not one: API key" in server.log() and "Traceback" not in server.log()
 

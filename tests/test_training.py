@@ -16,6 +16,7 @@ import pytest
 import torch
 from safetensors.torch import load_file
 
+from conftest import HANG_S
 from pi0_torch import PI0Config, PI0ForActionGeneration
 from pi0_torch.data.lerobot_dataset import LeRobotEpisodeDataset
 from pi0_torch.processing.normalization import NormStats, save_openpi_norm_stats
@@ -219,7 +220,7 @@ def then_die(self, *args, **kwargs):
 {owner}.{kill_after} = then_die
 train_policy(TrainSettings(**json.loads({json.dumps(json.dumps(vars(run_settings)))})))
 """
-    finished = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=600,
+    finished = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=HANG_S,
                               env={**os.environ, "OMP_NUM_THREADS": "1"})
     assert finished.returncode == -9, finished.stderr[-2000:]
     names = sorted(p.name for p in output.iterdir())
@@ -562,7 +563,7 @@ def test_accelerate_two_processes_match_one(dataset_root: Path, tmp_path: Path) 
             "--logging-steps", "1", "--save-steps", "1000", "--seed", "0", "--cpu",
         ]
         env = {**os.environ, "OMP_NUM_THREADS": "1"}
-        finished = subprocess.run(command, check=True, env=env, capture_output=True, text=True, timeout=600)
+        finished = subprocess.run(command, check=True, env=env, capture_output=True, text=True, timeout=HANG_S)
         assert finished.stderr.count("trainable parameters") == processes  # one log line per training process
         state = json.loads((output / "checkpoint-6" / "trainer_state.json").read_text())
         curves[processes] = losses(state["log_history"])
