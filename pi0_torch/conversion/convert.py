@@ -17,16 +17,16 @@ How it stays safe on a 12 GB checkpoint:
   needs; leftovers are reported by name before anything is written;
 - atomic output: everything goes into a hidden partial folder next to DST that is renamed into place at the end;
   any failure removes it, and a partial folder left by a killed run is removed by the next run
-  (`pi0_torch.utils.files`). An existing non-empty DST is replaced only with `overwrite=True`, and never when it is,
-  contains or lies inside the input.
+  (`pi0_torch.utils.files`). An existing non-empty DST is replaced only with `overwrite=True` and only when
+  pi0-torch wrote all of it, and never when it is, contains or lies inside the input.
 
 ```python
 >>> import tempfile
 >>> from pi0_torch import PI0ForActionGeneration
 >>> from pi0_torch.conversion.convert import convert_openpi_checkpoint
 >>> result = convert_openpi_checkpoint("tests/fixtures/openpi/pi0_small/ckpt/0", tempfile.mkdtemp() + "/pi0", progress=False)
->>> sorted(p.name for p in result.output_dir.iterdir())
-['config.json', 'model.safetensors', 'norm_stats.json']
+>>> sorted(p.name for p in result.output_dir.iterdir())  # and the manifest of the files pi0-torch wrote
+['.pi0-torch-manifest.json', 'config.json', 'model.safetensors', 'norm_stats.json']
 >>> PI0ForActionGeneration.from_pretrained(result.output_dir).config.pi05
 False
 

@@ -31,7 +31,6 @@ from __future__ import annotations
 import contextlib
 import io
 import json
-import os
 import shutil
 import sys
 from collections.abc import Iterable, Sequence
@@ -239,8 +238,10 @@ class LeRobotDatasetWriter:
                 raise
         else:  # a fresh start: nothing of an earlier run (or of one killed before its first flush) stays
             for entry in self.folder.iterdir():
-                if entry.name != files.OWNER_FILE:
-                    shutil.rmtree(entry) if entry.is_dir() else entry.unlink()
+                if entry.is_dir():
+                    shutil.rmtree(entry)
+                elif entry.name != files.OWNER_FILE:
+                    entry.unlink()
         return self
 
     def __exit__(self, kind: Any, error: Any, traceback: Any) -> bool | None:
@@ -286,9 +287,10 @@ class LeRobotDatasetWriter:
         self._group = []
         if states:
             self.run_state = states[-1]
-        if self.resumable:
+        if self.resumable:  # the files and their folder entries are on disk before the record that names them
             for path in written:
-                files.sync_tree(path) if path.is_dir() else _fsync(path)
+                files.fsync_file(path)
+                files.sync_folder(path.parent)
             self._save_progress()
 
     def _save_progress(self) -> None:
@@ -299,7 +301,7 @@ class LeRobotDatasetWriter:
         }
         staged = self._folder / (PROGRESS_FILE + ".tmp")
         staged.write_text(json.dumps(progress, default=_plain))
-        _fsync(staged)
+        files.fsync_file(staged)
         staged.replace(self._folder / PROGRESS_FILE)
         files.sync_folder(self._folder)
 
@@ -468,11 +470,6 @@ def partial_dataset_episodes(root: str | Path) -> int:
         return len(json.loads(progress.read_text())["episode_rows"])
     except (OSError, ValueError, KeyError, TypeError):
         return 0
-
-
-def _fsync(path: Path) -> None:
-    with open(path, "rb") as handle:
-        os.fsync(handle.fileno())
 
 
 def _plain(value: Any) -> Any:

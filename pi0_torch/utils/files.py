@@ -160,7 +160,7 @@ def record_written(folder: Path, paths: Iterable[Path]) -> None:
     manifest = folder / MANIFEST_FILE
     staged = manifest.with_name(f"{MANIFEST_FILE}.{uuid.uuid4().hex[:8]}.tmp")
     staged.write_text(json.dumps({"written_by": "pi0-torch", "files": sorted(listed)}, indent=0) + "\n")
-    _fsync_file(staged)
+    fsync_file(staged)
     staged.replace(manifest)
 
 
@@ -185,11 +185,12 @@ def sync_tree(folder: Path) -> None:
         for name in names:
             path = Path(root) / name
             if not path.is_symlink():
-                _fsync_file(path)
+                fsync_file(path)
         sync_folder(Path(root))
 
 
-def _fsync_file(path: Path) -> None:
+def fsync_file(path: Path) -> None:
+    """Flush one file's contents to disk."""
     with open(path, "rb") as handle:
         os.fsync(handle.fileno())
 
