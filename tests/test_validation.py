@@ -279,8 +279,11 @@ def train(dataset: Path, output: Path, *extra: str) -> list[str]:
 @pytest.mark.parametrize(
     ("extra", "message"),
     [
-        (("--max-steps", "0"), "error: --max-steps must be an integer >= 1, got 0 (int)"),  # trained one step
-        (("--batch-size", "0"), "error: --batch-size must be an integer >= 1, got 0 (int)"),
+        (("--max-steps", "0"), "error: --max-steps must be an integer in [1, 1000000000], got 0 (int)"),  # trained one step
+        (("--batch-size", "0"), "error: --batch-size must be an integer in [1, 65536], got 0 (int)"),
+        (("--batch-size", "1000000000"), "error: --batch-size must be an integer in [1, 65536], got 1000000000 (int)"),
+        (("--config-overrides", '{"action_horizon": 100000000}'),  # the kernel killed the trainer at 23 GB
+         "error: action_horizon must be an integer in [1, 1024], got 100000000 (int)"),
         (("--config-overrides", '{"action_horizn": 8}'),  # trained with horizon 50
          "error: unknown config settings ['action_horizn'] (did you mean 'action_horizon' for 'action_horizn'?)"),
         (("--config-overrides", '{"rope_theta": -1}'), "error: rope_theta must be a finite number > 0, got -1 (int)"),

@@ -71,7 +71,7 @@ from pi0_torch.processing.tokenization import TEST_TOKENIZER, TEST_TOKENIZER_VOC
 from pi0_torch.training.fast import build_fast_processor
 from pi0_torch.utils import files
 from pi0_torch.utils.threads import add_threads_argument, set_threads
-from pi0_torch.utils.validation import check_float, check_int, first_line
+from pi0_torch.utils.validation import MAX_SEED, check_float, check_int, first_line
 
 logger = logging.getLogger(__name__)
 
@@ -608,6 +608,14 @@ class TrainSettings:
     progress: bool = False  # progress bars (the command line turns them on)
 
 
+# The largest value of each count of a run (a batch of 1e9 would fail on its first allocation, not by name).
+RUN_LIMITS: dict[str, int] = {
+    "batch_size": 65_536, "gradient_accumulation_steps": 65_536, "lora_rank_vlm": 4_096, "lora_rank_expert": 4_096,
+    "num_workers": 1_024, "max_steps": 1_000_000_000, "decay_steps": 1_000_000_000, "warmup_steps": 1_000_000_000,
+    "seed": MAX_SEED,
+}
+
+
 def check_settings(settings: TrainSettings) -> None:
     """Refuse settings no run can use (`ValueError` naming the `pi0-torch train` flag): `--max-steps 0` would
     otherwise train one step, a zero batch or save interval would fail deep inside the Trainer."""
@@ -616,12 +624,12 @@ def check_settings(settings: TrainSettings) -> None:
 
     for name in ("max_steps", "batch_size", "gradient_accumulation_steps", "logging_steps", "save_steps",
                  "lora_rank_vlm", "lora_rank_expert"):
-        check_int(flag(name), getattr(settings, name), minimum=1)
+        check_int(flag(name), getattr(settings, name), minimum=1, maximum=RUN_LIMITS.get(name))
     for name in ("decay_steps", "save_total_limit", "eval_steps"):
         if getattr(settings, name) is not None:
-            check_int(flag(name), getattr(settings, name), minimum=1)
+            check_int(flag(name), getattr(settings, name), minimum=1, maximum=RUN_LIMITS.get(name))
     for name in ("warmup_steps", "num_workers", "seed"):
-        check_int(flag(name), getattr(settings, name), minimum=0)
+        check_int(flag(name), getattr(settings, name), minimum=0, maximum=RUN_LIMITS.get(name))
     check_float("--learning-rate", settings.learning_rate, minimum=0.0, exclusive_minimum=True)
     for name in ("end_learning_rate", "weight_decay", "max_grad_norm"):
         check_float(flag(name), getattr(settings, name), minimum=0.0)
