@@ -137,3 +137,18 @@ def test_a_fast_chunk_outside_the_fitted_range_warns_when_encoded(caplog: pytest
     assert tokenizer.unencodable_chunks == 2 and len(caplog.records) == 1
     assert "FAST: chunk 1 has scaled DCT coefficients in" in caplog.text and "outside what this tokenizer encodes" in caplog.text
     assert not np.allclose(tokenizer.decode(ids[1:2], 10, 3)[0], chunks[1] * 50, atol=0.5)  # what the warning is about
+
+
+@pytest.mark.parametrize(("setting", "message"), [
+    ({"max_batch_size": 10**9}, r"max_batch_size must be an integer in \[1, 1024\], got 1000000000"),  # a compiled
+    ({"port": 70_000}, r"port must be an integer in \[0, 65535\], got 70000"),  # warm-up ran every batch size
+])
+def test_server_counts_are_bounded(setting: dict, message: str) -> None:
+    from pi0_torch.runtime.serving import PolicyServer
+
+    class Policy:  # what PolicyServer reads before serving
+        metadata: dict = {}
+        camera_names = ["base_0_rgb"]
+
+    with pytest.raises(ValueError, match=message):
+        PolicyServer(Policy(), **setting)  # type: ignore[arg-type]

@@ -76,6 +76,7 @@ from pi0_torch.utils.validation import check_float, check_int, first_line, one_l
 logger = logging.getLogger(__name__)
 
 API_KEY_ENV = "PI0_TORCH_API_KEY"
+MAX_BATCH_SIZE = 1_024
 ALL_INTERFACES = ("0.0.0.0", "::", "")
 _ARRAY_KINDS = "biufUS"  # bool, ints, floats, strings; object/void/complex arrays are refused both ways
 
@@ -317,7 +318,8 @@ class PolicyServer:
         limits: ServerLimits | None = None,
         api_key: str | None = None,
     ) -> None:
-        check_int("max_batch_size", max_batch_size, minimum=1)
+        check_int("max_batch_size", max_batch_size, minimum=1, maximum=MAX_BATCH_SIZE)  # (a compiled warm-up runs each)
+        check_int("port", port, minimum=0, maximum=65_535)
         if api_key is not None and not api_key:
             raise ValueError("api_key must be a non-empty string (or None for no access control)")
         self.policy = policy
