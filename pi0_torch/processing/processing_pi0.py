@@ -503,9 +503,9 @@ class PI0Processor:
             values = self._conversion.actions_to_model(values)
         if self.delta_action_mask is not None:
             values = apply_delta(values, state, self.delta_action_mask)
-        normalized = self._pad(self._normalize(values, self._action_stats))
+        normalized = self._normalize(values, self._action_stats)  # (float64: an overflow is named, not inf)
         check_finite(f"{name} (normalized)", normalized)
-        return normalized
+        return self._pad(normalized)
 
     def _check_vector(self, value: Any, name: str, dim: int) -> np.ndarray:
         if value is None:
