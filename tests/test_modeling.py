@@ -227,28 +227,13 @@ def test_bad_noise_and_actions_raise_clear_errors(tiny_pi0: PI0ForActionGenerati
         tiny_pi0.generate_actions(**batch, noise=torch.zeros(2, 50, 7))
     with pytest.raises(ValueError, match=r"actions must have shape \(2, 50, 32\)"):
         tiny_pi0(**batch, actions=torch.zeros(2, 10, 32))
-    with pytest.raises(ValueError, match="num_steps must be >= 1"):
+    with pytest.raises(ValueError, match=r"num_steps must be an integer in \[1, "):
         tiny_pi0.generate_actions(**batch, num_steps=0)
-
-
-def test_compiled_sampling_is_one_graph_and_returns_fresh_tensors(tiny_pi0: PI0ForActionGeneration) -> None:
-    """`compile_sampling` compiles the whole sampling as one graph (fullgraph: a break raises) and every call returns
-    its own tensor (a CUDA graph reuses its output memory on the next replay)."""
-    batch = small_batch(tiny_pi0.config)
-    noises = [torch.randn(2, 50, 32, generator=torch.Generator().manual_seed(seed)) for seed in (1, 2)]
-    eager = [tiny_pi0.generate_actions(**batch, noise=noise, num_steps=2) for noise in noises]
-    tiny_pi0.compile_sampling()
-    try:
-        compiled = [tiny_pi0.generate_actions(**batch, noise=noise, num_steps=2) for noise in noises]
-    finally:
-        tiny_pi0.compile_sampling(disable=True)
-    for got, want in zip(compiled, eager):  # the first result survived the second call
-        torch.testing.assert_close(got, want, rtol=1e-4, atol=1e-5)
 
 
 @pytest.mark.slow
 def test_compiled_sampling_matches_eager(references: dict[str, OpenpiReference]) -> None:
-    """`compile_sampling` (torch.compile of the prefix pass and the Euler loop) keeps the numbers."""
+    """`compile_sampling` (regional: each repeated layer compiled once) keeps the numbers on both fixtures."""
     for ref in references.values():
         model, inputs = ref.model(), ref.model_inputs()
         noise = ref.tensor("inputs/sample_noise")

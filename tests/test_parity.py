@@ -9,13 +9,46 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from pi0_torch.models.flow_matching import euler_times, interpolate, sincos_time_embedding
 from pi0_torch.masks import prefix_lm_mask
+from pi0_torch.models.flow_matching import euler_times, interpolate, sincos_time_embedding
+from pi0_torch.models.modeling_pi0 import SamplingInputs, compact_prefix
 
 from conftest import VARIANTS, OpenpiReference, relative_error
 
 FLOAT32_TOLERANCE = 1e-4
 BF16_TOLERANCE = 3e-2
+
+
+def implied_attention(valid: torch.Tensor, first: torch.Tensor, length: int, suffix_ends: list[int]) -> torch.Tensor:
+    """The bool mask `[B, P + S, P + S]` over the original token layout that our key ranges amount to: each sample's
+    valid prefix tokens sit, in order, in slots `[first, length)` and see each other; suffix token t (slot
+    `length + t`) sees the valid prefix and the suffix slots before `suffix_ends[t]`. Padded rows and columns stay
+    False (openpi's mask leaves them False too)."""
+    batch, prefix_len = valid.shape
+    suffix_len = len(suffix_ends)
+    mask = torch.zeros(batch, prefix_len + suffix_len, prefix_len + suffix_len, dtype=torch.bool)
+    for b in range(batch):
+        prefix = valid[b].nonzero()[:, 0].tolist()
+        assert len(prefix) == length - int(first[b])
+        mask[b, torch.tensor(prefix)[:, None], torch.tensor(prefix)[None, :]] = True
+        for t, end in enumerate(suffix_ends):
+            mask[b, prefix_len + t, prefix] = True
+            mask[b, prefix_len + t, prefix_len : prefix_len + end - length] = True
+    return mask
+
+
+def suffix_ends(model, length: int) -> list[int]:
+    """The end slot of each suffix token's keys (π0: the state token stops after itself)."""
+    config = model.config
+    if config.pi05:
+        return [length + config.action_horizon] * config.action_horizon
+    return [length + 1] + [length + config.suffix_len] * config.action_horizon
+
+
+def layout_of(model, inputs: dict[str, torch.Tensor]):
+    """The prefix layout `generate_actions` uses for `inputs` (one host read of the checked inputs)."""
+    facts = model._check_inputs(inputs["pixel_values"], inputs["image_masks"], inputs["input_ids"], inputs["attention_mask"], inputs["state"])
+    return facts.layout(model.config.tokens_per_image)
 
 
 @torch.no_grad()
@@ -37,7 +70,6 @@ def loss_path_errors(ref: OpenpiReference, dtype: torch.dtype = torch.float32) -
         inputs["pixel_values"], inputs["image_masks"], inputs["input_ids"], inputs["attention_mask"]
     )
     assert torch.equal(prefix_valid, ref.tensor(f"{mode}/loss_path/prefix_mask"))
-    # a masked camera skips SigLIP (its tokens are never attended): compare valid tokens
     errors["prefix_tokens (valid)"] = relative_error(prefix[prefix_valid], ref[f"{mode}/loss_path/prefix_tokens"][prefix_valid.numpy()])
 
     errors["time_emb_sincos"] = relative_error(
@@ -47,26 +79,34 @@ def loss_path_errors(ref: OpenpiReference, dtype: torch.dtype = torch.float32) -
     x_t, target = interpolate(actions, noise, time)
     errors["x_t"] = relative_error(x_t, ref[f"{mode}/loss_path/x_t"])
     errors["u_t"] = relative_error(target, ref[f"{mode}/loss_path/u_t"])
-    conditioning = model.conditioning(time)
-    condition = conditioning.condition
     if config.pi05:
-        errors["adarms_cond"] = relative_error(condition, ref[f"{mode}/loss_path/adarms_cond"])
-    suffix = model.embed_suffix(inputs["state"], x_t, condition)
-    errors["suffix_tokens"] = relative_error(suffix, ref[f"{mode}/loss_path/suffix_tokens"])
-    suffix_flags = model.suffix_block_flags(suffix.device)
-    assert torch.equal(suffix_flags, ref.tensor(f"{mode}/loss_path/suffix_ar_mask"))
+        errors["adarms_cond"] = relative_error(model.time_conditioning(time), ref[f"{mode}/loss_path/adarms_cond"])
+    conditioning = model.conditioning(time).per_token(config.action_horizon)
+    suffix = model.embed_suffix(inputs["state"], x_t, conditioning.condition)
+    batch = x_t.shape[0]
+    errors["suffix_tokens"] = relative_error(suffix.view(batch, config.suffix_len, -1), ref[f"{mode}/loss_path/suffix_tokens"])
 
+    # our key ranges over the compacted prefix amount to openpi's prefix-LM mask; positions count valid tokens
+    layout = layout_of(model, inputs)
+    compacted, first = compact_prefix(prefix, prefix_valid, layout)
     valid = torch.cat([prefix_valid, ref.tensor(f"{mode}/loss_path/suffix_mask")], dim=1)
-    flags = torch.cat([ref.tensor(f"{mode}/loss_path/prefix_ar_mask"), suffix_flags])
+    flags = torch.cat([ref.tensor(f"{mode}/loss_path/prefix_ar_mask"), ref.tensor(f"{mode}/loss_path/suffix_ar_mask")])
     mask, positions = prefix_lm_mask(valid, flags)
     assert torch.equal(mask, ref.tensor(f"{mode}/loss_path/attn_mask"))
     assert torch.equal(positions, ref.tensor(f"{mode}/loss_path/positions").long())
+    ours = implied_attention(prefix_valid, first, layout.length, suffix_ends(model, layout.length))
+    pairs = valid[:, :, None] & valid[:, None, :]
+    assert torch.equal(ours & pairs, mask & pairs)
+    suffix_positions = (layout.length - first)[:, None] + torch.arange(config.suffix_len)
+    assert torch.equal(suffix_positions, positions[:, prefix_valid.shape[1] :])
 
-    prefix_out, suffix_out = model.run_layers(prefix, suffix, mask, positions, conditioning)
-    # padded query rows of the prefix are meaningless: compare valid tokens only
-    reference_prefix_out = ref[f"{mode}/loss_path/prefix_out"][prefix_valid.numpy()]
-    errors["prefix_out (valid)"] = relative_error(prefix_out[prefix_valid], reference_prefix_out)
-    errors["suffix_out"] = relative_error(suffix_out, ref[f"{mode}/loss_path/suffix_out"])
+    prefix_out, suffix_out = model.run_layers(compacted, suffix, first, layout, conditioning)
+    prefix_out = prefix_out.view(batch, layout.length, -1)
+    reference_prefix_out = ref[f"{mode}/loss_path/prefix_out"]  # padded query rows are meaningless: valid tokens only
+    errors["prefix_out (valid)"] = max(
+        relative_error(prefix_out[b, int(first[b]) :], reference_prefix_out[b, prefix_valid[b].numpy()]) for b in range(batch)
+    )
+    errors["suffix_out"] = relative_error(suffix_out.view(batch, config.suffix_len, -1), ref[f"{mode}/loss_path/suffix_out"])
 
     output = model(**inputs, actions=actions, noise=noise, time=time)
     errors["v_t"] = relative_error(output.velocity, ref[f"{mode}/loss_path/v_t"])
@@ -82,45 +122,49 @@ def sample_path_errors(ref: OpenpiReference) -> dict[str, float]:
     model, inputs = ref.model(), ref.model_inputs()
     config = model.config
     errors: dict[str, float] = {}
-    image_inputs = (inputs["pixel_values"], inputs["image_masks"], inputs["input_ids"], inputs["attention_mask"])
-    cache = model.cache_prefix(*image_inputs)
-    P = cache.prefix_len
-    # openpi: [layers, B, P, K, H]; ours: per layer [B, K, P + S, H]
-    keys = torch.stack([k[:, :, :P] for k in cache.keys]).permute(0, 1, 3, 2, 4)
-    values = torch.stack([v[:, :, :P] for v in cache.values]).permute(0, 1, 3, 2, 4)
-    # the cache holds only tokens something attends to (masked cameras and padding are dropped): compare each
-    # sample's valid tokens, in order, with openpi's cache at its valid positions
-    ours_valid, ref_valid = cache.prefix_valid.numpy(), ref["fp32/loss_path/prefix_mask"]  # same inputs
-    for name, ours in (("k", keys), ("v", values)):
-        reference = ref[f"fp32/sample_path/kv_cache_{name}"]
-        errors[f"kv_cache_{name} (valid)"] = max(
-            relative_error(ours[:, b, ours_valid[b]], reference[:, b, ref_valid[b]]) for b in range(len(ours_valid))
-        )
-
-    suffix_attention = model.suffix_attention(cache.prefix_valid)
-    # the same rule over the full (not compacted) prefix gives openpi's mask
-    full_mask = model.suffix_attention(torch.from_numpy(ref_valid))[0]
-    assert torch.equal(full_mask[:, 0], ref.tensor("fp32/sample_path/step0_full_attn_mask"))
-    suffix_positions = cache.prefix_valid.sum(1, keepdim=True) + torch.arange(config.suffix_len)
-    assert torch.equal(suffix_positions, ref.tensor("fp32/sample_path/step0_suffix_positions").long())
-
     times = euler_times(int(ref["inputs/num_steps"]))
     np.testing.assert_array_equal(np.array(times, dtype=np.float32), ref["fp32/sample_path/traj_time"])
-    batch = inputs["state"].shape[0]
-    x_t = ref.tensor("inputs/sample_noise")
-    steps = model.step_conditioning(times, batch)
+    layout = layout_of(model, inputs)
+    sampling = SamplingInputs(
+        inputs["pixel_values"], inputs["image_masks"], inputs["input_ids"], inputs["attention_mask"], inputs["state"],
+        ref.tensor("inputs/sample_noise"), torch.tensor(times),
+    )
+    cache = model.cache_prefix(sampling, layout)
+    # openpi: [layers, B, P, K, H] over the original layout; ours: per layer [B, K, slots, H], each sample's valid
+    # prefix tokens in order in slots [first, length): compare them with openpi's cache at its valid positions
+    ref_valid = ref["fp32/loss_path/prefix_mask"]  # same inputs
+    for name, ours in (("k", cache.keys), ("v", cache.values)):
+        reference = ref[f"fp32/sample_path/kv_cache_{name}"]
+        errors[f"kv_cache_{name} (valid)"] = max(
+            relative_error(torch.stack([layer[b, :, int(cache.first[b]) : layout.length].transpose(0, 1) for layer in ours]),
+                           reference[:, b, ref_valid[b]])
+            for b in range(ref_valid.shape[0])
+        )
+    ours = implied_attention(torch.from_numpy(ref_valid), cache.first, layout.length, suffix_ends(model, layout.length))
+    full_mask = ref.tensor("fp32/sample_path/step0_full_attn_mask")  # [B, S, P + S]
+    rows = ours[:, ref_valid.shape[1] :]
+    keys = torch.cat([torch.from_numpy(ref_valid), torch.ones(ref_valid.shape[0], config.suffix_len, dtype=torch.bool)], 1)
+    assert torch.equal(rows & keys[:, None], full_mask & keys[:, None])
+    suffix_positions = (layout.length - cache.first)[:, None] + torch.arange(config.suffix_len)
+    assert torch.equal(suffix_positions, ref.tensor("fp32/sample_path/step0_suffix_positions").long())
+
+    x_t = sampling.noise
+    steps = model.conditioning(sampling.times).steps()
     step0_tokens = model.embed_suffix(inputs["state"], x_t, steps[0].condition)
-    errors["step0_suffix_tokens"] = relative_error(step0_tokens, ref["fp32/sample_path/step0_suffix_tokens"])
+    errors["step0_suffix_tokens"] = relative_error(
+        step0_tokens.view(x_t.shape[0], config.suffix_len, -1), ref["fp32/sample_path/step0_suffix_tokens"]
+    )
+    actions_pass = model.action_pass(cache)
     velocity_errors, state_errors = [], []
     for step, conditioning in enumerate(steps):
-        velocity = model.denoise_step(cache, inputs["state"], x_t, conditioning, suffix_attention)
+        velocity = model.denoise_step(actions_pass, x_t, conditioning)
         x_t = x_t + (-1.0 / len(times)) * velocity
         velocity_errors.append(relative_error(velocity, ref["fp32/sample_path/traj_v"][step]))
         state_errors.append(relative_error(x_t, ref["fp32/sample_path/traj_x"][step]))
     errors["traj_v (worst step)"] = max(velocity_errors)
     errors["traj_x (worst step)"] = max(state_errors)
 
-    actions = model.generate_actions(*image_inputs, state=inputs["state"], noise=ref.tensor("inputs/sample_noise"))
+    actions = model.generate_actions(**inputs, noise=ref.tensor("inputs/sample_noise"))
     errors["actions"] = relative_error(actions, ref["fp32/actions"])
     return errors
 

@@ -3,12 +3,22 @@
 Reading order: normalisation and RoPE, one layer of the joint two-expert Gemma, the model (prefix and suffix
 embedding, training forward, cached sampling). Shapes: B batch, C cameras, P prefix tokens, S suffix tokens,
 N query heads, K kv heads, H head size, D0 / D1 widths of the VLM Gemma (expert 0) and the action expert (expert 1).
+Inside a layer each expert's tokens are 2-D, `[B * T, D]`, the layout its projections take without reshaping.
+
+Every pass lays its tokens out so that each one attends to a single contiguous range of keys (no mask matrix): each
+sample's valid prefix tokens are moved to the end of the prefix slots, with padding and masked cameras before them
+(`compact_prefix`), and the suffix follows; see `pi0_torch.models.attention`. The result equals openpi's prefix-LM
+mask on the original layout (tests compare the two with `pi0_torch.masks.prefix_lm_mask`).
+
+`generate_actions` reads its inputs on the host once (their checks and the prefix layout) and then never again:
+the sampling after that never waits for the device, so it can be replayed as one CUDA graph (`capture_sampling`).
 """
 
 from __future__ import annotations
 
+import functools
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -20,24 +30,55 @@ from transformers import PreTrainedModel, SiglipVisionConfig, SiglipVisionModel
 from transformers.modeling_layers import GradientCheckpointingLayer
 from transformers.utils import ModelOutput
 
-from pi0_torch.masks import masked_attention, prefix_lm_mask, to_additive_mask
+from pi0_torch.models.attention import KERNELS, AttentionPlan, KeyRanges, attend, choose_kernel, plan_attention
 from pi0_torch.models.configuration_pi0 import PI0Config
 from pi0_torch.models.flow_matching import euler_times, interpolate, sample_flow_time, sincos_time_embedding
-from pi0_torch.models.rtc import DEFAULT_MAX_GUIDANCE, METHODS, ChunkPrefix, chunk_prefix, guidance_weight, per_sample_steps
-from pi0_torch.utils.validation import check_pretrained_location, describe, hub_errors
-from pi0_torch.utils.validation import check_tensor as _check_tensor  # (the name other model modules import from here)
+from pi0_torch.models.rtc import (
+    DEFAULT_MAX_GUIDANCE,
+    METHODS,
+    ChunkPrefix,
+    check_rtc_inputs,
+    chunk_prefix,
+    guidance_weight,
+    per_sample_steps,
+)
 from pi0_torch.utils import files
 from pi0_torch.utils.quiet import transformers_progress
+from pi0_torch.utils.validation import check_int, check_pretrained_location, describe, hub_errors, nonfinite_error
+from pi0_torch.utils.validation import check_tensor as _check_tensor  # (the name other model modules import from here)
 
 # ----------------------------------------------------------------------------------------------------------------------
 # Normalisation and rotary position embedding
 # ----------------------------------------------------------------------------------------------------------------------
 
+_FUSED_RMS_NORM = getattr(torch.ops.aten, "_fused_rms_norm", None)  # one kernel (recent torch); else the formula
 
-def _rms_normalize(x: torch.Tensor, eps: float) -> torch.Tensor:
-    """`x * rsqrt(mean(x^2) + eps)`, computed and returned in float32."""
-    x = x.float()
-    return x * torch.rsqrt(x.pow(2).mean(dim=-1, keepdim=True) + eps)
+
+def rms_norm(x: torch.Tensor, eps: float, weight: torch.Tensor | None = None) -> torch.Tensor:
+    """`x * rsqrt(mean(x^2) + eps)`, times `weight` if given, in float32 arithmetic; returned in `x`'s dtype."""
+    if _FUSED_RMS_NORM is not None and (weight is None or weight.dtype == x.dtype):
+        return _FUSED_RMS_NORM(x, [x.shape[-1]], weight, eps)[0]
+    x32 = x.float()
+    normed = x32 * torch.rsqrt(x32.pow(2).mean(dim=-1, keepdim=True) + eps)
+    return (normed if weight is None else normed * weight).to(x.dtype)
+
+
+@dataclass
+class NormParams:
+    """What a Gemma norm applies to the normalised tokens, `normed * scale (+ shift)`, and (adaRMS) the gate of the
+    residual that follows. Each tensor broadcasts against the tokens `[B * T, D]`: `[D]`, or `[B * T, D]` per token
+    (or has a leading time axis before `StepConditioning.steps` splits it)."""
+
+    scale: torch.Tensor  # 1 + weight (RMSNorm); 1 + the modulation's scale (adaRMS)
+    shift: torch.Tensor | None = None
+    gate: torch.Tensor | None = None
+
+    def tensors(self) -> list[torch.Tensor]:
+        return [t for t in (self.scale, self.shift, self.gate) if t is not None]
+
+    def rebuilt(self, values: Iterator[torch.Tensor]) -> NormParams:
+        """The same structure holding the next tensors of `values` (see `StepConditioning.map`)."""
+        return NormParams(next(values), *(None if t is None else next(values) for t in (self.shift, self.gate)))
 
 
 class RMSNorm(nn.Module):
@@ -48,17 +89,19 @@ class RMSNorm(nn.Module):
         self.eps = eps
         self.weight = nn.Parameter(torch.zeros(dim))
 
-    def forward(self, x: torch.Tensor, modulation: torch.Tensor | None = None) -> tuple[torch.Tensor, None]:
-        return (_rms_normalize(x, self.eps) * (1 + self.weight)).to(x.dtype), None
+    def params(self) -> NormParams:
+        return NormParams(1 + self.weight)  # (in the weights' dtype: bf16 weights round it, as openpi's)
+
+    def forward(self, x: torch.Tensor, params: NormParams | None = None) -> torch.Tensor:
+        return rms_norm(x, self.eps, (self.params() if params is None else params).scale)
 
 
 class AdaRMSNorm(nn.Module):
     """π0.5 adaptive RMSNorm: the flow-time condition sets scale, shift and a residual gate.
 
-    `modulation` is `self.modulation(condition)` = [scale | shift | gate], `[B, 3 * dim]` for all tokens of a sample
-    or `[B, T, 3 * dim]` per token (real-time chunking gives committed action tokens their own flow time); callers
-    compute it (once for all sampling steps, see `PI0ForActionGeneration.expert_modulations`). Returns the normed
-    input and the gate.
+    `params(condition)` = `self.modulation(condition)` split into [scale | shift | gate] (callers compute them once for
+    all sampling steps, see `PI0ForActionGeneration.conditioning`); `forward(x, params)` = `normalize(x) * (1 + scale)
+    + shift` in float32, returned in the input dtype.
     """
 
     def __init__(self, dim: int, eps: float) -> None:
@@ -66,24 +109,28 @@ class AdaRMSNorm(nn.Module):
         self.eps = eps
         self.modulation = nn.Linear(dim, 3 * dim)
 
-    def forward(self, x: torch.Tensor, modulation: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        if modulation.dim() == 2:
-            modulation = modulation[:, None, :]
-        scale, shift, gate = modulation.chunk(3, dim=-1)  # [B, 1 or T, dim] each
-        return (_rms_normalize(x, self.eps) * (1 + scale) + shift).to(x.dtype), gate
+    def params(self, condition: torch.Tensor) -> NormParams:
+        scale, shift, gate = self.modulation(condition).chunk(3, dim=-1)
+        return NormParams(1 + scale, shift, gate)
+
+    def forward(self, x: torch.Tensor, params: NormParams) -> torch.Tensor:
+        return torch.addcmul(params.shift, rms_norm(x.float(), self.eps), params.scale).to(x.dtype)
 
 
 def rope_cos_sin(positions: torch.Tensor, head_dim: int, theta: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """RoPE rotation for `positions` [B, T]: float32 cos and sin `[B, 1, T, H/2]` (frequencies theta**(-2k/H))."""
+    """RoPE of `positions` `[B, T]` (frequencies `theta ** (-2k / H)`, angles in float32) for `apply_rope`: `cos`
+    repeated over both halves and `sin` signed `(-sin, sin)`, `[B, T, H]` each."""
     exponents = (2.0 / head_dim) * torch.arange(head_dim // 2, dtype=torch.float32, device=positions.device)
-    angles = positions.float()[:, None, :, None] / theta**exponents  # [B, 1, T, H/2]
-    return torch.cos(angles), torch.sin(angles)
+    angles = positions.float()[..., None] / theta**exponents  # [B, T, H/2]
+    cos, sin = torch.cos(angles), torch.sin(angles)
+    return torch.cat([cos, cos], dim=-1), torch.cat([-sin, sin], dim=-1)
 
 
 def apply_rope(x: torch.Tensor, cos: torch.Tensor, sin: torch.Tensor) -> torch.Tensor:
-    """Rotate `x` [B, heads, T, H] in the split-halves layout, in float32; returns x's dtype."""
-    first, second = x.float().chunk(2, dim=-1)
-    return torch.cat([first * cos - second * sin, second * cos + first * sin], dim=-1).to(x.dtype)
+    """Rotate `x` `[..., H]` in the split-halves layout, in float32: `[x1 cos - x2 sin, x2 cos + x1 sin]` =
+    `x * cos + (x2, x1) * (-sin, sin)` with `rope_cos_sin`'s tables (broadcast against `x`); returns `x`'s dtype."""
+    x32 = x.float()
+    return torch.addcmul(x32 * cos, x32.roll(x.shape[-1] // 2, dims=-1), sin).to(x.dtype)
 
 
 # ----------------------------------------------------------------------------------------------------------------------
@@ -98,20 +145,13 @@ class ExpertLayer(nn.Module):
         super().__init__()
         norm = AdaRMSNorm if adaptive else RMSNorm
         heads, kv_heads, head_dim = config.num_attention_heads, config.num_key_value_heads, config.head_dim
-        self.q_width, self.kv_width = heads * head_dim, kv_heads * head_dim
         self.attn_norm = norm(width, config.rms_norm_eps)
-        self.qkv_proj = nn.Linear(width, self.q_width + 2 * self.kv_width, bias=False)  # rows: q | k | v
-        self.o_proj = nn.Linear(self.q_width, width, bias=False)
+        self.qkv_proj = nn.Linear(width, (heads + 2 * kv_heads) * head_dim, bias=False)  # rows: q | k | v
+        self.o_proj = nn.Linear(heads * head_dim, width, bias=False)
         self.mlp_norm = norm(width, config.rms_norm_eps)
         self.gate_up_proj = nn.Linear(width, 2 * mlp_width, bias=False)  # rows: gate | up
         self.down_proj = nn.Linear(mlp_width, width, bias=False)
-        self.head_dim = head_dim
-
-    def project_qkv(self, h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """`h` [B, T, D] -> q [B, N, T, H], k and v [B, K, T, H] (before RoPE)."""
-        q, k, v = self.qkv_proj(h).split([self.q_width, self.kv_width, self.kv_width], dim=-1)
-        batch, length = h.shape[:2]
-        return tuple(y.view(batch, length, -1, self.head_dim).transpose(1, 2) for y in (q, k, v))  # type: ignore[return-value]
+        self.heads = (heads, kv_heads, kv_heads)  # of q, k, v
 
     def mlp(self, h: torch.Tensor) -> torch.Tensor:
         gate, up = self.gate_up_proj(h).chunk(2, dim=-1)
@@ -119,84 +159,110 @@ class ExpertLayer(nn.Module):
 
 
 def _residual(x: torch.Tensor, y: torch.Tensor, gate: torch.Tensor | None) -> torch.Tensor:
-    return x + y if gate is None else x + y * gate
+    return x + y if gate is None else x + y * gate  # (y * gate rounded first, as openpi's)
+
+
+@dataclass
+class StreamPass:
+    """How one expert's tokens take part in a pass, the same in every layer: their count per sample, RoPE tables
+    `[B or 1, T, 1, H]`, what they attend to, and their k/v slots (`first_slot` on, long `slots` `[T]`)."""
+
+    tokens: int
+    cos: torch.Tensor
+    sin: torch.Tensor
+    attention: AttentionPlan
+    first_slot: int
+    slots: torch.Tensor
 
 
 class JointDecoderLayer(GradientCheckpointingLayer):
-    """One Gemma layer run by both experts at once: each expert normalises and projects its own tokens, attention
-    runs over the concatenated sequence (prefix first), then each expert finishes its own tokens.
+    """One Gemma layer run by both experts at once: each expert normalises and projects its own tokens, every token's
+    k/v go to the pass's k/v slots, each stream attends to its key range, then each expert finishes its own tokens.
 
-    Either stream may be None: the prefix runs alone when its k/v are cached for sampling, the suffix runs alone in
-    each sampling step against that cache.
+    Either stream may be None: the prefix runs alone (π0: with the state token) when its k/v are cached for
+    sampling, the action tokens run alone in each sampling step against that cache.
+
+    `forward` runs `run`, or its compiled version once `compile_run` is called: one code object for every decoder
+    layer, so regional compilation compiles it once for all of them.
     """
 
     def __init__(self, config: PI0Config) -> None:
         super().__init__()
         self.vlm = ExpertLayer(config, config.vlm_hidden_size, config.vlm_intermediate_size, adaptive=False)
         self.expert = ExpertLayer(config, config.expert_hidden_size, config.expert_intermediate_size, config.pi05)
+        self.head_dim = config.head_dim
+        self._compiled_run: Any = None
 
-    def forward(
+    def compile_run(self, **compile_kwargs: Any) -> None:
+        """`torch.compile` `run` for this layer (`compile_run(disable=True)`: back to eager)."""
+        self._compiled_run = None if compile_kwargs.get("disable") else torch.compile(self.run, **compile_kwargs)
+
+    @property
+    def compiled(self) -> bool:
+        return self._compiled_run is not None
+
+    def forward(self, *args: Any, **kwargs: Any) -> tuple[torch.Tensor | None, torch.Tensor | None]:
+        return (self.run if self._compiled_run is None else self._compiled_run)(*args, **kwargs)
+
+    def run(
         self,
-        prefix: torch.Tensor | None,  # [B, P, D0]
-        suffix: torch.Tensor | None,  # [B, S, D1]
-        cos: torch.Tensor,  # [B, 1, T, H/2] for the tokens passed (T = P + S of the streams present)
-        sin: torch.Tensor,
-        mask: torch.Tensor,  # additive float [B, 1, T, T_kv] from `to_additive_mask` (built once per pass)
-        expert_modulation: tuple[torch.Tensor, torch.Tensor] | None = None,  # adaRMS (attn, mlp) [B, 3*D1] each
-        kv_buffer: tuple[torch.Tensor, torch.Tensor] | None = None,  # [B, K, P + S, H] each
-        kv_offset: int = 0,
+        prefix: torch.Tensor | None,  # [B * P, D0]
+        suffix: torch.Tensor | None,  # [B * S, D1]
+        streams: tuple[StreamPass | None, StreamPass | None],  # (prefix, suffix) of the pass
+        cache: tuple[torch.Tensor, torch.Tensor] | None = None,  # this layer's k/v buffers [B, K, slots, H]
+        expert_norms: tuple[NormParams, NormParams] | None = None,  # the action expert's (attention, MLP) norms
         keys_only: bool = False,
         write_cache: bool = True,
     ) -> tuple[torch.Tensor | None, torch.Tensor | None]:
         """Returns the updated (prefix, suffix).
 
-        With `kv_buffer`, the new post-RoPE k/v are written into it at `kv_offset` and attention reads the buffer up
-        to the end of the new tokens (a static k/v cache). `keys_only` stops once they are written (the last layer
-        of the cached prefix: its outputs are never read) and returns (None, None). `write_cache=False` reads the
-        buffer's first `kv_offset` entries and appends the new k/v without writing them (a pure function of its
-        inputs, for differentiating a sampling step with respect to its input).
+        With `cache`, each stream's post-RoPE k/v are written into the buffers at its slots and every stream attends
+        to the buffers (`write_cache=False`: to a copy of their first slots with the new k/v after them, the cache
+        untouched: a sampling step that is differentiated). Without (a training pass) the streams attend to their own
+        k/v. `expert_norms` default to the action expert's own RMSNorm weights (π0; π0.5 passes its adaRMS params).
+        `keys_only` stops once the k/v are written (the last layer of the cached prefix: its outputs are never read)
+        and returns (None, None).
         """
-        attn_modulation, mlp_modulation = expert_modulation if expert_modulation is not None else (None, None)
-        streams = [
-            (expert, x, attn_mod, mlp_mod)
-            for expert, x, attn_mod, mlp_mod in (
-                (self.vlm, prefix, None, None),
-                (self.expert, suffix, attn_modulation, mlp_modulation),
-            )
-            if x is not None
-        ]
-
-        queries, keys, values, gates = [], [], [], []
-        for expert, x, attn_mod, _ in streams:
-            h, gate = expert.attn_norm(x, attn_mod)
-            q, k, v = expert.project_qkv(h)
-            queries.append(q), keys.append(k), values.append(v), gates.append(gate)
-        q = apply_rope(torch.cat(queries, dim=2), cos, sin)
-        k = apply_rope(torch.cat(keys, dim=2), cos, sin)
-        v = torch.cat(values, dim=2)
-        if kv_buffer is not None and not write_cache:
-            key_buffer, value_buffer = kv_buffer
-            k = torch.cat([key_buffer[:, :, :kv_offset], k], dim=2)
-            v = torch.cat([value_buffer[:, :, :kv_offset], v], dim=2)
-        elif kv_buffer is not None:
-            key_buffer, value_buffer = kv_buffer
-            end = kv_offset + k.shape[2]
-            key_buffer[:, :, kv_offset:end] = k
-            value_buffer[:, :, kv_offset:end] = v
-            k, v = key_buffer[:, :, :end], value_buffer[:, :, :end]
+        layers = ((self.vlm, prefix, None), (self.expert, suffix, expert_norms))
+        queries: list[torch.Tensor | None] = [None, None]
+        gates: list[torch.Tensor | None] = [None, None]
+        new_keys, new_values = [], []  # [B, K, T, H] of the streams that do not write into a cache
+        for index, ((expert, x, norms), stream) in enumerate(zip(layers, streams)):
+            if x is None:
+                continue
+            attn_params = norms[0] if norms is not None else None
+            gates[index] = attn_params.gate if attn_params is not None else None
+            qkv = expert.qkv_proj(expert.attn_norm(x, attn_params))  # [B * T, (N + 2K) H]
+            q, k, v = qkv.view(-1, stream.tokens, qkv.shape[-1] // self.head_dim, self.head_dim).split(expert.heads, dim=2)
+            k, v = apply_rope(k, stream.cos, stream.sin).transpose(1, 2), v.transpose(1, 2)  # [B, K, T, H]
+            if cache is not None and write_cache:
+                cache[0].index_copy_(2, stream.slots, k)
+                cache[1].index_copy_(2, stream.slots, v)
+            else:
+                new_keys.append(k)
+                new_values.append(v)
+            if not keys_only:
+                queries[index] = apply_rope(q, stream.cos, stream.sin)
+        if cache is None:  # a training pass: its own k/v (prefix slots first)
+            keys, values = torch.cat(new_keys, dim=2), torch.cat(new_values, dim=2)
+        elif not write_cache:  # the cache's first slots, then the new k/v
+            first_slot = next(stream.first_slot for stream in streams if stream is not None)
+            keys = torch.cat([cache[0][:, :, :first_slot], *new_keys], dim=2)
+            values = torch.cat([cache[1][:, :, :first_slot], *new_values], dim=2)
+        else:
+            keys, values = cache
         if keys_only:
             return None, None
-        attended = masked_attention(q, k, v, mask, scale=q.shape[-1] ** -0.5, additive=True)  # [B, N, T, H]
-        attended = attended.transpose(1, 2).flatten(2)  # [B, T, N*H]
 
         outputs: list[torch.Tensor | None] = [None, None]
-        start = 0
-        for (expert, x, _, mlp_mod), gate in zip(streams, gates):
-            stream_attended = attended[:, start : start + x.shape[1]]
-            start += x.shape[1]
-            x = _residual(x, expert.o_proj(stream_attended), gate)
-            h, gate = expert.mlp_norm(x, mlp_mod)
-            outputs[0 if expert is self.vlm else 1] = _residual(x, expert.mlp(h), gate)
+        for index, ((expert, x, norms), stream) in enumerate(zip(layers, streams)):
+            if x is None:
+                continue
+            attended = attend(queries[index], keys, values, stream.attention)  # [B * T, N * H]
+            x = _residual(x, expert.o_proj(attended), gates[index])
+            mlp_params = norms[1] if norms is not None else None
+            h = expert.mlp_norm(x, mlp_params)
+            outputs[index] = _residual(x, expert.mlp(h), mlp_params.gate if mlp_params is not None else None)
         return outputs[0], outputs[1]
 
 
@@ -221,42 +287,147 @@ class PI0Output(ModelOutput):
 
 @dataclass
 class StepConditioning:
-    """What the flow time contributes to the suffix (see `PI0ForActionGeneration.conditioning`): per sample
-    `[B, ...]`, or per action token `[B, horizon, ...]` when committed tokens have their own time (real-time chunking).
+    """What the flow time contributes to the suffix: π0's time half of `action_time_mlp_in` (its bias included),
+    added to every action token; π0.5's adaRMS params of every expert norm (per layer: attention norm, MLP norm; then
+    the final norm).
+
+    `PI0ForActionGeneration.conditioning` builds it for T flow times at once, every tensor with the time axis first;
+    `steps()` gives one per sampling step, `per_token()` spreads per-sample values over the action tokens.
     """
 
-    condition: torch.Tensor  # [B, D1] time half of action_time_mlp_in (π0) or adaRMS condition (π0.5)
-    modulations: tuple[list[tuple[torch.Tensor, torch.Tensor]], torch.Tensor] | None  # π0.5: per layer, final
+    condition: torch.Tensor | None  # π0: [., D1]
+    layer_norms: tuple[tuple[NormParams, NormParams], ...] | None  # π0.5
+    final_norm: NormParams | None  # π0.5
 
     def tensors(self) -> list[torch.Tensor]:
-        per_layer, final = self.modulations if self.modulations is not None else ([], None)
-        return [self.condition, *(m for pair in per_layer for m in pair), *([final] if final is not None else [])]
+        norms = [params for pair in self.layer_norms or () for params in pair] + ([self.final_norm] if self.final_norm else [])
+        return ([self.condition] if self.condition is not None else []) + [t for params in norms for t in params.tensors()]
+
+    def rebuilt(self, values: Iterator[torch.Tensor]) -> StepConditioning:
+        """The same structure holding the next tensors of `values` (in the order of `tensors()`)."""
+        condition = None if self.condition is None else next(values)
+        layer_norms = None if self.layer_norms is None else tuple((a.rebuilt(values), m.rebuilt(values)) for a, m in self.layer_norms)
+        return StepConditioning(condition, layer_norms, None if self.final_norm is None else self.final_norm.rebuilt(values))
 
     def map(self, fn: Callable[..., torch.Tensor], *others: StepConditioning) -> StepConditioning:
         """Apply `fn` to every tensor (with the matching tensors of `others` as further arguments)."""
-        values = iter([fn(*group) for group in zip(self.tensors(), *(other.tensors() for other in others))])
-        condition = next(values)
-        if self.modulations is None:
-            return StepConditioning(condition, None)
-        per_layer = [(next(values), next(values)) for _ in self.modulations[0]]
-        return StepConditioning(condition, (per_layer, next(values)))
+        return self.rebuilt(iter([fn(*group) for group in zip(self.tensors(), *(other.tensors() for other in others))]))
 
-    def per_token(self, clean: StepConditioning, committed: torch.Tensor) -> StepConditioning:
-        """Per action token: `clean` (flow time 0, one row) where `committed` `[B, horizon]`, this step's elsewhere."""
-        return self.map(lambda value, clean_value: torch.where(committed[..., None], clean_value[:, None], value[:, None]), clean)
+    def steps(self) -> list[StepConditioning]:
+        """One conditioning per flow time (each tensor's time axis unbound once)."""
+        columns = [tensor.unbind(0) for tensor in self.tensors()]
+        return [self.rebuilt(iter(column[index] for column in columns)) for index in range(len(columns[0]))]
+
+    def per_token(self, tokens: int, committed: torch.Tensor | None = None, clean: StepConditioning | None = None) -> StepConditioning:
+        """Per sample `[B, ...]` (or one step's `[...]` with `committed`) -> per action token `[B * tokens, ...]`.
+        Tokens where `committed` `[B, tokens]` is set (real-time chunking: their actions are given) take the values of
+        `clean` (the conditioning of flow time 0, one step)."""
+        if committed is None:
+            return self.map(lambda value: value.repeat_interleave(tokens, dim=0))
+        return self.map(
+            lambda value, clean_value: torch.where(committed[..., None], clean_value, value.unsqueeze(-2)).flatten(0, 1), clean
+        )
+
+
+@dataclass(frozen=True)
+class PrefixLayout:
+    """How a call lays out its prefix, decided on the host from its checked inputs (see `InputFacts.layout`): the
+    cameras that go through the vision tower (those some sample shows, in config order) and `length` prefix slots,
+    each sample's valid tokens at their end (the longest sample fills them; `padded`: some sample has fewer)."""
+
+    cameras: tuple[int, ...]
+    length: int
+    padded: bool
+
+
+@dataclass(frozen=True)
+class InputFacts:
+    """What the input checks read from the device, in their one read: which cameras each sample shows and how many
+    valid text tokens it has."""
+
+    image_masks: tuple[tuple[bool, ...], ...]
+    text_counts: tuple[int, ...]
+    text_length: int
+
+    def layout(self, tokens_per_image: int, bucket: int = 1) -> PrefixLayout:
+        """The prefix layout, `length` rounded up to a multiple of `bucket` (CUDA graphs: fewer distinct layouts)."""
+        cameras = tuple(c for c in range(len(self.image_masks[0])) if any(shown[c] for shown in self.image_masks))
+        valid = [tokens_per_image * sum(shown[c] for c in cameras) + text for shown, text in zip(self.image_masks, self.text_counts)]
+        total = tokens_per_image * len(cameras) + self.text_length
+        length = min(total, -(-max(1, *valid) // bucket) * bucket)
+        return PrefixLayout(cameras, length, any(count < length for count in valid))
+
+
+def compact_prefix(tokens: torch.Tensor, valid: torch.Tensor, layout: PrefixLayout) -> tuple[torch.Tensor, torch.Tensor]:
+    """Move each sample's valid tokens, in order, to the end of `layout.length` slots: `tokens` `[B, P, D]`, `valid`
+    `[B, P]` -> tokens `[B * length, D]` (a tensor of its own, not a view: a compiled layer sees the same kind of input
+    in every layer) and each sample's first valid slot `[B]` (invalid tokens before it).
+
+    Exact: attention only depends on which tokens are valid and their order (positions count valid tokens), and no
+    valid token attends to an invalid one.
+    """
+    first = layout.length - valid.sum(dim=1)
+    batch, count = valid.shape
+    if count == layout.length and not layout.padded:
+        return tokens.flatten(0, 1).clone(), first
+    order = valid.to(torch.uint8).sort(dim=1, stable=True).indices[:, -layout.length :]  # invalid first, then valid in order
+    rows = order + torch.arange(batch, device=order.device)[:, None] * count
+    return tokens.flatten(0, 1).index_select(0, rows.flatten()), first
 
 
 @dataclass
 class PrefixCache:
-    """Post-RoPE keys and values of the prefix for every layer, in static buffers with room for the suffix."""
+    """The prefix (π0: and the state token) run once for sampling: every layer's post-RoPE k/v in static buffers
+    `[B, K, slots, H]` whose last `action_horizon` slots each step's action tokens fill, and each sample's first
+    valid slot `[B]` (its valid prefix tokens end at `layout.length`)."""
 
-    keys: list[torch.Tensor]  # per layer [B, K, P + S, H]
+    keys: list[torch.Tensor]
     values: list[torch.Tensor]
-    prefix_valid: torch.Tensor  # bool [B, P]
+    first: torch.Tensor
+    layout: PrefixLayout
 
     @property
-    def prefix_len(self) -> int:
-        return self.prefix_valid.shape[1]
+    def slots(self) -> int:
+        return self.keys[0].shape[2]
+
+
+@dataclass
+class ActionPass:
+    """What every sampling step shares, built once per call: the cache, the action tokens' stream (RoPE, key range,
+    slots), and π0's time-independent parts (the action half of `action_time_mlp_in`, transposed, and the action
+    expert's norm params)."""
+
+    cache: PrefixCache
+    stream: StreamPass
+    action_weight: torch.Tensor | None  # π0: [D1, D1]
+    expert_norms: list[tuple[NormParams, NormParams]] | None  # π0: per layer (attention, MLP)
+    final_norm: NormParams | None  # π0
+
+
+@dataclass
+class SamplingInputs:
+    """The tensors sampling reads once its inputs are checked (what a CUDA graph holds static copies of)."""
+
+    pixel_values: torch.Tensor  # [B, C', 3, H, W]: the cameras of the layout
+    image_masks: torch.Tensor  # bool [B, C']
+    input_ids: torch.Tensor  # [B, L]
+    attention_mask: torch.Tensor  # [B, L]
+    state: torch.Tensor | None  # [B, action_dim] (π0)
+    noise: torch.Tensor  # float32 [B, horizon, action_dim]
+    times: torch.Tensor  # float32 [steps]: the flow time of each Euler step
+    target: torch.Tensor | None = None  # real-time chunking: float32 [B, horizon, action_dim]
+    weights: torch.Tensor | None = None  # guidance: float32 [B, horizon]
+    committed: torch.Tensor | None = None  # conditioning: bool [B, horizon]
+
+
+@dataclass(frozen=True)
+class SamplingPlan:
+    """The host-side settings of one sampling call (a CUDA graph is captured per plan and input shapes)."""
+
+    layout: PrefixLayout
+    times: tuple[float, ...]
+    rtc_method: str | None = None  # None: plain sampling
+    max_guidance: float = 0.0
 
 
 class PI0PreTrainedModel(PreTrainedModel):
@@ -385,26 +556,11 @@ class SiglipImageEmbedding:
     """Image tokens of the PaliGemma models (π0 / π0.5 and π0-FAST): `self.vision_tower` (`siglip_vision_tower`)
     followed by the linear head `self.image_projection` to the Gemma width."""
 
-    def embed_images(self, pixel_values: torch.Tensor, image_masks: torch.Tensor | None = None) -> torch.Tensor:
-        """SigLIP + linear head: `[B, C, 3, H, W]` in [-1, 1] -> image tokens `[B, C, tokens_per_image, D0]`.
-
-        With `image_masks` (eager mode only), masked cameras skip the vision tower and get zero tokens: no valid
-        token ever attends to them, so the result is unchanged.
-        """
+    def embed_images(self, pixel_values: torch.Tensor) -> torch.Tensor:
+        """SigLIP + linear head: `[B, C, 3, H, W]` in [-1, 1] -> image tokens `[B, C, tokens_per_image, D0]`."""
         batch, cameras = pixel_values.shape[:2]
         images = pixel_values.flatten(0, 1).to(self.image_projection.weight.dtype)  # [B*C, 3, H, W]
-        if image_masks is not None and not torch.compiler.is_compiling():
-            keep = image_masks.flatten().bool()
-            if not keep.all() and keep.any():
-                encoded = self._encode_images(images[keep])  # dtype as the tower runs (autocast may change it)
-                tokens = encoded.new_zeros(batch * cameras, *encoded.shape[1:])
-                tokens[keep] = encoded
-                return tokens.unflatten(0, (batch, cameras))
-        return self._encode_images(images).unflatten(0, (batch, cameras))
-
-    def _encode_images(self, images: torch.Tensor) -> torch.Tensor:
-        """`[n, 3, H, W]` -> `[n, tokens_per_image, D0]`."""
-        return self.image_projection(self.vision_tower(pixel_values=images).last_hidden_state)
+        return self.image_projection(self.vision_tower(pixel_values=images).last_hidden_state).unflatten(0, (batch, cameras))
 
 
 class PI0ForActionGeneration(SiglipImageEmbedding, PI0PreTrainedModel):
@@ -430,6 +586,9 @@ class PI0ForActionGeneration(SiglipImageEmbedding, PI0PreTrainedModel):
     ```
     """
 
+    # prefix slots of a captured sampling graph are a multiple of this: prompts of similar length share a graph
+    GRAPH_PREFIX_BUCKET = 32
+
     def __init__(self, config: PI0Config) -> None:
         super().__init__(config)
         self.vision_tower = siglip_vision_tower(config)
@@ -448,30 +607,74 @@ class PI0ForActionGeneration(SiglipImageEmbedding, PI0PreTrainedModel):
             self.state_proj = nn.Linear(config.action_dim, width)
             self.action_time_mlp_in = nn.Linear(2 * width, width)
             self.action_time_mlp_out = nn.Linear(width, width)
-        self._compiled_sample: Any = None  # set by `compile_sampling`
+        self._attention_kernel = "auto"
+        self._graphs: Any = None  # `SamplingGraphs` once `capture_sampling` is called
+        self._device_times: dict[tuple[tuple[float, ...], torch.device], torch.Tensor] = {}
         self.post_init()
+
+    @property
+    def attention_kernel(self) -> str:
+        """The attention kernel of sampling passes (`pi0_torch.models.attention.KERNELS`): "auto" (FlashAttention's
+        varlen kernel on CUDA in bf16 / fp16 where the installed torch has it, else SDPA), "sdpa" or "varlen"."""
+        return self._attention_kernel
+
+    @attention_kernel.setter
+    def attention_kernel(self, kernel: str) -> None:
+        if kernel not in KERNELS:
+            raise ValueError(f"attention_kernel must be one of {KERNELS}, got {kernel!r}")
+        self._attention_kernel = kernel
+        if self._graphs is not None:
+            self._graphs.clear()
 
     # -- prefix: images and text ---------------------------------------------------------------------------------------
 
     def embed_prefix(
         self, pixel_values: torch.Tensor, image_masks: torch.Tensor, input_ids: torch.Tensor, attention_mask: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Prefix tokens `[B, P, D0]` (each camera's image tokens, then the scaled text embeddings) and their
-        validity `[B, P]`. Image tokens are not scaled; text embeddings are multiplied by sqrt(D0)."""
-        image_tokens = self.embed_images(pixel_values, image_masks)  # [B, C, 256, D0]
+        """Prefix tokens `[B, P, D0]` (each given camera's image tokens, then the scaled text embeddings) and their
+        validity `[B, P]`. Image tokens are not scaled; text embeddings are multiplied by sqrt(D0) rounded to the
+        weights' dtype (as openpi)."""
         text_tokens = self.embed_tokens(input_ids)
-        text_tokens = text_tokens * torch.tensor(math.sqrt(text_tokens.shape[-1]), dtype=text_tokens.dtype)
-        tokens = torch.cat([image_tokens.flatten(1, 2), text_tokens], dim=1)
-        image_valid = image_masks.bool()[:, :, None].expand(-1, -1, image_tokens.shape[2]).flatten(1)
-        return tokens, torch.cat([image_valid, attention_mask.bool()], dim=1)
+        text_tokens = text_tokens * _rounded_sqrt(text_tokens.shape[-1], text_tokens.dtype)
+        valid = attention_mask.bool()
+        if pixel_values.shape[1] == 0:  # no sample shows any camera
+            return text_tokens, valid
+        image_tokens = self.embed_images(pixel_values)  # [B, C, 256, D0]
+        image_valid = image_masks[:, :, None].expand(-1, -1, image_tokens.shape[2]).flatten(1)
+        return torch.cat([image_tokens.flatten(1, 2), text_tokens], dim=1), torch.cat([image_valid, valid], dim=1)
+
+    def _prefix_stream(self, first: torch.Tensor, layout: PrefixLayout, dtype: torch.dtype, slots: int) -> StreamPass:
+        """The prefix in slots `[0, length)`: sample b's valid tokens from `first[b]` at positions 0, 1, ...; they see
+        each other (bidirectional) and nothing after."""
+        positions = torch.arange(layout.length, device=first.device)[None, :] - first[:, None]
+        return self._stream(positions, first, (layout.length,), layout, dtype, slots, first_slot=0)
+
+    def _suffix_stream(
+        self, first: torch.Tensor, layout: PrefixLayout, first_slot: int, group_rows: tuple[int, ...], dtype: torch.dtype, slots: int
+    ) -> StreamPass:
+        """Suffix tokens in slots from `first_slot` (after the prefix): positions continue after each sample's valid
+        prefix tokens; each group of rows sees the valid prefix and the suffix slots up to its own end."""
+        tokens = sum(group_rows)
+        positions = (layout.length - first)[:, None] + (first_slot - layout.length) + torch.arange(tokens, device=first.device)
+        return self._stream(positions, first, group_rows, layout, dtype, slots, first_slot)
+
+    def _stream(
+        self, positions: torch.Tensor, first: torch.Tensor, group_rows: tuple[int, ...], layout: PrefixLayout,
+        dtype: torch.dtype, slots: int, first_slot: int,
+    ) -> StreamPass:
+        config = self.config
+        cos, sin = rope_cos_sin(positions, config.head_dim, config.rope_theta)
+        ends = tuple(first_slot + sum(group_rows[: index + 1]) for index in range(len(group_rows)))
+        kernel = choose_kernel(self._attention_kernel, first.device, dtype, config.num_key_value_heads, config.head_dim)
+        plan = plan_attention(
+            KeyRanges(first, group_rows, ends, padded=layout.padded), config.num_attention_heads,
+            config.num_key_value_heads, dtype, kernel, key_slots=slots,
+        )
+        tokens = sum(group_rows)
+        slot_index = torch.arange(first_slot, first_slot + tokens, device=first.device)
+        return StreamPass(tokens, cos[:, :, None], sin[:, :, None], plan, first_slot, slot_index)
 
     # -- suffix: state, noisy actions, flow time -----------------------------------------------------------------------
-
-    def suffix_block_flags(self, device: torch.device) -> torch.Tensor:
-        """Block starts of the suffix: π0 [state, a_0, a_1, ...] = [1, 1, 0, ...]; π0.5 [a_0, a_1, ...] = [1, 0, ...]."""
-        flags = torch.zeros(self.config.suffix_len, dtype=torch.bool, device=device)
-        flags[: 1 if self.config.pi05 else 2] = True
-        return flags
 
     def time_conditioning(self, time: torch.Tensor) -> torch.Tensor:
         """What the flow time contributes, for any number of times `[T]`.
@@ -489,55 +692,39 @@ class PI0ForActionGeneration(SiglipImageEmbedding, PI0PreTrainedModel):
         width = config.expert_hidden_size
         return F.linear(embedding, self.action_time_mlp_in.weight[:, width:], self.action_time_mlp_in.bias)
 
-    def conditioning(self, time: torch.Tensor, committed: torch.Tensor | None = None) -> StepConditioning:
-        """The suffix's time conditioning for flow times `[T]`: `time_conditioning` and (π0.5) the adaRMS
-        modulations of every expert norm, `[T, ...]`.
-
-        With `committed` bool `[T, horizon]` (real-time chunking: action tokens whose actions are given), those
-        tokens get the conditioning of flow time 0 ("clean") and the result is per token, `[T, horizon, ...]`.
-        """
+    def conditioning(self, time: torch.Tensor) -> StepConditioning:
+        """The suffix's time conditioning for flow times `[T]`, every tensor `[T, ...]` (see `StepConditioning`)."""
         condition = self.time_conditioning(time)
-        step = StepConditioning(condition, self.expert_modulations(condition) if self.config.pi05 else None)
-        if committed is None:
-            return step
-        return step.per_token(self.conditioning(torch.zeros(1, device=time.device)), committed)
+        if not self.config.pi05:
+            return StepConditioning(condition, None, None)
+        layer_norms = tuple((layer.expert.attn_norm.params(condition), layer.expert.mlp_norm.params(condition)) for layer in self.layers)
+        return StepConditioning(None, layer_norms, self.expert_final_norm.params(condition))
 
-    def step_conditioning(self, times: list[float], batch: int, committed: torch.Tensor | None = None) -> list[StepConditioning]:
-        """Everything that depends only on the flow time, for all sampling steps at once: per step the
-        `conditioning` of that time for a batch of `batch` (per token where `committed` `[B, horizon]` is given)."""
-        steps = self.conditioning(torch.tensor(times, dtype=torch.float32, device=self.device))  # [steps, ...]
-        clean = self.conditioning(torch.zeros(1, device=self.device)) if committed is not None else None
-        per_step = []
-        for index in range(len(times)):
-            step = steps.map(lambda value, index=index: value[index].expand(batch, -1))
-            per_step.append(step if clean is None else step.per_token(clean, committed))
-        return per_step
+    def embed_state(self, state: torch.Tensor) -> torch.Tensor:
+        """π0's state token `[B, D1]`."""
+        return self.state_proj(state.to(self.state_proj.weight.dtype))
 
-    def expert_modulations(self, condition: torch.Tensor) -> tuple[list[tuple[torch.Tensor, torch.Tensor]], torch.Tensor]:
-        """π0.5 adaRMS modulations `[..., 3*D1]` of every expert norm for `condition` `[..., D1]`: per layer
-        (attention norm, MLP norm), and the final norm."""
-        per_layer = [
-            (layer.expert.attn_norm.modulation(condition), layer.expert.mlp_norm.modulation(condition)) for layer in self.layers
-        ]
-        return per_layer, self.expert_final_norm.modulation(condition)
-
-    def embed_suffix(
-        self, state: torch.Tensor | None, noisy_actions: torch.Tensor, time_conditioning: torch.Tensor
+    def embed_actions(
+        self, noisy_actions: torch.Tensor, condition: torch.Tensor | None, action_weight: torch.Tensor | None = None
     ) -> torch.Tensor:
-        """Suffix tokens `[B, S, D1]` from the state (π0), the noisy actions `[B, horizon, action_dim]` and
-        `time_conditioning(time)`, `[B, D1]` or per action token `[B, horizon, D1]`."""
-        dtype = self.action_in_proj.weight.dtype
-        action_tokens = self.action_in_proj(noisy_actions.to(dtype))
+        """Action tokens `[B * horizon, D1]` of the noisy actions `[B, horizon, action_dim]`. π0 adds the flow time:
+        `action_time_mlp_out(silu(action_time_mlp_in(cat(tokens, time))))` with the time half precomputed
+        (`condition` `[D1]`, or per token `[B * horizon, D1]`); `action_weight` is the action half transposed when
+        the caller has it."""
+        tokens = self.action_in_proj(noisy_actions.to(self.action_in_proj.weight.dtype).flatten(0, 1))
         if self.config.pi05:
-            return action_tokens
-        width = self.config.expert_hidden_size
-        # action_time_mlp_in(cat(actions, time)) split into its action half and the precomputed time half
-        if time_conditioning.dim() == 2:
-            time_conditioning = time_conditioning[:, None, :]
-        hidden = F.linear(action_tokens, self.action_time_mlp_in.weight[:, :width]) + time_conditioning
-        action_tokens = self.action_time_mlp_out(F.silu(hidden))
-        state_token = self.state_proj(state.to(dtype))[:, None, :]
-        return torch.cat([state_token, action_tokens], dim=1)
+            return tokens
+        if action_weight is None:
+            action_weight = self.action_time_mlp_in.weight[:, : self.config.expert_hidden_size].t()
+        return self.action_time_mlp_out(F.silu(torch.addmm(condition, tokens, action_weight)))
+
+    def embed_suffix(self, state: torch.Tensor | None, noisy_actions: torch.Tensor, condition: torch.Tensor | None) -> torch.Tensor:
+        """Suffix tokens `[B * S, D1]`: (π0) the state token, then the action tokens (see `embed_actions`)."""
+        actions = self.embed_actions(noisy_actions, condition)
+        if self.config.pi05:
+            return actions
+        batch = noisy_actions.shape[0]
+        return torch.cat([self.embed_state(state)[:, None], actions.view(batch, -1, actions.shape[-1])], dim=1).flatten(0, 1)
 
     # -- training forward ----------------------------------------------------------------------------------------------
 
@@ -572,28 +759,26 @@ class PI0ForActionGeneration(SiglipImageEmbedding, PI0PreTrainedModel):
         Returns:
             [`PI0Output`] with `velocity` `[B, horizon, action_dim]` and `loss` (scalar, when `actions` is given).
         """
-        batch = self._check_inputs(pixel_values, image_masks, input_ids, attention_mask, state)
-        config, device = self.config, pixel_values.device
-        shape = (batch, config.action_horizon, config.action_dim)
-        if actions is not None:
-            _check_tensor("actions", actions, shape, floating=True)
+        config = self.config
+        horizon = config.action_horizon
+        facts = self._check_inputs(pixel_values, image_masks, input_ids, attention_mask, state, actions=actions, noise=noise, time=time)
+        batch, device = len(facts.text_counts), pixel_values.device
+        shape = (batch, horizon, config.action_dim)
         if noise is None:
             noise = torch.randn(shape, device=device, dtype=torch.float32)
-        _check_tensor("noise", noise, shape, floating=True)
         if time is None:
             time = (
                 sample_flow_time(batch, config.time_beta_alpha, config.time_beta_beta, config.time_scale, config.time_offset, device)
                 if actions is not None
                 else torch.ones(batch, device=device)
             )
-        _check_tensor("time", time, (batch,), floating=True)
 
         committed = None
         if inference_delay is not None:
             delay = per_sample_steps(inference_delay, batch, "inference_delay", device)
-            if bool(((delay < 0) | (delay >= config.action_horizon)).any()):
-                raise ValueError(f"inference_delay must lie in [0, action_horizon - 1 = {config.action_horizon - 1}], got {delay.tolist()}")
-            committed = torch.arange(config.action_horizon, device=device)[None, :] < delay[:, None]  # [B, horizon]
+            if bool(((delay < 0) | (delay >= horizon)).any()):
+                raise ValueError(f"inference_delay must lie in [0, action_horizon - 1 = {horizon - 1}], got {delay.tolist()}")
+            committed = torch.arange(horizon, device=device)[None, :] < delay[:, None]  # [B, horizon]
 
         if actions is not None:
             x_t, target = interpolate(actions.float(), noise.float(), time.float())
@@ -602,15 +787,14 @@ class PI0ForActionGeneration(SiglipImageEmbedding, PI0PreTrainedModel):
         else:
             x_t, target = noise.float(), None
 
-        prefix, prefix_valid = self.embed_prefix(pixel_values, image_masks, input_ids, attention_mask)
-        conditioning = self.conditioning(time, committed)
+        layout = facts.layout(config.tokens_per_image)
+        prefix, prefix_valid = self.embed_prefix(*self._camera_inputs(pixel_values, image_masks, layout), input_ids, attention_mask)
+        prefix, first = compact_prefix(prefix, prefix_valid, layout)
+        clean = self.conditioning(torch.zeros(1, device=device)).steps()[0] if committed is not None else None
+        conditioning = self.conditioning(time).per_token(horizon, committed, clean)
         suffix = self.embed_suffix(state, x_t, conditioning.condition)
-        suffix_flags = self.suffix_block_flags(device)
-        valid = torch.cat([prefix_valid, torch.ones(batch, suffix.shape[1], dtype=torch.bool, device=device)], dim=1)
-        flags = torch.cat([torch.zeros(prefix.shape[1], dtype=torch.bool, device=device), suffix_flags])
-        mask, positions = prefix_lm_mask(valid, flags)
-        _, suffix_out = self.run_layers(prefix, suffix, mask, positions, conditioning)
-        velocity = self.action_out_proj(suffix_out[:, -config.action_horizon :]).float()
+        _, suffix_out = self.run_layers(prefix, suffix, first, layout, conditioning)
+        velocity = self.action_out_proj(suffix_out.view(batch, -1, suffix_out.shape[-1])[:, -horizon:]).float()
         if target is None:
             loss = None
         elif committed is None:
@@ -620,108 +804,92 @@ class PI0ForActionGeneration(SiglipImageEmbedding, PI0PreTrainedModel):
         return PI0Output(loss=loss, velocity=velocity)
 
     def run_layers(
-        self,
-        prefix: torch.Tensor,
-        suffix: torch.Tensor,
-        mask: torch.Tensor,
-        positions: torch.Tensor,
-        conditioning: StepConditioning,
+        self, prefix: torch.Tensor, suffix: torch.Tensor, first: torch.Tensor, layout: PrefixLayout, conditioning: StepConditioning
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Both experts jointly through every layer and their final norms: (prefix_out, suffix_out).
+        """Both experts jointly through every layer and their final norms: (prefix_out `[B * length, D0]`,
+        suffix_out `[B * S, D1]`).
 
-        `mask` bool [B, P+S, P+S], `positions` [B, P+S], `conditioning` of the flow time (see `conditioning`).
+        `prefix` holds the compacted prefix (`compact_prefix`, first valid slots `first` `[B]`), `suffix` the suffix
+        tokens (`embed_suffix`), `conditioning` its time conditioning per token (`StepConditioning.per_token`). π0's
+        state token sees the prefix and itself, its action tokens everything; π0.5's action tokens everything.
         """
-        cos, sin = rope_cos_sin(positions, self.config.head_dim, self.config.rope_theta)
-        mask = to_additive_mask(mask[:, None], prefix.dtype)  # once for all layers
-        modulations = conditioning.modulations
-        layer_modulations, final_modulation = modulations if modulations is not None else ([None] * len(self.layers), None)
-        for layer, modulation in zip(self.layers, layer_modulations):
-            prefix, suffix = layer(prefix, suffix, cos, sin, mask, modulation)
-        prefix, _ = self.vlm_final_norm(prefix)
-        suffix, _ = self.expert_final_norm(suffix, final_modulation)
-        return prefix, suffix
+        config = self.config
+        horizon, dtype = config.action_horizon, prefix.dtype
+        slots = layout.length + config.suffix_len
+        group_rows = (horizon,) if config.pi05 else (1, horizon)
+        streams = (
+            self._prefix_stream(first, layout, dtype, slots),
+            self._suffix_stream(first, layout, layout.length, group_rows, dtype, slots),
+        )
+        norms = conditioning.layer_norms or (None,) * len(self.layers)
+        for layer, layer_norms in zip(self.layers, norms):
+            prefix, suffix = layer(prefix, suffix, streams, expert_norms=layer_norms)
+        return self.vlm_final_norm(prefix), self.expert_final_norm(suffix, conditioning.final_norm)
 
     # -- sampling ------------------------------------------------------------------------------------------------------
 
-    def cache_prefix(
-        self, pixel_values: torch.Tensor, image_masks: torch.Tensor, input_ids: torch.Tensor, attention_mask: torch.Tensor
-    ) -> PrefixCache:
-        """Run the prefix once through the VLM expert and keep every layer's post-RoPE k/v.
+    def cache_prefix(self, inputs: SamplingInputs, layout: PrefixLayout) -> PrefixCache:
+        """Run the prefix once (π0: with the state token) and keep every layer's post-RoPE k/v.
 
-        Exact for sampling because the prefix never attends to the suffix. The buffers have room for the suffix,
-        whose k/v each denoising step writes in place (no per-step copy of the prefix). In eager mode, tokens that
-        nothing attends to (masked cameras, text padding) are dropped first, so they cost no compute.
+        Exact for sampling because the prefix never attends to the suffix, and π0's state token only to the prefix
+        and itself, so neither changes with the noisy actions or the flow time. The buffers have room for the action
+        tokens, whose k/v each denoising step writes in place (no per-step copy of the prefix).
         """
-        prefix, prefix_valid = self.embed_prefix(pixel_values, image_masks, input_ids, attention_mask)
-        if not torch.compiler.is_compiling():
-            prefix, prefix_valid = _drop_invalid_tokens(prefix, prefix_valid)
-        batch, prefix_len = prefix_valid.shape
         config = self.config
-        buffer_shape = (batch, config.num_key_value_heads, prefix_len + config.suffix_len, config.head_dim)
-        cache = PrefixCache(
-            keys=[prefix.new_empty(buffer_shape) for _ in self.layers],
-            values=[prefix.new_empty(buffer_shape) for _ in self.layers],
-            prefix_valid=prefix_valid,
+        prefix, valid = self.embed_prefix(inputs.pixel_values, inputs.image_masks, inputs.input_ids, inputs.attention_mask)
+        prefix, first = compact_prefix(prefix, valid, layout)
+        batch, dtype = first.shape[0], prefix.dtype
+        slots = layout.length + config.suffix_len
+        shape = (batch, config.num_key_value_heads, slots, config.head_dim)
+        # buffers of their own per layer (views of one shared buffer would alias across a compiled layer's inputs)
+        keys, values = ([prefix.new_empty(shape) for _ in self.layers] for _ in range(2))
+        streams = (
+            self._prefix_stream(first, layout, dtype, slots),
+            None if config.pi05 else self._suffix_stream(first, layout, layout.length, (1,), dtype, slots),
         )
-        mask, positions = prefix_lm_mask(prefix_valid, torch.zeros(prefix_len, dtype=torch.bool, device=prefix.device))
-        cos, sin = rope_cos_sin(positions, config.head_dim, config.rope_theta)
-        mask = to_additive_mask(mask[:, None], prefix.dtype)
-        for index, (layer, key_buffer, value_buffer) in enumerate(zip(self.layers, cache.keys, cache.values)):
-            last = index == len(self.layers) - 1
-            prefix, _ = layer(prefix, None, cos, sin, mask, kv_buffer=(key_buffer, value_buffer), keys_only=last)
-        return cache
+        x, state = prefix, None if config.pi05 else self.embed_state(inputs.state)
+        for index, (layer, layer_keys, layer_values) in enumerate(zip(self.layers, keys, values)):
+            x, state = layer(x, state, streams, (layer_keys, layer_values), keys_only=index == len(self.layers) - 1)
+        return PrefixCache(keys, values, first, layout)
 
-    def suffix_attention(self, prefix_valid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Mask `[B, 1, S, P+S]` and RoPE cos/sin of the suffix queries: they see every valid prefix token and the
-        suffix block mask; their positions continue after the valid prefix tokens."""
-        batch = prefix_valid.shape[0]
-        device = prefix_valid.device
-        suffix_valid = torch.ones(batch, self.config.suffix_len, dtype=torch.bool, device=device)
-        suffix_mask, suffix_positions = prefix_lm_mask(suffix_valid, self.suffix_block_flags(device))
-        prefix_part = prefix_valid[:, None, :].expand(-1, self.config.suffix_len, -1)
-        mask = torch.cat([prefix_part, suffix_mask], dim=2)[:, None]
-        positions = prefix_valid.sum(dim=1, keepdim=True) + suffix_positions
-        cos, sin = rope_cos_sin(positions, self.config.head_dim, self.config.rope_theta)
-        return mask, cos, sin
+    def action_pass(self, cache: PrefixCache) -> ActionPass:
+        """What every sampling step shares (see `ActionPass`), computed once per call."""
+        config = self.config
+        first_slot = cache.slots - config.action_horizon
+        stream = self._suffix_stream(cache.first, cache.layout, first_slot, (config.action_horizon,), cache.keys[0].dtype, cache.slots)
+        if config.pi05:
+            return ActionPass(cache, stream, None, None, None)
+        expert_norms = [(layer.expert.attn_norm.params(), layer.expert.mlp_norm.params()) for layer in self.layers]
+        action_weight = self.action_time_mlp_in.weight[:, : config.expert_hidden_size].t()
+        return ActionPass(cache, stream, action_weight, expert_norms, self.expert_final_norm.params())
 
     def denoise_step(
-        self,
-        cache: PrefixCache,
-        state: torch.Tensor | None,
-        x_t: torch.Tensor,
-        conditioning: StepConditioning,
-        suffix_attention: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
-        write_cache: bool = True,
+        self, actions: ActionPass, x_t: torch.Tensor, conditioning: StepConditioning, write_cache: bool = True
     ) -> torch.Tensor:
-        """Velocity `[B, horizon, action_dim]` (float32) at `x_t` given the cached prefix, this step's
-        `conditioning` (from `step_conditioning`) and `suffix_attention(cache.prefix_valid)`. `write_cache=False`
-        leaves the cache untouched (a pure function of `x_t`, to differentiate through)."""
-        mask, cos, sin = suffix_attention
-        suffix = self.embed_suffix(state, x_t, conditioning.condition)
-        mask = to_additive_mask(mask, suffix.dtype)
-        modulations = conditioning.modulations
-        layer_modulations, final_modulation = modulations if modulations is not None else ([None] * len(self.layers), None)
-        for layer, key_buffer, value_buffer, modulation in zip(self.layers, cache.keys, cache.values, layer_modulations):
-            _, suffix = layer(
-                None, suffix, cos, sin, mask, modulation,
-                kv_buffer=(key_buffer, value_buffer), kv_offset=cache.prefix_len, write_cache=write_cache,
-            )
-        suffix, _ = self.expert_final_norm(suffix, final_modulation)
-        return self.action_out_proj(suffix[:, -self.config.action_horizon :]).float()
+        """Velocity `[B, horizon, action_dim]` (float32) at `x_t` given the cached prefix (in `actions`, from
+        `action_pass`) and this step's `conditioning`. `write_cache=False` leaves the cache untouched (a pure function
+        of `x_t`, to differentiate through)."""
+        tokens = self.embed_actions(x_t, conditioning.condition, actions.action_weight)
+        norms = conditioning.layer_norms if self.config.pi05 else actions.expert_norms
+        cache = actions.cache
+        for layer, keys, values, layer_norms in zip(self.layers, cache.keys, cache.values, norms):
+            _, tokens = layer(None, tokens, (None, actions.stream), (keys, values), layer_norms, write_cache=write_cache)
+        final_norm = conditioning.final_norm if self.config.pi05 else actions.final_norm
+        velocity = self.action_out_proj(self.expert_final_norm(tokens, final_norm))
+        return velocity.view(x_t.shape[0], -1, velocity.shape[-1]).float()
 
     def guided_velocity(
         self,
-        cache: PrefixCache,
-        state: torch.Tensor | None,
+        actions: ActionPass,
         x_t: torch.Tensor,
         time: float,
         conditioning: StepConditioning,
-        suffix_attention: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
-        prefix: ChunkPrefix,
+        target: torch.Tensor,
+        weights: torch.Tensor,
         max_guidance: float,
     ) -> torch.Tensor:
         """Inference-time real-time chunking: the velocity at `x_t`, corrected so that the predicted clean chunk
-        `x0 = x_t - t * v` moves toward the previous chunk's target where the soft mask asks for it.
+        `x0 = x_t - t * v` moves toward the previous chunk's `target` where the soft mask `weights` asks for it.
 
         `v' = v - w * J^T (W * (Y - x0))` with `J = dx0 / dx_t` (one vector-Jacobian product through the suffix;
         the prefix cache is a constant) and `w = min(beta, ((1 - t)^2 + t^2) / (t (1 - t)))`. The minus sign is
@@ -729,11 +897,11 @@ class PI0ForActionGeneration(SiglipImageEmbedding, PI0PreTrainedModel):
         """
 
         def clean_estimate(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-            velocity = self.denoise_step(cache, state, x, conditioning, suffix_attention, write_cache=False)
+            velocity = self.denoise_step(actions, x, conditioning, write_cache=False)
             return x - time * velocity, velocity
 
         predicted, pullback, velocity = torch.func.vjp(clean_estimate, x_t, has_aux=True)
-        (correction,) = pullback(prefix.weights[..., None] * (prefix.target - predicted))
+        (correction,) = pullback(weights[..., None] * (target - predicted))
         return velocity - guidance_weight(time, max_guidance) * correction
 
     @torch.no_grad()
@@ -757,8 +925,9 @@ class PI0ForActionGeneration(SiglipImageEmbedding, PI0PreTrainedModel):
         """Sample an action chunk by Euler integration of the flow from noise (t = 1) to actions (t = 0).
 
         The prefix runs once (`cache_prefix`); each of the `num_steps` steps (default `config.num_inference_steps`)
-        runs only the suffix against the cached k/v. Everything that depends only on the flow time is computed for
-        all steps up front. The Euler state is kept in float32 whatever the weights' dtype.
+        runs only the action tokens against the cached k/v. Everything that depends only on the flow time is computed
+        for all steps up front. The Euler state is kept in float32 whatever the weights' dtype. The inputs are read on
+        the host once, by their checks; after that nothing waits for the device (see `capture_sampling`).
 
         Real-time chunking (see `pi0_torch.models.rtc`): with `previous_actions`, the new chunk continues the one
         the robot is executing. Its index 0 is the step at which this inference starts, `execution_horizon` (`s`)
@@ -777,51 +946,65 @@ class PI0ForActionGeneration(SiglipImageEmbedding, PI0PreTrainedModel):
             float32 `[B, horizon, action_dim]` actions in normalized model space (see `PI0Processor` to map them
             back to robot units).
         """
-        batch = self._check_inputs(pixel_values, image_masks, input_ids, attention_mask, state)
         config = self.config
-        shape = (batch, config.action_horizon, config.action_dim)
+        times = tuple(euler_times(config.num_inference_steps if num_steps is None else num_steps))
+        facts = self._check_inputs(pixel_values, image_masks, input_ids, attention_mask, state, noise=noise)
+        batch = len(facts.text_counts)
         if noise is None:
-            noise = torch.randn(shape, generator=generator, device=pixel_values.device, dtype=torch.float32)
-        _check_tensor("noise", noise, shape, floating=True)
-        times = euler_times(config.num_inference_steps if num_steps is None else num_steps)
+            noise = torch.randn(batch, config.action_horizon, config.action_dim, generator=generator, device=pixel_values.device)
         prefix = None
         if previous_actions is not None:
             prefix = self._chunk_prefix(batch, previous_actions, inference_delay, execution_horizon, rtc_method, rtc_max_guidance, rtc_schedule)
-        sample = self._sample if self._compiled_sample is None else self._compiled_sample
-        actions = sample(pixel_values, image_masks, input_ids, attention_mask, state, noise.float(), times,
-                         prefix, rtc_method, float(rtc_max_guidance))
-        # a CUDA graph's output is overwritten by its next replay: compiled sampling hands back a copy
-        return actions if self._compiled_sample is None else actions.clone()
+        method = None if prefix is None or (rtc_method == "guidance" and rtc_max_guidance == 0) else rtc_method
+        graphs = self._graphs if method != "guidance" and pixel_values.is_cuda else None
+        layout = facts.layout(config.tokens_per_image, self.GRAPH_PREFIX_BUCKET if graphs is not None else 1)
+        pixel_values, image_masks = self._camera_inputs(pixel_values, image_masks, layout)
+        inputs = SamplingInputs(
+            pixel_values, image_masks, input_ids, attention_mask, state, noise.float(), self._times_on(times, pixel_values.device),
+            target=prefix.target if method is not None else None,
+            weights=prefix.weights if method == "guidance" else None,
+            committed=prefix.committed if method == "conditioning" else None,
+        )
+        plan = SamplingPlan(layout, times, method, float(rtc_max_guidance) if method == "guidance" else 0.0)
+        return self._sample(inputs, plan) if graphs is None else graphs.run(inputs, plan)
 
-    def _sample(
-        self,
-        pixel_values: torch.Tensor,
-        image_masks: torch.Tensor,
-        input_ids: torch.Tensor,
-        attention_mask: torch.Tensor,
-        state: torch.Tensor | None,
-        noise: torch.Tensor,
-        times: list[float],
-        prefix: ChunkPrefix | None = None,
-        rtc_method: str = "guidance",
-        rtc_max_guidance: float = DEFAULT_MAX_GUIDANCE,
-    ) -> torch.Tensor:
-        """The sampling computation of `generate_actions` on checked inputs (what `compile_sampling` compiles)."""
-        cache = self.cache_prefix(pixel_values, image_masks, input_ids, attention_mask)
-        suffix_attention = self.suffix_attention(cache.prefix_valid)
-        guided = prefix is not None and rtc_method == "guidance" and rtc_max_guidance > 0
-        committed = prefix.committed if prefix is not None and rtc_method == "conditioning" else None
-        dt = -1.0 / len(times)
-        x_t = noise if committed is None else torch.where(committed[..., None], prefix.target, noise)
-        for time, conditioning in zip(times, self.step_conditioning(times, noise.shape[0], committed)):
-            if guided:
-                velocity = self.guided_velocity(cache, state, x_t, time, conditioning, suffix_attention, prefix, rtc_max_guidance)
+    def _sample(self, inputs: SamplingInputs, plan: SamplingPlan) -> torch.Tensor:
+        """The sampling of `generate_actions` on checked inputs: no host reads, so it can be captured as a CUDA graph."""
+        cache = self.cache_prefix(inputs, plan.layout)
+        actions = self.action_pass(cache)
+        committed = inputs.committed
+        steps = self.conditioning(inputs.times).steps()
+        if committed is not None:  # committed actions take the conditioning of flow time 0
+            clean = self.conditioning(inputs.times.new_zeros(1)).steps()[0]
+            steps = [step.per_token(self.config.action_horizon, committed, clean) for step in steps]
+        dt = -1.0 / len(plan.times)
+        x_t = inputs.noise if committed is None else torch.where(committed[..., None], inputs.target, inputs.noise)
+        for time, step in zip(plan.times, steps):
+            if plan.rtc_method == "guidance":
+                velocity = self.guided_velocity(actions, x_t, time, step, inputs.target, inputs.weights, plan.max_guidance)
             else:
-                velocity = self.denoise_step(cache, state, x_t, conditioning, suffix_attention)
-            x_t = x_t + dt * velocity
+                velocity = self.denoise_step(actions, x_t, step)
+            x_t = torch.add(x_t, velocity, alpha=dt)
             if committed is not None:  # the committed actions stay as given
-                x_t = torch.where(committed[..., None], prefix.target, x_t)
+                x_t = torch.where(committed[..., None], inputs.target, x_t)
         return x_t
+
+    def _times_on(self, times: tuple[float, ...], device: torch.device) -> torch.Tensor:
+        """The Euler times as a float32 tensor on `device`, made once (no host-to-device copy per call)."""
+        key = (times, device)
+        if key not in self._device_times:
+            self._device_times[key] = torch.tensor(times, dtype=torch.float32, device=device)
+        return self._device_times[key]
+
+    @staticmethod
+    def _camera_inputs(pixel_values: torch.Tensor, image_masks: torch.Tensor, layout: PrefixLayout) -> tuple[torch.Tensor, torch.Tensor]:
+        """The images and masks of the layout's cameras (all of them, usually: the tensors themselves)."""
+        if len(layout.cameras) == pixel_values.shape[1]:
+            return pixel_values, image_masks
+        if not layout.cameras:
+            return pixel_values[:, :0], image_masks[:, :0]
+        return (torch.cat([pixel_values[:, c : c + 1] for c in layout.cameras], dim=1),
+                torch.cat([image_masks[:, c : c + 1] for c in layout.cameras], dim=1))
 
     def _chunk_prefix(
         self,
@@ -835,8 +1018,6 @@ class PI0ForActionGeneration(SiglipImageEmbedding, PI0PreTrainedModel):
     ) -> ChunkPrefix:
         """Check the real-time chunking arguments of `generate_actions` (previous chunk and guidance clip within
         `pi0_torch.models.rtc`'s bounds) and build the new chunk's prefix."""
-        from pi0_torch.models.rtc import check_rtc_inputs
-
         config = self.config
         _check_tensor("previous_actions", previous_actions, (batch, config.action_horizon, config.action_dim), floating=True)
         if execution_horizon is None:
@@ -854,24 +1035,69 @@ class PI0ForActionGeneration(SiglipImageEmbedding, PI0PreTrainedModel):
             )
         return prefix
 
+    # -- fast paths: compiled layers and CUDA graphs ---------------------------------------------------------------------
+
     @property
     def sampling_compiled(self) -> bool:
-        """Whether `generate_actions` runs through `torch.compile` (see `compile_sampling`)."""
-        return self._compiled_sample is not None
+        """Whether the repeated layers run compiled (see `compile_sampling`)."""
+        return any(layer.compiled for layer in self.layers)
 
-    def compile_sampling(self, **compile_kwargs: Any) -> None:
-        """Opt in to `torch.compile` for `generate_actions`: the prefix pass and the whole Euler loop as one graph.
+    @property
+    def sampling_captured(self) -> bool:
+        """Whether `generate_actions` on CUDA replays CUDA graphs (see `capture_sampling`)."""
+        return self._graphs is not None
 
-        `compile_kwargs` go to `torch.compile`, with `fullgraph=True` unless given (a graph break would split the
-        sampling, and on CUDA its graph capture, in pieces). On CUDA, `mode="reduce-overhead"` captures the whole
-        sampling in one CUDA graph. Inputs of a new shape, or another `num_steps`, compile again.
-        `compile_sampling(disable=True)` goes back to eager.
+    def compile_sampling(self, disable: bool = False, **compile_kwargs: Any) -> None:
+        """Opt in to `torch.compile`, regionally: each repeated layer (a joint decoder layer's `run`, a SigLIP encoder
+        layer) is compiled once and the compiled code is reused by every layer of its kind; the rest stays eager.
+        Seconds of compiling (a handful of graphs: each pass's layer, batch 1 and larger batches) instead of minutes
+        for the whole unrolled sampling, and no recompiling for another prompt length or batch size.
+
+        `compile_kwargs` go to `torch.compile`, with `fullgraph=True` and `dynamic=True` unless given.
+        `mode="reduce-overhead"` means: compile, and (on CUDA) replay the whole sampling as one CUDA graph
+        (`capture_sampling`), which then holds the compiled kernels. For inference: a compiled decoder layer skips
+        gradient checkpointing. `compile_sampling(disable=True)` goes back to eager layers (and no graphs).
         """
-        if compile_kwargs.get("disable"):
-            self._compiled_sample = None
+        self._graphs = None
+        vision_layers = self.vision_tower.encoder.layers
+        if disable:
+            for layer in self.layers:
+                layer.compile_run(disable=True)
+            for layer in vision_layers:
+                layer._compiled_call_impl = None  # (what `nn.Module.compile` set)
             return
+        graph = compile_kwargs.get("mode") == "reduce-overhead"
+        if graph:
+            compile_kwargs.pop("mode")
         compile_kwargs.setdefault("fullgraph", True)
-        self._compiled_sample = torch.compile(self._sample, **compile_kwargs)
+        compile_kwargs.setdefault("dynamic", True)  # one graph for every prompt length and batch size above 1
+        for layer in self.layers:
+            layer.compile_run(**compile_kwargs)
+        for layer in vision_layers:
+            layer.compile(**compile_kwargs)
+        if graph and self.device.type == "cuda":
+            self.capture_sampling()
+
+    def capture_sampling(self, disable: bool = False) -> None:
+        """Opt in to CUDA graphs for `generate_actions` on CUDA: the sampling of each (batch size, step count, prompt
+        length, prefix layout, real-time chunking method) is captured once (a warm-up run, then the capture: its
+        first call takes a few eager calls' time) and replayed after that, so the CPU launches one graph instead of
+        thousands of kernels. Inputs are copied into the graph's static buffers; each call returns a tensor of its
+        own. Plain sampling and RTC "conditioning" are captured; RTC "guidance" (a vector-Jacobian product per step)
+        runs eagerly. A model moved to another device or dtype captures again. Works with `compile_sampling` (the
+        graphs then replay the compiled kernels). `capture_sampling(disable=True)` goes back to eager.
+        """
+        from pi0_torch.models.sampling_graphs import SamplingGraphs
+
+        self._graphs = None if disable else SamplingGraphs(self)
+
+    def _apply(self, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
+        """`nn.Module._apply` (what `.to()`, `.cuda()`, `.half()` ... run): captured graphs read the old tensors, so
+        they are dropped and captured again on the next call."""
+        if getattr(self, "_graphs", None) is not None:
+            self._graphs.clear()
+        self._device_times = {}
+        return super()._apply(fn, *args, **kwargs)
 
     # -- input checks --------------------------------------------------------------------------------------------------
 
@@ -882,8 +1108,14 @@ class PI0ForActionGeneration(SiglipImageEmbedding, PI0PreTrainedModel):
         input_ids: torch.Tensor,
         attention_mask: torch.Tensor,
         state: torch.Tensor | None,
-    ) -> int:
-        """Validate the model inputs; returns the batch size. Errors name the argument, expected and actual."""
+        **floats: torch.Tensor | None,
+    ) -> InputFacts:
+        """Validate the model inputs and read, in one device-to-host copy, every value their checks and the prefix
+        layout need. Errors name the argument, expected and actual.
+
+        `floats` are further float tensors to check when given: `noise` / `actions` `[B, horizon, action_dim]`, `time`
+        `[B]` (all finite).
+        """
         config = self.config
         if not isinstance(pixel_values, torch.Tensor) or pixel_values.dim() != 5:
             raise ValueError(
@@ -892,12 +1124,6 @@ class PI0ForActionGeneration(SiglipImageEmbedding, PI0PreTrainedModel):
             )
         batch = pixel_values.shape[0]
         _check_tensor("pixel_values", pixel_values, (batch, config.num_cameras, 3, config.image_size, config.image_size), floating=True, finite=False)
-        low, high = pixel_values.aminmax()
-        if low < -1.001 or high > 1.001 or not (torch.isfinite(low) and torch.isfinite(high)):
-            raise ValueError(
-                f"pixel_values must lie in [-1, 1] (uint8 images map to x / 255 * 2 - 1), got range "
-                f"[{low.item():.4g}, {high.item():.4g}]"
-            )
         _check_tensor("image_masks", image_masks, (batch, config.num_cameras), dtypes=(torch.bool,))
         if (not isinstance(input_ids, torch.Tensor) or input_ids.dim() != 2 or input_ids.shape[0] != batch
                 or not 1 <= input_ids.shape[1] <= config.max_token_len):
@@ -906,29 +1132,47 @@ class PI0ForActionGeneration(SiglipImageEmbedding, PI0PreTrainedModel):
                 f"got {describe(input_ids)}"
             )
         _check_tensor("input_ids", input_ids, tuple(input_ids.shape), dtypes=(torch.long, torch.int32))
-        lowest, highest = input_ids.aminmax()
-        if (lowest < 0) | (highest >= config.vocab_size):
-            raise ValueError(
-                f"input_ids must be token ids in [0, vocab_size={config.vocab_size}), got values in "
-                f"[{lowest.item()}, {highest.item()}] (a tokenizer larger than the model's vocabulary?)"
-            )
         _check_tensor("attention_mask", attention_mask, tuple(input_ids.shape), dtypes=(torch.bool, torch.long, torch.int32))
         if not config.pi05 or state is not None:
             if state is None:
                 raise ValueError(f"state is required by pi0: a float tensor [B={batch}, action_dim={config.action_dim}]")
-            _check_tensor("state", state, (batch, config.action_dim), floating=True)
-        return batch
+            floats = {"state": state, **floats}
+        shapes = {"state": (batch, config.action_dim), "time": (batch,)}
+        checked = {name: value for name, value in floats.items() if value is not None}
+        for name, value in checked.items():
+            _check_tensor(name, value, shapes.get(name, (batch, config.action_horizon, config.action_dim)), floating=True, finite=False)
+
+        # the one read: pixel range, token id range, finiteness, cameras shown and text tokens per sample
+        ranges = torch.cat([torch.stack(pixel_values.aminmax()).float(), torch.stack(input_ids.aminmax()).float()])
+        finite = [torch.isfinite(value).all() for value in checked.values()]
+        read = torch.cat([
+            ranges, torch.stack(finite).float() if finite else ranges.new_empty(0), image_masks.flatten().float(),
+            attention_mask.sum(dim=1).float(),
+        ]).cpu().tolist()
+        pixel_low, pixel_high, id_low, id_high = read[:4]
+        if not -1.001 <= pixel_low <= pixel_high <= 1.001:  # (NaN fails every comparison)
+            raise ValueError(
+                f"pixel_values must lie in [-1, 1] (uint8 images map to x / 255 * 2 - 1), got range [{pixel_low:.4g}, {pixel_high:.4g}]"
+            )
+        if id_low < 0 or id_high >= config.vocab_size:
+            raise ValueError(
+                f"input_ids must be token ids in [0, vocab_size={config.vocab_size}), got values in "
+                f"[{int(id_low)}, {int(id_high)}] (a tokenizer larger than the model's vocabulary?)"
+            )
+        for (name, value), is_finite in zip(checked.items(), read[4 : 4 + len(checked)]):
+            if not is_finite:
+                raise nonfinite_error(name, value)
+        masks_start = 4 + len(checked)
+        cameras = config.num_cameras
+        shown = read[masks_start : masks_start + batch * cameras]
+        return InputFacts(
+            image_masks=tuple(tuple(bool(v) for v in shown[b * cameras : (b + 1) * cameras]) for b in range(batch)),
+            text_counts=tuple(int(v) for v in read[masks_start + batch * cameras :]),
+            text_length=input_ids.shape[1],
+        )
 
 
-def _drop_invalid_tokens(tokens: torch.Tensor, valid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Move each row's valid tokens to the front, in order, and cut the columns no row needs.
-
-    Exact for the valid tokens: the prefix-LM mask and the positions (`cumsum(valid) - 1`) only depend on which
-    tokens are valid and their order, and invalid tokens are never attended to.
-    """
-    kept = int(valid.sum(dim=1).max())
-    if kept == valid.shape[1]:
-        return tokens, valid
-    order = torch.sort((~valid).to(torch.uint8), dim=1, stable=True).indices[:, :kept]  # valid first, in order
-    tokens = tokens.gather(1, order[..., None].expand(-1, -1, tokens.shape[-1]))
-    return tokens, valid.gather(1, order)
+@functools.lru_cache(maxsize=None)
+def _rounded_sqrt(width: int, dtype: torch.dtype) -> float:
+    """sqrt(width) rounded to `dtype` (openpi scales text embeddings by `sqrt(D).astype(x.dtype)`)."""
+    return float(torch.tensor(math.sqrt(width), dtype=dtype))

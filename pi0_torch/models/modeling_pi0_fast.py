@@ -52,11 +52,12 @@ class FastDecoderLayer(GradientCheckpointingLayer):
     def __init__(self, config: PI0FastConfig) -> None:
         super().__init__()
         self.block = ExpertLayer(config, config.hidden_size, config.intermediate_size, adaptive=False)
+        self.head_dim = config.head_dim
 
     def forward(
         self,
         x: torch.Tensor,  # [B, T, D]
-        cos: torch.Tensor,  # [B, 1, T, H/2]
+        cos: torch.Tensor,  # [B, 1, T, H] from `rope_cos_sin`
         sin: torch.Tensor,
         mask: torch.Tensor,  # additive float [B, 1, T, T] (no buffer) or [B, 1, T, S] (with a buffer)
         kv_buffer: tuple[torch.Tensor, torch.Tensor] | None = None,  # [B, K, S, H] each
@@ -70,8 +71,11 @@ class FastDecoderLayer(GradientCheckpointingLayer):
         last token once every token's k/v is written (the prefill's last layer: only the last output is read).
         """
         block = self.block
-        h, _ = block.attn_norm(x)
-        q, k, v = block.project_qkv(h)
+        batch, length = x.shape[:2]
+        q, k, v = (
+            y.view(batch, length, -1, self.head_dim).transpose(1, 2)  # [B, heads, T, H]
+            for y in block.qkv_proj(block.attn_norm(x)).split([heads * self.head_dim for heads in block.heads], dim=-1)
+        )
         q, k = apply_rope(q, cos, sin), apply_rope(k, cos, sin)
         if kv_buffer is not None:
             key_buffer, value_buffer = kv_buffer
@@ -82,8 +86,7 @@ class FastDecoderLayer(GradientCheckpointingLayer):
             q, x, mask = q[:, :, -1:], x[:, -1:], mask[:, :, -1:]
         attended = masked_attention(q, k, v, mask, scale=q.shape[-1] ** -0.5, additive=True)  # [B, N, T, H]
         x = x + block.o_proj(attended.transpose(1, 2).flatten(2))
-        h, _ = block.mlp_norm(x)
-        return x + block.mlp(h)
+        return x + block.mlp(block.mlp_norm(x))
 
 
 # ----------------------------------------------------------------------------------------------------------------------
@@ -112,7 +115,7 @@ class DecodingCache:
     keys: list[torch.Tensor]  # per layer [B, K, S, H], prefix k/v in slots [0, P), decoded tokens' after
     values: list[torch.Tensor]
     masks: torch.Tensor  # additive [B, 1, T, S]: row t = the slots the token decoded at step t sees
-    cos: torch.Tensor  # [B, 1, T, H/2] RoPE of the decoded tokens' positions
+    cos: torch.Tensor  # [B, 1, T, H] RoPE of the decoded tokens' positions
     sin: torch.Tensor
     slots: torch.Tensor  # long [T]: slot of the token decoded at step t (P + t)
 
@@ -224,12 +227,12 @@ class PI0FastForActionGeneration(SiglipImageEmbedding, PI0FastPreTrainedModel):
         mask, _ = prefix_lm_mask(valid, flags)
         length = tokens.shape[1] - 1  # each token predicts the next one: the last is no input
         positions = torch.arange(length, device=tokens.device).expand(tokens.shape[0], -1)
-        cos, sin = rope_cos_sin(positions, self.config.head_dim, self.config.rope_theta)
+        cos, sin = (table[:, None] for table in rope_cos_sin(positions, self.config.head_dim, self.config.rope_theta))
         x = tokens[:, :-1]
         additive = to_additive_mask(mask[:, None, :-1, :-1], x.dtype)  # once for all layers
         for layer in self.layers:
             x = layer(x, cos, sin, additive)
-        hidden, _ = self.final_norm(x[:, -(input_ids.shape[1] - 1) :])
+        hidden = self.final_norm(x[:, -(input_ids.shape[1] - 1) :])
         logits = self.lm_head(hidden)  # [B, L-1, V]
         loss = None
         if token_loss_mask is not None:
@@ -272,15 +275,14 @@ class PI0FastForActionGeneration(SiglipImageEmbedding, PI0FastPreTrainedModel):
         keys = [tokens.new_zeros(buffer_shape) for _ in self.layers]  # zeros: fully masked rows average them, as openpi
         values = [tokens.new_zeros(buffer_shape) for _ in self.layers]
         prefix_mask = F.pad(mask, (0, max_new_tokens))[:, None]  # [B, 1, P, S]
-        cos, sin = rope_cos_sin(torch.cumsum(valid.long(), dim=1) - 1, config.head_dim, config.rope_theta)
+        cos, sin = (table[:, None] for table in rope_cos_sin(torch.cumsum(valid.long(), dim=1) - 1, config.head_dim, config.rope_theta))
         additive = to_additive_mask(prefix_mask, tokens.dtype)
         prefix_slots = torch.arange(prefix_len, device=device)
         x = tokens
         for index, (layer, key_buffer, value_buffer) in enumerate(zip(self.layers, keys, values)):
             last = index == len(self.layers) - 1
             x = layer(x, cos, sin, additive, kv_buffer=(key_buffer, value_buffer), kv_slots=prefix_slots, last_only=last)
-        hidden, _ = self.final_norm(x[:, -1])
-        logits = self.lm_head(hidden)  # [B, V]
+        logits = self.lm_head(self.final_norm(x[:, -1]))  # [B, V]
 
         valid_count = valid.sum(dim=1, keepdim=True)  # [B, 1]
         steps = torch.arange(max_new_tokens, device=device)
@@ -290,7 +292,7 @@ class PI0FastForActionGeneration(SiglipImageEmbedding, PI0FastPreTrainedModel):
             slot_index[None, None, :] <= (prefix_len + steps)[None, :, None]
         )  # [B, T, S]
         decode_positions = valid_count + config.decoding_position_offset + steps[None, :]  # [B, T]
-        decode_cos, decode_sin = rope_cos_sin(decode_positions, config.head_dim, config.rope_theta)
+        decode_cos, decode_sin = (table[:, None] for table in rope_cos_sin(decode_positions, config.head_dim, config.rope_theta))
         cache = DecodingCache(
             keys=keys,
             values=values,
@@ -312,8 +314,7 @@ class PI0FastForActionGeneration(SiglipImageEmbedding, PI0FastPreTrainedModel):
         slot = cache.slots.index_select(0, step)
         for layer, key_buffer, value_buffer in zip(self.layers, cache.keys, cache.values):
             x = layer(x, cos, sin, mask, kv_buffer=(key_buffer, value_buffer), kv_slots=slot)
-        hidden, _ = self.final_norm(x[:, -1])
-        return self.lm_head(hidden)
+        return self.lm_head(self.final_norm(x[:, -1]))
 
     @torch.no_grad()
     def generate_tokens(

@@ -1,0 +1,101 @@
+"""Sampling as CUDA graphs, captured by hand (no compiler): `PI0ForActionGeneration.capture_sampling`.
+
+Eager sampling of a full-size π0 launches thousands of small kernels per chunk, and the CPU that launches them, not
+the GPU, sets the pace. A CUDA graph records those launches once and replays them with one call. The sampling after
+the input checks never reads the device from the host (`PI0ForActionGeneration._sample`), so it records as is.
+
+One graph per `SamplingPlan` (prefix layout, Euler times, real-time chunking method) and input shapes / dtypes: the
+first call of each records it (two warm-up runs on a side stream, then the capture, into one memory pool shared by
+all graphs of the model); later calls copy their inputs into the graph's static buffers, replay it, and return a
+copy of its output, which the next replay does not overwrite.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import torch
+
+if TYPE_CHECKING:
+    from pi0_torch.models.modeling_pi0 import PI0ForActionGeneration, SamplingInputs, SamplingPlan
+
+WARMUP_RUNS = 2  # before a capture (cuBLAS / cuDNN pick and allocate on their first calls)
+
+
+@dataclass
+class CapturedSampling:
+    graph: torch.cuda.CUDAGraph
+    inputs: SamplingInputs  # the static buffers the graph reads
+    output: torch.Tensor  # where its replay writes the actions
+    capture_seconds: float  # warm-up and capture
+
+
+def _signature(inputs: SamplingInputs) -> tuple[Any, ...]:
+    """Shapes, dtypes and devices of the inputs (None for the absent ones): what a graph is specialised to."""
+    return tuple(
+        None if value is None else (tuple(value.shape), value.dtype, value.device)
+        for value in (getattr(inputs, field.name) for field in dataclasses.fields(inputs))
+    )
+
+
+class SamplingGraphs:
+    """The captured graphs of one model, by plan and input signature."""
+
+    def __init__(self, model: PI0ForActionGeneration) -> None:
+        self.model = model
+        self.graphs: dict[tuple[Any, ...], CapturedSampling] = {}
+        self.pool: Any = None
+
+    def clear(self) -> None:
+        """Drop every graph (the model's tensors moved, or its attention kernel changed)."""
+        self.graphs.clear()
+        self.pool = None
+
+    def run(self, inputs: SamplingInputs, plan: SamplingPlan) -> torch.Tensor:
+        """Actions `[B, horizon, action_dim]` for `inputs` (on CUDA) by replaying the plan's graph (captured on first use)."""
+        key = (plan, _signature(inputs))
+        with torch.inference_mode():
+            captured = self.graphs.get(key)
+            if captured is None:
+                captured = self.graphs[key] = self._capture(inputs, plan)
+            else:
+                for static, value in zip(_tensors(captured.inputs), _tensors(inputs)):
+                    if static is not None:
+                        static.copy_(value)
+            captured.graph.replay()
+        return captured.output.clone()  # (outside inference mode: a normal tensor the next replay leaves alone)
+
+    def _capture(self, inputs: SamplingInputs, plan: SamplingPlan) -> CapturedSampling:
+        start = time.perf_counter()
+        static = dataclasses.replace(inputs, **{
+            field.name: None if value is None else value.clone()
+            for field in dataclasses.fields(inputs) for value in [getattr(inputs, field.name)]
+        })
+        side = torch.cuda.Stream(device=inputs.noise.device)
+        side.wait_stream(torch.cuda.current_stream(inputs.noise.device))
+        with torch.cuda.stream(side):
+            for _ in range(WARMUP_RUNS):
+                self.model._sample(static, plan)
+        torch.cuda.current_stream(inputs.noise.device).wait_stream(side)
+        graph = torch.cuda.CUDAGraph()
+        try:
+            with torch.cuda.graph(graph, pool=self.pool):
+                output = self.model._sample(static, plan)
+        except RuntimeError as error:
+            raise RuntimeError(f"could not capture sampling as a CUDA graph ({error}); call "
+                               "model.capture_sampling(disable=True) to sample eagerly") from error
+        self.pool = graph.pool()
+        torch.cuda.synchronize(inputs.noise.device)
+        return CapturedSampling(graph, static, output, time.perf_counter() - start)
+
+    @property
+    def capture_seconds(self) -> list[float]:
+        """Warm-up plus capture time of each graph, in capture order."""
+        return [captured.capture_seconds for captured in self.graphs.values()]
+
+
+def _tensors(inputs: SamplingInputs) -> list[torch.Tensor | None]:
+    return [getattr(inputs, field.name) for field in dataclasses.fields(inputs)]

@@ -1,0 +1,262 @@
+"""The sampling fast path: key-range attention (no mask matrix) equals openpi's prefix-LM mask on any layout, the
+varlen kernel's packing equals SDPA, the sampling never reads the device from the host (so it captures as one CUDA
+graph), its ATen op count stays low, and regional compilation compiles each layer kind once."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+import torch
+import torch.nn.functional as F
+
+from pi0_torch import PI0Config, PI0ForActionGeneration
+from pi0_torch.masks import prefix_lm_mask
+from pi0_torch.models import attention
+from pi0_torch.models.attention import KeyRanges, attend, plan_attention
+from pi0_torch.models.modeling_pi0 import InputFacts, SamplingInputs, SamplingPlan, compact_prefix
+from pi0_torch.utils.op_count import AtenOpCounter
+
+# unseen sizes: a shorter prompt limit, 2 kv heads (query heads not folded), head size 16, 3-step horizon
+ODD = dict(max_token_len=11, action_horizon=3, num_attention_heads=4, num_key_value_heads=2, head_dim=16, image_size=28)
+
+
+def random_batch(config: PI0Config, batch: int, seed: int) -> dict[str, torch.Tensor]:
+    """Inputs with every kind of padding: random prompt lengths (some 0), random camera masks (one camera shown by
+    no sample)."""
+    generator = torch.Generator().manual_seed(seed)
+    length = config.max_token_len
+    masks = torch.rand(batch, config.num_cameras, generator=generator) < 0.6
+    masks[:, -1] = False
+    masks[0, 0] = True
+    counts = torch.randint(0, length + 1, (batch,), generator=generator)
+    return dict(
+        pixel_values=torch.rand(batch, config.num_cameras, 3, config.image_size, config.image_size, generator=generator) * 2 - 1,
+        image_masks=masks,
+        input_ids=torch.randint(0, config.vocab_size, (batch, length), generator=generator),
+        attention_mask=torch.arange(length)[None, :] < counts[:, None],
+        state=torch.randn(batch, config.action_dim, generator=generator),
+    )
+
+
+def visible_slots(stream, batch: int, heads: int) -> torch.Tensor:
+    """bool `[B, T, keys]`: which key slots each of the stream's tokens attends to, read back from its SDPA plan."""
+    plan = stream.attention
+    if plan.mask is None:
+        return torch.ones(batch, stream.tokens, plan.num_keys, dtype=torch.bool)
+    seen = plan.mask[:, 0] == 0  # [B, rows, keys]
+    if seen.shape[1] == 1:
+        return seen.expand(-1, stream.tokens, -1)
+    return seen[:, ::heads] if plan.fold_heads else seen
+
+
+@pytest.mark.parametrize("pi05", [False, True])
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_key_ranges_equal_openpis_prefix_lm_mask(pi05: bool, seed: int) -> None:
+    """The training pass and the sampling passes (prefix, π0's state token, the action tokens): each token's key
+    range over the compacted layout, mapped back to the original tokens, is openpi's prefix-LM mask, and no token
+    sees a padding slot."""
+    config = PI0Config.from_preset("pi05_small" if pi05 else "pi0_small", **ODD)
+    model = PI0ForActionGeneration(config).eval()
+    model.attention_kernel = "sdpa"
+    inputs = random_batch(config, batch=4, seed=seed)
+    facts = model._check_inputs(**inputs)
+    layout = facts.layout(config.tokens_per_image)
+    pixel_values, image_masks = model._camera_inputs(inputs["pixel_values"], inputs["image_masks"], layout)
+    _, valid = model.embed_prefix(pixel_values, image_masks, inputs["input_ids"], inputs["attention_mask"])
+    _, first = compact_prefix(torch.zeros(*valid.shape, 1), valid, layout)
+    batch, prefix_len, suffix_len, n = valid.shape[0], valid.shape[1], config.suffix_len, layout.length
+    flags = torch.zeros(prefix_len + suffix_len, dtype=torch.bool)
+    flags[prefix_len : prefix_len + (1 if pi05 else 2)] = True
+    full_valid = torch.cat([valid, torch.ones(batch, suffix_len, dtype=torch.bool)], dim=1)
+    reference, _ = prefix_lm_mask(full_valid, flags)
+
+    slots = n + suffix_len
+    heads, dtype = config.num_attention_heads, torch.float32
+    passes = {  # as the model builds them (run_layers; cache_prefix and action_pass)
+        "training": [model._prefix_stream(first, layout, dtype, slots),
+                     model._suffix_stream(first, layout, n, (suffix_len,) if pi05 else (1, suffix_len - 1), dtype, slots)],
+        "sampling": [model._prefix_stream(first, layout, dtype, slots)]
+        + ([] if pi05 else [model._suffix_stream(first, layout, n, (1,), dtype, slots)])
+        + [model._suffix_stream(first, layout, slots - config.action_horizon, (config.action_horizon,), dtype, slots)],
+    }
+    for name, streams in passes.items():
+        ours = torch.zeros_like(reference)
+        for b in range(batch):
+            prefix_tokens = valid[b].nonzero()[:, 0]
+            token_of_slot = torch.full((slots,), -1)
+            token_of_slot[int(first[b]) : n] = prefix_tokens
+            token_of_slot[n:] = prefix_len + torch.arange(suffix_len)
+            for stream in streams:
+                seen = visible_slots(stream, batch, heads)[b]  # [T, keys]
+                rows = token_of_slot[stream.first_slot : stream.first_slot + stream.tokens]
+                assert not seen[rows >= 0][:, : int(first[b])].any(), f"{name}: a token sees a padding slot"
+                for row, token in zip(seen, rows.tolist()):
+                    if token >= 0:
+                        ours[b, token, token_of_slot[: seen.shape[1]][row][token_of_slot[: seen.shape[1]][row] >= 0]] = True
+        pairs = full_valid[:, :, None] & full_valid[:, None, :]
+        assert torch.equal(ours & pairs, reference & pairs), name
+
+
+def reference_varlen_attn(query, key, value, cu_seq_q, cu_seq_k, max_q, max_k, *, seqused_k=None, scale=None):
+    """FlashAttention's varlen contract (`torch.nn.attention.varlen.varlen_attn`), written out: sequence i's queries
+    are rows `[cu_seq_q[i], cu_seq_q[i + 1])`, its keys start at `cu_seq_k[i]` and it reads `seqused_k[i]` of them."""
+    out = torch.empty_like(query)
+    for i in range(cu_seq_q.shape[0] - 1):
+        q0, q1, k0 = int(cu_seq_q[i]), int(cu_seq_q[i + 1]), int(cu_seq_k[i])
+        k1 = k0 + int(seqused_k[i])
+        assert q1 - q0 <= max_q and k1 - k0 <= max_k
+        q, k, v = (t.transpose(0, 1) for t in (query[q0:q1], key[k0:k1], value[k0:k1]))  # [heads, len, H]
+        out[q0:q1] = F.scaled_dot_product_attention(q, k, v, scale=scale).transpose(0, 1)
+    return out
+
+
+@pytest.mark.parametrize("group_rows", [(7,), (1, 6)])
+def test_varlen_packing_equals_sdpa(monkeypatch: pytest.MonkeyPatch, group_rows: tuple[int, ...]) -> None:
+    """The varlen plan (folded query rows, per-sample key starts and counts over the flattened cache) gives what
+    the SDPA plan gives, with the kernel replaced by its documented contract (the real one needs a CUDA GPU;
+    `make test-gpu` compares it on the fixtures)."""
+    monkeypatch.setattr(attention, "varlen_attn", reference_varlen_attn)
+    torch.manual_seed(0)
+    batch, heads, head_dim, prefix, slots = 3, 4, 8, 10, 17  # slots: prefix + 7 suffix tokens
+    first = torch.tensor([0, 3, 9])
+    ranges = KeyRanges(first, group_rows, tuple(prefix + sum(group_rows[: i + 1]) for i in range(len(group_rows))))
+    query = torch.randn(batch, sum(group_rows), heads, head_dim)
+    key, value = torch.randn(batch, 1, slots, head_dim), torch.randn(batch, 1, slots, head_dim)
+    sdpa = attend(query, key, value, plan_attention(ranges, heads, 1, torch.float32, "sdpa", key_slots=slots))
+    varlen = attend(query, key, value, plan_attention(ranges, heads, 1, torch.float32, "varlen", key_slots=slots))
+    torch.testing.assert_close(varlen, sdpa, rtol=1e-5, atol=1e-6)
+
+
+def sampling_on_meta(pi05: bool, rtc_method: str | None) -> torch.Tensor:
+    """Run `_sample` of a model on the meta device, which holds no values: any read of one (`.item()`, `bool()`,
+    `.tolist()`, `nonzero`, boolean indexing) raises."""
+    config = PI0Config.from_preset("pi05_small" if pi05 else "pi0_small", rtc_max_delay=4)
+    with torch.device("meta"):
+        model = PI0ForActionGeneration(config).eval()
+    facts = InputFacts(image_masks=((True, True, False), (True, False, False)), text_counts=(20, 9), text_length=48)
+    layout = facts.layout(config.tokens_per_image)
+    batch, horizon, dims = 2, config.action_horizon, config.action_dim
+    meta = torch.device("meta")
+    inputs = SamplingInputs(
+        pixel_values=torch.empty(batch, len(layout.cameras), 3, 224, 224, device=meta),
+        image_masks=torch.empty(batch, len(layout.cameras), dtype=torch.bool, device=meta),
+        input_ids=torch.empty(batch, 48, dtype=torch.long, device=meta),
+        attention_mask=torch.empty(batch, 48, dtype=torch.bool, device=meta),
+        state=None if pi05 else torch.empty(batch, dims, device=meta),
+        noise=torch.empty(batch, horizon, dims, device=meta),
+        times=torch.empty(3, device=meta),
+        target=None if rtc_method is None else torch.empty(batch, horizon, dims, device=meta),
+        committed=torch.empty(batch, horizon, dtype=torch.bool, device=meta) if rtc_method == "conditioning" else None,
+    )
+    with torch.no_grad():
+        return model._sample(inputs, SamplingPlan(layout, (1.0, 2 / 3, 1 / 3), rtc_method))
+
+
+@pytest.mark.parametrize("pi05", [False, True])
+@pytest.mark.parametrize("rtc_method", [None, "conditioning"])
+def test_sampling_never_reads_the_device(pi05: bool, rtc_method: str | None) -> None:
+    """What a CUDA graph captures (plain sampling and RTC conditioning) has no host read at all."""
+    assert sampling_on_meta(pi05, rtc_method).shape == (2, 50, 32)
+
+
+def test_a_host_read_would_be_caught() -> None:
+    """(The meta check above can fail: a read of a meta tensor raises.)"""
+    with pytest.raises((RuntimeError, NotImplementedError)):
+        torch.empty(2, device="meta").sum().item()
+
+
+@pytest.mark.parametrize("preset, ceiling", [("pi0_small", 1850), ("pi05_small", 1780)])
+def test_generate_actions_reads_the_device_once_and_runs_few_ops(monkeypatch: pytest.MonkeyPatch, preset: str, ceiling: int) -> None:
+    """One `generate_actions` (3 cameras, a 20-token prompt): its checks read every value they need in one
+    device-to-host copy, nothing else reads the device, and the ATen op count (a proxy for GPU launches, 3,048 /
+    3,309 before this fast path) stays under its ceiling."""
+    config = PI0Config.from_preset(preset)
+    model = PI0ForActionGeneration(config).eval()
+    inputs = dict(
+        pixel_values=torch.zeros(1, 3, 3, 224, 224), image_masks=torch.ones(1, 3, dtype=torch.bool),
+        input_ids=torch.ones(1, 48, dtype=torch.long), attention_mask=torch.arange(48)[None] < 20,
+        state=torch.zeros(1, config.action_dim),
+    )
+    model.generate_actions(**inputs)
+    reads = []
+    tolist = torch.Tensor.tolist
+    monkeypatch.setattr(torch.Tensor, "tolist", lambda self: reads.append(self.numel()) or tolist(self))
+    with AtenOpCounter() as counter:
+        model.generate_actions(**inputs)
+    assert len(reads) == 1
+    assert counter.host_reads == 0
+    assert counter.total <= ceiling, counter.ops.most_common(10)
+
+
+@pytest.mark.parametrize("pi05", [False, True])
+def test_padding_masked_cameras_and_batching_change_nothing(pi05: bool) -> None:
+    """Unseen sizes, 2 kv heads: a batch with random padding and camera masks gives each sample what it gets alone
+    with its prompt trimmed; a trailing camera that no sample shows changes nothing either."""
+    torch.manual_seed(0)
+    config = PI0Config.from_preset("pi05_small" if pi05 else "pi0_small", **ODD)
+    model = PI0ForActionGeneration(config).eval()
+    inputs = random_batch(config, batch=3, seed=5)
+    noise = torch.randn(3, config.action_horizon, config.action_dim)
+    batched = model.generate_actions(**inputs, noise=noise, num_steps=3)
+    for b in range(3):
+        length = max(int(inputs["attention_mask"][b].sum()), 1)
+        alone = {k: v[b : b + 1] for k, v in inputs.items()}
+        alone["input_ids"], alone["attention_mask"] = alone["input_ids"][:, :length], alone["attention_mask"][:, :length]
+        single = model.generate_actions(**alone, noise=noise[b : b + 1], num_steps=3)
+        torch.testing.assert_close(single[0], batched[b], rtol=1e-5, atol=1e-5)
+    with torch.no_grad():
+        loss = model(**inputs, actions=batched).loss
+    assert torch.isfinite(loss)
+
+
+def test_regional_compilation_compiles_each_layer_kind_once() -> None:
+    """`compile_sampling` compiles the decoder and SigLIP layers (fullgraph: a break raises), keeps the numbers and
+    returns fresh tensors. The decoder layers share one compiled `run` with one entry per pass (the prefix, its last
+    layer, a step), however deep the model."""
+    from pi0_torch.models.modeling_pi0 import JointDecoderLayer
+
+    batch = dict(
+        pixel_values=torch.rand(1, 3, 3, 224, 224) * 2 - 1, image_masks=torch.tensor([[True, True, False]]),
+        input_ids=torch.ones(1, 48, dtype=torch.long), attention_mask=torch.arange(48)[None] < 12, state=torch.zeros(1, 32),
+    )
+    noises = [torch.randn(1, 50, 32, generator=torch.Generator().manual_seed(seed)) for seed in (1, 2)]
+    entries = []
+    for layers in (2, 4):
+        torch._dynamo.reset()
+        torch.manual_seed(0)
+        model = PI0ForActionGeneration(PI0Config.from_preset("pi0_small", num_hidden_layers=layers)).eval()
+        eager = [model.generate_actions(**batch, noise=noise, num_steps=2) for noise in noises]
+        model.compile_sampling()
+        assert model.sampling_compiled
+        compiled = [model.generate_actions(**batch, noise=noise, num_steps=2) for noise in noises]
+        for got, want in zip(compiled, eager):  # the first result survived the second call
+            torch.testing.assert_close(got, want, rtol=1e-4, atol=1e-5)
+        entries.append(len(torch._dynamo.eval_frame._debug_get_cache_entry_list(JointDecoderLayer.run.__code__)))
+        model.compile_sampling(disable=True)
+        assert not model.sampling_compiled
+    assert entries == [3, 3]
+
+
+def test_capture_sampling_leaves_cpu_sampling_eager() -> None:
+    """CUDA graphs only replace sampling on CUDA inputs: on the CPU a model with `capture_sampling` samples as before."""
+    model = PI0ForActionGeneration(PI0Config.from_preset("pi05_small")).eval()
+    batch = dict(pixel_values=torch.zeros(1, 3, 3, 224, 224), image_masks=torch.ones(1, 3, dtype=torch.bool),
+                 input_ids=torch.ones(1, 10, dtype=torch.long), attention_mask=torch.ones(1, 10, dtype=torch.bool))
+    noise = torch.randn(1, 50, 32)
+    eager = model.generate_actions(**batch, noise=noise, num_steps=2)
+    model.capture_sampling()
+    assert model.sampling_captured
+    torch.testing.assert_close(model.generate_actions(**batch, noise=noise, num_steps=2), eager, rtol=0, atol=0)
+    model.capture_sampling(disable=True)
+    assert not model.sampling_captured
+
+
+def test_attention_kernel_setting_is_checked() -> None:
+    model = PI0ForActionGeneration(PI0Config.from_preset("pi0_small"))
+    with pytest.raises(ValueError, match=r"attention_kernel must be one of \('auto', 'sdpa', 'varlen'\), got 'flash'"):
+        model.attention_kernel = "flash"
+    with pytest.raises(ValueError, match="attention kernel 'varlen' needs"):
+        attention.choose_kernel("varlen", torch.device("cpu"), torch.bfloat16, 1, 256)
+    assert attention.choose_kernel("auto", torch.device("cpu"), torch.bfloat16, 1, 256) == "sdpa"
+    assert dataclasses.is_dataclass(KeyRanges)
