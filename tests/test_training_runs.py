@@ -23,7 +23,6 @@ import torch
 from safetensors.torch import load_file
 from test_training import TINY, settings
 
-from pi0_torch import PI0ForActionGeneration
 from pi0_torch.data.lerobot_dataset import LeRobotDatasetError, LeRobotEpisodeDataset
 from pi0_torch.data.lerobot_writer import EpisodeRecord, write_lerobot_dataset
 from pi0_torch.data.synthetic_data import write_synthetic_dataset
