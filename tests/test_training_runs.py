@@ -33,6 +33,7 @@ from pi0_torch.processing.tokenization import build_test_tokenizer
 from pi0_torch.training.trainer import (
     EMA_FILE,
     TRAIN_SETTINGS_FILE,
+    TrainSettings,
     resolve_resume_checkpoint,
     run_processor_settings,
     train_policy,
@@ -195,30 +196,28 @@ def test_fine_tuning_the_demo_policy_keeps_its_processor_settings(tmp_path: Path
     record_demos("pi0_torch/PickPlace-v0", 4, data, image_size=48, storage="image")
     base = dict(dataset=str(data), model=str(DEMO_POLICY), max_steps=1, batch_size=8, warmup_steps=1,
                 logging_steps=1, save_steps=1000, seed=0, progress=False)
-    kept = train_policy(TrainSettingsFor(base, output_dir=str(tmp_path / "kept")))
+    kept = train_policy(settings_from(base, output_dir=str(tmp_path / "kept")))
     saved = json.loads((Path(kept["output_dir"]) / "processor_config.json").read_text())
     reference = json.loads((DEMO_POLICY / "processor_config.json").read_text())
     for name in ("delta_action_mask", "value_conversion", "norm_mode", "min_norm_scale", "float_image_range"):
         assert saved[name] == reference[name], name
     assert kept["log_history"][0]["loss"] < 0.5  # in the policy's own action space (measured 0.24)
     with caplog.at_level(logging.WARNING):
-        absolute = train_policy(TrainSettingsFor(base, output_dir=str(tmp_path / "absolute"), delta_action_mask=[False] * 3))
+        absolute = train_policy(settings_from(base, output_dir=str(tmp_path / "absolute"), delta_action_mask=[False] * 3))
     assert absolute["log_history"][0]["loss"] > 1.0  # another action space: what dropping the mask did (measured 2.3)
     assert "--delta-action-mask [False, False, False] replaces the delta_action_mask [True, True, False]" in caplog.text
     saved = json.loads((tmp_path / "absolute" / "processor_config.json").read_text())
     assert saved["delta_action_mask"] == [False, False, False]
 
 
-def TrainSettingsFor(base: dict, **changes: object):  # noqa: N802 (reads like the settings class)
-    from pi0_torch.training.trainer import TrainSettings
-
+def settings_from(base: dict, **changes: object) -> TrainSettings:
     return TrainSettings(**{**base, **changes})
 
 
 def test_a_value_conversion_is_inherited_and_none_turns_it_off(caplog: pytest.LogCaptureFixture) -> None:
     stats = {key: NormStats(mean=np.zeros(14), std=np.ones(14)) for key in ("state", "actions")}
     aloha = PI0Processor(build_test_tokenizer(), norm_stats=stats, value_conversion="aloha", delta_action_mask=[True] * 6)
-    base = TrainSettingsFor(dict(dataset="d", model="m", output_dir="o"))
+    base = settings_from(dict(dataset="d", model="m", output_dir="o"))
     assert run_processor_settings(base, aloha)["value_conversion"] == "aloha"
     assert run_processor_settings(base, aloha)["delta_action_mask"] == [True] * 6
     with caplog.at_level(logging.WARNING):
