@@ -6,8 +6,9 @@ CUDA allocator's peak on GPU, the process's peak resident set size (sampled ever
 
     pi0-torch bench                                     # small + medium, 1 and 3 cameras, batch 1 and 8
     pi0-torch bench --presets pi0 --dtypes bfloat16 --cameras 3 --batches 1   # full size
-    pi0-torch bench --presets pi0 --dtypes bfloat16 --cameras 3 --batches 1 --compile --device cuda
-                                                        # GPU: eager, compiled and one-CUDA-graph rows
+    pi0-torch bench --presets pi0,pi05 --dtypes bfloat16 --compile --device cuda
+                                                        # GPU: eager, graph, compiled, compiled+graph rows, set-up
+    pi0-torch bench --ops                               # ATen ops of one generate_actions (a launch-count proxy)
     pi0-torch bench --side-by-side                      # against transformers' PI0, identical weights
     pi0-torch bench --loading                           # peak RSS of from_pretrained on a full-size bf16 checkpoint
     pi0-torch bench --fast --compile                    # π0-FAST decoding (tokens/s, ms per chunk) after π0's rows
@@ -37,6 +38,7 @@ from pi0_torch.models.configuration_pi0 import PI0Config, preset_names
 from pi0_torch.models.configuration_pi0_fast import PI0FastConfig, fast_preset_names
 from pi0_torch.models.modeling_pi0 import PI0ForActionGeneration
 from pi0_torch.models.modeling_pi0_fast import PI0FastForActionGeneration
+from pi0_torch.utils.op_count import AtenOpCounter
 
 TEXT_TOKENS = 48
 BF16_MAX_SLOWDOWN = 4.0  # a bfloat16 matmul this many times slower than the float32 one is emulated
@@ -189,8 +191,8 @@ def random_model(config: PI0Config, dtype: torch.dtype, device: torch.device) ->
 
 
 def generate_modes(compile: bool, device: torch.device) -> dict[str, dict[str, Any] | None]:
-    """How `generate_actions` runs, by name -> `compile_sampling` arguments (None: eager). With `--compile`: also
-    compiled, and on CUDA compiled and replayed as one CUDA graph."""
+    """How π0-FAST's `generate_tokens` runs, by name -> `compile_decoding` arguments (None: eager). With `--compile`:
+    also compiled, and on CUDA compiled and replayed as CUDA graphs."""
     modes: dict[str, dict[str, Any] | None] = {"eager": None}
     if compile:
         modes["compiled"] = {}
@@ -199,28 +201,65 @@ def generate_modes(compile: bool, device: torch.device) -> dict[str, dict[str, A
     return modes
 
 
+def sampling_modes(compile: bool, device: torch.device) -> list[str]:
+    """How π0's `generate_actions` runs: eager; on CUDA one hand-captured CUDA graph (`capture_sampling`, no
+    compiler); with `--compile` also the regionally compiled layers (`compile_sampling`), and on CUDA those replayed
+    inside the graph."""
+    cuda = device.type == "cuda"
+    return ["eager"] + (["graph"] if cuda else []) + (["compiled"] + (["compiled+graph"] if cuda else []) if compile else [])
+
+
+def set_sampling_mode(model: PI0ForActionGeneration, mode: str) -> None:
+    model.compile_sampling(disable=True)  # (and no graphs)
+    if mode.startswith("compiled"):
+        model.compile_sampling()
+    if mode.endswith("graph"):
+        model.capture_sampling()
+
+
 def bench_generate(args: argparse.Namespace, device: torch.device) -> None:
-    print(f"\ngenerate_actions on {device_name(device)}, {TEXT_TOKENS} text tokens, 50 actions, 10 steps")
+    print(f"\ngenerate_actions on {device_name(device)}, {TEXT_TOKENS} text tokens, 50 actions, 10 steps; set-up: the "
+          "first call in each mode (compiling, capturing)")
     peaks = {dtype: matmul_throughput(device, getattr(torch, dtype)) for dtype in args.dtypes}
     print("measured matmul ceiling: " + ", ".join(f"{d} {v / 1e9:.0f} GFLOP/s" for d, v in peaks.items()))
-    print(f"{'preset':12s} {'dtype':9s} {'mode':10s} {'cams':>4s} {'batch':>5s} {'median ms':>10s} {'min ms':>10s} "
-          f"{'max ms':>10s} {'peak MiB':>10s} {'GFLOP/s':>8s} {'% peak':>6s}")
+    print(f"{'preset':12s} {'dtype':9s} {'mode':14s} {'cams':>4s} {'batch':>5s} {'set-up s':>8s} {'median ms':>10s} "
+          f"{'min ms':>10s} {'max ms':>10s} {'peak MiB':>10s} {'GFLOP/s':>8s} {'% peak':>6s}")
     for preset in args.presets:
         config = PI0Config.from_preset(preset)
         for dtype_name in args.dtypes:
             model = random_model(config, getattr(torch, dtype_name), device)
-            for mode, compile_arguments in generate_modes(args.compile, device).items():
-                model.compile_sampling(**(compile_arguments if compile_arguments is not None else {"disable": True}))
+            for mode in sampling_modes(args.compile, device):
+                set_sampling_mode(model, mode)
                 for cameras in args.cameras:
                     for batch in args.batches:
                         inputs = example_batch(config, cameras, batch, device)
-                        warmup = 1 if compile_arguments is None else 3  # compiling; CUDA graphs record on a later call
-                        timing = time_call(lambda: model.generate_actions(**inputs), device, args.repeats, warmup=warmup)
+                        setup = seconds(lambda: model.generate_actions(**inputs), device)
+                        timing = time_call(lambda: model.generate_actions(**inputs), device, args.repeats)
                         achieved = generate_flops(config, cameras, batch) / timing.median
-                        print(f"{preset:12s} {dtype_name:9s} {mode:10s} {cameras:4d} {batch:5d} {timing.row()} "
+                        print(f"{preset:12s} {dtype_name:9s} {mode:14s} {cameras:4d} {batch:5d} {setup:8.1f} {timing.row()} "
                               f"{achieved / 1e9:8.0f} {100 * achieved / peaks[dtype_name]:6.0f}")
             del model
             gc.collect()
+
+
+def bench_op_counts(args: argparse.Namespace) -> None:
+    """ATen ops of one `generate_actions` on the CPU (a proxy for GPU kernel launches; `pi0_torch.utils.op_count`)."""
+    print("\nATen ops of one generate_actions (CPU, float32, 3 cameras, batch 1, 20 of 48 prompt tokens, 10 steps)")
+    print(f"{'preset':12s} {'ops':>6s} {'views':>6s} {'RMSNorm ops':>11s} {'kernels on CUDA':>15s} {'host reads':>10s}")
+    for preset in args.presets:
+        config = PI0Config.from_preset(preset)
+        model = random_model(config, torch.float32, torch.device("cpu"))
+        inputs = example_batch(config, 3, 1, torch.device("cpu"))
+        inputs["attention_mask"] = torch.arange(TEXT_TOKENS)[None] < 20
+        model.generate_actions(**inputs)
+        with AtenOpCounter() as counter:
+            model.generate_actions(**inputs)
+        norms = counter.ops["rsqrt"]  # each RMSNorm: pow, mean, add, rsqrt, mul(s) on the CPU, one fused kernel on CUDA
+        norm_ops = sum(counter.ops[name] for name in ("pow", "mean", "add_", "rsqrt")) + norms
+        kernels = counter.total - counter.views - norm_ops + norms
+        print(f"{preset:12s} {counter.total:6d} {counter.views:6d} {norm_ops:11d} {kernels:15d} {counter.host_reads:10d}")
+        del model
+        gc.collect()
 
 
 def bench_fast_decoding(args: argparse.Namespace, device: torch.device) -> None:
@@ -310,14 +349,17 @@ def bench_side_by_side(args: argparse.Namespace, device: torch.device) -> None:
     noise = torch.randn(1, config.action_horizon, config.action_dim, generator=torch.Generator().manual_seed(1)).to(device)
     their_inputs = transformers_pi0_inputs(inputs, config)
     eager_sample = theirs.sample_actions
-    modes = [(mode, torch.float32, arguments) for mode, arguments in generate_modes(args.compile, device).items()]
-    if not args.bf16_note:
-        modes.append(("eager", torch.bfloat16, None))  # last: the weights are rounded to bf16 in place
-    print(f"{'mode':10s} {'dtype':9s} {'ours ms':>15s} {'transformers ms':>17s} {'speedup':>8s} {'max |diff|':>11s}")
-    for label, dtype, compile_arguments in modes:  # both models compiled alike
-        ours.compile_sampling(**(compile_arguments if compile_arguments is not None else {"disable": True}))
+    modes = [(mode, torch.float32) for mode in sampling_modes(args.compile, device)]
+    if not args.bf16_note:  # last: the weights are rounded to bf16 in place
+        modes += [(mode, torch.bfloat16) for mode in sampling_modes(args.compile, device)]
+    print(f"{'mode':14s} {'dtype':9s} {'ours ms':>15s} {'transformers ms':>17s} {'speedup':>8s} {'max |diff|':>11s}")
+    print("(transformers' PI0 runs eager in eager and graph modes, compiled with mode='reduce-overhead' (CUDA) or "
+          "default (CPU) in the compiled ones)")
+    for label, dtype in modes:
+        set_sampling_mode(ours, label)
+        theirs_compile = {"mode": "reduce-overhead"} if device.type == "cuda" else {}
         theirs.sample_actions = (  # type: ignore[method-assign]
-            eager_sample if compile_arguments is None else torch.compile(eager_sample, **compile_arguments)
+            torch.compile(eager_sample, **theirs_compile) if label.startswith("compiled") else eager_sample
         )
         ours.to(dtype)
         theirs.to(dtype)
@@ -332,7 +374,7 @@ def bench_side_by_side(args: argparse.Namespace, device: torch.device) -> None:
             device, args.repeats,
         )
         ours_median, their_median = statistics.median(ours_times), statistics.median(their_times)
-        print(f"{label:10s} {str(dtype).removeprefix('torch.'):9s} {ours_median * 1e3:7.1f} ({min(ours_times) * 1e3:5.1f}) "
+        print(f"{label:14s} {str(dtype).removeprefix('torch.'):9s} {ours_median * 1e3:7.1f} ({min(ours_times) * 1e3:5.1f}) "
               f"{their_median * 1e3:9.1f} ({min(their_times) * 1e3:5.1f}) {their_median / ours_median:7.2f}x {difference:11.2e}")
 
 
@@ -387,7 +429,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--batches", type=_csv(int), default="1,8", help="comma list of batch sizes")
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu", help="torch device")
     parser.add_argument("--repeats", type=int, default=5, help="timed runs per row, after warm-up")
-    parser.add_argument("--compile", action="store_true", help="also time compiled sampling (and on CUDA, compiled as one CUDA graph)")
+    parser.add_argument("--compile", action="store_true", help="also time regionally compiled sampling (on CUDA also "
+                        "compiled inside the CUDA graph); on CUDA the hand-captured graph is always timed")
+    parser.add_argument("--ops", action="store_true", help="also count the ATen ops of one generate_actions per preset")
     parser.add_argument("--train", action="store_true", help="also time a training step")
     parser.add_argument("--side-by-side", action="store_true", help="also compare with transformers' PI0")
     parser.add_argument("--side-by-side-preset", default="pi0_medium", help="preset of --side-by-side")
@@ -414,6 +458,8 @@ def run(args: argparse.Namespace) -> int:
     with torch.inference_mode(False):
         if not args.skip_generate:
             bench_generate(args, device)
+        if args.ops:
+            bench_op_counts(args)
         if args.fast:
             bench_fast_decoding(args, device)
         if args.train:

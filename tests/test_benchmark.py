@@ -22,8 +22,8 @@ def test_generate_and_train_tables(capsys: pytest.CaptureFixture[str], compiled:
     out = bench(capsys, "--presets", "pi0_small", "--dtypes", "float32", "--cameras", "2", "--batches", "1", "--train",
                 *(["--compile"] if compiled else []))
     assert re.search(r"measured matmul ceiling: float32 \d+ GFLOP/s", out)
-    rows = re.findall(r"^pi0_small\s+float32\s+(\S+)\s+(\d)\s+1\s+[\d.]+\s+[\d.]+\s+[\d.]+\s+\d+\s+\d+\s+\d+$", out, re.MULTILINE)
-    assert rows == [("eager", "2"), ("compiled", "2")][: 2 if compiled else 1], out  # no CUDA-graph row on CPU
+    rows = re.findall(r"^pi0_small\s+float32\s+(\S+)\s+(\d)\s+1\s+[\d.]+\s+[\d.]+\s+[\d.]+\s+[\d.]+\s+\d+\s+\d+\s+\d+$", out, re.MULTILINE)
+    assert rows == [("eager", "2"), ("compiled", "2")][: 2 if compiled else 1], out  # no CUDA-graph rows on CPU
     assert re.search(r"^pi0_small\s+float32\s+1\s+[\d.]+", out.split("training step")[1], re.MULTILINE), out
 
 
@@ -33,6 +33,12 @@ def test_side_by_side_with_transformers_agrees(capsys: pytest.CaptureFixture[str
     assert sorted(rows) == ["bfloat16", "float32"], out
     assert float(rows["float32"]) <= 1e-4  # identical weights, inputs and noise
     assert float(rows["bfloat16"]) <= 0.5  # both in bf16, each with its own rounding
+
+
+def test_op_count_table(capsys: pytest.CaptureFixture[str]) -> None:
+    out = bench(capsys, "--skip-generate", "--ops", "--presets", "pi0_small,pi05_small")
+    rows = dict(re.findall(r"^(pi0_small|pi05_small)\s+(\d+)\s+\d+\s+\d+\s+\d+\s+0$", out, re.MULTILINE))
+    assert sorted(rows) == ["pi05_small", "pi0_small"] and all(int(ops) > 0 for ops in rows.values()), out
 
 
 def test_fast_decoding_table(capsys: pytest.CaptureFixture[str]) -> None:

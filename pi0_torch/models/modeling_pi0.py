@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import functools
 import math
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -1078,18 +1078,20 @@ class PI0ForActionGeneration(SiglipImageEmbedding, PI0PreTrainedModel):
         if graph and self.device.type == "cuda":
             self.capture_sampling()
 
-    def capture_sampling(self, disable: bool = False) -> None:
+    def capture_sampling(self, disable: bool = False, batch_sizes: Sequence[int] | None = None) -> None:
         """Opt in to CUDA graphs for `generate_actions` on CUDA: the sampling of each (batch size, step count, prompt
         length, prefix layout, real-time chunking method) is captured once (a warm-up run, then the capture: its
         first call takes a few eager calls' time) and replayed after that, so the CPU launches one graph instead of
         thousands of kernels. Inputs are copied into the graph's static buffers; each call returns a tensor of its
         own. Plain sampling and RTC "conditioning" are captured; RTC "guidance" (a vector-Jacobian product per step)
         runs eagerly. A model moved to another device or dtype captures again. Works with `compile_sampling` (the
-        graphs then replay the compiled kernels). `capture_sampling(disable=True)` goes back to eager.
+        graphs then replay the compiled kernels). With `batch_sizes`, another batch size is refused (`ValueError`)
+        rather than captured mid-run. `capture_sampling(disable=True)` goes back to eager.
         """
         from pi0_torch.models.sampling_graphs import SamplingGraphs
 
-        self._graphs = None if disable else SamplingGraphs(self)
+        sizes = None if batch_sizes is None else tuple(check_int("batch_sizes", size, minimum=1) for size in batch_sizes)
+        self._graphs = None if disable else SamplingGraphs(self, sizes)
 
     def _apply(self, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
         """`nn.Module._apply` (what `.to()`, `.cuda()`, `.half()` ... run): captured graphs read the old tensors, so

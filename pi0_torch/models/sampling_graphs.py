@@ -44,8 +44,9 @@ def _signature(inputs: SamplingInputs) -> tuple[Any, ...]:
 class SamplingGraphs:
     """The captured graphs of one model, by plan and input signature."""
 
-    def __init__(self, model: PI0ForActionGeneration) -> None:
+    def __init__(self, model: PI0ForActionGeneration, batch_sizes: tuple[int, ...] | None = None) -> None:
         self.model = model
+        self.batch_sizes = batch_sizes  # None: any batch size (captured on first use)
         self.graphs: dict[tuple[Any, ...], CapturedSampling] = {}
         self.pool: Any = None
 
@@ -56,6 +57,10 @@ class SamplingGraphs:
 
     def run(self, inputs: SamplingInputs, plan: SamplingPlan) -> torch.Tensor:
         """Actions `[B, horizon, action_dim]` for `inputs` (on CUDA) by replaying the plan's graph (captured on first use)."""
+        batch = inputs.noise.shape[0]
+        if self.batch_sizes is not None and batch not in self.batch_sizes:
+            raise ValueError(f"batch size {batch}: sampling is captured for batch sizes {list(self.batch_sizes)} only "
+                             "(model.capture_sampling(batch_sizes=...))")
         key = (plan, _signature(inputs))
         with torch.inference_mode():
             captured = self.graphs.get(key)
