@@ -548,7 +548,7 @@ def test_evaluate_policy_against_ground_truth(dataset_root: Path, tmp_path: Path
 
 def test_accelerate_two_processes_match_one(dataset_root: Path, tmp_path: Path) -> None:
     """`accelerate launch --multi_gpu --num_processes 2 ... --cpu` (torch.distributed over gloo on CPU) gives the loss
-    curve of one process with the same global batch."""
+    curve of one process with the same global batch; pi0-torch's INFO lines come once, from the first process."""
     curves = {}
     for processes in (1, 2):
         output = tmp_path / f"p{processes}"
@@ -564,7 +564,7 @@ def test_accelerate_two_processes_match_one(dataset_root: Path, tmp_path: Path) 
         ]
         env = {**os.environ, "OMP_NUM_THREADS": "1"}
         finished = subprocess.run(command, check=True, env=env, capture_output=True, text=True, timeout=HANG_S)
-        assert finished.stderr.count("trainable parameters") == processes  # one log line per training process
+        assert finished.stderr.count("trainable parameters") == 1  # logged by the first process only
         state = json.loads((output / "checkpoint-6" / "trainer_state.json").read_text())
         curves[processes] = losses(state["log_history"])
     assert sorted(curves[1]) == sorted(curves[2]) == list(range(1, 7))
