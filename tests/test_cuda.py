@@ -121,7 +121,7 @@ def test_varlen_kernel_matches_sdpa(reference: OpenpiReference) -> None:
     varlen = model.generate_actions(**inputs, noise=noise)
     assert relative(varlen, sdpa) <= 2e-2
     assert relative_error(varlen, reference["bf16_infer/actions"]) <= BF16_TOLERANCE
-    loss = model(**inputs, actions=varlen).loss  # training passes take the same kernel
+    loss = model(**inputs, actions=varlen).loss  # (training passes use SDPA: the varlen kernel has no backward here)
     assert torch.isfinite(loss)
 
 

@@ -58,7 +58,6 @@ def test_key_ranges_equal_openpis_prefix_lm_mask(pi05: bool, seed: int) -> None:
     sees a padding slot."""
     config = PI0Config.from_preset("pi05_small" if pi05 else "pi0_small", **ODD)
     model = PI0ForActionGeneration(config).eval()
-    model.attention_kernel = "sdpa"
     inputs = random_batch(config, batch=4, seed=seed)
     facts = model._check_inputs(**inputs)
     layout = facts.layout(config.tokens_per_image)
@@ -72,13 +71,13 @@ def test_key_ranges_equal_openpis_prefix_lm_mask(pi05: bool, seed: int) -> None:
     reference, _ = prefix_lm_mask(full_valid, flags)
 
     slots = n + suffix_len
-    heads, dtype = config.num_attention_heads, torch.float32
+    heads, kernel = config.num_attention_heads, "sdpa"
     passes = {  # as the model builds them (run_layers; cache_prefix and action_pass)
-        "training": [model._prefix_stream(first, layout, dtype, slots),
-                     model._suffix_stream(first, layout, n, (suffix_len,) if pi05 else (1, suffix_len - 1), dtype, slots)],
-        "sampling": [model._prefix_stream(first, layout, dtype, slots)]
-        + ([] if pi05 else [model._suffix_stream(first, layout, n, (1,), dtype, slots)])
-        + [model._suffix_stream(first, layout, slots - config.action_horizon, (config.action_horizon,), dtype, slots)],
+        "training": [model._prefix_stream(first, layout, kernel, slots),
+                     model._suffix_stream(first, layout, n, (suffix_len,) if pi05 else (1, suffix_len - 1), kernel, slots)],
+        "sampling": [model._prefix_stream(first, layout, kernel, slots)]
+        + ([] if pi05 else [model._suffix_stream(first, layout, n, (1,), kernel, slots)])
+        + [model._suffix_stream(first, layout, slots - config.action_horizon, (config.action_horizon,), kernel, slots)],
     }
     for name, streams in passes.items():
         ours = torch.zeros_like(reference)

@@ -162,10 +162,11 @@ def attend(query: torch.Tensor, key: torch.Tensor, value: torch.Tensor, plan: At
         return _attend_varlen(query, key, value, plan)
     if key.shape[2] != plan.num_keys:
         key, value = key[:, :, : plan.num_keys], value[:, :, : plan.num_keys]
+    mask = plan.mask if plan.mask is None or plan.mask.dtype == query.dtype else plan.mask.to(query.dtype)  # (autocast)
     if plan.fold_heads:  # [B, 1, T * N, H] against the one kv head
-        attended = F.scaled_dot_product_attention(query.view(batch, 1, tokens * heads, head_dim), key, value, attn_mask=plan.mask)
+        attended = F.scaled_dot_product_attention(query.view(batch, 1, tokens * heads, head_dim), key, value, attn_mask=mask)
         return attended.view(batch * tokens, heads * head_dim)
-    attended = F.scaled_dot_product_attention(query.transpose(1, 2), key, value, attn_mask=plan.mask, enable_gqa=True)
+    attended = F.scaled_dot_product_attention(query.transpose(1, 2), key, value, attn_mask=mask, enable_gqa=True)
     return attended.transpose(1, 2).reshape(batch * tokens, heads * head_dim)
 
 

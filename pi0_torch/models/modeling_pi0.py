@@ -183,7 +183,8 @@ class JointDecoderLayer(GradientCheckpointingLayer):
     sampling, the action tokens run alone in each sampling step against that cache.
 
     `forward` runs `run`, or its compiled version once `compile_run` is called: one code object for every decoder
-    layer, so regional compilation compiles it once for all of them.
+    layer, so regional compilation compiles it once for all of them. A step that is differentiated with `torch.func`
+    (`write_cache=False`, RTC guidance) runs eagerly: functorch transforms cannot enter compiled code.
     """
 
     def __init__(self, config: PI0Config) -> None:
@@ -202,7 +203,8 @@ class JointDecoderLayer(GradientCheckpointingLayer):
         return self._compiled_run is not None
 
     def forward(self, *args: Any, **kwargs: Any) -> tuple[torch.Tensor | None, torch.Tensor | None]:
-        return (self.run if self._compiled_run is None else self._compiled_run)(*args, **kwargs)
+        eager = self._compiled_run is None or not kwargs.get("write_cache", True)
+        return (self.run if eager else self._compiled_run)(*args, **kwargs)
 
     def run(
         self,
@@ -643,32 +645,38 @@ class PI0ForActionGeneration(SiglipImageEmbedding, PI0PreTrainedModel):
         image_valid = image_masks[:, :, None].expand(-1, -1, image_tokens.shape[2]).flatten(1)
         return torch.cat([image_tokens.flatten(1, 2), text_tokens], dim=1), torch.cat([image_valid, valid], dim=1)
 
-    def _prefix_stream(self, first: torch.Tensor, layout: PrefixLayout, dtype: torch.dtype, slots: int) -> StreamPass:
+    def _prefix_stream(self, first: torch.Tensor, layout: PrefixLayout, kernel: str, slots: int) -> StreamPass:
         """The prefix in slots `[0, length)`: sample b's valid tokens from `first[b]` at positions 0, 1, ...; they see
         each other (bidirectional) and nothing after."""
         positions = torch.arange(layout.length, device=first.device)[None, :] - first[:, None]
-        return self._stream(positions, first, (layout.length,), layout, dtype, slots, first_slot=0)
+        return self._stream(positions, first, (layout.length,), layout, kernel, slots, first_slot=0)
 
     def _suffix_stream(
-        self, first: torch.Tensor, layout: PrefixLayout, first_slot: int, group_rows: tuple[int, ...], dtype: torch.dtype, slots: int
+        self, first: torch.Tensor, layout: PrefixLayout, first_slot: int, group_rows: tuple[int, ...], kernel: str, slots: int
     ) -> StreamPass:
         """Suffix tokens in slots from `first_slot` (after the prefix): positions continue after each sample's valid
         prefix tokens; each group of rows sees the valid prefix and the suffix slots up to its own end."""
         tokens = sum(group_rows)
         positions = (layout.length - first)[:, None] + (first_slot - layout.length) + torch.arange(tokens, device=first.device)
-        return self._stream(positions, first, group_rows, layout, dtype, slots, first_slot)
+        return self._stream(positions, first, group_rows, layout, kernel, slots, first_slot)
+
+    def _kernel(self, device: torch.device, dtype: torch.dtype, differentiable: bool) -> str:
+        """The attention kernel of a pass: SDPA where gradients flow through attention (training, RTC guidance; the
+        varlen kernel has no backward with per-sample key counts), else `attention_kernel`'s choice."""
+        config = self.config
+        return choose_kernel("sdpa" if differentiable else self._attention_kernel, device, dtype,
+                             config.num_key_value_heads, config.head_dim)
 
     def _stream(
         self, positions: torch.Tensor, first: torch.Tensor, group_rows: tuple[int, ...], layout: PrefixLayout,
-        dtype: torch.dtype, slots: int, first_slot: int,
+        kernel: str, slots: int, first_slot: int,
     ) -> StreamPass:
         config = self.config
         cos, sin = rope_cos_sin(positions, config.head_dim, config.rope_theta)
         ends = tuple(first_slot + sum(group_rows[: index + 1]) for index in range(len(group_rows)))
-        kernel = choose_kernel(self._attention_kernel, first.device, dtype, config.num_key_value_heads, config.head_dim)
         plan = plan_attention(
             KeyRanges(first, group_rows, ends, padded=layout.padded), config.num_attention_heads,
-            config.num_key_value_heads, dtype, kernel, key_slots=slots,
+            config.num_key_value_heads, self.dtype, kernel, key_slots=slots,
         )
         tokens = sum(group_rows)
         slot_index = torch.arange(first_slot, first_slot + tokens, device=first.device)
@@ -814,12 +822,13 @@ class PI0ForActionGeneration(SiglipImageEmbedding, PI0PreTrainedModel):
         state token sees the prefix and itself, its action tokens everything; π0.5's action tokens everything.
         """
         config = self.config
-        horizon, dtype = config.action_horizon, prefix.dtype
+        horizon = config.action_horizon
         slots = layout.length + config.suffix_len
         group_rows = (horizon,) if config.pi05 else (1, horizon)
+        kernel = self._kernel(prefix.device, prefix.dtype, differentiable=True)
         streams = (
-            self._prefix_stream(first, layout, dtype, slots),
-            self._suffix_stream(first, layout, layout.length, group_rows, dtype, slots),
+            self._prefix_stream(first, layout, kernel, slots),
+            self._suffix_stream(first, layout, layout.length, group_rows, kernel, slots),
         )
         norms = conditioning.layer_norms or (None,) * len(self.layers)
         for layer, layer_norms in zip(self.layers, norms):
@@ -838,25 +847,28 @@ class PI0ForActionGeneration(SiglipImageEmbedding, PI0PreTrainedModel):
         config = self.config
         prefix, valid = self.embed_prefix(inputs.pixel_values, inputs.image_masks, inputs.input_ids, inputs.attention_mask)
         prefix, first = compact_prefix(prefix, valid, layout)
-        batch, dtype = first.shape[0], prefix.dtype
+        batch = first.shape[0]
         slots = layout.length + config.suffix_len
+        kernel = self._kernel(prefix.device, prefix.dtype, differentiable=False)
         shape = (batch, config.num_key_value_heads, slots, config.head_dim)
         # buffers of their own per layer (views of one shared buffer would alias across a compiled layer's inputs)
         keys, values = ([prefix.new_empty(shape) for _ in self.layers] for _ in range(2))
         streams = (
-            self._prefix_stream(first, layout, dtype, slots),
-            None if config.pi05 else self._suffix_stream(first, layout, layout.length, (1,), dtype, slots),
+            self._prefix_stream(first, layout, kernel, slots),
+            None if config.pi05 else self._suffix_stream(first, layout, layout.length, (1,), kernel, slots),
         )
         x, state = prefix, None if config.pi05 else self.embed_state(inputs.state)
         for index, (layer, layer_keys, layer_values) in enumerate(zip(self.layers, keys, values)):
             x, state = layer(x, state, streams, (layer_keys, layer_values), keys_only=index == len(self.layers) - 1)
         return PrefixCache(keys, values, first, layout)
 
-    def action_pass(self, cache: PrefixCache) -> ActionPass:
-        """What every sampling step shares (see `ActionPass`), computed once per call."""
+    def action_pass(self, cache: PrefixCache, differentiable: bool = False) -> ActionPass:
+        """What every sampling step shares (see `ActionPass`), computed once per call; `differentiable` for steps that
+        are differentiated (RTC guidance)."""
         config = self.config
         first_slot = cache.slots - config.action_horizon
-        stream = self._suffix_stream(cache.first, cache.layout, first_slot, (config.action_horizon,), cache.keys[0].dtype, cache.slots)
+        kernel = self._kernel(cache.first.device, cache.keys[0].dtype, differentiable)
+        stream = self._suffix_stream(cache.first, cache.layout, first_slot, (config.action_horizon,), kernel, cache.slots)
         if config.pi05:
             return ActionPass(cache, stream, None, None, None)
         expert_norms = [(layer.expert.attn_norm.params(), layer.expert.mlp_norm.params()) for layer in self.layers]
@@ -971,7 +983,7 @@ class PI0ForActionGeneration(SiglipImageEmbedding, PI0PreTrainedModel):
     def _sample(self, inputs: SamplingInputs, plan: SamplingPlan) -> torch.Tensor:
         """The sampling of `generate_actions` on checked inputs: no host reads, so it can be captured as a CUDA graph."""
         cache = self.cache_prefix(inputs, plan.layout)
-        actions = self.action_pass(cache)
+        actions = self.action_pass(cache, differentiable=plan.rtc_method == "guidance")
         committed = inputs.committed
         steps = self.conditioning(inputs.times).steps()
         if committed is not None:  # committed actions take the conditioning of flow time 0
@@ -1125,6 +1137,8 @@ class PI0ForActionGeneration(SiglipImageEmbedding, PI0PreTrainedModel):
                 f"{config.image_size}], got {describe(pixel_values)}"
             )
         batch = pixel_values.shape[0]
+        if batch == 0:
+            raise ValueError("pixel_values: a batch of 0 samples; expected at least one")
         _check_tensor("pixel_values", pixel_values, (batch, config.num_cameras, 3, config.image_size, config.image_size), floating=True, finite=False)
         _check_tensor("image_masks", image_masks, (batch, config.num_cameras), dtypes=(torch.bool,))
         if (not isinstance(input_ids, torch.Tensor) or input_ids.dim() != 2 or input_ids.shape[0] != batch
