@@ -16,7 +16,8 @@ import numpy as np
 import pytest
 
 from pi0_torch.cli import main
-from pi0_torch.models.configuration_pi0 import SIZE_LIMITS, PI0Config
+from pi0_torch.models.configuration_base import SIZE_LIMITS
+from pi0_torch.models.configuration_pi0 import PI0Config
 from pi0_torch.models.configuration_pi0_fast import PI0FastConfig
 from pi0_torch.models.flow_matching import euler_times
 from pi0_torch.runtime.policy import PI0Policy

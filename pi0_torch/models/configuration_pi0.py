@@ -5,49 +5,24 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import inspect
-import json
 import logging
-import os
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from typing import Any
 
 from transformers import PretrainedConfig
 
-from pi0_torch.models import auto_registration
-from pi0_torch.utils.validation import check_float, check_int, check_pretrained_location, hub_errors
+from pi0_torch.models.configuration_base import (
+    PALIGEMMA_VOCAB_SIZE,
+    SIZE_LIMITS,
+    PI0BaseConfig,
+    camera_list,
+    vision_parameters,
+)
+from pi0_torch.utils.validation import check_float, check_int
 
 logger = logging.getLogger(__name__)
 
 DEFAULT_CAMERA_NAMES = ("base_0_rgb", "left_wrist_0_rgb", "right_wrist_0_rgb")
-PALIGEMMA_VOCAB_SIZE = 257_152
-
-# The largest value of every size and count (π0 and π0-FAST configs): far above any released model (π0: widths up to
-# 16,384, 27 + 18 layers, 50 actions, 10 steps), low enough that a typo (`action_horizon: 100000000`,
-# `num_hidden_layers: 1e6`, `num_inference_steps: 1e9`) is refused by name before anything is allocated or run.
-SIZE_LIMITS: dict[str, int] = {
-    "image_size": 2_048,
-    "patch_size": 2_048,
-    "vision_hidden_size": 16_384,
-    "vision_intermediate_size": 65_536,
-    "vision_num_layers": 256,
-    "vision_num_heads": 256,
-    "vlm_hidden_size": 16_384,
-    "vlm_intermediate_size": 65_536,
-    "expert_hidden_size": 16_384,
-    "expert_intermediate_size": 65_536,
-    "hidden_size": 16_384,  # π0-FAST's decoder
-    "intermediate_size": 65_536,
-    "num_hidden_layers": 256,
-    "num_attention_heads": 256,
-    "num_key_value_heads": 256,
-    "head_dim": 1_024,
-    "vocab_size": 1_048_576,
-    "action_dim": 256,
-    "action_horizon": 1_024,
-    "max_token_len": 8_192,
-    "num_inference_steps": 1_000,
-    "max_decoding_steps": 8_192,
-}
 MAX_ACTION_DIM = SIZE_LIMITS["action_dim"]
 MAX_ACTION_HORIZON = SIZE_LIMITS["action_horizon"]
 MAX_INFERENCE_STEPS = SIZE_LIMITS["num_inference_steps"]
@@ -80,7 +55,7 @@ _SIZES: dict[str, dict[str, Any]] = {
 }
 
 
-class PI0Config(PretrainedConfig):
+class PI0Config(PI0BaseConfig):
     """Configuration of [`PI0ForActionGeneration`].
 
     Holds the dimensions of the SigLIP vision tower, the VLM Gemma ("expert 0", width `vlm_hidden_size`) and the
@@ -100,6 +75,8 @@ class PI0Config(PretrainedConfig):
     """
 
     model_type = "pi0_torch"
+    own_sizes = ("vlm_hidden_size", "vlm_intermediate_size", "expert_hidden_size", "expert_intermediate_size",
+                 "num_inference_steps")
 
     def __init__(
         self,
@@ -168,59 +145,26 @@ class PI0Config(PretrainedConfig):
         self.time_offset = time_offset
         self.time_min_period = time_min_period
         self.time_max_period = time_max_period
-        if isinstance(camera_names, str) or not isinstance(camera_names, Sequence):
-            raise ValueError(f"camera_names must be a list of camera names, got {camera_names!r}")
-        self.camera_names = list(camera_names)
+        self.camera_names = camera_list(camera_names)
         self.rtc_max_delay = rtc_max_delay
-        check_dtype_setting(kwargs)
-        super().__init__(**kwargs)
         unknown = sorted(set(kwargs) - _TRANSFORMERS_KEYS)
         if unknown:  # transformers keeps them as attributes; nothing in pi0-torch reads them
             logger.warning("PI0Config: ignoring unknown settings %s%s", unknown, _suggestions(unknown))
-        self._check()
-        auto_registration.register_models()  # AutoModel maps a config to its model class once one exists
+        super().__init__(**kwargs)
 
     def _check(self) -> None:
-        """Types and ranges of every setting (presets, `from_pretrained`, `from_dict` and overrides all come here)."""
-        for name in _POSITIVE_INTS:
-            check_int(name, getattr(self, name), minimum=1, maximum=SIZE_LIMITS[name])
-        for name in _POSITIVE_FLOATS:
+        """The shared checks ([`PI0BaseConfig._check`]), then the flow-matching times, the action expert's width and
+        the training-time real-time chunking delay."""
+        super()._check()
+        for name in ("time_beta_alpha", "time_beta_beta", "time_scale", "time_min_period", "time_max_period"):
             check_float(name, getattr(self, name), minimum=0.0, exclusive_minimum=True)
         check_float("time_offset", self.time_offset, minimum=0.0)
         if self.time_scale + self.time_offset > 1.0 + 1e-6:
             raise ValueError(f"time_scale + time_offset must be <= 1 (flow times lie in (0, 1]), got "
                              f"{self.time_scale} + {self.time_offset}")
-        if self.vision_hidden_size % self.vision_num_heads:
-            raise ValueError(f"vision_hidden_size ({self.vision_hidden_size}) must be a multiple of vision_num_heads "
-                             f"({self.vision_num_heads})")
-        if self.num_attention_heads % self.num_key_value_heads:
-            raise ValueError(
-                f"num_attention_heads ({self.num_attention_heads}) must be a multiple of "
-                f"num_key_value_heads ({self.num_key_value_heads})"
-            )
         if self.expert_hidden_size % 2:
             raise ValueError(f"expert_hidden_size must be even for the sin/cos time embedding, got {self.expert_hidden_size}")
-        if self.head_dim % 2:
-            raise ValueError(f"head_dim must be even for RoPE, got {self.head_dim}")
-        if self.image_size % self.patch_size:
-            raise ValueError(f"image_size ({self.image_size}) must be a multiple of patch_size ({self.patch_size})")
         check_int("rtc_max_delay", self.rtc_max_delay, minimum=0, maximum=self.action_horizon - 1)
-        if (not self.camera_names or len(set(self.camera_names)) != len(self.camera_names)
-                or not all(isinstance(name, str) and name for name in self.camera_names)):
-            raise ValueError(f"camera_names must be non-empty, unique strings, got {self.camera_names}")
-
-    @property
-    def num_cameras(self) -> int:
-        return len(self.camera_names)
-
-    @property
-    def tokens_per_image(self) -> int:
-        return (self.image_size // self.patch_size) ** 2
-
-    @property
-    def prefix_len(self) -> int:
-        """Tokens in the prefix: every camera's image tokens, then the text tokens."""
-        return self.num_cameras * self.tokens_per_image + self.max_token_len
 
     def estimated_parameters(self) -> int:
         """The model's parameter count from its sizes (within a fraction of a percent: norms and biases are left
@@ -275,25 +219,6 @@ class PI0Config(PretrainedConfig):
         return cls(pi05=variant == "pi05", **{**_SIZES[size or "full"], **overrides})
 
     @classmethod
-    def from_pretrained(cls, pretrained_model_name_or_path: str | os.PathLike[str], **kwargs: Any) -> PI0Config:
-        """`PretrainedConfig.from_pretrained`, refusing at once a path that is neither a folder with `config.json`
-        nor a hub id (see `pi0_torch.utils.validation.is_hub_id`)."""
-        config_file = f"{kwargs['subfolder']}/config.json" if kwargs.get("subfolder") else "config.json"
-        check_pretrained_location(pretrained_model_name_or_path, config_file, "model")
-        with hub_errors(pretrained_model_name_or_path, "model"):
-            return super().from_pretrained(pretrained_model_name_or_path, **kwargs)
-
-    @classmethod
-    def _dict_from_json_file(cls, json_file: str | os.PathLike[str]) -> dict[str, Any]:
-        try:
-            config_dict = super()._dict_from_json_file(json_file)
-        except json.JSONDecodeError as error:
-            raise ValueError(f"{json_file} is not valid JSON: {error}") from None
-        if not isinstance(config_dict, Mapping):
-            raise ValueError(f"{json_file} must hold a JSON object of settings, got a JSON {type(config_dict).__name__}")
-        return dict(config_dict)
-
-    @classmethod
     def pi0(cls, **overrides: Any) -> PI0Config:
         """π0 at the released size (3,238,048,528 parameters)."""
         return cls.from_preset("pi0", **overrides)
@@ -308,39 +233,11 @@ CONFIG_FIELDS: tuple[str, ...] = tuple(
     name for name, parameter in inspect.signature(PI0Config.__init__).parameters.items()
     if name != "self" and parameter.kind is not inspect.Parameter.VAR_KEYWORD
 )
-_POSITIVE_INTS = (
-    "image_size", "patch_size", "vision_hidden_size", "vision_intermediate_size", "vision_num_layers", "vision_num_heads",
-    "vlm_hidden_size", "vlm_intermediate_size", "expert_hidden_size", "expert_intermediate_size", "num_hidden_layers",
-    "num_attention_heads", "num_key_value_heads", "head_dim", "vocab_size", "action_dim", "action_horizon",
-    "max_token_len", "num_inference_steps",
-)
-_POSITIVE_FLOATS = (
-    "rms_norm_eps", "rope_theta", "time_beta_alpha", "time_beta_beta", "time_scale", "time_min_period", "time_max_period",
-)
 # What transformers itself writes into config.json or passes to a config besides the model's own settings.
 _TRANSFORMERS_KEYS = {field.name for field in dataclasses.fields(PretrainedConfig)} | {
     "model_type", "transformers_version", "name_or_path", "_name_or_path", "_commit_hash", "torch_dtype",
     "attn_implementation", "experts_implementation", "output_attentions", "num_labels", "auto_map", "use_cache",
 }
-
-
-def check_dtype_setting(settings: Mapping[str, Any]) -> None:
-    """A `dtype` (or `torch_dtype`) among a config's settings (what transformers loads the weights as) must name a
-    torch floating-point dtype: `"float7"` would otherwise fail inside transformers with an `AttributeError`."""
-    import torch
-
-    dtype = settings.get("dtype", settings.get("torch_dtype"))
-    if isinstance(dtype, str) and dtype != "auto":
-        resolved = getattr(torch, dtype, None)
-        if not isinstance(resolved, torch.dtype) or not resolved.is_floating_point:
-            raise ValueError(f"dtype must name a torch floating-point dtype (float32, bfloat16, float16) or 'auto', "
-                             f"got {dtype!r:.60}")
-
-
-def vision_parameters(image_size: int, patch_size: int, width: int, intermediate: int, layers: int) -> int:
-    """SigLIP's parameter count (patch embedding, position table, and per layer attention and MLP)."""
-    tokens = (image_size // patch_size) ** 2
-    return 3 * patch_size**2 * width + tokens * width + layers * (4 * width * width + 2 * width * intermediate)
 
 
 def _suggestions(names: Sequence[str]) -> str:

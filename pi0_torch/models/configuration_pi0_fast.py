@@ -5,11 +5,8 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any
 
-from transformers import PretrainedConfig
-
-from pi0_torch.models import auto_registration
-from pi0_torch.models.configuration_pi0 import PALIGEMMA_VOCAB_SIZE, SIZE_LIMITS, check_dtype_setting, vision_parameters
-from pi0_torch.utils.validation import check_float, check_int
+from pi0_torch.models.configuration_base import PALIGEMMA_VOCAB_SIZE, PI0BaseConfig, camera_list, vision_parameters
+from pi0_torch.utils.validation import check_int
 
 FAST_CAMERA_NAMES = ("base_0_rgb", "base_1_rgb", "wrist_0_rgb")  # openpi's π0-FAST camera slots, in model order
 PALIGEMMA_EOS_TOKEN = 1
@@ -49,7 +46,7 @@ _PRESETS: dict[str, tuple[str, str]] = {
 _SMALL_TASK = dict(action_dim=8, action_horizon=10, max_token_len=96, max_decoding_steps=12)
 
 
-class PI0FastConfig(PretrainedConfig):
+class PI0FastConfig(PI0BaseConfig):
     """Configuration of [`PI0FastForActionGeneration`].
 
     Holds the SigLIP vision tower's dims (same names as [`PI0Config`]), the Gemma decoder's (one expert: width
@@ -74,6 +71,7 @@ class PI0FastConfig(PretrainedConfig):
     """
 
     model_type = "pi0_fast_torch"
+    own_sizes = ("hidden_size", "intermediate_size", "max_decoding_steps")
 
     def __init__(
         self,
@@ -126,44 +124,14 @@ class PI0FastConfig(PretrainedConfig):
         self.max_decoding_steps = max_decoding_steps
         self.fast_skip_tokens = fast_skip_tokens
         self.decoding_position_offset = decoding_position_offset
-        self.camera_names = list(camera_names)
-        check_dtype_setting(kwargs)
+        self.camera_names = camera_list(camera_names)
         super().__init__(eos_token_id=eos_token_id, **kwargs)
-        self._check()
-        auto_registration.register_models()  # AutoModel maps a config to its model class once one exists
 
     def _check(self) -> None:
-        """Types and ranges of every setting (each size and count within `SIZE_LIMITS`, named when not)."""
-        for name in _SIZES_CHECKED:
-            check_int(name, getattr(self, name), minimum=1, maximum=SIZE_LIMITS[name])
-        for name in ("rms_norm_eps", "rope_theta"):
-            check_float(name, getattr(self, name), minimum=0.0, exclusive_minimum=True)
+        """The shared checks ([`PI0BaseConfig._check`]), then the FAST token ids and the decoding positions."""
+        super()._check()
         check_int("fast_skip_tokens", self.fast_skip_tokens, minimum=0, maximum=self.vocab_size - 1)
-        if self.num_attention_heads % self.num_key_value_heads:
-            raise ValueError(
-                f"num_attention_heads ({self.num_attention_heads}) must be a multiple of "
-                f"num_key_value_heads ({self.num_key_value_heads})"
-            )
-        if self.head_dim % 2:
-            raise ValueError(f"head_dim must be even for RoPE, got {self.head_dim}")
-        if self.image_size % self.patch_size:
-            raise ValueError(f"image_size ({self.image_size}) must be a multiple of patch_size ({self.patch_size})")
-        if not self.camera_names or len(set(self.camera_names)) != len(self.camera_names):
-            raise ValueError(f"camera_names must be non-empty and unique, got {self.camera_names}")
         check_int("decoding_position_offset", self.decoding_position_offset, minimum=0, maximum=1)
-
-    @property
-    def num_cameras(self) -> int:
-        return len(self.camera_names)
-
-    @property
-    def tokens_per_image(self) -> int:
-        return (self.image_size // self.patch_size) ** 2
-
-    @property
-    def prefix_len(self) -> int:
-        """Tokens the decoder sees before decoding: every camera's image tokens, then the prompt tokens."""
-        return self.num_cameras * self.tokens_per_image + self.max_token_len
 
     def estimated_parameters(self) -> int:
         """The model's parameter count from its sizes (norms left out), for a memory estimate before a model is
@@ -185,13 +153,6 @@ class PI0FastConfig(PretrainedConfig):
         size, task = _PRESETS[name]
         settings = {**_SIZES[size], **(_SMALL_TASK if size == "small" else _TASKS[task])}
         return cls(**{**settings, **overrides})
-
-
-_SIZES_CHECKED = (
-    "image_size", "patch_size", "vision_hidden_size", "vision_intermediate_size", "vision_num_layers", "vision_num_heads",
-    "hidden_size", "intermediate_size", "num_hidden_layers", "num_attention_heads", "num_key_value_heads", "head_dim",
-    "vocab_size", "action_dim", "action_horizon", "max_token_len", "max_decoding_steps",
-)
 
 
 def fast_preset_names() -> list[str]:
