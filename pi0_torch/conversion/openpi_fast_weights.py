@@ -2,8 +2,9 @@
 
 A π0-FAST tree is PaliGemma alone: the same SigLIP leaves as π0 and one Gemma (`PaliGemma/llm/...` without the
 `_1` expert leaves and without action heads); its LM head is the token embedding. The SigLIP and per-layer Gemma
-maps are π0's (`pi0_torch.conversion.openpi_weights`); `load_openpi_params`, `check_openpi_shapes`,
-`config_from_openpi_shapes` and `iter_openpi_state_dict` there hand π0-FAST trees and configs to this module.
+maps are the ones π0 uses too (`pi0_torch.conversion.openpi_paligemma`); `load_openpi_params`,
+`check_openpi_shapes`, `config_from_openpi_shapes` and `iter_openpi_state_dict` of
+`pi0_torch.conversion.openpi_weights` hand π0-FAST trees and configs to this module.
 
 ```python
 >>> import numpy as np
@@ -20,22 +21,19 @@ maps are π0's (`pi0_torch.conversion.openpi_weights`); `load_openpi_params`, `c
 
 from __future__ import annotations
 
-import math
 from collections.abc import Iterator, Mapping
 from typing import Any
 
 import torch
 
-from pi0_torch.conversion.openpi_weights import (
-    _ATTN,
-    _BLOCK,
-    _IMG,
-    _LLM,
+from pi0_torch.conversion.openpi_paligemma import (
+    LLM,
     LeafReader,
-    _t,
+    as_tensor,
     gemma_layers_openpi_shapes,
     iter_openpi_layer_weights,
     iter_openpi_vision_state_dict,
+    shared_settings_from_openpi_shapes,
     strip_value_suffix,
     vision_openpi_shapes,
 )
@@ -46,11 +44,11 @@ def expected_openpi_fast_shapes(config: PI0FastConfig) -> dict[str, tuple[int, .
     """Every openpi leaf path (without '/value') a π0-FAST checkpoint of `config` holds, with its shape."""
     L, D = config.num_hidden_layers, config.hidden_size
     shapes = vision_openpi_shapes(config, D)
-    shapes[f"{_LLM}/embedder/input_embedding"] = (config.vocab_size, D)
+    shapes[f"{LLM}/embedder/input_embedding"] = (config.vocab_size, D)
     shapes.update(gemma_layers_openpi_shapes(config, 0, D, config.intermediate_size))
     for norm in ("pre_attention_norm", "pre_ffw_norm"):
-        shapes[f"{_LLM}/layers/{norm}/scale"] = (L, D)
-    shapes[f"{_LLM}/final_norm/scale"] = (D,)
+        shapes[f"{LLM}/layers/{norm}/scale"] = (L, D)
+    shapes[f"{LLM}/final_norm/scale"] = (D,)
     return shapes
 
 
@@ -62,23 +60,10 @@ def config_from_openpi_fast_shapes(shapes: Mapping[str, tuple[int, ...]], **over
     LIBERO: 7, 10, 180).
     """
     shapes = {strip_value_suffix(k): tuple(v) for k, v in shapes.items()}
-    patch, _, _, vision_width = shapes[f"{_IMG}/embedding/kernel"]
-    tokens = shapes[f"{_IMG}/pos_embedding"][1]
-    layers, heads, width, head_dim = shapes[f"{_LLM}/layers/attn/q_einsum/w"]
     inferred = dict(
-        image_size=math.isqrt(tokens) * patch,
-        patch_size=patch,
-        vision_hidden_size=vision_width,
-        vision_intermediate_size=shapes[f"{_BLOCK}/MlpBlock_0/Dense_0/kernel"][2],
-        vision_num_layers=shapes[f"{_BLOCK}/LayerNorm_0/scale"][0],
-        vision_num_heads=shapes[f"{_ATTN}/query/kernel"][2],
-        hidden_size=width,
-        intermediate_size=shapes[f"{_LLM}/layers/mlp/gating_einsum"][3],
-        num_hidden_layers=layers,
-        num_attention_heads=heads,
-        num_key_value_heads=shapes[f"{_LLM}/layers/attn/kv_einsum/w"][2],
-        head_dim=head_dim,
-        vocab_size=shapes[f"{_LLM}/embedder/input_embedding"][0],
+        shared_settings_from_openpi_shapes(shapes),
+        hidden_size=shapes[f"{LLM}/layers/attn/q_einsum/w"][2],
+        intermediate_size=shapes[f"{LLM}/layers/mlp/gating_einsum"][3],
     )
     return PI0FastConfig(**{**inferred, **overrides})
 
@@ -86,10 +71,10 @@ def config_from_openpi_fast_shapes(shapes: Mapping[str, tuple[int, ...]], **over
 def iter_openpi_fast_state_dict(read: LeafReader, config: PI0FastConfig) -> Iterator[tuple[str, torch.Tensor]]:
     """Yield `(our_name, tensor)` for every parameter of `PI0FastForActionGeneration(config)`, one layer at a time."""
     yield from iter_openpi_vision_state_dict(read, config)
-    yield "embed_tokens.weight", _t(read(f"{_LLM}/embedder/input_embedding", None))
+    yield "embed_tokens.weight", as_tensor(read(f"{LLM}/embedder/input_embedding", None))
     for i in range(config.num_hidden_layers):
         prefix = f"layers.{i}.block"
         yield from iter_openpi_layer_weights(read, config, i, 0, prefix)
-        yield f"{prefix}.attn_norm.weight", _t(read(f"{_LLM}/layers/pre_attention_norm/scale", i))
-        yield f"{prefix}.mlp_norm.weight", _t(read(f"{_LLM}/layers/pre_ffw_norm/scale", i))
-    yield "final_norm.weight", _t(read(f"{_LLM}/final_norm/scale", None))
+        yield f"{prefix}.attn_norm.weight", as_tensor(read(f"{LLM}/layers/pre_attention_norm/scale", i))
+        yield f"{prefix}.mlp_norm.weight", as_tensor(read(f"{LLM}/layers/pre_ffw_norm/scale", i))
+    yield "final_norm.weight", as_tensor(read(f"{LLM}/final_norm/scale", None))

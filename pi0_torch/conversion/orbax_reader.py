@@ -34,7 +34,7 @@ from typing import Any
 import numpy as np
 import tensorstore as ts
 
-from pi0_torch.conversion.openpi_weights import strip_value_suffix
+from pi0_torch.conversion.openpi_paligemma import strip_value_suffix
 from pi0_torch.utils.validation import first_line
 
 try:
