@@ -334,7 +334,7 @@ def bench_side_by_side(args: argparse.Namespace, device: torch.device) -> None:
     """Ours vs transformers' `PI0ForConditionalGeneration` with identical weights, inputs and noise (π0)."""
     from transformers import PI0ForConditionalGeneration
 
-    from pi0_torch.conversion.convert import export_to_transformers, transformers_pi0_inputs
+    from pi0_torch.conversion.convert_hf import export_to_transformers, transformers_pi0_inputs
 
     preset = args.side_by_side_preset
     config = PI0Config.from_preset(preset)

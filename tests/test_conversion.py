@@ -17,15 +17,15 @@ from safetensors import safe_open
 from safetensors.torch import save_file
 
 from pi0_torch import PI0Config, PI0ForActionGeneration
-from pi0_torch.conversion import convert as conversion, orbax_reader
+from pi0_torch.conversion import convert as conversion, convert_hf, convert_openpi, orbax_reader
 from pi0_torch.conversion.convert import (
     ConversionError,
     convert_hf_checkpoint,
     convert_openpi_checkpoint,
     export_to_transformers,
-    planned_shapes,
-    transformers_pi0_inputs,
 )
+from pi0_torch.conversion.convert_hf import transformers_pi0_inputs
+from pi0_torch.conversion.output_folder import planned_shapes
 from pi0_torch.processing.normalization import load_openpi_norm_stats
 from pi0_torch.conversion.orbax_reader import write_orbax_checkpoint
 from pi0_torch.processing.processing_pi0 import PI0Processor
@@ -173,7 +173,7 @@ def test_released_layout_bfloat16_without_value_suffix(tmp_path: Path) -> None:
 def test_multi_layer_chunks_are_decoded_once_and_spilled(
     chunk_bytes: int | None, streaming: bool, converted: dict, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    monkeypatch.setattr(conversion, "_SMALL_LEAF_BYTES", 0)  # every multi-layer chunk counts as big: spill to scratch
+    monkeypatch.setattr(convert_openpi, "_SMALL_LEAF_BYTES", 0)  # every multi-layer chunk counts as big: spill to scratch
     if streaming and orbax_reader.zstandard is None:
         pytest.skip("zstandard is not installed: chunks are decoded by tensorstore")
     if not streaming:
@@ -318,12 +318,12 @@ def test_partial_folder_of_a_killed_conversion_is_removed_by_the_next_run(tmp_pa
     # a conversion killed while it writes its weights
     script = textwrap.dedent(f"""
         import os, signal
-        from pi0_torch.conversion import convert
-        original = convert.ShardedSafetensorsWriter.write
+        from pi0_torch.conversion import convert, output_folder
+        original = output_folder.ShardedSafetensorsWriter.write
         def write_then_die(self, name, tensor):
             original(self, name, tensor)
             os.kill(os.getpid(), signal.SIGKILL)
-        convert.ShardedSafetensorsWriter.write = write_then_die
+        output_folder.ShardedSafetensorsWriter.write = write_then_die
         convert.convert_openpi_checkpoint({str(step_dir("pi0_small"))!r}, {str(tmp_path / "killed")!r}, progress=False)
     """)
     finished = subprocess.run([sys.executable, "-c", script], cwd=ROOT, capture_output=True, timeout=HANG_S)
@@ -458,7 +458,7 @@ def test_pi05_lerobot_layout_roundtrip(converted: dict, tmp_path: Path) -> None:
         if name.startswith("expert_final_norm.modulation."):
             lerobot["model.paligemma_with_expert.gemma_expert.model.norm.dense." + name.rsplit(".", 1)[1]] = tensor
             continue
-        for target, start, end in conversion._hf_export_names(name, config):
+        for target, start, end in convert_hf._hf_export_names(name, config):
             lerobot[lerobot_key(target)] = tensor[start:end if end > 0 else None].clone()
     (tmp_path / "lerobot").mkdir()
     save_file(lerobot, tmp_path / "lerobot" / "model.safetensors", metadata={"format": "pt"})

@@ -8,20 +8,16 @@ from typing import TYPE_CHECKING
 from pi0_torch.utils.lazy import lazy_exports
 
 if TYPE_CHECKING:
-    from pi0_torch.conversion.convert import (
-        ConversionError,
-        ConversionResult,
-        convert_hf_checkpoint,
-        convert_openpi_checkpoint,
-        export_to_transformers,
-    )
+    from pi0_torch.conversion.convert_hf import convert_hf_checkpoint, export_to_transformers
+    from pi0_torch.conversion.convert_openpi import convert_openpi_checkpoint
+    from pi0_torch.conversion.output_folder import ConversionError, ConversionResult
 
 _EXPORTS = {
-    "ConversionError": "pi0_torch.conversion.convert",
-    "ConversionResult": "pi0_torch.conversion.convert",
-    "convert_hf_checkpoint": "pi0_torch.conversion.convert",
-    "convert_openpi_checkpoint": "pi0_torch.conversion.convert",
-    "export_to_transformers": "pi0_torch.conversion.convert",
+    "ConversionError": "pi0_torch.conversion.output_folder",
+    "ConversionResult": "pi0_torch.conversion.output_folder",
+    "convert_hf_checkpoint": "pi0_torch.conversion.convert_hf",
+    "convert_openpi_checkpoint": "pi0_torch.conversion.convert_openpi",
+    "export_to_transformers": "pi0_torch.conversion.convert_hf",
 }
 __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)
 __all__ = sorted(_EXPORTS)
