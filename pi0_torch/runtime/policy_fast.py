@@ -1,5 +1,5 @@
-"""`PI0FastPolicy`: `PI0Policy` for π0-FAST (the same observation checks, batching, warm-up and server interface;
-the chunk comes from decoded FAST tokens).
+"""`PI0FastPolicy`: the π0-FAST member of the policy family (`pi0_torch.runtime.policy_base`: the same observation
+checks, batching, warm-up and server interface as `PI0Policy`; the chunk comes from decoded FAST tokens).
 
 `PI0Policy.from_pretrained(folder)` returns one for a π0-FAST folder, so `pi0-torch serve --model DIR` serves either
 kind. openpi's π0-FAST configs use the cameras `base_0_rgb`, `base_1_rgb`, `wrist_0_rgb`.
@@ -29,15 +29,17 @@ from collections.abc import Mapping
 import numpy as np
 import torch
 
-from pi0_torch.models.configuration_pi0 import SIZE_LIMITS
+from pi0_torch.models.configuration_base import SIZE_LIMITS
 from pi0_torch.models.modeling_pi0_fast import PI0FastForActionGeneration
 from pi0_torch.processing.processing_pi0_fast import PI0FastProcessor
-from pi0_torch.runtime.policy import PI0Policy
+from pi0_torch.runtime.policy_base import BasePolicy
 from pi0_torch.utils.validation import check_float
 
 
-class PI0FastPolicy(PI0Policy):
-    """[`PI0FastForActionGeneration`] + [`PI0FastProcessor`] behind openpi's policy interface.
+class PI0FastPolicy(BasePolicy):
+    """[`PI0FastForActionGeneration`] + [`PI0FastProcessor`] behind openpi's policy interface: a [`BasePolicy`]
+    whose chunks are decoded FAST tokens. It takes no real-time chunking requests (`previous_actions`, ...), and a
+    request's `noise_seed` does not apply (no noise is drawn).
 
     Args:
         model, processor: the π0-FAST model (on its device and dtype) and its processor.
@@ -51,7 +53,7 @@ class PI0FastPolicy(PI0Policy):
 
     model_class = PI0FastForActionGeneration
     processor_class = PI0FastProcessor
-    continues_chunks = False  # FAST decodes tokens: no real-time chunking, and noise seeds do not apply
+    num_steps_setting = "max_decoding_steps"
     max_num_steps = SIZE_LIMITS["max_decoding_steps"]
 
     def __init__(
@@ -63,8 +65,7 @@ class PI0FastPolicy(PI0Policy):
         compile: bool = False,
         temperature: float = 0.0,
     ) -> None:
-        steps = num_steps if num_steps is not None else model.config.max_decoding_steps
-        super().__init__(model, processor, num_steps=steps, seed=seed)  # type: ignore[arg-type]
+        super().__init__(model, processor, num_steps=num_steps, seed=seed)
         self.temperature = check_float("temperature", temperature, minimum=0.0)
         if compile:
             model.compile_decoding(**({"mode": "reduce-overhead"} if self.device.type == "cuda" else {}))

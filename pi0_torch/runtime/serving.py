@@ -654,10 +654,10 @@ def _cuda_graph(args: argparse.Namespace) -> bool:
     import torch
 
     from pi0_torch.demo import policy_location
-    from pi0_torch.runtime.policy import PI0Policy, _policy_class
+    from pi0_torch.runtime.policy import PI0Policy, policy_class
 
     device = torch.device(args.device if args.device is not None else ("cuda" if torch.cuda.is_available() else "cpu"))
-    return device.type == "cuda" and _policy_class(policy_location(args.model)) is PI0Policy
+    return device.type == "cuda" and policy_class(policy_location(args.model)) is PI0Policy
 
 
 def run(args: argparse.Namespace) -> int:

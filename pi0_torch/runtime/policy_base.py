@@ -1,0 +1,291 @@
+"""[`BasePolicy`]: what every policy of the π0 family does around its model -- one observation in, one action chunk in
+robot units out -- so that [`PI0Policy`] (π0 / π0.5, `pi0_torch.runtime.policy`) and [`PI0FastPolicy`] (π0-FAST,
+`pi0_torch.runtime.policy_fast`) differ only in how a batch of model inputs becomes chunks.
+
+The base loads a saved model and its processor, checks each observation and turns it into model inputs through the
+processor, batches observations into one model call, unnormalizes the chunks, withholds a chunk that is not finite
+(naming the likeliest cause), warms up and describes itself to clients (`metadata`). A member supplies
+[`BasePolicy.model_actions`]: π0 samples a flow from noise (and continues an executing chunk: real-time chunking),
+π0-FAST decodes action tokens.
+"""
+
+from __future__ import annotations
+
+import abc
+import dataclasses
+import time
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any, ClassVar
+
+import numpy as np
+import torch
+from safetensors import SafetensorError
+
+from pi0_torch import __version__
+from pi0_torch.models.configuration_base import SIZE_LIMITS
+from pi0_torch.runtime.action_safety import UnsafeActionsError, non_finite_count
+from pi0_torch.runtime.observation_formats import CHUNK_FIELDS, ObservationError
+from pi0_torch.utils.validation import check_int, first_line
+
+_DTYPES = {"float32": torch.float32, "bfloat16": torch.bfloat16}
+# The most sampling steps (π0's Euler steps) or decoded tokens (π0-FAST) any member takes: `from_pretrained` refuses a
+# larger `num_steps` before loading anything; the member's own bound applies once it is built.
+_MAX_NUM_STEPS = max(SIZE_LIMITS["num_inference_steps"], SIZE_LIMITS["max_decoding_steps"])
+
+
+@dataclasses.dataclass
+class ChunkContinuation:
+    """A request to continue the chunk the robot is executing (real-time chunking, see `pi0_torch.models.rtc`)."""
+
+    previous_actions: torch.Tensor  # [1, horizon, model action dims], the previous chunk in this observation's model space
+    inference_delay: int  # d: steps of the previous chunk the robot executes while this one is computed
+    execution_horizon: int  # s: steps of the previous chunk executed before this observation
+    method: str  # "guidance" or "conditioning"
+
+
+@dataclasses.dataclass
+class PreparedObservation:
+    """A checked observation turned into model inputs (batch of one, on the CPU) plus the raw robot state."""
+
+    inputs: dict[str, torch.Tensor]
+    state: np.ndarray  # [robot state dims], for the processor's delta-action inverse
+    continuation: ChunkContinuation | None = None
+    noise_seed: int | None = None  # this chunk's noise from its own generator (independent of batching)
+
+
+class BasePolicy(abc.ABC):
+    """A model and its processor behind openpi's policy interface (`infer(obs) -> dict`).
+
+    Observations use the default layout `{"images": {camera_name: frame}, "state": [...], "prompt": str}` (see
+    [`pi0_torch.runtime.observation_formats`] for other layouts). `infer` returns `{"actions": float32 [action_horizon,
+    robot action dims], "policy_timing": {"infer_ms": model time, "batch_size": observations run together}}`,
+    actions unnormalized by the processor.
+
+    Args:
+        model: the model, already on its device and dtype.
+        processor: its processor.
+        num_steps: sampling steps or decoded tokens per chunk (default: the config's `num_steps_setting`).
+        seed: seeds the sampling, so a fresh policy gives the same chunks for the same requests.
+    """
+
+    model_class: ClassVar[Any]  # what `from_pretrained` loads
+    processor_class: ClassVar[Any]
+    num_steps_setting: ClassVar[str]  # the config setting that gives the default `num_steps`
+    max_num_steps: ClassVar[int]
+    continues_chunks: ClassVar[bool] = False  # takes real-time chunking requests (`previous_actions`, ...)
+
+    def __init__(self, model: Any, processor: Any, num_steps: int | None = None, seed: int | None = None) -> None:
+        self.model = model.eval()
+        self.processor = processor
+        self.num_steps = check_int("num_steps", num_steps if num_steps is not None else getattr(model.config, self.num_steps_setting),
+                                   minimum=1, maximum=self.max_num_steps)
+        self.device = next(model.parameters()).device
+        self.generator = torch.Generator(self.device).manual_seed(seed) if seed is not None else None
+        if list(processor.camera_names) != list(model.config.camera_names):
+            raise ValueError(f"processor cameras {list(processor.camera_names)} differ from the model's "
+                             f"{list(model.config.camera_names)}")
+
+    @classmethod
+    def from_pretrained(
+        cls,
+        directory: str | Path,
+        device: str | torch.device | None = None,
+        dtype: str | torch.dtype | None = None,
+        num_steps: int | None = None,
+        seed: int | None = None,
+        default_prompt: str | None = None,
+        compile: bool = False,
+        **options: Any,
+    ) -> Any:
+        """Load the model and processor saved in `directory` (by `save_pretrained` or the converter) into this policy.
+
+        `device` defaults to CUDA when available, else CPU; `dtype` ("float32" / "bfloat16" or a torch dtype)
+        defaults to bfloat16 on CUDA and float32 on CPU. `default_prompt` replaces the processor's (used for
+        observations without a prompt). `compile` and `options` go to the policy's constructor.
+        """
+        if not Path(directory).is_dir():
+            raise FileNotFoundError(f"model folder not found: {directory} (a folder written by save_pretrained or "
+                                    "the openpi converter)")
+        if num_steps is not None:  # before loading: a bad value fails in a moment, not after the weights load
+            check_int("num_steps", num_steps, minimum=1, maximum=_MAX_NUM_STEPS)
+        device = torch.device(device if device is not None else ("cuda" if torch.cuda.is_available() else "cpu"))
+        if dtype is None:
+            dtype = torch.bfloat16 if device.type == "cuda" else torch.float32
+        elif isinstance(dtype, str):
+            if dtype not in _DTYPES:
+                raise ValueError(f"dtype must be one of {', '.join(_DTYPES)}, got {dtype!r}")
+            dtype = _DTYPES[dtype]
+        try:
+            model = cls.model_class.from_pretrained(directory, dtype=dtype).to(device)
+        except SafetensorError as error:  # truncated or foreign weights: one line naming the folder
+            raise ValueError(f"{directory}: the weights are not a readable safetensors file ({first_line(error)}); "
+                             "the folder is damaged (convert or copy it again)") from None
+        overrides = {"default_prompt": default_prompt} if default_prompt is not None else {}
+        processor = cls.processor_class.from_pretrained(directory, **overrides)
+        return cls(model, processor, num_steps=num_steps, seed=seed, compile=compile, **options)
+
+    # -- what a member supplies ------------------------------------------------------------------------------------
+
+    @abc.abstractmethod
+    def model_actions(self, batch: Mapping[str, torch.Tensor], warmup: bool = False) -> np.ndarray:
+        """Model-space action chunks `[B, horizon, action_dim]` (float32 numpy) for a batch of model inputs; a
+        `warmup` run leaves the policy's seeded randomness untouched."""
+
+    @property
+    @abc.abstractmethod
+    def model_type(self) -> str:
+        """`pi0`, `pi05` or `pi0_fast` (in `metadata`)."""
+
+    @property
+    @abc.abstractmethod
+    def compiled(self) -> bool:
+        """Whether chunks run through `torch.compile`."""
+
+    @property
+    @abc.abstractmethod
+    def captured(self) -> bool:
+        """Whether chunks replay hand-captured CUDA graphs."""
+
+    # -- the policy interface --------------------------------------------------------------------------------------
+
+    @property
+    def camera_names(self) -> list[str]:
+        return list(self.model.config.camera_names)
+
+    @property
+    def metadata(self) -> dict[str, Any]:
+        """What a client may want to know before sending observations (sent first by the policy server)."""
+        return {
+            "policy": f"pi0-torch {__version__}",
+            "model_type": self.model_type,
+            "camera_names": self.camera_names,
+            "state_dim": self.processor.state_dim,
+            "action_dim": self.processor.action_dim_robot,
+            "action_horizon": self.model.config.action_horizon,
+            "num_steps": self.num_steps,
+            "default_prompt": self.processor.default_prompt,
+            "device": str(self.device),
+            "cuda_graph": self.captured,
+            "dtype": self._dtype_name,
+            "real_time_chunking": None,
+        }
+
+    def prepare(self, observation: Mapping[str, Any]) -> PreparedObservation:
+        """Check one default-layout observation and build its model inputs; raises [`ObservationError`].
+
+        The processor checks every field (cameras, frame shapes and ranges, state length, NaN/inf, prompt) and its
+        message names the field, what was expected and what came.
+        """
+        if not isinstance(observation, Mapping):
+            raise ObservationError(f"observation must be a dict, got {type(observation).__name__}")
+        state = observation.get("state")
+        if state is not None and np.ndim(state) != 1:  # a 2-D state would mean a batch to the processor
+            raise ObservationError(f"observation.state: expected shape [{self.processor.state_dim}], "
+                                   f"got {list(np.shape(state))}")
+        chunk_fields = [name for name in CHUNK_FIELDS if name != "noise_seed" and observation.get(name) is not None]
+        if chunk_fields and not self.continues_chunks:
+            raise ObservationError(f"{', '.join(chunk_fields)}: this {self.model_type} policy decodes tokens; it does "
+                                   "not continue chunks")
+        sample = {"images": observation.get("images"), "state": state, "prompt": observation.get("prompt")}
+        try:
+            inputs = dict(self.processor(sample, return_tensors="pt"))
+            raw_state = np.asarray(state, dtype=np.float32)
+        except (ValueError, TypeError) as error:
+            raise ObservationError(str(error)) from None
+        seed = observation.get("noise_seed")
+        if seed is not None:
+            seed = step_count(seed, "noise_seed", 0, 2**63 - 1)
+        return PreparedObservation(inputs=inputs, state=raw_state, noise_seed=seed)
+
+    @torch.inference_mode()
+    def infer_prepared(self, prepared: Sequence[PreparedObservation]) -> list[dict[str, Any]]:
+        """Run the model once on a batch of prepared observations; one action dict per observation.
+
+        A chunk with NaN or inf (after unnormalizing) is never handed back: [`UnsafeActionsError`] names its cause,
+        and its `outcomes` hold the other observations' replies."""
+        start = time.monotonic()
+        actions: list[np.ndarray | None] = [None] * len(prepared)
+        groups: dict[str | None, list[int]] = {}  # one model call per way of sampling
+        for index, p in enumerate(prepared):
+            groups.setdefault(p.continuation.method if p.continuation else None, []).append(index)
+        for method, members in groups.items():
+            chunks = self._generate([prepared[i] for i in members], method)  # [b, horizon, action_dim]
+            for index, chunk in zip(members, chunks):
+                actions[index] = chunk
+        model_ms = (time.monotonic() - start) * 1000
+        outcomes: list[dict[str, Any] | UnsafeActionsError] = []
+        for index, (chunk, p) in enumerate(zip(actions, prepared)):
+            robot = np.asarray(self.processor.postprocess_actions(chunk, state=p.state), dtype=np.float32)
+            bad = non_finite_count(robot)
+            if bad:
+                where = f"observation {index} of a batch of {len(prepared)}: " if len(prepared) > 1 else ""
+                outcomes.append(UnsafeActionsError(f"{where}the action chunk holds {bad} NaN/inf values and was "
+                                                   f"withheld; cause: {self._unsafe_cause(chunk, p)}"))
+            else:
+                outcomes.append({"actions": robot, "policy_timing": {"infer_ms": model_ms, "batch_size": len(prepared)}})
+        unsafe = [outcome for outcome in outcomes if isinstance(outcome, UnsafeActionsError)]
+        if unsafe:
+            raise UnsafeActionsError(str(unsafe[0]), outcomes)
+        return outcomes  # type: ignore[return-value]
+
+    def infer(self, observation: Mapping[str, Any]) -> dict[str, Any]:
+        """Actions for one observation: `{"actions": float32 [horizon, robot action dims], "policy_timing": ...}`."""
+        return self.infer_prepared([self.prepare(observation)])[0]
+
+    @torch.inference_mode()
+    def warmup(self, max_batch_size: int = 1) -> float:
+        """Run chunks on a blank observation (black frames, zero state) so that real requests do not pay for
+        compilation, CUDA graph capture or first allocations; returns the seconds it took. A compiled or captured
+        policy runs every batch size up to `max_batch_size` (each is its own graph), an eager one batch 1. (Graphs are
+        per prompt-length bucket too: a prompt much longer than the default one captures on its first chunk.) The
+        policy's seeded randomness is left untouched."""
+        start = time.monotonic()
+        size = self.processor.image_size
+        blank = {
+            "images": {name: np.zeros((size, size, 3), np.uint8) for name in self.camera_names},
+            "state": np.zeros(self.processor.state_dim, np.float32),
+            "prompt": self.processor.default_prompt or "warm-up",
+        }
+        one = {name: tensor.to(self.device) for name, tensor in self.prepare(blank).inputs.items()}
+        for batch in range(1, (max_batch_size if self.compiled or self.captured else 1) + 1):
+            inputs = {name: torch.cat([tensor] * batch) for name, tensor in one.items()}  # laid out as real batches
+            self.model_actions(inputs, warmup=True)
+        return time.monotonic() - start
+
+    # -- inside ------------------------------------------------------------------------------------------------------
+
+    def _generate(self, prepared: Sequence[PreparedObservation], method: str | None) -> np.ndarray:
+        """One model call for observations sampled alike (plain, or continued with `method`)."""
+        return self.model_actions(self._batch(prepared))
+
+    def _batch(self, prepared: Sequence[PreparedObservation]) -> dict[str, torch.Tensor]:
+        """The model inputs of `prepared`, as one batch on the policy's device."""
+        return {name: torch.cat([p.inputs[name] for p in prepared]).to(self.device) for name in prepared[0].inputs}
+
+    def _unsafe_cause(self, chunk: np.ndarray, prepared: PreparedObservation) -> str:
+        """The likeliest reason an action chunk is not finite (model space `chunk`), for the error withholding it."""
+        if np.isfinite(chunk).all():
+            return "unnormalizing with the processor's action norm stats overflowed float32 (see its norm_stats.json)"
+        broken = next((name for name, value in self.model.named_parameters() if not bool(torch.isfinite(value).all())), None)
+        if broken is not None:
+            return f"the model's weights hold NaN/inf (the first: {broken})"
+        return self._sampling_cause(prepared)
+
+    def _sampling_cause(self, prepared: PreparedObservation) -> str:
+        """Why finite weights gave a chunk that is not finite from a finite observation."""
+        return f"the model returned NaN/inf from finite inputs ({self._dtype_name} weights)"
+
+    @property
+    def _dtype_name(self) -> str:
+        return str(self.model.dtype).removeprefix("torch.")
+
+
+def step_count(value: Any, name: str, low: int, high: int) -> int:
+    """An integer field of an observation in `[low, high]` (a 0-d array too), or an `ObservationError` naming it."""
+    if isinstance(value, np.ndarray) and value.ndim == 0:
+        value = value.item()
+    try:
+        return check_int(name, value, low, high)
+    except ValueError as error:
+        raise ObservationError(str(error)) from None
