@@ -13,7 +13,7 @@ from pi0_torch.models import auto_registration
 from pi0_torch.utils.lazy import lazy_exports
 
 if TYPE_CHECKING:
-    from pi0_torch.demo import demo_policy_dir
+    from pi0_torch.shipped_policy import demo_policy_dir
     from pi0_torch.models.configuration_pi0 import PI0Config
     from pi0_torch.models.configuration_pi0_fast import PI0FastConfig
     from pi0_torch.models.modeling_pi0 import PI0ForActionGeneration, PI0Output
@@ -37,7 +37,7 @@ _EXPORTS = {
     "PI0Output": "pi0_torch.models.modeling_pi0",
     "PI0Processor": "pi0_torch.processing.processing_pi0",
     "compute_norm_stats": "pi0_torch.processing.normalization",
-    "demo_policy_dir": "pi0_torch.demo",
+    "demo_policy_dir": "pi0_torch.shipped_policy",
     "load_openpi_norm_stats": "pi0_torch.processing.normalization",
     "save_openpi_norm_stats": "pi0_torch.processing.normalization",
 }

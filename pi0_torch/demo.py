@@ -2,8 +2,8 @@
 
     pi0-torch demo [--policy DIR] [--episodes 100] [--output-dir outputs/demo]
 
-1. loads the demo policy shipped inside the package ([`demo_policy_dir`], `pi0_torch.demo_policy_dir()` in Python,
-   `--policy demo` for `pi0-torch eval` / `serve`: a ~0.3 M-parameter π0 trained from scratch on scripted-expert
+1. loads the demo policy shipped inside the package (`pi0_torch.shipped_policy`: `pi0_torch.demo_policy_dir()` in
+   Python, `--policy demo` for `pi0-torch eval` / `serve`: a ~0.3 M-parameter π0 trained from scratch on scripted-expert
    demonstrations by `scripts/train_demo_policy.py`) with `PI0Policy.from_pretrained`, sampling chunks from noise
    of standard deviation `DEMO_NOISE_SCALE`;
 2. runs it in closed loop on held-out seeds of `pi0_torch/Reach-v0` and `pi0_torch/PickPlace-v0` (the table and wrist
@@ -23,7 +23,8 @@ import sys
 import time
 from pathlib import Path
 
-DEMO_POLICY_NAME = "demo"  # what `--policy` / `--model` of eval, serve and demo accept for the shipped policy
+from pi0_torch.shipped_policy import DEMO_POLICY_NAME, demo_policy_dir, policy_location
+
 DEMO_ENVS = ("pi0_torch/Reach-v0", "pi0_torch/PickPlace-v0")
 # Both chosen on validation seeds from 2,000,000 (300 episodes per task, docs/closed_loop.md), then reported on the
 # held-out ones: execute a quarter of each 16-action chunk, then replan (PickPlace 78% against 70% with 8 of 16,
@@ -31,21 +32,6 @@ DEMO_ENVS = ("pi0_torch/Reach-v0", "pi0_torch/PickPlace-v0")
 # (`PI0Policy(noise_scale=...)`; PickPlace 62% -> 79%, Conveyor 65% -> 93%).
 DEMO_REPLAN_STEPS = 4
 DEMO_NOISE_SCALE = 0.1
-
-
-def demo_policy_dir() -> Path:
-    """The folder of the demo policy shipped inside the package, wherever it is installed.
-
-    >>> sorted(p.name for p in demo_policy_dir().glob("*.json"))
-    ['config.json', 'demo_metrics.json', 'norm_stats.json', 'processor_config.json']
-    """
-    return Path(__file__).resolve().parent / "demo_policy"
-
-
-def policy_location(name_or_path: str | Path) -> str | Path:
-    """A `--policy` / `--model` value as a location: `demo` is [`demo_policy_dir`], anything else is itself (a
-    folder named `demo` in the working directory is `./demo`)."""
-    return demo_policy_dir() if str(name_or_path) == DEMO_POLICY_NAME else name_or_path
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -44,7 +44,7 @@ from pi0_torch.runtime.chunking import (
     second_differences,
 )
 from pi0_torch.cli import json_object
-from pi0_torch.demo import policy_location
+from pi0_torch.shipped_policy import policy_location
 from pi0_torch.runtime.observation_formats import ObservationFormat
 from pi0_torch.utils.extras import require_extra
 from pi0_torch.utils.files import check_output_dir, check_separate

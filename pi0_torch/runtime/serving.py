@@ -70,6 +70,7 @@ from websockets.protocol import State
 from pi0_torch.cli import json_object
 from pi0_torch.runtime.action_safety import UnsafeActionsError
 from pi0_torch.runtime.observation_formats import ObservationError, ObservationFormat
+from pi0_torch.shipped_policy import policy_location
 from pi0_torch.utils.threads import add_threads_argument, set_threads
 from pi0_torch.utils.validation import check_float, check_int, first_line, one_line
 
@@ -653,7 +654,6 @@ def _cuda_graph(args: argparse.Namespace) -> bool:
         return args.cuda_graph
     import torch
 
-    from pi0_torch.demo import policy_location
     from pi0_torch.runtime.policy import PI0Policy, policy_class
 
     device = torch.device(args.device if args.device is not None else ("cuda" if torch.cuda.is_available() else "cpu"))
@@ -663,7 +663,6 @@ def _cuda_graph(args: argparse.Namespace) -> bool:
 def run(args: argparse.Namespace) -> int:
     logging.basicConfig(level=args.log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     logging.getLogger("websockets").setLevel(max(logging.WARNING, logging.getLevelName(args.log_level)))  # we log connections
-    from pi0_torch.demo import policy_location
     from pi0_torch.runtime.policy import PI0Policy  # imports torch: only when the command runs
 
     try:
