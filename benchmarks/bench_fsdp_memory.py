@@ -45,13 +45,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from pi0_torch import PI0Config, PI0ForActionGeneration
 from pi0_torch.training.fsdp import shard_model
-from pi0_torch.training.trainer import (
-    OPENPI_BETAS,
-    OPENPI_EPS,
-    apply_lora,
-    count_trainable,
-    freeze,
-)
+from pi0_torch.training.settings import OPENPI_BETAS, OPENPI_EPS
+from pi0_torch.training.trainable import apply_lora, count_trainable, freeze
 
 GIB = 1024**3
 

@@ -27,7 +27,7 @@ from pi0_torch import PI0ForActionGeneration
 from pi0_torch.data.lerobot_dataset import LeRobotEpisodeDataset
 from pi0_torch.processing.processing_pi0 import PI0Processor
 from pi0_torch.data.synthetic_data import DEMO_POLICY_CONFIG, write_synthetic_dataset
-from pi0_torch.training.trainer import TrainSettings, train_policy
+from pi0_torch.training import TrainSettings, train_policy
 
 
 def main(argv: list[str] | None = None) -> int:

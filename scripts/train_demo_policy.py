@@ -46,7 +46,9 @@ from pi0_torch.envs.tasks import CAMERA, WRIST_CAMERA
 from pi0_torch.processing.tokenization import build_test_tokenizer
 from pi0_torch.runtime.policy import PI0Policy
 from pi0_torch.runtime.rollout import EvalSettings, LocalPolicy, evaluate
-from pi0_torch.training.trainer import FINAL_STEP_KEY, TRAIN_SETTINGS_FILE, TrainSettings, scaled_warmup_steps, train_policy
+from pi0_torch.training.checkpoints import FINAL_STEP_KEY, TRAIN_SETTINGS_FILE
+from pi0_torch.training.settings import TrainSettings
+from pi0_torch.training.trainer import scaled_warmup_steps, train_policy
 
 REPO = Path(__file__).resolve().parent.parent
 POLICY_FILES = ("config.json", "model.safetensors", "processor_config.json", "norm_stats.json", "tokenizer.model")

@@ -21,7 +21,8 @@ from pi0_torch.models.configuration_pi0 import PI0Config
 from pi0_torch.models.configuration_pi0_fast import PI0FastConfig
 from pi0_torch.models.flow_matching import euler_times
 from pi0_torch.runtime.policy import PI0Policy
-from pi0_torch.training.trainer import TrainSettings, train_policy
+from pi0_torch.training.settings import TrainSettings
+from pi0_torch.training.trainer import train_policy
 
 REPO = Path(__file__).resolve().parents[1]
 DEMO_POLICY = REPO / "pi0_torch" / "demo_policy"

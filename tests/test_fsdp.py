@@ -21,14 +21,10 @@ from pi0_torch.cli import build_parser
 from pi0_torch.data.synthetic_data import write_synthetic_dataset
 from pi0_torch.training import fsdp
 from pi0_torch.utils import files
-from pi0_torch.training.trainer import (
-    TrainSettings,
-    apply_lora,
-    checkpoint_problem,
-    freeze,
-    resolve_resume_checkpoint,
-    train_policy,
-)
+from pi0_torch.training.checkpoints import checkpoint_problem, resolve_resume_checkpoint
+from pi0_torch.training.settings import TrainSettings
+from pi0_torch.training.trainable import apply_lora, freeze
+from pi0_torch.training.trainer import train_policy
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 

@@ -17,7 +17,8 @@ from pi0_torch import PI0ForActionGeneration
 from pi0_torch.data.lerobot_dataset import LeRobotEpisodeDataset, split_episodes
 from pi0_torch.processing.processing_pi0 import PI0Processor
 from pi0_torch.data.synthetic_data import DEMO_DATASET, demo_train_settings, write_synthetic_dataset
-from pi0_torch.training.trainer import evaluate_policy, train_policy
+from pi0_torch.training.evaluation import evaluate_policy
+from pi0_torch.training.trainer import train_policy
 
 STEPS = 2500  # the first 2,500 of the demo policy's 6,000 steps (same data, seed and learning-rate schedule)
 

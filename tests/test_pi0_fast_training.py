@@ -11,7 +11,10 @@ import torch
 
 from pi0_torch import PI0FastConfig, PI0FastForActionGeneration, PI0FastProcessor
 from pi0_torch.data.lerobot_dataset import LeRobotEpisodeDataset
-from pi0_torch.training.trainer import TrainSettings, apply_lora, build_processor, load_config, merge_lora, train_policy
+from pi0_torch.training.model_setup import build_processor, load_config
+from pi0_torch.training.settings import TrainSettings
+from pi0_torch.training.trainable import apply_lora, merge_lora
+from pi0_torch.training.trainer import train_policy
 
 from test_training import dataset_root, one_thread  # noqa: F401  (fixtures: a tiny synthetic LeRobot dataset)
 

@@ -23,27 +23,14 @@ from pi0_torch.processing.normalization import NormStats, save_openpi_norm_stats
 from pi0_torch.processing.processing_pi0 import PI0Processor
 from pi0_torch.data.synthetic_data import CAMERA_KEY, write_synthetic_dataset
 from pi0_torch.utils import files
-from pi0_torch.training.trainer import (
-    EMA_FILE,
-    EMACallback,
-    PI0DataCollator,
-    TrainSettings,
-    add_arguments,
-    apply_lora,
-    build_processor,
-    count_trainable,
-    default_camera_map,
-    evaluate_policy,
-    flow_draws,
-    freeze,
-    load_config,
-    loss_free_parameter_names,
-    merge_lora,
-    openpi_learning_rate,
-    resolve_resume_checkpoint,
-    settings_from_args,
-    train_policy,
-)
+from pi0_torch.training.batches import PI0DataCollator, default_camera_map, flow_draws
+from pi0_torch.training.checkpoints import resolve_resume_checkpoint
+from pi0_torch.training.evaluation import evaluate_policy
+from pi0_torch.training.model_setup import build_processor, load_config
+from pi0_torch.training.pi0_trainer import EMA_FILE, EMACallback, openpi_learning_rate
+from pi0_torch.training.settings import TrainSettings
+from pi0_torch.training.trainable import apply_lora, count_trainable, freeze, loss_free_parameter_names, merge_lora
+from pi0_torch.training.trainer import add_arguments, settings_from_args, train_policy
 
 # a very small π0: two cameras (the dataset has one, so the second is fed as absent), 2 layers
 TINY = dict(

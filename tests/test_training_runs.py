@@ -30,14 +30,11 @@ from pi0_torch.envs.demos import record_demos
 from pi0_torch.processing.normalization import NormStats
 from pi0_torch.processing.processing_pi0 import PI0Processor
 from pi0_torch.processing.tokenization import build_test_tokenizer
-from pi0_torch.training.trainer import (
-    EMA_FILE,
-    TRAIN_SETTINGS_FILE,
-    TrainSettings,
-    resolve_resume_checkpoint,
-    run_processor_settings,
-    train_policy,
-)
+from pi0_torch.training.checkpoints import TRAIN_SETTINGS_FILE, resolve_resume_checkpoint
+from pi0_torch.training.model_setup import run_processor_settings
+from pi0_torch.training.pi0_trainer import EMA_FILE
+from pi0_torch.training.settings import TrainSettings
+from pi0_torch.training.trainer import train_policy
 from pi0_torch.utils.files import OutputPathError
 
 DEMO_POLICY = Path(__file__).resolve().parents[1] / "pi0_torch" / "demo_policy"

@@ -196,7 +196,7 @@ def demo_train_settings(dataset: str | Path, output_dir: str | Path, max_steps: 
     """The `TrainSettings` of the demo policy (a tiny model from scratch: a higher learning rate and batch than
     openpi's fine-tuning recipe, which starts from a pretrained model). The learning rate follows the schedule of the
     full `DEMO_STEPS` run whatever `max_steps` is, so a shorter run is the start of the demo policy's run."""
-    from pi0_torch.training.trainer import TrainSettings
+    from pi0_torch.training.settings import TrainSettings
 
     values: dict[str, Any] = dict(
         dataset=str(dataset), model="pi0_small", output_dir=str(output_dir), config_overrides=dict(DEMO_POLICY_CONFIG),

@@ -11,25 +11,20 @@ from typing import TYPE_CHECKING
 from pi0_torch.utils.lazy import lazy_exports
 
 if TYPE_CHECKING:
-    from pi0_torch.training.trainer import (
-        EMACallback,
-        PI0DataCollator,
-        PI0Trainer,
-        TrainSettings,
-        apply_lora,
-        freeze,
-        merge_lora,
-        train_policy,
-    )
+    from pi0_torch.training.batches import PI0DataCollator
+    from pi0_torch.training.pi0_trainer import EMACallback, PI0Trainer
+    from pi0_torch.training.settings import TrainSettings
+    from pi0_torch.training.trainable import apply_lora, freeze, merge_lora
+    from pi0_torch.training.trainer import train_policy
 
 _EXPORTS = {
-    "EMACallback": "pi0_torch.training.trainer",
-    "PI0DataCollator": "pi0_torch.training.trainer",
-    "PI0Trainer": "pi0_torch.training.trainer",
-    "TrainSettings": "pi0_torch.training.trainer",
-    "apply_lora": "pi0_torch.training.trainer",
-    "freeze": "pi0_torch.training.trainer",
-    "merge_lora": "pi0_torch.training.trainer",
+    "EMACallback": "pi0_torch.training.pi0_trainer",
+    "PI0DataCollator": "pi0_torch.training.batches",
+    "PI0Trainer": "pi0_torch.training.pi0_trainer",
+    "TrainSettings": "pi0_torch.training.settings",
+    "apply_lora": "pi0_torch.training.trainable",
+    "freeze": "pi0_torch.training.trainable",
+    "merge_lora": "pi0_torch.training.trainable",
     "train_policy": "pi0_torch.training.trainer",
 }
 __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

@@ -29,6 +29,9 @@ import warnings
 from pathlib import Path
 from typing import Any
 
+from pi0_torch.utils.extras import require_extra
+
+require_extra("train", __name__)  # transformers.trainer needs accelerate
 import torch
 import torch.distributed.checkpoint as dcp
 from torch import nn
@@ -48,7 +51,8 @@ from transformers.trainer import SCHEDULER_NAME
 from pi0_torch.models.configuration_pi0 import PI0Config
 from pi0_torch.models.modeling_pi0 import AdaRMSNorm, JointDecoderLayer, PI0ForActionGeneration
 from pi0_torch.processing.processing_pi0 import PI0Processor
-from pi0_torch.training.trainer import CheckpointContents, EMACallback, PI0Trainer, merge_lora
+from pi0_torch.training.pi0_trainer import CheckpointContents, EMACallback, PI0Trainer
+from pi0_torch.training.trainable import merge_lora
 from pi0_torch.utils import files
 
 logger = logging.getLogger(__name__)

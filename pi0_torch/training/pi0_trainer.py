@@ -1,0 +1,253 @@
+"""[`PI0Trainer`]: the Hugging Face `Trainer` of every fine-tuning run (one process or many through `accelerate`), and
+the callbacks a run adds to it.
+
+- [`PI0Trainer`]: a `Trainer` whose flow-matching noise and time are drawn per sample from a generator keyed by
+  (seed, optimizer step, position of the sample in the global batch) (`pi0_torch.training.batches.flow_draws`), so a
+  run gives the same losses on one process or several with the same global batch, and after a resume; whose
+  learning-rate schedule is openpi's ([`openpi_learning_rate`]); and whose checkpoints appear whole: each is written
+  aside and renamed into place once complete ([`PI0Trainer._save_checkpoint`]).
+- [`EMACallback`]: exponential moving average of the weights (openpi's `ema_decay` 0.99); the final model is the
+  average, as openpi saves its EMA parameters for inference.
+- [`SaveProcessorCallback`]: writes the processor (tokenizer, norm stats, settings) into every checkpoint folder,
+  so `checkpoint-N/` loads with `from_pretrained` like the final folder.
+- log lines that print numbers as numbers ([`numeric_logs`]).
+
+`pi0_torch.training.fsdp` builds the sharded trainer and callbacks of `--fsdp` on these.
+"""
+
+from __future__ import annotations
+
+import math
+import shutil
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from pi0_torch.utils.extras import require_extra
+
+require_extra("train", __name__)  # the Trainer needs accelerate
+import torch
+from safetensors.torch import load_file, save_file
+from torch import nn
+from transformers import Trainer, TrainerCallback, TrainerControl, TrainerState, TrainingArguments
+from transformers.trainer_callback import PrinterCallback, ProgressCallback
+from transformers.trainer_utils import PREFIX_CHECKPOINT_DIR, rotate_checkpoints
+
+from pi0_torch.models.configuration_pi0 import PI0Config
+from pi0_torch.processing.processing_pi0 import PI0Processor
+from pi0_torch.training.batches import flow_draws
+from pi0_torch.training.settings import OPENPI_EMA_DECAY
+from pi0_torch.utils import files
+
+EMA_FILE = "ema_weights.safetensors"
+
+
+def openpi_learning_rate(step: int, peak_lr: float, warmup_steps: int, decay_steps: int, end_lr: float) -> float:
+    """openpi's `CosineDecaySchedule` (`optax.warmup_cosine_decay_schedule`) at optimizer step `step` (0-based).
+
+    Linear from `peak_lr / (warmup_steps + 1)` to `peak_lr` over `warmup_steps`, then cosine from `peak_lr` to
+    `end_lr` until `decay_steps` (counted from step 0, warmup included), then constant `end_lr`.
+
+    >>> [round(openpi_learning_rate(s, 1.0, 4, 8, 0.1), 4) for s in (0, 2, 4, 6, 8, 20)]
+    [0.2, 0.6, 1.0, 0.55, 0.1, 0.1]
+    """
+    if step < warmup_steps:
+        start = peak_lr / (warmup_steps + 1)
+        return start + (peak_lr - start) * step / warmup_steps
+    span = max(decay_steps - warmup_steps, 1)
+    progress = min(step - warmup_steps, span) / span
+    return end_lr + (peak_lr - end_lr) * 0.5 * (1 + math.cos(math.pi * progress))
+
+
+class PI0Trainer(Trainer):
+    """`Trainer` with per-sample seeded flow-matching draws and openpi's learning-rate schedule.
+
+    Training draws are keyed by `(seed, optimizer step, position in the global batch)`, where a process's micro
+    batch m of an optimizer step covers positions `(m * world_size + process_index) * per_device_batch + j`, which
+    is exactly the order `accelerate` shards a global batch in. Evaluation draws are keyed by the sample's dataset
+    index, so every evaluation of a checkpoint sees the same noise.
+    """
+
+    def __init__(self, *args: Any, lr_schedule: dict[str, float] | None = None, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        for plain, numeric in ((ProgressCallback, NumericProgressCallback), (PrinterCallback, NumericPrinterCallback)):
+            if self.pop_callback(plain) is not None:
+                self.add_callback(numeric)
+        self.lr_schedule = lr_schedule
+        self._draw_step = -1
+        self._micro_batch = 0
+        self._staging_run_dir: Path | None = None  # set while `_save_checkpoint` writes aside
+
+    def create_scheduler(self, num_training_steps: int, optimizer: torch.optim.Optimizer | None = None) -> Any:
+        if self.lr_schedule is None:
+            return super().create_scheduler(num_training_steps, optimizer)
+        if self.lr_scheduler is None:
+            settings = dict(self.lr_schedule)
+            peak = self.args.learning_rate
+            settings["decay_steps"] = settings.get("decay_steps") or num_training_steps
+            self.lr_scheduler = torch.optim.lr_scheduler.LambdaLR(
+                optimizer or self.optimizer,
+                lambda step: openpi_learning_rate(step, peak, **settings) / peak,
+            )
+            self._created_lr_scheduler = True
+        return self.lr_scheduler
+
+    def _flow_keys(self, inputs: Mapping[str, torch.Tensor], training: bool) -> list[tuple[int, ...]]:
+        size = inputs["input_ids"].shape[0]
+        if not training:
+            return [(self.args.seed, 1, int(i)) for i in inputs["sample_index"]]
+        step = self.state.global_step
+        if step != self._draw_step:
+            self._draw_step, self._micro_batch = step, 0
+        first = (self._micro_batch * self.args.world_size + self.args.process_index) * self.args.per_device_train_batch_size
+        self._micro_batch += 1
+        return [(self.args.seed, 0, step, first + j) for j in range(size)]
+
+    def _get_output_dir(self, trial: Any) -> str:
+        return str(self._staging_run_dir) if self._staging_run_dir is not None else super()._get_output_dir(trial)
+
+    def _save_checkpoint(self, model: nn.Module, trial: Any) -> None:
+        """Write `checkpoint-N` aside and rename it into place once complete (weights, optimizer, scheduler, RNG
+        states of every process, trainer state, and what callbacks add through `write_checkpoint(folder)`).
+
+        The Trainer writes a checkpoint in place, so a process killed while saving left a `checkpoint-N` without
+        `trainer_state.json` that resuming then failed on. Here every process writes into the hidden folder
+        `.checkpoint-N.partial-save/checkpoint-N` (the Trainer's own saving code, pointed there), and the main
+        process renames the finished folder to `checkpoint-N` (atomic) before the old ones are rotated out. A
+        killed save leaves only the hidden folder, which the next run removes.
+        """
+        run_dir = Path(super()._get_output_dir(trial))
+        final = run_dir / f"{PREFIX_CHECKPOINT_DIR}-{self.state.global_step}"
+        staging = run_dir / files.partial_name(final.name, "save")
+        if self.args.should_save:
+            shutil.rmtree(staging, ignore_errors=True)  # an earlier attempt at this very step
+            staging.mkdir(parents=True)
+            files.claim(staging)
+        self.accelerator.wait_for_everyone()
+        self._staging_run_dir = staging
+        try:
+            super()._save_checkpoint(model, trial)  # into staging / checkpoint-N; rotates nothing there
+        finally:
+            self._staging_run_dir = None
+        for callback in self.callback_handler.callbacks:
+            if isinstance(callback, CheckpointContents) and (self.args.should_save or callback.collective):
+                callback.write_checkpoint(staging / final.name, self.state)
+        self.accelerator.wait_for_everyone()  # every process's files are in
+        if self.args.should_save:
+            files.publish(staging / final.name, final)
+            shutil.rmtree(staging, ignore_errors=True)
+            files.record_written(run_dir, [final])
+            rotate_checkpoints(
+                str(run_dir), save_total_limit=self.args.save_total_limit,
+                best_model_checkpoint=self.state.best_model_checkpoint, use_mtime=True,
+            )
+        self.accelerator.wait_for_everyone()
+
+    def compute_loss(self, model: nn.Module, inputs: dict[str, Any], return_outputs: bool = False, num_items_in_batch: Any = None) -> Any:
+        inputs = dict(inputs)
+        sample_index = inputs.pop("sample_index", None)
+        config = self.accelerator.unwrap_model(model).config
+        if "noise" not in inputs and sample_index is not None and isinstance(config, PI0Config):  # π0-FAST draws nothing
+            noise, time, delay = flow_draws(config, self._flow_keys({**inputs, "sample_index": sample_index}, model.training))
+            device = inputs["input_ids"].device
+            inputs["noise"], inputs["time"] = noise.to(device), time.to(device)
+            if delay is not None:
+                inputs["inference_delay"] = delay.to(device)
+        outputs = model(**inputs)
+        return (outputs.loss, outputs) if return_outputs else outputs.loss
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Callbacks.
+# ----------------------------------------------------------------------------------------------------------------
+
+
+def numeric_logs(logs: Mapping[str, Any]) -> dict[str, Any]:
+    """A Trainer log entry for printing: floats rounded to 4 significant digits but kept numbers (transformers'
+    progress callbacks print them as strings), `total_flos` dropped.
+
+    >>> numeric_logs({"loss": 0.123456, "grad_norm": 12.3456, "learning_rate": 2.5e-05, "epoch": 1, "total_flos": 3.0})
+    {'loss': 0.1235, 'grad_norm': 12.35, 'learning_rate': 2.5e-05, 'epoch': 1}
+    """
+    return {k: float(f"{v:.4g}") if isinstance(v, float) else v for k, v in logs.items() if k != "total_flos"}
+
+
+class NumericProgressCallback(ProgressCallback):
+    """transformers' progress bar, whose log lines print numbers as numbers."""
+
+    def on_log(self, args: TrainingArguments, state: TrainerState, control: TrainerControl, logs: dict | None = None, **kwargs: Any) -> None:
+        if state.is_world_process_zero and self.training_bar is not None:
+            self.training_bar.write(str(numeric_logs(logs or {})))
+
+
+class NumericPrinterCallback(PrinterCallback):
+    """transformers' log printer (used without a progress bar), printing numbers as numbers."""
+
+    def on_log(self, args: TrainingArguments, state: TrainerState, control: TrainerControl, logs: dict | None = None, **kwargs: Any) -> None:
+        if state.is_local_process_zero:
+            print(numeric_logs(logs or {}))
+
+
+class CheckpointContents:
+    """A callback that adds files to every checkpoint: [`PI0Trainer`] calls `write_checkpoint` on the main process
+    (on every process when `collective`, e.g. for a sharded save) while the checkpoint is still being written aside,
+    so the files appear together with the rest of it."""
+
+    collective = False
+
+    def write_checkpoint(self, folder: Path, state: TrainerState) -> None:
+        raise NotImplementedError
+
+
+class EMACallback(TrainerCallback, CheckpointContents):
+    """Exponential moving average of the trainable weights: `ema = decay * ema + (1 - decay) * weights` after every
+    optimizer step (openpi's `ema_decay`, default 0.99).
+
+    Each checkpoint folder gets `ema_weights.safetensors` (the averages, restored on resume); at the end of training
+    the averages are copied into the model, so the final `save_model` writes them (openpi also saves its EMA
+    parameters for inference).
+    """
+
+    def __init__(self, decay: float = OPENPI_EMA_DECAY, resume_from: str | Path | None = None) -> None:
+        if not 0.0 < decay < 1.0:
+            raise ValueError(f"EMA decay must be in (0, 1), got {decay}")
+        self.decay = decay
+        self.resume_from = Path(resume_from) if resume_from else None
+        self.shadow: dict[str, torch.Tensor] = {}
+
+    @staticmethod
+    def _trainable(model: nn.Module) -> dict[str, nn.Parameter]:
+        return {name: p for name, p in model.named_parameters() if p.requires_grad}
+
+    def on_train_begin(self, args: TrainingArguments, state: TrainerState, control: TrainerControl, model: nn.Module | None = None, **kwargs: Any) -> None:
+        params = self._trainable(model)
+        self.shadow = {name: p.detach().float().clone() for name, p in params.items()}
+        if self.resume_from is not None and (self.resume_from / EMA_FILE).is_file():
+            saved = load_file(str(self.resume_from / EMA_FILE))
+            if set(saved) != set(self.shadow):
+                raise ValueError(f"{self.resume_from / EMA_FILE} does not match the trainable parameters of this run")
+            self.shadow = {name: tensor.float() for name, tensor in saved.items()}
+
+    @torch.no_grad()
+    def on_step_end(self, args: TrainingArguments, state: TrainerState, control: TrainerControl, model: nn.Module | None = None, **kwargs: Any) -> None:
+        for name, param in self._trainable(model).items():
+            self.shadow[name].lerp_(param.detach().float(), 1.0 - self.decay)
+
+    def write_checkpoint(self, folder: Path, state: TrainerState) -> None:
+        save_file({name: t.contiguous() for name, t in self.shadow.items()}, str(folder / EMA_FILE))
+        files.give_default_mode(folder / EMA_FILE)
+
+    @torch.no_grad()
+    def on_train_end(self, args: TrainingArguments, state: TrainerState, control: TrainerControl, model: nn.Module | None = None, **kwargs: Any) -> None:
+        for name, param in self._trainable(model).items():
+            param.copy_(self.shadow[name].to(param.dtype))
+
+
+class SaveProcessorCallback(TrainerCallback, CheckpointContents):
+    """Saves the processor into every `checkpoint-N` folder, next to the weights."""
+
+    def __init__(self, processor: PI0Processor) -> None:
+        self.processor = processor
+
+    def write_checkpoint(self, folder: Path, state: TrainerState) -> None:
+        self.processor.save_pretrained(folder)

@@ -1,0 +1,108 @@
+"""The settings of a fine-tuning run: [`TrainSettings`] (its fields mirror `pi0-torch train`'s options), their bounds
+([`check_settings`]), and openpi's optimizer recipe as their defaults (`src/openpi/training/optimizer.py`): AdamW b1
+0.9, b2 0.95, eps 1e-8, weight decay 1e-10 (the Trainer leaves biases and norms undecayed, openpi decays all:
+immaterial at 1e-10), global-norm clipping 1.0, and `optax.warmup_cosine_decay_schedule` from peak/(warmup+1) up to
+the peak 2.5e-5 over 1,000 steps, cosine down to 2.5e-6 at `decay_steps` (openpi: 30,000 = its run length; here the
+run length by default; `pi0_torch.training.pi0_trainer.openpi_learning_rate`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+from pi0_torch.training.trainable import LORA_RANK_EXPERT, LORA_RANK_VLM
+from pi0_torch.utils.validation import MAX_SEED, check_float, check_int
+
+# openpi defaults (src/openpi/training/optimizer.py: AdamW, CosineDecaySchedule; config.py: TrainConfig.ema_decay)
+OPENPI_PEAK_LR = 2.5e-5
+OPENPI_END_LR = 2.5e-6
+OPENPI_WARMUP_STEPS = 1_000
+OPENPI_TRAIN_STEPS = 30_000  # the recipe's run length: its warm-up is 1/30 of it
+OPENPI_BETAS = (0.9, 0.95)
+OPENPI_EPS = 1e-8
+OPENPI_WEIGHT_DECAY = 1e-10
+OPENPI_CLIP_NORM = 1.0
+OPENPI_EMA_DECAY = 0.99
+
+
+@dataclass
+class TrainSettings:
+    """Everything a fine-tuning run needs; the fields mirror `pi0-torch train`'s options (see
+    `pi0_torch.training.trainer.add_arguments`)."""
+
+    dataset: str
+    model: str
+    output_dir: str
+    config_overrides: dict[str, Any] = field(default_factory=dict)
+    tokenizer: str | None = None
+    norm_stats: str = "dataset"
+    camera_map: dict[str, str] = field(default_factory=dict)
+    state_key: str = "observation.state"
+    action_key: str = "action"
+    train_split: str | None = None
+    eval_split: str | None = None
+    short_episodes: str = "pad"
+    delta_action_mask: list[bool] | None = None
+    value_conversion: str | None = None
+    max_steps: int = 30_000
+    batch_size: int = 32
+    gradient_accumulation_steps: int = 1
+    learning_rate: float = OPENPI_PEAK_LR
+    end_learning_rate: float = OPENPI_END_LR
+    warmup_steps: int = OPENPI_WARMUP_STEPS
+    decay_steps: int | None = None
+    weight_decay: float = OPENPI_WEIGHT_DECAY
+    max_grad_norm: float = OPENPI_CLIP_NORM
+    ema_decay: float | None = None
+    rtc_max_delay: int | None = None
+    fast_tokenizer: str | None = None
+    lora: bool = False
+    lora_rank_vlm: int = LORA_RANK_VLM
+    lora_rank_expert: int = LORA_RANK_EXPERT
+    freeze: list[str] = field(default_factory=list)
+    bf16: bool = False
+    gradient_checkpointing: bool = False
+    fsdp: bool = False
+    seed: int = 42
+    logging_steps: int = 10
+    save_steps: int = 1_000
+    save_total_limit: int | None = None
+    eval_steps: int | None = None
+    num_workers: int = 0
+    threads: int | None = None  # CPU threads of torch per process; None: auto (pi0_torch.utils.threads)
+    resume_from_checkpoint: str | None = None
+    overwrite: bool = False  # replace an earlier run in output_dir (only a folder pi0-torch wrote)
+    cpu: bool = False
+    report_to: str = "none"
+    progress: bool = False  # progress bars (the command line turns them on)
+
+
+# The largest value of each count of a run (a batch of 1e9 would fail on its first allocation, not by name).
+RUN_LIMITS: dict[str, int] = {
+    "batch_size": 65_536, "gradient_accumulation_steps": 65_536, "lora_rank_vlm": 4_096, "lora_rank_expert": 4_096,
+    "num_workers": 1_024, "max_steps": 1_000_000_000, "decay_steps": 1_000_000_000, "warmup_steps": 1_000_000_000,
+    "seed": MAX_SEED,
+}
+
+
+def check_settings(settings: TrainSettings) -> None:
+    """Refuse settings no run can use (`ValueError` naming the `pi0-torch train` flag): `--max-steps 0` would
+    otherwise train one step, a zero batch or save interval would fail deep inside the Trainer."""
+    def flag(name: str) -> str:
+        return "--" + name.replace("_", "-")
+
+    for name in ("max_steps", "batch_size", "gradient_accumulation_steps", "logging_steps", "save_steps",
+                 "lora_rank_vlm", "lora_rank_expert"):
+        check_int(flag(name), getattr(settings, name), minimum=1, maximum=RUN_LIMITS.get(name))
+    for name in ("decay_steps", "save_total_limit", "eval_steps"):
+        if getattr(settings, name) is not None:
+            check_int(flag(name), getattr(settings, name), minimum=1, maximum=RUN_LIMITS.get(name))
+    for name in ("warmup_steps", "num_workers", "seed"):
+        check_int(flag(name), getattr(settings, name), minimum=0, maximum=RUN_LIMITS.get(name))
+    check_float("--learning-rate", settings.learning_rate, minimum=0.0, exclusive_minimum=True)
+    for name in ("end_learning_rate", "weight_decay", "max_grad_norm"):
+        check_float(flag(name), getattr(settings, name), minimum=0.0)
+    if not isinstance(settings.config_overrides, Mapping):
+        raise ValueError(f"--config-overrides must be a JSON object, got {type(settings.config_overrides).__name__}")
