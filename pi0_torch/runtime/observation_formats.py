@@ -248,53 +248,50 @@ def _source(value: Any, where: str) -> Source:
     raise ValueError(f"observation format: {where} must be a key (string) or a key path (list of strings), got {value!r}")
 
 
+def _fast_cameras(preset: ObservationFormat, slots: Mapping[str, str]) -> ObservationFormat:
+    """The π0-FAST form of a π0 preset, `<name>_fast`: the same sources, fed into π0-FAST's camera slots (`slots`:
+    π0 camera -> π0-FAST camera)."""
+    assert isinstance(preset.images, Mapping)
+    return dataclasses.replace(preset, name=f"{preset.name}_fast",
+                               images={slots[camera]: source for camera, source in preset.images.items()},
+                               optional_images=frozenset(slots[camera] for camera in preset.optional_images))
+
+
 # Presets. openpi's example clients: LIBERO (examples/libero/main.py, policies/libero_policy.py), DROID
 # (examples/droid/main.py, policies/droid_policy.py), ALOHA (examples/aloha_*/, policies/aloha_policy.py: nested
 # "images" dict of 3xHxW frames; cam_low is not used by π0, wrist cameras may be absent).
+_LIBERO = ObservationFormat(
+    name="libero",
+    images={"base_0_rgb": "observation/image", "left_wrist_0_rgb": "observation/wrist_image"},
+    state=("observation/state",),
+)
+_DROID = ObservationFormat(
+    name="droid",
+    images={"base_0_rgb": "observation/exterior_image_1_left", "left_wrist_0_rgb": "observation/wrist_image_left"},
+    state=("observation/joint_position", "observation/gripper_position"),
+)
+_ALOHA = ObservationFormat(
+    name="aloha",
+    images={
+        "base_0_rgb": ("images", "cam_high"),
+        "left_wrist_0_rgb": ("images", "cam_left_wrist"),
+        "right_wrist_0_rgb": ("images", "cam_right_wrist"),
+    },
+    optional_images=frozenset({"left_wrist_0_rgb", "right_wrist_0_rgb"}),
+    state=("state",),
+)
+# π0-FAST's cameras (openpi's *Inputs for ModelType.PI0_FAST): a single arm's wrist is wrist_0_rgb; ALOHA's left
+# wrist is base_1_rgb and its right wrist wrist_0_rgb
+_ONE_ARM_FAST_SLOTS = {"base_0_rgb": "base_0_rgb", "left_wrist_0_rgb": "wrist_0_rgb"}
+_TWO_ARM_FAST_SLOTS = {"base_0_rgb": "base_0_rgb", "left_wrist_0_rgb": "base_1_rgb", "right_wrist_0_rgb": "wrist_0_rgb"}
 PRESETS: dict[str, ObservationFormat] = {
     "default": ObservationFormat(name="default", images="images", state=("state",)),
-    "libero": ObservationFormat(
-        name="libero",
-        images={"base_0_rgb": "observation/image", "left_wrist_0_rgb": "observation/wrist_image"},
-        state=("observation/state",),
-    ),
-    "droid": ObservationFormat(
-        name="droid",
-        images={"base_0_rgb": "observation/exterior_image_1_left", "left_wrist_0_rgb": "observation/wrist_image_left"},
-        state=("observation/joint_position", "observation/gripper_position"),
-    ),
-    "aloha": ObservationFormat(
-        name="aloha",
-        images={
-            "base_0_rgb": ("images", "cam_high"),
-            "left_wrist_0_rgb": ("images", "cam_left_wrist"),
-            "right_wrist_0_rgb": ("images", "cam_right_wrist"),
-        },
-        optional_images=frozenset({"left_wrist_0_rgb", "right_wrist_0_rgb"}),
-        state=("state",),
-    ),
-    # π0-FAST's cameras (openpi's *Inputs for ModelType.PI0_FAST): a single arm's wrist is wrist_0_rgb; ALOHA's left
-    # wrist is base_1_rgb and its right wrist wrist_0_rgb
-    "libero_fast": ObservationFormat(
-        name="libero_fast",
-        images={"base_0_rgb": "observation/image", "wrist_0_rgb": "observation/wrist_image"},
-        state=("observation/state",),
-    ),
-    "droid_fast": ObservationFormat(
-        name="droid_fast",
-        images={"base_0_rgb": "observation/exterior_image_1_left", "wrist_0_rgb": "observation/wrist_image_left"},
-        state=("observation/joint_position", "observation/gripper_position"),
-    ),
-    "aloha_fast": ObservationFormat(
-        name="aloha_fast",
-        images={
-            "base_0_rgb": ("images", "cam_high"),
-            "base_1_rgb": ("images", "cam_left_wrist"),
-            "wrist_0_rgb": ("images", "cam_right_wrist"),
-        },
-        optional_images=frozenset({"base_1_rgb", "wrist_0_rgb"}),
-        state=("state",),
-    ),
+    "libero": _LIBERO,
+    "droid": _DROID,
+    "aloha": _ALOHA,
+    "libero_fast": _fast_cameras(_LIBERO, _ONE_ARM_FAST_SLOTS),
+    "droid_fast": _fast_cameras(_DROID, _ONE_ARM_FAST_SLOTS),
+    "aloha_fast": _fast_cameras(_ALOHA, _TWO_ARM_FAST_SLOTS),
     # Gymnasium simulators of LeRobot (`pi0-torch eval --env ...`): gym_pusht with obs_type "pixels_agent_pos", and
     # gym_aloha with obs_type "pixels_agent_pos" (one "top" camera; no prompt: the policy's default prompt is used).
     "pusht": ObservationFormat(name="pusht", images={"base_0_rgb": "pixels"}, state=("agent_pos",)),
