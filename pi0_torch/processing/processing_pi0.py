@@ -59,6 +59,7 @@ import numpy as np
 import torch
 from transformers import AutoProcessor, BatchFeature
 
+from pi0_torch.models.configuration_base import PI0BaseConfig
 from pi0_torch.models.configuration_pi0 import DEFAULT_CAMERA_NAMES, PI0Config
 from pi0_torch.processing.images import check_float_range, missing_image, to_model_image
 from pi0_torch.processing.normalization import (
@@ -228,22 +229,17 @@ class PI0Processor:
         `kwargs` are the remaining constructor arguments (`state_dim`, `delta_action_mask`, ...). Raises
         `ValueError` when the tokenizer's vocabulary is larger than the model's embedding table.
         """
-        settings = dict(
-            camera_names=config.camera_names,
-            image_size=config.image_size,
-            max_token_len=config.max_token_len,
-            pi05=config.pi05,
-            model_action_dim=config.action_dim,
-            action_horizon=config.action_horizon,
-        )
-        settings.update(kwargs)
-        processor = cls(tokenizer, norm_stats=norm_stats, **settings)
-        if processor.tokenizer.vocab_size > config.vocab_size:
+        processor = cls(tokenizer, norm_stats=norm_stats, **{**config_settings(config), "pi05": config.pi05, **kwargs})
+        processor._check_vocab_size(config)
+        return processor
+
+    def _check_vocab_size(self, config: PI0BaseConfig) -> None:
+        """The prompt tokenizer's ids must all lie in the model's embedding table."""
+        if self.tokenizer.vocab_size > config.vocab_size:
             raise ValueError(
-                f"tokenizer has {processor.tokenizer.vocab_size} tokens but the model's vocab_size is "
+                f"tokenizer has {self.tokenizer.vocab_size} tokens but the model's vocab_size is "
                 f"{config.vocab_size}; ids past the embedding table would crash the model"
             )
-        return processor
 
     def to_dict(self) -> dict[str, Any]:
         """The settings saved in `processor_config.json` (everything but the tokenizer and the statistics)."""
@@ -573,6 +569,13 @@ class PI0Processor:
             converted = self._conversion.actions_to_robot(robot.cpu().numpy() if is_torch else robot)
             robot = torch.as_tensor(converted, device=robot.device) if is_torch else converted
         return robot.float() if is_torch else robot.astype(np.float32)
+
+
+def config_settings(config: PI0BaseConfig) -> dict[str, Any]:
+    """The processor settings a model config fixes, for every family member: its cameras, image size, prompt length
+    and the shape of its action chunks."""
+    return dict(camera_names=config.camera_names, image_size=config.image_size, max_token_len=config.max_token_len,
+                model_action_dim=config.action_dim, action_horizon=config.action_horizon)
 
 
 def processor_settings(processor_class: type[PI0Processor]) -> tuple[str, ...]:

@@ -58,7 +58,7 @@ from transformers import AutoProcessor
 from pi0_torch.models.configuration_pi0_fast import FAST_CAMERA_NAMES, PI0FastConfig
 from pi0_torch.processing.fast_tokenizer import FASTActionTokenizer
 from pi0_torch.processing.normalization import NormStats
-from pi0_torch.processing.processing_pi0 import PI0Processor
+from pi0_torch.processing.processing_pi0 import PI0Processor, config_settings
 from pi0_torch.processing.tokenization import TokenizerSource, discretize_state
 
 FAST_TOKENIZER_DIR = "fast_tokenizer"
@@ -136,21 +136,9 @@ class PI0FastProcessor(PI0Processor):
 
         Raises `ValueError` when the prompt tokenizer's vocabulary is larger than the model's.
         """
-        settings = dict(
-            camera_names=config.camera_names,
-            image_size=config.image_size,
-            max_token_len=config.max_token_len,
-            model_action_dim=config.action_dim,
-            action_horizon=config.action_horizon,
-            fast_skip_tokens=config.fast_skip_tokens,
-        )
-        settings.update(kwargs)
+        settings = {**config_settings(config), "fast_skip_tokens": config.fast_skip_tokens, **kwargs}
         processor = cls(tokenizer, action_tokenizer, norm_stats=norm_stats, **settings)
-        if processor.tokenizer.vocab_size > config.vocab_size:
-            raise ValueError(
-                f"tokenizer has {processor.tokenizer.vocab_size} tokens but the model's vocab_size is "
-                f"{config.vocab_size}; ids past the embedding table would crash the model"
-            )
+        processor._check_vocab_size(config)
         return processor
 
     def to_dict(self) -> dict[str, Any]:
