@@ -49,7 +49,6 @@ from pi0_torch.utils.files import atomic_output_dir
 
 CONFIG_FILE = "config.json"
 
-
 # One Gemma decoder layer in the Hugging Face layout -> (our name inside `layers.{i}.{vlm|expert}`, part, parts).
 # q/k/v and gate/up are separate there and fused (concatenated along the output rows, in this order) here.
 _HF_LAYER: dict[str, tuple[str, int, int]] = {
@@ -68,8 +67,6 @@ _HF_LAYER: dict[str, tuple[str, int, int]] = {
     "post_attention_layernorm.dense.weight": ("mlp_norm.modulation.weight", 0, 1),
     "post_attention_layernorm.dense.bias": ("mlp_norm.modulation.bias", 0, 1),
 }
-
-
 _HEADS = ("state_proj", "action_in_proj", "action_time_mlp_in", "action_time_mlp_out", "action_out_proj", "time_mlp_in", "time_mlp_out")
 
 # Key prefixes: LeRobot wraps everything in `model.`; openpi's PyTorch port and transformers' saved files use

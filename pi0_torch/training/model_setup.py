@@ -34,6 +34,7 @@ logger = logging.getLogger(__name__)
 
 
 def is_model_folder(model: str) -> bool:
+    """Whether `--model` names a model folder (one with `config.json`) rather than a preset."""
     return (Path(model) / "config.json").is_file()
 
 
