@@ -47,7 +47,7 @@ from pi0_torch.cli import json_object
 from pi0_torch.shipped_policy import policy_location
 from pi0_torch.runtime.observation_formats import ObservationFormat
 from pi0_torch.utils.extras import require_extra
-from pi0_torch.utils.files import check_output_dir, check_separate
+from pi0_torch.utils.files import atomic_output_dir, check_output_dir, check_separate
 from pi0_torch.utils.threads import add_threads_argument, set_threads
 from pi0_torch.utils.validation import MAX_SEED, check_finite, check_float, check_int, first_line
 
@@ -617,7 +617,6 @@ def write_outputs(result: EvalResult, frames: Mapping[int, list[np.ndarray]], ou
     from PIL import Image
 
     from pi0_torch.data.video import encode_video
-    from pi0_torch.utils.files import atomic_output_dir
 
     with atomic_output_dir(output_dir, overwrite=overwrite) as staging:
         (staging / "eval.json").write_text(json.dumps(asdict(result), indent=2) + "\n")
