@@ -4,8 +4,6 @@ graph), its ATen op count stays low, and regional compilation compiles each laye
 
 from __future__ import annotations
 
-import dataclasses
-
 import pytest
 import torch
 import torch.nn.functional as F
@@ -258,4 +256,3 @@ def test_attention_kernel_setting_is_checked() -> None:
     with pytest.raises(ValueError, match="attention kernel 'varlen' needs"):
         attention.choose_kernel("varlen", torch.device("cpu"), torch.bfloat16, 1, 256)
     assert attention.choose_kernel("auto", torch.device("cpu"), torch.bfloat16, 1, 256) == "sdpa"
-    assert dataclasses.is_dataclass(KeyRanges)

@@ -13,7 +13,6 @@ copy of its output, which the next replay does not overwrite.
 from __future__ import annotations
 
 import dataclasses
-import time
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -30,15 +29,11 @@ class CapturedSampling:
     graph: torch.cuda.CUDAGraph
     inputs: SamplingInputs  # the static buffers the graph reads
     output: torch.Tensor  # where its replay writes the actions
-    capture_seconds: float  # warm-up and capture
 
 
 def _signature(inputs: SamplingInputs) -> tuple[Any, ...]:
     """Shapes, dtypes and devices of the inputs (None for the absent ones): what a graph is specialised to."""
-    return tuple(
-        None if value is None else (tuple(value.shape), value.dtype, value.device)
-        for value in (getattr(inputs, field.name) for field in dataclasses.fields(inputs))
-    )
+    return tuple(None if value is None else (tuple(value.shape), value.dtype, value.device) for value in _tensors(inputs))
 
 
 class SamplingGraphs:
@@ -74,11 +69,7 @@ class SamplingGraphs:
         return captured.output.clone()  # (outside inference mode: a normal tensor the next replay leaves alone)
 
     def _capture(self, inputs: SamplingInputs, plan: SamplingPlan) -> CapturedSampling:
-        start = time.perf_counter()
-        static = dataclasses.replace(inputs, **{
-            field.name: None if value is None else value.clone()
-            for field in dataclasses.fields(inputs) for value in [getattr(inputs, field.name)]
-        })
+        static = type(inputs)(*(None if value is None else value.clone() for value in _tensors(inputs)))
         side = torch.cuda.Stream(device=inputs.noise.device)
         side.wait_stream(torch.cuda.current_stream(inputs.noise.device))
         with torch.cuda.stream(side):
@@ -94,12 +85,7 @@ class SamplingGraphs:
                                "model.capture_sampling(disable=True) to sample eagerly") from error
         self.pool = graph.pool()
         torch.cuda.synchronize(inputs.noise.device)
-        return CapturedSampling(graph, static, output, time.perf_counter() - start)
-
-    @property
-    def capture_seconds(self) -> list[float]:
-        """Warm-up plus capture time of each graph, in capture order."""
-        return [captured.capture_seconds for captured in self.graphs.values()]
+        return CapturedSampling(graph, static, output)
 
 
 def _tensors(inputs: SamplingInputs) -> list[torch.Tensor | None]:

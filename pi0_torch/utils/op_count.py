@@ -25,7 +25,6 @@ from __future__ import annotations
 from collections import Counter
 from typing import Any
 
-import torch
 from torch.utils._python_dispatch import TorchDispatchMode
 
 HOST_READS = frozenset({"_local_scalar_dense", "nonzero", "equal"})
