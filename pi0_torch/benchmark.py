@@ -36,9 +36,10 @@ import torch
 
 from pi0_torch.models.configuration_pi0 import PI0Config, preset_names
 from pi0_torch.models.configuration_pi0_fast import PI0FastConfig, fast_preset_names
-from pi0_torch.models.modeling_pi0 import PI0ForActionGeneration
+from pi0_torch.models.flow_matching import euler_times
+from pi0_torch.models.modeling_pi0 import InputFacts, PI0ForActionGeneration, SamplingInputs, SamplingPlan
 from pi0_torch.models.modeling_pi0_fast import PI0FastForActionGeneration
-from pi0_torch.utils.op_count import AtenOpCounter
+from pi0_torch.utils.op_count import ONE_OP_ON_CUDA, AtenOpCounter
 
 TEXT_TOKENS = 48
 BF16_MAX_SLOWDOWN = 4.0  # a bfloat16 matmul this many times slower than the float32 one is emulated
@@ -244,8 +245,9 @@ def bench_generate(args: argparse.Namespace, device: torch.device) -> None:
 
 def bench_op_counts(args: argparse.Namespace) -> None:
     """ATen ops of one `generate_actions` on the CPU (a proxy for GPU kernel launches; `pi0_torch.utils.op_count`)."""
-    print("\nATen ops of one generate_actions (CPU, float32, 3 cameras, batch 1, 20 of 48 prompt tokens, 10 steps)")
-    print(f"{'preset':12s} {'ops':>6s} {'views':>6s} {'RMSNorm ops':>11s} {'kernels on CUDA':>15s} {'host reads':>10s}")
+    print("\nATen ops of one generate_actions (CPU, float32, 3 cameras, batch 1, 20 of 48 prompt tokens, 10 steps; "
+          "RMSNorm and attention counted as the one op each is on CUDA)")
+    print(f"{'preset':12s} {'ops':>6s} {'views':>6s} {'kernels':>7s} {'CPU ops':>7s} {'host reads':>10s}")
     for preset in args.presets:
         config = PI0Config.from_preset(preset)
         model = random_model(config, torch.float32, torch.device("cpu"))
@@ -254,12 +256,40 @@ def bench_op_counts(args: argparse.Namespace) -> None:
         model.generate_actions(**inputs)
         with AtenOpCounter() as counter:
             model.generate_actions(**inputs)
-        norms = counter.ops["rsqrt"]  # each RMSNorm: pow, mean, add, rsqrt, mul(s) on the CPU, one fused kernel on CUDA
-        norm_ops = sum(counter.ops[name] for name in ("pow", "mean", "add_", "rsqrt")) + norms
-        kernels = counter.total - counter.views - norm_ops + norms
-        print(f"{preset:12s} {counter.total:6d} {counter.views:6d} {norm_ops:11d} {kernels:15d} {counter.host_reads:10d}")
+        on_cpu = counter.total - sum(counter.ops[name] for name in ONE_OP_ON_CUDA) + counter.decomposed
+        print(f"{preset:12s} {counter.total:6d} {counter.views:6d} {counter.kernels:7d} {on_cpu:7d} {counter.host_reads:10d}")
         del model
         gc.collect()
+    print(f"\nATen ops of the sampling a CUDA graph captures, full size, bfloat16, batch 1, {TEXT_TOKENS} prompt tokens, "
+          "10 steps (counted on the meta device: no weights)")
+    print(f"{'preset':12s} {'cameras':>7s} {'ops':>6s} {'views':>6s} {'kernels':>7s}")
+    for preset in ("pi0", "pi05"):
+        for cameras in (1, 3):
+            counter = sampling_ops_on_meta(PI0Config.from_preset(preset), cameras)
+            print(f"{preset:12s} {cameras:7d} {counter.total:6d} {counter.views:6d} {counter.kernels:7d}")
+
+
+def sampling_ops_on_meta(config: PI0Config, cameras: int, text_tokens: int = TEXT_TOKENS) -> AtenOpCounter:
+    """Count the ops of `generate_actions`' sampling region (`_sample`: everything after the input checks, what
+    `capture_sampling` records) for a model built on the meta device, so a full-size one costs no memory."""
+    meta = torch.device("meta")
+    with meta:
+        model = PI0ForActionGeneration(config).eval().to(torch.bfloat16)
+    shown = tuple(camera < cameras for camera in range(config.num_cameras))
+    layout = InputFacts((shown,), (text_tokens,), text_tokens).layout(config.tokens_per_image)
+    horizon, dims = config.action_horizon, config.action_dim
+    inputs = SamplingInputs(
+        pixel_values=torch.empty(1, len(layout.cameras), 3, config.image_size, config.image_size, device=meta),
+        image_masks=torch.empty(1, len(layout.cameras), dtype=torch.bool, device=meta),
+        input_ids=torch.empty(1, text_tokens, dtype=torch.long, device=meta),
+        attention_mask=torch.empty(1, text_tokens, dtype=torch.bool, device=meta),
+        state=None if config.pi05 else torch.empty(1, dims, device=meta),
+        noise=torch.empty(1, horizon, dims, device=meta),
+        times=torch.empty(config.num_inference_steps, device=meta),
+    )
+    with torch.no_grad(), AtenOpCounter() as counter:
+        model._sample(inputs, SamplingPlan(layout, tuple(euler_times(config.num_inference_steps))))
+    return counter
 
 
 def bench_fast_decoding(args: argparse.Namespace, device: torch.device) -> None:

@@ -382,10 +382,16 @@ def test_merged_lora_model_matches_the_adapted_model() -> None:
             if "lora_B" in name or "modules_to_save" in name:
                 param.add_(torch.randn_like(param) * 0.05)
     batch = tiny_batch(model.config)
+    sampling = {name: batch[name] for name in ("pixel_values", "image_masks", "input_ids", "attention_mask", "state")}
+    noise = torch.randn(batch["actions"].shape, generator=torch.Generator().manual_seed(2))
     expected = peft_model(**batch).velocity
+    expected_actions = peft_model.generate_actions(**sampling, noise=noise, num_steps=2)
+    with peft_model.disable_adapter():  # the adapters take part in sampling (no layer bypasses its module)
+        assert not torch.allclose(peft_model.generate_actions(**sampling, noise=noise, num_steps=2), expected_actions, atol=1e-4)
     merged = merge_lora(peft_model)
     assert type(merged) is PI0ForActionGeneration
     torch.testing.assert_close(merged(**batch).velocity, expected, rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(merged.generate_actions(**sampling, noise=noise, num_steps=2), expected_actions, rtol=1e-5, atol=1e-5)
 
 
 def test_gradient_checkpointing_gives_the_same_gradients() -> None:

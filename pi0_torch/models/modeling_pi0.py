@@ -114,6 +114,8 @@ class AdaRMSNorm(nn.Module):
         return NormParams(1 + scale, shift, gate)
 
     def forward(self, x: torch.Tensor, params: NormParams) -> torch.Tensor:
+        if params.scale.dim() == 1 and params.scale.dtype == x.dtype:  # one scale for every token (a sampling step)
+            return rms_norm(x, self.eps, params.scale) + params.shift  # (2 kernels; bf16: `normed * scale` rounded first)
         return torch.addcmul(params.shift, rms_norm(x.float(), self.eps), params.scale).to(x.dtype)
 
 
@@ -127,10 +129,10 @@ def rope_cos_sin(positions: torch.Tensor, head_dim: int, theta: float) -> tuple[
 
 
 def apply_rope(x: torch.Tensor, cos: torch.Tensor, sin: torch.Tensor) -> torch.Tensor:
-    """Rotate `x` `[..., H]` in the split-halves layout, in float32: `[x1 cos - x2 sin, x2 cos + x1 sin]` =
-    `x * cos + (x2, x1) * (-sin, sin)` with `rope_cos_sin`'s tables (broadcast against `x`); returns `x`'s dtype."""
-    x32 = x.float()
-    return torch.addcmul(x32 * cos, x32.roll(x.shape[-1] // 2, dims=-1), sin).to(x.dtype)
+    """Rotate `x` `[..., H]` in the split-halves layout: `[x1 cos - x2 sin, x2 cos + x1 sin]` = `x * cos + (x2, x1) *
+    (-sin, sin)` with `rope_cos_sin`'s float32 tables (broadcast against `x`). Computed and returned in float32 (type
+    promotion reads a bf16 `x` exactly, without a separate cast); the caller rounds it to its dtype."""
+    return torch.addcmul(x * cos, x.roll(x.shape[-1] // 2, dims=-1), sin)
 
 
 # ----------------------------------------------------------------------------------------------------------------------
@@ -153,13 +155,25 @@ class ExpertLayer(nn.Module):
         self.down_proj = nn.Linear(mlp_width, width, bias=False)
         self.heads = (heads, kv_heads, kv_heads)  # of q, k, v
 
-    def mlp(self, h: torch.Tensor) -> torch.Tensor:
+    def geglu(self, h: torch.Tensor) -> torch.Tensor:
+        """The MLP up to its down-projection: `gelu_tanh(gate) * up` `[..., mlp_width]` of the normed tokens `h`."""
         gate, up = self.gate_up_proj(h).chunk(2, dim=-1)
-        return self.down_proj(F.gelu(gate, approximate="tanh") * up)
+        return F.gelu(gate, approximate="tanh") * up
 
 
-def _residual(x: torch.Tensor, y: torch.Tensor, gate: torch.Tensor | None) -> torch.Tensor:
-    return x + y if gate is None else x + y * gate  # (y * gate rounded first, as openpi's)
+def add_projection(residual: torch.Tensor, projection: nn.Module, y: torch.Tensor, gate: torch.Tensor | None) -> torch.Tensor:
+    """The residual update `residual + projection(y)` (adaRMS: `residual + projection(y) * gate`), with the add in a
+    kernel that already runs: the projection's GEMM (`addmm`) when it is a plain bias-free `nn.Linear` of the
+    residual's dtype outside autocast (a LoRA or quantized layer, or autocast, gets the module call and an add), the
+    gate's product (`addcmul`). The sum is rounded once (openpi rounds the projection, then the sum: the same in
+    float32 to within an ulp, within bf16 rounding in bf16)."""
+    if gate is not None:
+        return torch.addcmul(residual, projection(y), gate)
+    plain = type(projection) is nn.Linear and projection.bias is None and projection.weight.dtype == residual.dtype
+    device = residual.device.type
+    if plain and not (torch.amp.is_autocast_available(device) and torch.is_autocast_enabled(device)):
+        return torch.addmm(residual, y, projection.weight.t())
+    return residual + projection(y)
 
 
 @dataclass
@@ -235,8 +249,12 @@ class JointDecoderLayer(GradientCheckpointingLayer):
             attn_params = norms[0] if norms is not None else None
             gates[index] = attn_params.gate if attn_params is not None else None
             qkv = expert.qkv_proj(expert.attn_norm(x, attn_params))  # [B * T, (N + 2K) H]
-            q, k, v = qkv.view(-1, stream.tokens, qkv.shape[-1] // self.head_dim, self.head_dim).split(expert.heads, dim=2)
-            k, v = apply_rope(k, stream.cos, stream.sin).transpose(1, 2), v.transpose(1, 2)  # [B, K, T, H]
+            heads, kv_heads = expert.heads[:2]
+            qk, v = qkv.view(-1, stream.tokens, qkv.shape[-1] // self.head_dim, self.head_dim).split(
+                (heads + kv_heads, kv_heads), dim=2
+            )
+            q, k = apply_rope(qk, stream.cos, stream.sin).split((heads, kv_heads), dim=2)  # float32, one rotation
+            k, v = k.to(x.dtype).transpose(1, 2), v.transpose(1, 2)  # [B, K, T, H]
             if cache is not None and write_cache:
                 cache[0].index_copy_(2, stream.slots, k)
                 cache[1].index_copy_(2, stream.slots, v)
@@ -244,7 +262,7 @@ class JointDecoderLayer(GradientCheckpointingLayer):
                 new_keys.append(k)
                 new_values.append(v)
             if not keys_only:
-                queries[index] = apply_rope(q, stream.cos, stream.sin)
+                queries[index] = q.to(x.dtype).contiguous()  # [B, T, N, H] (its own tensor: `attend` folds heads)
         if cache is None:  # a training pass: its own k/v (prefix slots first)
             keys, values = torch.cat(new_keys, dim=2), torch.cat(new_values, dim=2)
         elif not write_cache:  # the cache's first slots, then the new k/v
@@ -261,10 +279,10 @@ class JointDecoderLayer(GradientCheckpointingLayer):
             if x is None:
                 continue
             attended = attend(queries[index], keys, values, stream.attention)  # [B * T, N * H]
-            x = _residual(x, expert.o_proj(attended), gates[index])
+            x = add_projection(x, expert.o_proj, attended, gates[index])
             mlp_params = norms[1] if norms is not None else None
-            h = expert.mlp_norm(x, mlp_params)
-            outputs[index] = _residual(x, expert.mlp(h), mlp_params.gate if mlp_params is not None else None)
+            hidden = expert.geglu(expert.mlp_norm(x, mlp_params))
+            outputs[index] = add_projection(x, expert.down_proj, hidden, mlp_params.gate if mlp_params is not None else None)
         return outputs[0], outputs[1]
 
 

@@ -76,7 +76,7 @@ class FastDecoderLayer(GradientCheckpointingLayer):
             y.view(batch, length, -1, self.head_dim).transpose(1, 2)  # [B, heads, T, H]
             for y in block.qkv_proj(block.attn_norm(x)).split([heads * self.head_dim for heads in block.heads], dim=-1)
         )
-        q, k = apply_rope(q, cos, sin), apply_rope(k, cos, sin)
+        q, k = apply_rope(q, cos, sin).to(q.dtype), apply_rope(k, cos, sin).to(k.dtype)
         if kv_buffer is not None:
             key_buffer, value_buffer = kv_buffer
             key_buffer.index_copy_(2, kv_slots, k)
@@ -86,7 +86,7 @@ class FastDecoderLayer(GradientCheckpointingLayer):
             q, x, mask = q[:, :, -1:], x[:, -1:], mask[:, :, -1:]
         attended = masked_attention(q, k, v, mask, scale=q.shape[-1] ** -0.5, additive=True)  # [B, N, T, H]
         x = x + block.o_proj(attended.transpose(1, 2).flatten(2))
-        return x + block.mlp(block.mlp_norm(x))
+        return x + block.down_proj(block.geglu(block.mlp_norm(x)))
 
 
 # ----------------------------------------------------------------------------------------------------------------------

@@ -5,19 +5,27 @@
 >>> with AtenOpCounter() as counter:
 ...     x = torch.ones(4, 4)
 ...     y = (x @ x.t()).sum()
->>> counter.total, counter.views, counter.host_reads
-(4, 1, 0)
+>>> counter.total, counter.views, counter.kernels, counter.host_reads
+(4, 1, 3, 0)
 >>> with AtenOpCounter() as counter:
 ...     _ = bool(torch.ones(2).sum() > 1)  # the host waits for a value
 >>> counter.host_reads
 1
+>>> x = torch.ones(2, 8)
+>>> with AtenOpCounter() as counter:  # one op on a CUDA build, its decomposition on the CPU
+...     _ = torch.ops.aten._fused_rms_norm(x, [8], None, 1e-6)
+>>> counter.ops["_fused_rms_norm"], counter.total, counter.decomposed > 0
+(1, 1, True)
 
 ```
 
-Every op counts, views included (they launch nothing on a GPU, `views` tells how many there were). Ops that run as
-one kernel on CUDA but as their decomposition on the CPU (RMSNorm's `_fused_rms_norm`) count as those parts. Host
-reads are the ops that copy a device value to the host for Python to look at (`.item()`, `bool(tensor)`, `nonzero`);
-on a GPU each one waits for all queued work. (`.tolist()` / `.cpu()` of a CPU tensor dispatch nothing and are not seen.)
+Every op counts, views included (they launch nothing on a GPU: `views` tells how many there were, `kernels` the rest).
+The calls in `ONE_OP_ON_CUDA` run as one kernel on CUDA
+(RMSNorm's `_fused_rms_norm`; `scaled_dot_product_attention`, one flash / efficient / cuDNN kernel there) but as
+several ops elsewhere (their decomposition on the CPU or `meta`, the math kernel on `meta`): each call counts as one
+op, and `decomposed` tells how many ops they took here. Host reads are the ops that copy a device value to the host for Python to look
+at (`.item()`, `bool(tensor)`, `nonzero`); on a GPU each one waits for all queued work. (`.tolist()` / `.cpu()` of a
+CPU tensor dispatch nothing and are not seen.)
 """
 
 from __future__ import annotations
@@ -25,22 +33,38 @@ from __future__ import annotations
 from collections import Counter
 from typing import Any
 
+from torch.overrides import TorchFunctionMode
 from torch.utils._python_dispatch import TorchDispatchMode
 
 HOST_READS = frozenset({"_local_scalar_dense", "nonzero", "equal"})
+ONE_OP_ON_CUDA = frozenset({"_fused_rms_norm", "scaled_dot_product_attention"})
 
 
 class AtenOpCounter(TorchDispatchMode):
-    """A dispatch mode that counts every ATen op run inside it, by name (`ops`)."""
+    """A dispatch mode that counts every ATen op run inside it, by name (`ops`); see the module docstring."""
 
     def __init__(self) -> None:
         super().__init__()
         self.ops: Counter[str] = Counter()
         self.views = 0
+        self.decomposed = 0
+        self._inside_one_op = False
+        self._calls = _OneOpCalls(self)
+
+    def __enter__(self) -> AtenOpCounter:
+        self._calls.__enter__()
+        return super().__enter__()
+
+    def __exit__(self, *exc: Any) -> None:
+        super().__exit__(*exc)
+        self._calls.__exit__(*exc)
 
     def __torch_dispatch__(self, func: Any, types: Any, args: tuple = (), kwargs: dict | None = None) -> Any:
-        self.ops[func.overloadpacket.__name__] += 1
-        self.views += func.is_view
+        if self._inside_one_op:  # a part of an op counted where it was called
+            self.decomposed += func.overloadpacket.__name__ not in ONE_OP_ON_CUDA
+        else:
+            self.ops[func.overloadpacket.__name__] += 1
+            self.views += func.is_view
         return func(*args, **(kwargs or {}))
 
     @property
@@ -48,5 +72,28 @@ class AtenOpCounter(TorchDispatchMode):
         return sum(self.ops.values())
 
     @property
+    def kernels(self) -> int:
+        return self.total - self.views
+
+    @property
     def host_reads(self) -> int:
         return sum(count for name, count in self.ops.items() if name in HOST_READS)
+
+
+class _OneOpCalls(TorchFunctionMode):
+    """Sees the calls of `ONE_OP_ON_CUDA` ops before they decompose, and counts each as one op."""
+
+    def __init__(self, counter: AtenOpCounter) -> None:
+        super().__init__()
+        self.counter = counter
+
+    def __torch_function__(self, func: Any, types: Any, args: tuple = (), kwargs: dict | None = None) -> Any:
+        name = getattr(func, "__name__", "").split(".")[0]
+        if name not in ONE_OP_ON_CUDA:
+            return func(*args, **(kwargs or {}))
+        self.counter.ops[name] += 1
+        self.counter._inside_one_op = True
+        try:
+            return func(*args, **(kwargs or {}))
+        finally:
+            self.counter._inside_one_op = False
