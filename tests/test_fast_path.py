@@ -4,6 +4,10 @@ graph), its ATen op count stays low, and regional compilation compiles each laye
 
 from __future__ import annotations
 
+import logging
+from typing import Any
+
+import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
@@ -22,6 +26,7 @@ from pi0_torch.models.modeling_pi0 import (
     add_projection,
     compact_prefix,
 )
+from pi0_torch.models.sampling_graphs import SamplingCaptureError
 from pi0_torch.utils.op_count import AtenOpCounter
 
 # unseen sizes: a shorter prompt limit, 2 kv heads (query heads not folded), head size 16, 3-step horizon
@@ -293,6 +298,32 @@ def test_capture_sampling_leaves_cpu_sampling_eager() -> None:
     torch.testing.assert_close(model.generate_actions(**batch, noise=noise, num_steps=2), eager, rtol=0, atol=0)
     model.capture_sampling(disable=True)
     assert not model.sampling_captured
+
+
+def test_a_policy_samples_eagerly_when_cuda_refuses_the_capture(monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture) -> None:
+    """A capture that CUDA refuses (simulated here: the CPU never captures) is logged and the policy goes on eagerly:
+    that chunk is the eager one, and later chunks do not try to capture again."""
+    from test_rollout import tiny_policy
+
+    policy = tiny_policy(rtc_max_delay=0)
+    observation = {"images": {"base_0_rgb": np.zeros((32, 32, 3), np.uint8)}, "state": np.ones(3), "prompt": "reach"}
+    batch = policy._batch([policy.prepare(observation)])
+    expected = policy.model_actions(batch, warmup=True)  # (zero noise)
+    policy.model.capture_sampling()
+    generate, attempts = policy.model.generate_actions, []
+
+    def refused_while_captured(*args: Any, **kwargs: Any) -> torch.Tensor:
+        attempts.append(policy.model.sampling_captured)
+        if policy.model.sampling_captured:
+            raise SamplingCaptureError("could not capture sampling as a CUDA graph (operation not permitted when stream is capturing)")
+        return generate(*args, **kwargs)
+
+    monkeypatch.setattr(policy.model, "generate_actions", refused_while_captured)
+    with caplog.at_level(logging.WARNING):
+        np.testing.assert_array_equal(policy.model_actions(batch, warmup=True), expected)
+        np.testing.assert_array_equal(policy.model_actions(batch, warmup=True), expected)
+    assert attempts == [True, False, False] and not policy.captured
+    assert caplog.text.count("this policy samples eagerly from now on") == 1
 
 
 def test_attention_kernel_setting_is_checked() -> None:

@@ -24,6 +24,10 @@ if TYPE_CHECKING:
 WARMUP_RUNS = 2  # before a capture (cuBLAS / cuDNN pick and allocate on their first calls)
 
 
+class SamplingCaptureError(RuntimeError):
+    """CUDA refused to record the sampling as a graph (the warm-up runs before it succeeded: eager sampling works)."""
+
+
 @dataclass
 class CapturedSampling:
     graph: torch.cuda.CUDAGraph
@@ -81,8 +85,8 @@ class SamplingGraphs:
             with torch.cuda.graph(graph, pool=self.pool):
                 output = self.model._sample(static, plan)
         except RuntimeError as error:
-            raise RuntimeError(f"could not capture sampling as a CUDA graph ({error}); call "
-                               "model.capture_sampling(disable=True) to sample eagerly") from error
+            raise SamplingCaptureError(f"could not capture sampling as a CUDA graph ({error}); call "
+                                       "model.capture_sampling(disable=True) to sample eagerly") from error
         self.pool = graph.pool()
         torch.cuda.synchronize(inputs.noise.device)
         return CapturedSampling(graph, static, output)

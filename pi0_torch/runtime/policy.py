@@ -26,6 +26,7 @@ This is the object a policy server wraps, and the shortest way to run a saved mo
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -38,11 +39,14 @@ from pi0_torch.models.configuration_pi0 import MAX_INFERENCE_STEPS
 from pi0_torch.models.configuration_pi0_fast import PI0FastConfig
 from pi0_torch.models.modeling_pi0 import PI0ForActionGeneration
 from pi0_torch.models.rtc import DEFAULT_MAX_GUIDANCE, MAX_GUIDANCE, METHODS, SCHEDULES, check_rtc_inputs
+from pi0_torch.models.sampling_graphs import SamplingCaptureError
 from pi0_torch.processing.processing_pi0 import PI0Processor
 from pi0_torch.runtime.observation_formats import ObservationError
 from pi0_torch.runtime.policy_base import BasePolicy, ChunkContinuation, PreparedObservation, step_count
 from pi0_torch.runtime.policy_fast import PI0FastPolicy
 from pi0_torch.utils.validation import check_float
+
+logger = logging.getLogger(__name__)
 
 MAX_NOISE_SCALE = 10.0  # ten times the training noise; 1e30 gave NaN actions
 
@@ -89,7 +93,8 @@ class PI0Policy(BasePolicy):
         cuda_graph: on CUDA, replay each chunk's sampling as one CUDA graph, captured by hand without a compiler
             ([`PI0ForActionGeneration.capture_sampling`]); the first chunk of each batch size and prompt-length bucket
             captures it (about two eager calls): call [`warmup`] first. Chunks guided by real-time chunking
-            ("guidance") run eagerly.
+            ("guidance") run eagerly. Should CUDA refuse a capture, the policy logs a warning and samples eagerly
+            from then on.
     """
 
     model_class = PI0ForActionGeneration
@@ -241,7 +246,13 @@ class PI0Policy(BasePolicy):
             config = self.model.config
             shape = (len(batch["input_ids"]), config.action_horizon, config.action_dim)
             options["noise"] = self.noise_scale * torch.randn(shape, generator=self.generator, device=self.device)
-        return self.model.generate_actions(**batch, num_steps=self.num_steps, **options).float().cpu().numpy()
+        try:
+            actions = self.model.generate_actions(**batch, num_steps=self.num_steps, **options)
+        except SamplingCaptureError as error:  # a robot is better served eagerly than not at all
+            logger.warning("%s; this policy samples eagerly from now on", error)
+            self.model.capture_sampling(disable=True)
+            actions = self.model.generate_actions(**batch, num_steps=self.num_steps, **options)
+        return actions.float().cpu().numpy()
 
     def _sampling_cause(self, prepared: PreparedObservation) -> str:
         continuation = prepared.continuation
