@@ -14,18 +14,18 @@
 >>> x = torch.ones(2, 8)
 >>> with AtenOpCounter() as counter:  # one op on a CUDA build, its decomposition on the CPU
 ...     _ = torch.ops.aten._fused_rms_norm(x, [8], None, 1e-6)
->>> counter.ops["_fused_rms_norm"], counter.total, counter.decomposed > 0
+>>> counter.ops["_fused_rms_norm"], counter.total, counter.dispatched > 1
 (1, 1, True)
 
 ```
 
 Every op counts, views included (they launch nothing on a GPU: `views` tells how many there were, `kernels` the rest).
-The calls in `ONE_OP_ON_CUDA` run as one kernel on CUDA
-(RMSNorm's `_fused_rms_norm`; `scaled_dot_product_attention`, one flash / efficient / cuDNN kernel there) but as
-several ops elsewhere (their decomposition on the CPU or `meta`, the math kernel on `meta`): each call counts as one
-op, and `decomposed` tells how many ops they took here. Host reads are the ops that copy a device value to the host for Python to look
-at (`.item()`, `bool(tensor)`, `nonzero`); on a GPU each one waits for all queued work. (`.tolist()` / `.cpu()` of a
-CPU tensor dispatch nothing and are not seen.)
+The calls in `ONE_OP_ON_CUDA` run as one kernel on CUDA (RMSNorm's `_fused_rms_norm`; `scaled_dot_product_attention`,
+one flash / efficient / cuDNN kernel there) but as several ops elsewhere (their decomposition on the CPU or `meta`, the
+math kernel on `meta`): each call counts as one op, and `dispatched` counts the ops as they ran here instead. Host
+reads are the ops that copy a device value to the host for Python to look at (`.item()`, `bool(tensor)`, `nonzero`);
+on a GPU each one waits for all queued work. (`.tolist()` / `.cpu()` of a CPU tensor dispatch nothing and are not
+seen.)
 """
 
 from __future__ import annotations
@@ -60,8 +60,8 @@ class AtenOpCounter(TorchDispatchMode):
         self._calls.__exit__(*exc)
 
     def __torch_dispatch__(self, func: Any, types: Any, args: tuple = (), kwargs: dict | None = None) -> Any:
-        if self._inside_one_op:  # a part of an op counted where it was called
-            self.decomposed += func.overloadpacket.__name__ not in ONE_OP_ON_CUDA
+        if self._inside_one_op:  # what an op counted where it was called runs as here
+            self.decomposed += 1
         else:
             self.ops[func.overloadpacket.__name__] += 1
             self.views += func.is_view
@@ -74,6 +74,11 @@ class AtenOpCounter(TorchDispatchMode):
     @property
     def kernels(self) -> int:
         return self.total - self.views
+
+    @property
+    def dispatched(self) -> int:
+        """The ops as this device ran them: each `ONE_OP_ON_CUDA` call as the ops it took here."""
+        return self.total - sum(self.ops[name] for name in ONE_OP_ON_CUDA) + self.decomposed
 
     @property
     def host_reads(self) -> int:
