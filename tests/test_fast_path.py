@@ -205,15 +205,26 @@ def test_generate_actions_reads_the_device_once_and_runs_few_ops(
     assert counter.total <= ceiling and counter.kernels <= kernel_ceiling, counter.ops.most_common(10)
 
 
-def test_residual_add_joins_the_projection_only_where_it_is_the_same_sum() -> None:
-    """`add_projection` adds the residual inside a plain linear layer's GEMM; a layer with a forward of its own (a
-    LoRA or quantized layer) still runs it, autocast keeps its float32 residual stream, and the adaRMS gate joins in
-    `addcmul`."""
+def test_sampling_accumulates_plain_projections_into_the_residual_in_one_op() -> None:
+    """In a sampling pass `add_projection` adds a plain linear layer into the residual with one in-place `addmm_` (no
+    separate add; an out-of-place `addmm` would copy the residual first on CUDA). A layer with a forward of its own
+    (LoRA, quantized) or with hooks still runs them, autocast keeps its float32 residual stream, and outside sampling
+    the residual is left alone."""
     torch.manual_seed(0)
     linear = nn.Linear(8, 6, bias=False)
     residual, y, gate = torch.randn(5, 6), torch.randn(5, 8), torch.randn(6)
-    torch.testing.assert_close(add_projection(residual, linear, y, None), residual + linear(y))
-    torch.testing.assert_close(add_projection(residual, linear, y, gate), residual + linear(y) * gate)
+    expected = residual + linear(y)
+
+    accumulated = residual.clone()
+    with torch.no_grad(), AtenOpCounter() as counter:
+        result = add_projection(accumulated, linear, y, None, in_place=True)
+    assert result is accumulated and set(counter.ops) == {"t", "addmm_"}, counter.ops
+    torch.testing.assert_close(result, expected)
+
+    kept = residual.clone()
+    torch.testing.assert_close(add_projection(kept, linear, y, None), expected)
+    torch.testing.assert_close(kept, residual, rtol=0, atol=0)
+    torch.testing.assert_close(add_projection(residual, linear, y, gate, in_place=True), residual + linear(y) * gate)
 
     class Adapted(nn.Linear):
         def forward(self, x: torch.Tensor) -> torch.Tensor:
@@ -221,9 +232,30 @@ def test_residual_add_joins_the_projection_only_where_it_is_the_same_sum() -> No
 
     adapted = Adapted(8, 6, bias=False)
     adapted.weight = linear.weight
-    torch.testing.assert_close(add_projection(residual, adapted, y, None), residual + linear(y) + 1.0)
+    torch.testing.assert_close(add_projection(residual.clone(), adapted, y, None, in_place=True), expected + 1.0)
+    calls = []
+    linear.register_forward_hook(lambda *_: calls.append(1))
+    torch.testing.assert_close(add_projection(residual.clone(), linear, y, None, in_place=True), expected)
+    assert calls == [1]
     with torch.autocast("cpu", dtype=torch.bfloat16):
-        assert add_projection(residual, linear, y, None).dtype == torch.float32
+        assert add_projection(residual.clone(), nn.Linear(8, 6, bias=False), y, None, in_place=True).dtype == torch.float32
+
+
+def test_sampling_keeps_hooks_and_runs_under_autocast() -> None:
+    """A forward hook on any projection runs in `generate_actions` (accelerate's offloading and pruning use them), and
+    a float32 model samples under bf16 autocast (its k/v cache keeps the residual's dtype), close to float32."""
+    model = PI0ForActionGeneration(PI0Config.from_preset("pi0_small")).eval()
+    inputs = random_batch(model.config, batch=2, seed=3)
+    noise = torch.randn(2, model.config.action_horizon, model.config.action_dim, generator=torch.Generator().manual_seed(4))
+    expected = model.generate_actions(**inputs, noise=noise, num_steps=2)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        autocast = model.generate_actions(**inputs, noise=noise, num_steps=2)
+    torch.testing.assert_close(autocast, expected, rtol=2e-2, atol=2e-2)  # (2.4e-3 apart here, actions up to 4.2)
+    calls = []
+    for name in ("qkv_proj", "o_proj", "gate_up_proj", "down_proj"):
+        getattr(model.layers[0].expert, name).register_forward_hook(lambda *_, name=name: calls.append(name))
+    model.generate_actions(**inputs, noise=noise, num_steps=2)
+    assert sorted(set(calls)) == ["down_proj", "gate_up_proj", "o_proj", "qkv_proj"] and len(calls) == 4 * 3  # π0: state, 2 steps
 
 
 @pytest.mark.parametrize("dtype, tolerance", [(torch.float32, 1e-6), (torch.bfloat16, 2e-2)])

@@ -26,6 +26,7 @@ from typing import Any
 import torch
 import torch.nn.functional as F
 from torch import nn
+from torch.nn.modules.module import _global_forward_hooks, _global_forward_pre_hooks
 from transformers import PreTrainedModel, SiglipVisionConfig, SiglipVisionModel
 from transformers.modeling_layers import GradientCheckpointingLayer
 from transformers.utils import ModelOutput
@@ -161,19 +162,37 @@ class ExpertLayer(nn.Module):
         return F.gelu(gate, approximate="tanh") * up
 
 
-def add_projection(residual: torch.Tensor, projection: nn.Module, y: torch.Tensor, gate: torch.Tensor | None) -> torch.Tensor:
-    """The residual update `residual + projection(y)` (adaRMS: `residual + projection(y) * gate`), with the add in a
-    kernel that already runs: the projection's GEMM (`addmm`) when it is a plain bias-free `nn.Linear` of the
-    residual's dtype outside autocast (a LoRA or quantized layer, or autocast, gets the module call and an add), the
-    gate's product (`addcmul`). The sum is rounded once (openpi rounds the projection, then the sum: the same in
-    float32 to within an ulp, within bf16 rounding in bf16)."""
+def add_projection(
+    residual: torch.Tensor, projection: nn.Module, y: torch.Tensor, gate: torch.Tensor | None, in_place: bool = False
+) -> torch.Tensor:
+    """The residual update after attention and after the MLP: `residual + projection(y)` (adaRMS: `residual +
+    projection(y) * gate`, one `addcmul`).
+
+    `in_place` (a sampling pass: no gradients, and the caller never reads `residual` again) accumulates a plain
+    linear layer into the residual with `addmm_`: one GEMM kernel with beta = 1 instead of a GEMM and an add (an
+    out-of-place `addmm` is no better on CUDA: it copies the residual into its output first). The sum is then rounded
+    once, where openpi rounds the projection and then the sum: the same in float32 to an ulp, within bf16 rounding in
+    bf16. A compiled layer keeps the add, which Inductor fuses into the next kernel.
+    """
     if gate is not None:
         return torch.addcmul(residual, projection(y), gate)
-    plain = type(projection) is nn.Linear and projection.bias is None and projection.weight.dtype == residual.dtype
-    device = residual.device.type
-    if plain and not (torch.amp.is_autocast_available(device) and torch.is_autocast_enabled(device)):
-        return torch.addmm(residual, y, projection.weight.t())
+    if in_place and not torch.compiler.is_compiling() and _is_plain_linear(projection, residual):
+        return residual.addmm_(y, projection.weight.t())
     return residual + projection(y)
+
+
+def _is_plain_linear(module: nn.Module, x: torch.Tensor) -> bool:
+    """Whether calling `module` on `x` is nothing but its weight's GEMM: a bias-free `nn.Linear` of `x`'s dtype, not a
+    subclass (LoRA, quantized layers), with no forward hooks or replaced `forward` (offloading, pruning, a user's
+    hooks), outside autocast."""
+    if type(module) is not nn.Linear or module.bias is not None or module.weight.dtype != x.dtype:
+        return False
+    if module._forward_hooks or module._forward_pre_hooks or "forward" in module.__dict__:
+        return False
+    if _global_forward_hooks or _global_forward_pre_hooks:  # (nn.Module's registries, mutated in place)
+        return False
+    device = x.device.type
+    return not (torch.amp.is_autocast_available(device) and torch.is_autocast_enabled(device))
 
 
 @dataclass
@@ -237,9 +256,11 @@ class JointDecoderLayer(GradientCheckpointingLayer):
         untouched: a sampling step that is differentiated). Without (a training pass) the streams attend to their own
         k/v. `expert_norms` default to the action expert's own RMSNorm weights (π0; π0.5 passes its adaRMS params).
         `keys_only` stops once the k/v are written (the last layer of the cached prefix: its outputs are never read)
-        and returns (None, None).
+        and returns (None, None). A sampling pass (a cache written, no gradients) updates the residual streams in
+        place (`add_projection`): the caller does not read `prefix` / `suffix` again.
         """
         layers = ((self.vlm, prefix, None), (self.expert, suffix, expert_norms))
+        in_place = cache is not None and write_cache and not torch.is_grad_enabled()  # a sampling pass
         queries: list[torch.Tensor | None] = [None, None]
         gates: list[torch.Tensor | None] = [None, None]
         new_keys, new_values = [], []  # [B, K, T, H] of the streams that do not write into a cache
@@ -255,9 +276,9 @@ class JointDecoderLayer(GradientCheckpointingLayer):
             )
             q, k = apply_rope(qk, stream.cos, stream.sin).split((heads, kv_heads), dim=2)  # float32, one rotation
             k, v = k.to(x.dtype).transpose(1, 2), v.transpose(1, 2)  # [B, K, T, H]
-            if cache is not None and write_cache:
-                cache[0].index_copy_(2, stream.slots, k)
-                cache[1].index_copy_(2, stream.slots, v)
+            if cache is not None and write_cache:  # (`.to`: under autocast the cache and the streams' dtypes differ)
+                cache[0].index_copy_(2, stream.slots, k.to(cache[0].dtype))
+                cache[1].index_copy_(2, stream.slots, v.to(cache[1].dtype))
             else:
                 new_keys.append(k)
                 new_values.append(v)
@@ -279,10 +300,10 @@ class JointDecoderLayer(GradientCheckpointingLayer):
             if x is None:
                 continue
             attended = attend(queries[index], keys, values, stream.attention)  # [B * T, N * H]
-            x = add_projection(x, expert.o_proj, attended, gates[index])
+            x = add_projection(x, expert.o_proj, attended, gates[index], in_place)
             mlp_params = norms[1] if norms is not None else None
             hidden = expert.geglu(expert.mlp_norm(x, mlp_params))
-            outputs[index] = add_projection(x, expert.down_proj, hidden, mlp_params.gate if mlp_params is not None else None)
+            outputs[index] = add_projection(x, expert.down_proj, hidden, mlp_params.gate if mlp_params is not None else None, in_place)
         return outputs[0], outputs[1]
 
 

@@ -25,7 +25,7 @@ one flash / efficient / cuDNN kernel there) but as several ops elsewhere (their 
 math kernel on `meta`): each call counts as one op, and `dispatched` counts the ops as they ran here instead. Host
 reads are the ops that copy a device value to the host for Python to look at (`.item()`, `bool(tensor)`, `nonzero`);
 on a GPU each one waits for all queued work. (`.tolist()` / `.cpu()` of a CPU tensor dispatch nothing and are not
-seen.)
+seen, nor is work a backend kernel does inside one op: CUDA's out-of-place `addmm` copies its input first.)
 """
 
 from __future__ import annotations
