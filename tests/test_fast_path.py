@@ -184,8 +184,8 @@ def test_generate_actions_reads_the_device_once_and_runs_few_ops(
 ) -> None:
     """One `generate_actions` (3 cameras, a 20-token prompt): its checks read every value they need in one
     device-to-host copy, nothing else reads the device, and the ATen op count (a proxy for GPU launches, RMSNorm and
-    attention counted as the one op each is on CUDA) stays under its ceilings: 2,982 / 3,249 ops, 1,925 / 1,995 of
-    them kernels (not views), before this fast path; 1,299 / 1,336 and 731 / 785 now."""
+    attention counted as the one op each is on CUDA) stays under its ceilings: 2,982 / 3,249 ops, 1,919 / 1,989 of
+    them kernels (neither views nor allocations), before this fast path; 1,299 / 1,336 and 725 / 779 now."""
     config = PI0Config.from_preset(preset)
     model = PI0ForActionGeneration(config).eval()
     inputs = dict(

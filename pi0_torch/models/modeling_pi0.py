@@ -129,11 +129,12 @@ def rope_cos_sin(positions: torch.Tensor, head_dim: int, theta: float) -> tuple[
     return torch.cat([cos, cos], dim=-1), torch.cat([-sin, sin], dim=-1)
 
 
-def apply_rope(x: torch.Tensor, cos: torch.Tensor, sin: torch.Tensor) -> torch.Tensor:
+def apply_rope(x: torch.Tensor, cos: torch.Tensor, sin: torch.Tensor, out: torch.Tensor | None = None) -> torch.Tensor:
     """Rotate `x` `[..., H]` in the split-halves layout: `[x1 cos - x2 sin, x2 cos + x1 sin]` = `x * cos + (x2, x1) *
-    (-sin, sin)` with `rope_cos_sin`'s float32 tables (broadcast against `x`). Computed and returned in float32 (type
-    promotion reads a bf16 `x` exactly, without a separate cast); the caller rounds it to its dtype."""
-    return torch.addcmul(x * cos, x.roll(x.shape[-1] // 2, dims=-1), sin)
+    (-sin, sin)` with `rope_cos_sin`'s float32 tables (broadcast against `x`). Computed in float32 (type promotion
+    reads a bf16 `x` exactly, without a separate cast) and returned in float32, for the caller to round, or rounded
+    by the last kernel itself into `out` (of `x`'s shape and the caller's dtype; no gradients flow through `out=`)."""
+    return torch.addcmul(x * cos, x.roll(x.shape[-1] // 2, dims=-1), sin, out=out)
 
 
 # ----------------------------------------------------------------------------------------------------------------------
@@ -274,7 +275,8 @@ class JointDecoderLayer(GradientCheckpointingLayer):
             qk, v = qkv.view(-1, stream.tokens, qkv.shape[-1] // self.head_dim, self.head_dim).split(
                 (heads + kv_heads, kv_heads), dim=2
             )
-            q, k = apply_rope(qk, stream.cos, stream.sin).split((heads, kv_heads), dim=2)  # float32, one rotation
+            rounded = qk.new_empty(qk.shape) if in_place and qk.dtype != torch.float32 else None  # (bf16 sampling)
+            q, k = apply_rope(qk, stream.cos, stream.sin, out=rounded).split((heads, kv_heads), dim=2)  # one rotation
             k, v = k.to(x.dtype).transpose(1, 2), v.transpose(1, 2)  # [B, K, T, H]
             if cache is not None and write_cache:  # (`.to`: under autocast the cache and the streams' dtypes differ)
                 cache[0].index_copy_(2, stream.slots, k.to(cache[0].dtype))

@@ -19,7 +19,8 @@
 
 ```
 
-Every op counts, views included (they launch nothing on a GPU: `views` tells how many there were, `kernels` the rest).
+Every op counts, views and allocations included (they launch nothing on a GPU: `views` and `allocations` tell how many
+there were, `kernels` the rest).
 The calls in `ONE_OP_ON_CUDA` run as one kernel on CUDA (RMSNorm's `_fused_rms_norm`; `scaled_dot_product_attention`,
 one flash / efficient / cuDNN kernel there) but as several ops elsewhere (their decomposition on the CPU or `meta`, the
 math kernel on `meta`): each call counts as one op, and `dispatched` counts the ops as they ran here instead. Host
@@ -37,6 +38,7 @@ from torch.overrides import TorchFunctionMode
 from torch.utils._python_dispatch import TorchDispatchMode
 
 HOST_READS = frozenset({"_local_scalar_dense", "nonzero", "equal"})
+ALLOCATIONS = frozenset({"empty", "empty_strided", "new_empty", "new_empty_strided"})  # memory, no kernel
 ONE_OP_ON_CUDA = frozenset({"_fused_rms_norm", "scaled_dot_product_attention"})
 
 
@@ -47,6 +49,7 @@ class AtenOpCounter(TorchDispatchMode):
         super().__init__()
         self.ops: Counter[str] = Counter()
         self.views = 0
+        self.allocations = 0
         self.decomposed = 0
         self._inside_one_op = False
         self._calls = _OneOpCalls(self)
@@ -63,8 +66,10 @@ class AtenOpCounter(TorchDispatchMode):
         if self._inside_one_op:  # what an op counted where it was called runs as here
             self.decomposed += 1
         else:
-            self.ops[func.overloadpacket.__name__] += 1
+            name = func.overloadpacket.__name__
+            self.ops[name] += 1
             self.views += func.is_view
+            self.allocations += name in ALLOCATIONS
         return func(*args, **(kwargs or {}))
 
     @property
@@ -73,7 +78,8 @@ class AtenOpCounter(TorchDispatchMode):
 
     @property
     def kernels(self) -> int:
-        return self.total - self.views
+        """The ops that launch work on a GPU: neither views nor allocations."""
+        return self.total - self.views - self.allocations
 
     @property
     def dispatched(self) -> int:
