@@ -73,13 +73,15 @@ class NormParams:
     scale: torch.Tensor  # 1 + weight (RMSNorm); 1 + the modulation's scale (adaRMS)
     shift: torch.Tensor | None = None
     gate: torch.Tensor | None = None
+    shift_projected: torch.Tensor | None = None  # adaRMS in sampling: `shift @ W^T` of the projection after the norm
 
     def tensors(self) -> list[torch.Tensor]:
-        return [t for t in (self.scale, self.shift, self.gate) if t is not None]
+        return [t for t in (self.scale, self.shift, self.gate, self.shift_projected) if t is not None]
 
     def rebuilt(self, values: Iterator[torch.Tensor]) -> NormParams:
         """The same structure holding the next tensors of `values` (see `StepConditioning.map`)."""
-        return NormParams(next(values), *(None if t is None else next(values) for t in (self.shift, self.gate)))
+        optional = (self.shift, self.gate, self.shift_projected)
+        return NormParams(next(values), *(None if t is None else next(values) for t in optional))
 
 
 class RMSNorm(nn.Module):
@@ -102,7 +104,7 @@ class AdaRMSNorm(nn.Module):
 
     `params(condition)` = `self.modulation(condition)` split into [scale | shift | gate] (callers compute them once for
     all sampling steps, see `PI0ForActionGeneration.conditioning`); `forward(x, params)` = `normalize(x) * (1 + scale)
-    + shift` in float32, returned in the input dtype.
+    + shift` in float32, returned in the input dtype. `project_normed` applies the projection that follows.
     """
 
     def __init__(self, dim: int, eps: float) -> None:
@@ -110,9 +112,12 @@ class AdaRMSNorm(nn.Module):
         self.eps = eps
         self.modulation = nn.Linear(dim, 3 * dim)
 
-    def params(self, condition: torch.Tensor) -> NormParams:
+    def params(self, condition: torch.Tensor, projection: nn.Module | None = None) -> NormParams:
+        """With `projection`, the plain linear layer after this norm, also the shift through it (`shift_projected`),
+        for `project_normed` to add in that layer's GEMM."""
         scale, shift, gate = self.modulation(condition).chunk(3, dim=-1)
-        return NormParams(1 + scale, shift, gate)
+        folds = projection is not None and _is_plain_linear(projection, shift)
+        return NormParams(1 + scale, shift, gate, F.linear(shift, projection.weight) if folds else None)
 
     def forward(self, x: torch.Tensor, params: NormParams) -> torch.Tensor:
         if params.scale.dim() == 1 and params.scale.dtype == x.dtype:  # one scale for every token (a sampling step)
@@ -157,10 +162,21 @@ class ExpertLayer(nn.Module):
         self.down_proj = nn.Linear(mlp_width, width, bias=False)
         self.heads = (heads, kv_heads, kv_heads)  # of q, k, v
 
-    def geglu(self, h: torch.Tensor) -> torch.Tensor:
-        """The MLP up to its down-projection: `gelu_tanh(gate) * up` `[..., mlp_width]` of the normed tokens `h`."""
-        gate, up = self.gate_up_proj(h).chunk(2, dim=-1)
+    @staticmethod
+    def geglu(gate_up: torch.Tensor) -> torch.Tensor:
+        """The MLP between its projections: `gelu_tanh(gate) * up` `[..., mlp_width]` of `gate_up_proj`'s output."""
+        gate, up = gate_up.chunk(2, dim=-1)
         return F.gelu(gate, approximate="tanh") * up
+
+
+def project_normed(norm: nn.Module, projection: nn.Module, x: torch.Tensor, params: NormParams | None) -> torch.Tensor:
+    """`projection(norm(x, params))`. A sampling step's adaRMS shift, when `params` holds it through the projection
+    (`shift_projected`, for every step at once), is added in the projection's GEMM as its bias instead of to the
+    normed tokens: `(normed + shift) W^T = normed W^T + shift W^T`, one kernel fewer (bf16: rounded in another
+    order than openpi's, within bf16 rounding)."""
+    if params is not None and params.shift_projected is not None and params.scale.dim() == 1 and _is_plain_linear(projection, x):
+        return torch.addmm(params.shift_projected, rms_norm(x, norm.eps, params.scale), projection.weight.t())
+    return projection(norm(x, params))
 
 
 def add_projection(
@@ -270,7 +286,7 @@ class JointDecoderLayer(GradientCheckpointingLayer):
                 continue
             attn_params = norms[0] if norms is not None else None
             gates[index] = attn_params.gate if attn_params is not None else None
-            qkv = expert.qkv_proj(expert.attn_norm(x, attn_params))  # [B * T, (N + 2K) H]
+            qkv = project_normed(expert.attn_norm, expert.qkv_proj, x, attn_params)  # [B * T, (N + 2K) H]
             heads, kv_heads = expert.heads[:2]
             qk, v = qkv.view(-1, stream.tokens, qkv.shape[-1] // self.head_dim, self.head_dim).split(
                 (heads + kv_heads, kv_heads), dim=2
@@ -304,7 +320,7 @@ class JointDecoderLayer(GradientCheckpointingLayer):
             attended = attend(queries[index], keys, values, stream.attention)  # [B * T, N * H]
             x = add_projection(x, expert.o_proj, attended, gates[index], in_place)
             mlp_params = norms[1] if norms is not None else None
-            hidden = expert.geglu(expert.mlp_norm(x, mlp_params))
+            hidden = expert.geglu(project_normed(expert.mlp_norm, expert.gate_up_proj, x, mlp_params))
             outputs[index] = add_projection(x, expert.down_proj, hidden, mlp_params.gate if mlp_params is not None else None, in_place)
         return outputs[0], outputs[1]
 
@@ -741,12 +757,20 @@ class PI0ForActionGeneration(SiglipImageEmbedding, PI0PreTrainedModel):
         width = config.expert_hidden_size
         return F.linear(embedding, self.action_time_mlp_in.weight[:, width:], self.action_time_mlp_in.bias)
 
-    def conditioning(self, time: torch.Tensor) -> StepConditioning:
-        """The suffix's time conditioning for flow times `[T]`, every tensor `[T, ...]` (see `StepConditioning`)."""
+    def conditioning(self, time: torch.Tensor, shared: bool = False) -> StepConditioning:
+        """The suffix's time conditioning for flow times `[T]`, every tensor `[T, ...]` (see `StepConditioning`).
+        `shared`: each time conditions every token alike (sampling), so π0.5's shifts also go through the projections
+        after their norms (`project_normed`)."""
         condition = self.time_conditioning(time)
         if not self.config.pi05:
             return StepConditioning(condition, None, None)
-        layer_norms = tuple((layer.expert.attn_norm.params(condition), layer.expert.mlp_norm.params(condition)) for layer in self.layers)
+        layer_norms = tuple(
+            (
+                layer.expert.attn_norm.params(condition, layer.expert.qkv_proj if shared else None),
+                layer.expert.mlp_norm.params(condition, layer.expert.gate_up_proj if shared else None),
+            )
+            for layer in self.layers
+        )
         return StepConditioning(None, layer_norms, self.expert_final_norm.params(condition))
 
     def embed_state(self, state: torch.Tensor) -> torch.Tensor:
@@ -1026,7 +1050,7 @@ class PI0ForActionGeneration(SiglipImageEmbedding, PI0PreTrainedModel):
         cache = self.cache_prefix(inputs, plan.layout)
         actions = self.action_pass(cache, differentiable=plan.rtc_method == "guidance")
         committed = inputs.committed
-        steps = self.conditioning(inputs.times).steps()
+        steps = self.conditioning(inputs.times, shared=committed is None).steps()
         if committed is not None:  # committed actions take the conditioning of flow time 0
             clean = self.conditioning(inputs.times.new_zeros(1)).steps()[0]
             steps = [step.per_token(self.config.action_horizon, committed, clean) for step in steps]

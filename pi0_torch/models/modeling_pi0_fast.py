@@ -86,7 +86,7 @@ class FastDecoderLayer(GradientCheckpointingLayer):
             q, x, mask = q[:, :, -1:], x[:, -1:], mask[:, :, -1:]
         attended = masked_attention(q, k, v, mask, scale=q.shape[-1] ** -0.5, additive=True)  # [B, N, T, H]
         x = x + block.o_proj(attended.transpose(1, 2).flatten(2))
-        return x + block.down_proj(block.geglu(block.mlp_norm(x)))
+        return x + block.down_proj(block.geglu(block.gate_up_proj(block.mlp_norm(x))))
 
 
 # ----------------------------------------------------------------------------------------------------------------------
