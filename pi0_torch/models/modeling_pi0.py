@@ -174,7 +174,8 @@ def project_normed(norm: nn.Module, projection: nn.Module, x: torch.Tensor, para
     (`shift_projected`, for every step at once), is added in the projection's GEMM as its bias instead of to the
     normed tokens: `(normed + shift) W^T = normed W^T + shift W^T`, one kernel fewer (bf16: rounded in another
     order than openpi's, within bf16 rounding)."""
-    if params is not None and params.shift_projected is not None and params.scale.dim() == 1 and _is_plain_linear(projection, x):
+    folded = params is not None and params.shift_projected is not None and params.scale.dim() == 1
+    if folded and _is_plain_linear(projection, x):
         return torch.addmm(params.shift_projected, rms_norm(x, norm.eps, params.scale), projection.weight.t())
     return projection(norm(x, params))
 
@@ -321,7 +322,8 @@ class JointDecoderLayer(GradientCheckpointingLayer):
             x = add_projection(x, expert.o_proj, attended, gates[index], in_place)
             mlp_params = norms[1] if norms is not None else None
             hidden = expert.geglu(project_normed(expert.mlp_norm, expert.gate_up_proj, x, mlp_params))
-            outputs[index] = add_projection(x, expert.down_proj, hidden, mlp_params.gate if mlp_params is not None else None, in_place)
+            mlp_gate = mlp_params.gate if mlp_params is not None else None
+            outputs[index] = add_projection(x, expert.down_proj, hidden, mlp_gate, in_place)
         return outputs[0], outputs[1]
 
 
