@@ -171,11 +171,10 @@ class ExpertLayer(nn.Module):
 
 def project_normed(norm: nn.Module, projection: nn.Module, x: torch.Tensor, params: NormParams | None) -> torch.Tensor:
     """`projection(norm(x, params))`. A sampling step's adaRMS shift, when `params` holds it through the projection
-    (`shift_projected`, for every step at once), is added in the projection's GEMM as its bias instead of to the
-    normed tokens: `(normed + shift) W^T = normed W^T + shift W^T`, one kernel fewer (bf16: rounded in another
-    order than openpi's, within bf16 rounding)."""
-    folded = params is not None and params.shift_projected is not None and params.scale.dim() == 1
-    if folded and _is_plain_linear(projection, x):
+    (`shift_projected`, for every step at once; `AdaRMSNorm.params` makes it only for a plain linear layer), is added
+    in the projection's GEMM as its bias instead of to the normed tokens: `(normed + shift) W^T = normed W^T +
+    shift W^T`, one kernel fewer (bf16: rounded in another order than openpi's, within bf16 rounding)."""
+    if params is not None and params.shift_projected is not None and params.scale.dim() == 1:
         return torch.addmm(params.shift_projected, rms_norm(x, norm.eps, params.scale), projection.weight.t())
     return projection(norm(x, params))
 
