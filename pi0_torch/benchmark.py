@@ -265,31 +265,40 @@ def bench_op_counts(args: argparse.Namespace) -> None:
     print(f"{'preset':12s} {'cameras':>7s} {'ops':>6s} {'views':>6s} {'kernels':>7s}")
     for preset in ("pi0", "pi05"):
         for cameras in (1, 3):
-            counter = sampling_ops_on_meta(PI0Config.from_preset(preset), cameras)
+            config = PI0Config.from_preset(preset)
+            shown = tuple(camera < cameras for camera in range(config.num_cameras))
+            _, counter = sample_on_meta(config, InputFacts((shown,), (TEXT_TOKENS,), TEXT_TOKENS), config.num_inference_steps,
+                                        torch.bfloat16)
             print(f"{preset:12s} {cameras:7d} {counter.total:6d} {counter.views:6d} {counter.kernels:7d}")
 
 
-def sampling_ops_on_meta(config: PI0Config, cameras: int, text_tokens: int = TEXT_TOKENS) -> AtenOpCounter:
-    """Count the ops of `generate_actions`' sampling region (`_sample`: everything after the input checks, what
-    `capture_sampling` records) for a model built on the meta device, so a full-size one costs no memory."""
+def sample_on_meta(
+    config: PI0Config, facts: InputFacts, steps: int, dtype: torch.dtype = torch.float32, rtc_method: str | None = None
+) -> tuple[torch.Tensor, AtenOpCounter]:
+    """Run `generate_actions`' sampling region (`_sample`: everything after the input checks, what `capture_sampling`
+    records) for a model built on the meta device, with inputs laid out as `facts` says: the actions (shapes only)
+    and the ops it ran. No weights are needed, so a full-size model costs no memory, and any read of a device value
+    on the host (`.item()`, `bool()`, `.tolist()`, `nonzero`) raises."""
     meta = torch.device("meta")
     with meta:
-        model = PI0ForActionGeneration(config).eval().to(torch.bfloat16)
-    shown = tuple(camera < cameras for camera in range(config.num_cameras))
-    layout = InputFacts((shown,), (text_tokens,), text_tokens).layout(config.tokens_per_image)
-    horizon, dims = config.action_horizon, config.action_dim
+        model = PI0ForActionGeneration(config).eval().to(dtype)
+    layout = facts.layout(config.tokens_per_image)
+    batch, text = len(facts.text_counts), facts.text_length
+    actions = (batch, config.action_horizon, config.action_dim)
     inputs = SamplingInputs(
-        pixel_values=torch.empty(1, len(layout.cameras), 3, config.image_size, config.image_size, device=meta),
-        image_masks=torch.empty(1, len(layout.cameras), dtype=torch.bool, device=meta),
-        input_ids=torch.empty(1, text_tokens, dtype=torch.long, device=meta),
-        attention_mask=torch.empty(1, text_tokens, dtype=torch.bool, device=meta),
-        state=None if config.pi05 else torch.empty(1, dims, device=meta),
-        noise=torch.empty(1, horizon, dims, device=meta),
-        times=torch.empty(config.num_inference_steps, device=meta),
+        pixel_values=torch.empty(batch, len(layout.cameras), 3, config.image_size, config.image_size, device=meta),
+        image_masks=torch.empty(batch, len(layout.cameras), dtype=torch.bool, device=meta),
+        input_ids=torch.empty(batch, text, dtype=torch.long, device=meta),
+        attention_mask=torch.empty(batch, text, dtype=torch.bool, device=meta),
+        state=None if config.pi05 else torch.empty(batch, config.action_dim, device=meta),
+        noise=torch.empty(actions, device=meta),
+        times=torch.empty(steps, device=meta),
+        target=None if rtc_method is None else torch.empty(actions, device=meta),
+        committed=torch.empty(actions[:2], dtype=torch.bool, device=meta) if rtc_method == "conditioning" else None,
     )
     with torch.no_grad(), AtenOpCounter() as counter:
-        model._sample(inputs, SamplingPlan(layout, tuple(euler_times(config.num_inference_steps))))
-    return counter
+        sampled = model._sample(inputs, SamplingPlan(layout, tuple(euler_times(steps)), rtc_method))
+    return sampled, counter
 
 
 def bench_fast_decoding(args: argparse.Namespace, device: torch.device) -> None:

@@ -15,6 +15,7 @@ from test_rollout import tiny_policy
 from torch import nn
 
 from pi0_torch import PI0Config, PI0ForActionGeneration
+from pi0_torch.benchmark import sample_on_meta
 from pi0_torch.masks import prefix_lm_mask
 from pi0_torch.models import attention
 from pi0_torch.models.attention import KeyRanges, attend, plan_attention
@@ -22,8 +23,6 @@ from pi0_torch.models.modeling_pi0 import (
     AdaRMSNorm,
     InputFacts,
     NormParams,
-    SamplingInputs,
-    SamplingPlan,
     add_projection,
     compact_prefix,
 )
@@ -140,36 +139,15 @@ def test_varlen_packing_equals_sdpa(monkeypatch: pytest.MonkeyPatch, group_rows:
     torch.testing.assert_close(varlen, sdpa, rtol=1e-5, atol=1e-6)
 
 
-def sampling_on_meta(pi05: bool, rtc_method: str | None) -> torch.Tensor:
-    """Run `_sample` of a model on the meta device, which holds no values: any read of one (`.item()`, `bool()`,
-    `.tolist()`, `nonzero`, boolean indexing) raises."""
-    config = PI0Config.from_preset("pi05_small" if pi05 else "pi0_small", rtc_max_delay=4)
-    with torch.device("meta"):
-        model = PI0ForActionGeneration(config).eval()
-    facts = InputFacts(image_masks=((True, True, False), (True, False, False)), text_counts=(20, 9), text_length=48)
-    layout = facts.layout(config.tokens_per_image)
-    batch, horizon, dims = 2, config.action_horizon, config.action_dim
-    meta = torch.device("meta")
-    inputs = SamplingInputs(
-        pixel_values=torch.empty(batch, len(layout.cameras), 3, 224, 224, device=meta),
-        image_masks=torch.empty(batch, len(layout.cameras), dtype=torch.bool, device=meta),
-        input_ids=torch.empty(batch, 48, dtype=torch.long, device=meta),
-        attention_mask=torch.empty(batch, 48, dtype=torch.bool, device=meta),
-        state=None if pi05 else torch.empty(batch, dims, device=meta),
-        noise=torch.empty(batch, horizon, dims, device=meta),
-        times=torch.empty(3, device=meta),
-        target=None if rtc_method is None else torch.empty(batch, horizon, dims, device=meta),
-        committed=torch.empty(batch, horizon, dtype=torch.bool, device=meta) if rtc_method == "conditioning" else None,
-    )
-    with torch.no_grad():
-        return model._sample(inputs, SamplingPlan(layout, (1.0, 2 / 3, 1 / 3), rtc_method))
-
-
 @pytest.mark.parametrize("pi05", [False, True])
 @pytest.mark.parametrize("rtc_method", [None, "conditioning"])
 def test_sampling_never_reads_the_device(pi05: bool, rtc_method: str | None) -> None:
-    """What a CUDA graph captures (plain sampling and RTC conditioning) has no host read at all."""
-    assert sampling_on_meta(pi05, rtc_method).shape == (2, 50, 32)
+    """What a CUDA graph captures (plain sampling and RTC conditioning) has no host read at all: on the meta device,
+    which holds no values, any read of one (`.item()`, `bool()`, `.tolist()`, `nonzero`, boolean indexing) raises."""
+    config = PI0Config.from_preset("pi05_small" if pi05 else "pi0_small", rtc_max_delay=4)
+    facts = InputFacts(image_masks=((True, True, False), (True, False, False)), text_counts=(20, 9), text_length=48)
+    actions, _ = sample_on_meta(config, facts, steps=3, rtc_method=rtc_method)
+    assert actions.shape == (2, 50, 32) and actions.is_meta
 
 
 def test_a_host_read_would_be_caught() -> None:
