@@ -112,12 +112,12 @@ class AdaRMSNorm(nn.Module):
         self.eps = eps
         self.modulation = nn.Linear(dim, 3 * dim)
 
-    def params(self, condition: torch.Tensor, projection: nn.Module | None = None) -> NormParams:
-        """With `projection`, the plain linear layer after this norm, also the shift through it (`shift_projected`),
-        for `project_normed` to add in that layer's GEMM."""
+    def params(self, condition: torch.Tensor, projection_weight: torch.Tensor | None = None) -> NormParams:
+        """With `projection_weight`, the transposed weight `[D, out]` of the projection after this norm in a sampling
+        pass (`SamplingWeights`), also the shift through it (`shift_projected`), for `project_normed` to add in that
+        projection's GEMM."""
         scale, shift, gate = self.modulation(condition).chunk(3, dim=-1)
-        folds = projection is not None and _is_plain_linear(projection, shift)
-        return NormParams(1 + scale, shift, gate, F.linear(shift, projection.weight) if folds else None)
+        return NormParams(1 + scale, shift, gate, None if projection_weight is None else shift @ projection_weight)
 
     def forward(self, x: torch.Tensor, params: NormParams) -> torch.Tensor:
         if params.scale.dim() == 1 and params.scale.dtype == x.dtype:  # one scale for every token (a sampling step)
@@ -168,48 +168,80 @@ class ExpertLayer(nn.Module):
         gate, up = gate_up.chunk(2, dim=-1)
         return F.gelu(gate, approximate="tanh") * up
 
+    def sampling_weights(self) -> SamplingWeights:
+        """The projections' weights for a sampling pass (`SamplingWeights`), or `CALL_MODULES` where running the GEMMs
+        on them is not what calling the modules does: a projection that is not a bias-free `nn.Linear` itself (LoRA,
+        quantized layers) or whose weight is not a plain parameter (a tensor subclass: quantized weights, FSDP2's
+        DTensor shards), a hook or a replaced `forward` on a projection or norm (offloading, pruning, a user's hooks),
+        or autocast."""
+        projections = (self.qkv_proj, self.o_proj, self.gate_up_proj, self.down_proj)
+        if any(type(p) is not nn.Linear or p.bias is not None or type(p.weight) is not nn.Parameter for p in projections):
+            return CALL_MODULES
+        if any(_runs_extra_code(module) for module in (*projections, self.attn_norm, self.mlp_norm)):
+            return CALL_MODULES
+        device = self.qkv_proj.weight.device.type
+        if torch.amp.is_autocast_available(device) and torch.is_autocast_enabled(device):
+            return CALL_MODULES
+        return SamplingWeights(*(p.weight.t() for p in projections))
 
-def project_normed(norm: nn.Module, projection: nn.Module, x: torch.Tensor, params: NormParams | None) -> torch.Tensor:
-    """`projection(norm(x, params))`. A sampling step's adaRMS shift, when `params` holds it through the projection
-    (`shift_projected`, for every step at once; `AdaRMSNorm.params` makes it only for a plain linear layer), is added
-    in the projection's GEMM as its bias instead of to the normed tokens: `(normed + shift) W^T = normed W^T +
-    shift W^T`, one kernel fewer (bf16: rounded in another order than openpi's, within bf16 rounding)."""
-    if params is not None and params.shift_projected is not None and params.scale.dim() == 1:
-        return torch.addmm(params.shift_projected, rms_norm(x, norm.eps, params.scale), projection.weight.t())
-    return projection(norm(x, params))
+
+def _runs_extra_code(module: nn.Module) -> bool:
+    """Whether calling `module` runs more than its own class's `forward`: hooks (its own or global) or a `forward`
+    replaced on the instance."""
+    if module._forward_hooks or module._forward_pre_hooks or "forward" in module.__dict__:
+        return True
+    return bool(_global_forward_hooks or _global_forward_pre_hooks)  # (nn.Module's registries, mutated in place)
+
+
+@dataclass(frozen=True)
+class SamplingWeights:
+    """One expert layer's projection weights, transposed `[in, out]` (views, taken once per sampling call), for the
+    passes of sampling, which run the GEMMs on them instead of calling the modules (`ExpertLayer.sampling_weights`:
+    only where that is the same). Per layer and step that saves each projection's transpose and module call, and lets
+    the residual stream accumulate the o- and down-projections in place (`add_projection`). `CALL_MODULES` holds
+    none: the modules are called."""
+
+    qkv: torch.Tensor | None  # [D, (N + 2K) H]
+    o: torch.Tensor | None  # [N H, D]
+    gate_up: torch.Tensor | None  # [D, 2 * mlp_width]
+    down: torch.Tensor | None  # [mlp_width, D]
+
+
+CALL_MODULES = SamplingWeights(None, None, None, None)
+
+
+def project_normed(
+    norm: nn.Module, projection: nn.Module, x: torch.Tensor, params: NormParams | None, weight: torch.Tensor | None = None
+) -> torch.Tensor:
+    """`projection(norm(x, params))`, or in a sampling pass (`weight`: the projection's `SamplingWeights` entry) the
+    GEMM on the normed tokens. There a sampling step's adaRMS shift, when `params` holds it through the projection
+    (`shift_projected`, for every step at once, see `AdaRMSNorm.params`), is added in the GEMM as its bias instead of
+    to the normed tokens: `(normed + shift) W^T = normed W^T + shift W^T`, one kernel fewer (bf16: rounded in another
+    order than openpi's, within bf16 rounding)."""
+    if weight is None:
+        return projection(norm(x, params))
+    if params is not None and params.shift_projected is not None:
+        return torch.addmm(params.shift_projected, rms_norm(x, norm.eps, params.scale), weight)
+    return torch.mm(norm.forward(x, params), weight)  # (no hooks to run: see `ExpertLayer.sampling_weights`)
 
 
 def add_projection(
-    residual: torch.Tensor, projection: nn.Module, y: torch.Tensor, gate: torch.Tensor | None, in_place: bool = False
+    residual: torch.Tensor, projection: nn.Module, y: torch.Tensor, gate: torch.Tensor | None, weight: torch.Tensor | None = None
 ) -> torch.Tensor:
     """The residual update after attention and after the MLP: `residual + projection(y)` (adaRMS: `residual +
     projection(y) * gate`, one `addcmul`).
 
-    `in_place` (a sampling pass: no gradients, and the caller never reads `residual` again) accumulates a plain
-    linear layer into the residual with `addmm_`: one GEMM kernel with beta = 1 instead of a GEMM and an add (an
-    out-of-place `addmm` is no better on CUDA: it copies the residual into its output first). The sum is then rounded
-    once, where openpi rounds the projection and then the sum: the same in float32 to an ulp, within bf16 rounding in
-    bf16. A compiled layer keeps the add, which Inductor fuses into the next kernel.
+    In a sampling pass (`weight`: the projection's `SamplingWeights` entry; the caller never reads `residual` again)
+    the projection accumulates into the residual with `addmm_`: one GEMM kernel with beta = 1 instead of a GEMM and
+    an add (an out-of-place `addmm` is no better on CUDA: it copies the residual into its output first). The sum is
+    then rounded once, where openpi rounds the projection and then the sum: the same in float32 to an ulp, within
+    bf16 rounding in bf16.
     """
     if gate is not None:
-        return torch.addcmul(residual, projection(y), gate)
-    if in_place and not torch.compiler.is_compiling() and _is_plain_linear(projection, residual):
-        return residual.addmm_(y, projection.weight.t())
+        return torch.addcmul(residual, projection(y) if weight is None else torch.mm(y, weight), gate)
+    if weight is not None:
+        return residual.addmm_(y, weight)
     return residual + projection(y)
-
-
-def _is_plain_linear(module: nn.Module, x: torch.Tensor) -> bool:
-    """Whether calling `module` on `x` is nothing but its weight's GEMM: a bias-free `nn.Linear` of `x`'s dtype, not a
-    subclass (LoRA, quantized layers), with no forward hooks or replaced `forward` (offloading, pruning, a user's
-    hooks), outside autocast."""
-    if type(module) is not nn.Linear or module.bias is not None or module.weight.dtype != x.dtype:
-        return False
-    if module._forward_hooks or module._forward_pre_hooks or "forward" in module.__dict__:
-        return False
-    if _global_forward_hooks or _global_forward_pre_hooks:  # (nn.Module's registries, mutated in place)
-        return False
-    device = x.device.type
-    return not (torch.amp.is_autocast_available(device) and torch.is_autocast_enabled(device))
 
 
 @dataclass
@@ -244,6 +276,14 @@ class JointDecoderLayer(GradientCheckpointingLayer):
         self.head_dim = config.head_dim
         self._compiled_run: Any = None
 
+    def sampling_weights(self, vlm: bool, expert: bool) -> tuple[SamplingWeights, SamplingWeights]:
+        """The (VLM, action expert) `SamplingWeights` of a sampling pass that runs the given experts. A compiled layer
+        calls its modules (`CALL_MODULES`) and keeps the adds, which Inductor fuses itself."""
+        if self.compiled:
+            return CALL_MODULES, CALL_MODULES
+        vlm_weights = self.vlm.sampling_weights() if vlm else CALL_MODULES
+        return vlm_weights, self.expert.sampling_weights() if expert else CALL_MODULES
+
     def compile_run(self, **compile_kwargs: Any) -> None:
         """`torch.compile` `run` for this layer (`compile_run(disable=True)`: back to eager)."""
         self._compiled_run = None if compile_kwargs.get("disable") else torch.compile(self.run, **compile_kwargs)
@@ -265,6 +305,7 @@ class JointDecoderLayer(GradientCheckpointingLayer):
         expert_norms: tuple[NormParams, NormParams] | None = None,  # the action expert's (attention, MLP) norms
         keys_only: bool = False,
         write_cache: bool = True,
+        weights: tuple[SamplingWeights, SamplingWeights] = (CALL_MODULES, CALL_MODULES),  # (VLM, expert) in sampling
     ) -> tuple[torch.Tensor | None, torch.Tensor | None]:
         """Returns the updated (prefix, suffix).
 
@@ -273,25 +314,28 @@ class JointDecoderLayer(GradientCheckpointingLayer):
         untouched: a sampling step that is differentiated). Without (a training pass) the streams attend to their own
         k/v. `expert_norms` default to the action expert's own RMSNorm weights (π0; π0.5 passes its adaRMS params).
         `keys_only` stops once the k/v are written (the last layer of the cached prefix: its outputs are never read)
-        and returns (None, None). A sampling pass (a cache written, no gradients) updates the residual streams in
-        place (`add_projection`): the caller does not read `prefix` / `suffix` again.
+        and returns (None, None). A sampling pass (a cache written, no gradients) runs each expert's GEMMs on its
+        `weights` where given (`SamplingWeights`) and updates those residual streams in place (`add_projection`):
+        the caller does not read `prefix` / `suffix` again.
         """
-        layers = ((self.vlm, prefix, None), (self.expert, suffix, expert_norms))
-        in_place = cache is not None and write_cache and not torch.is_grad_enabled()  # a sampling pass
+        sampling = cache is not None and write_cache and not torch.is_grad_enabled()
+        if not sampling:
+            weights = (CALL_MODULES, CALL_MODULES)
+        layers = ((self.vlm, prefix, None, weights[0]), (self.expert, suffix, expert_norms, weights[1]))
         queries: list[torch.Tensor | None] = [None, None]
         gates: list[torch.Tensor | None] = [None, None]
         new_keys, new_values = [], []  # [B, K, T, H] of the streams that do not write into a cache
-        for index, ((expert, x, norms), stream) in enumerate(zip(layers, streams)):
+        for index, ((expert, x, norms, own), stream) in enumerate(zip(layers, streams)):
             if x is None:
                 continue
             attn_params = norms[0] if norms is not None else None
             gates[index] = attn_params.gate if attn_params is not None else None
-            qkv = project_normed(expert.attn_norm, expert.qkv_proj, x, attn_params)  # [B * T, (N + 2K) H]
+            qkv = project_normed(expert.attn_norm, expert.qkv_proj, x, attn_params, own.qkv)  # [B * T, (N + 2K) H]
             heads, kv_heads = expert.heads[:2]
             qk, v = qkv.view(-1, stream.tokens, qkv.shape[-1] // self.head_dim, self.head_dim).split(
                 (heads + kv_heads, kv_heads), dim=2
             )
-            rounded = qk.new_empty(qk.shape) if in_place and qk.dtype != torch.float32 else None  # (bf16 sampling)
+            rounded = qk.new_empty(qk.shape) if sampling and qk.dtype != torch.float32 else None  # (bf16 sampling)
             q, k = apply_rope(qk, stream.cos, stream.sin, out=rounded).split((heads, kv_heads), dim=2)  # one rotation
             k, v = k.to(x.dtype).transpose(1, 2), v.transpose(1, 2)  # [B, K, T, H]
             if cache is not None and write_cache:  # (`.to`: under autocast the cache and the streams' dtypes differ)
@@ -314,15 +358,15 @@ class JointDecoderLayer(GradientCheckpointingLayer):
             return None, None
 
         outputs: list[torch.Tensor | None] = [None, None]
-        for index, ((expert, x, norms), stream) in enumerate(zip(layers, streams)):
+        for index, ((expert, x, norms, own), stream) in enumerate(zip(layers, streams)):
             if x is None:
                 continue
             attended = attend(queries[index], keys, values, stream.attention)  # [B * T, N * H]
-            x = add_projection(x, expert.o_proj, attended, gates[index], in_place)
+            x = add_projection(x, expert.o_proj, attended, gates[index], own.o)
             mlp_params = norms[1] if norms is not None else None
-            hidden = expert.geglu(project_normed(expert.mlp_norm, expert.gate_up_proj, x, mlp_params))
+            hidden = expert.geglu(project_normed(expert.mlp_norm, expert.gate_up_proj, x, mlp_params, own.gate_up))
             mlp_gate = mlp_params.gate if mlp_params is not None else None
-            outputs[index] = add_projection(x, expert.down_proj, hidden, mlp_gate, in_place)
+            outputs[index] = add_projection(x, expert.down_proj, hidden, mlp_gate, own.down)
         return outputs[0], outputs[1]
 
 
@@ -454,11 +498,12 @@ class PrefixCache:
 @dataclass
 class ActionPass:
     """What every sampling step shares, built once per call: the cache, the action tokens' stream (RoPE, key range,
-    slots), and π0's time-independent parts (the action half of `action_time_mlp_in`, transposed, and the action
-    expert's norm params)."""
+    slots), the action expert's `SamplingWeights` of each layer, and π0's time-independent parts (the action half of
+    `action_time_mlp_in`, transposed, and the action expert's norm params)."""
 
     cache: PrefixCache
     stream: StreamPass
+    expert_weights: list[SamplingWeights]
     action_weight: torch.Tensor | None  # π0: [D1, D1]
     expert_norms: list[tuple[NormParams, NormParams]] | None  # π0: per layer (attention, MLP)
     final_norm: NormParams | None  # π0
@@ -758,19 +803,17 @@ class PI0ForActionGeneration(SiglipImageEmbedding, PI0PreTrainedModel):
         width = config.expert_hidden_size
         return F.linear(embedding, self.action_time_mlp_in.weight[:, width:], self.action_time_mlp_in.bias)
 
-    def conditioning(self, time: torch.Tensor, shared: bool = False) -> StepConditioning:
+    def conditioning(self, time: torch.Tensor, weights: Sequence[SamplingWeights] | None = None) -> StepConditioning:
         """The suffix's time conditioning for flow times `[T]`, every tensor `[T, ...]` (see `StepConditioning`).
-        `shared`: each time conditions every token alike (sampling), so π0.5's shifts also go through the projections
-        after their norms (`project_normed`)."""
+        `weights`: the action expert's `SamplingWeights` of each layer in a sampling pass where each time conditions
+        every token alike; π0.5's shifts then also go through the projections after their norms (`project_normed`)."""
         condition = self.time_conditioning(time)
         if not self.config.pi05:
             return StepConditioning(condition, None, None)
+        weights = weights or [CALL_MODULES] * len(self.layers)
         layer_norms = tuple(
-            (
-                layer.expert.attn_norm.params(condition, layer.expert.qkv_proj if shared else None),
-                layer.expert.mlp_norm.params(condition, layer.expert.gate_up_proj if shared else None),
-            )
-            for layer in self.layers
+            (layer.expert.attn_norm.params(condition, own.qkv), layer.expert.mlp_norm.params(condition, own.gate_up))
+            for layer, own in zip(self.layers, weights)
         )
         return StepConditioning(None, layer_norms, self.expert_final_norm.params(condition))
 
@@ -925,7 +968,8 @@ class PI0ForActionGeneration(SiglipImageEmbedding, PI0PreTrainedModel):
         )
         x, state = prefix, None if config.pi05 else self.embed_state(inputs.state)
         for index, (layer, layer_keys, layer_values) in enumerate(zip(self.layers, keys, values)):
-            x, state = layer(x, state, streams, (layer_keys, layer_values), keys_only=index == len(self.layers) - 1)
+            weights = layer.sampling_weights(vlm=True, expert=state is not None)
+            x, state = layer(x, state, streams, (layer_keys, layer_values), keys_only=index == len(self.layers) - 1, weights=weights)
         return PrefixCache(keys, values, first, layout)
 
     def action_pass(self, cache: PrefixCache, differentiable: bool = False) -> ActionPass:
@@ -935,11 +979,12 @@ class PI0ForActionGeneration(SiglipImageEmbedding, PI0PreTrainedModel):
         first_slot = cache.slots - config.action_horizon
         kernel = self._kernel(cache.first.device, cache.keys[0].dtype, differentiable)
         stream = self._suffix_stream(cache.first, cache.layout, first_slot, (config.action_horizon,), kernel, cache.slots)
+        weights = [layer.sampling_weights(vlm=False, expert=not differentiable)[1] for layer in self.layers]
         if config.pi05:
-            return ActionPass(cache, stream, None, None, None)
+            return ActionPass(cache, stream, weights, None, None, None)
         expert_norms = [(layer.expert.attn_norm.params(), layer.expert.mlp_norm.params()) for layer in self.layers]
         action_weight = self.action_time_mlp_in.weight[:, : config.expert_hidden_size].t()
-        return ActionPass(cache, stream, action_weight, expert_norms, self.expert_final_norm.params())
+        return ActionPass(cache, stream, weights, action_weight, expert_norms, self.expert_final_norm.params())
 
     def denoise_step(
         self, actions: ActionPass, x_t: torch.Tensor, conditioning: StepConditioning, write_cache: bool = True
@@ -950,8 +995,10 @@ class PI0ForActionGeneration(SiglipImageEmbedding, PI0PreTrainedModel):
         tokens = self.embed_actions(x_t, conditioning.condition, actions.action_weight)
         norms = conditioning.layer_norms if self.config.pi05 else actions.expert_norms
         cache = actions.cache
-        for layer, keys, values, layer_norms in zip(self.layers, cache.keys, cache.values, norms):
-            _, tokens = layer(None, tokens, (None, actions.stream), (keys, values), layer_norms, write_cache=write_cache)
+        for layer, keys, values, layer_norms, weights in zip(self.layers, cache.keys, cache.values, norms, actions.expert_weights):
+            _, tokens = layer(
+                None, tokens, (None, actions.stream), (keys, values), layer_norms, write_cache=write_cache, weights=(CALL_MODULES, weights)
+            )
         final_norm = conditioning.final_norm if self.config.pi05 else actions.final_norm
         velocity = self.action_out_proj(self.expert_final_norm(tokens, final_norm))
         return velocity.view(x_t.shape[0], -1, velocity.shape[-1]).float()
@@ -1051,7 +1098,7 @@ class PI0ForActionGeneration(SiglipImageEmbedding, PI0PreTrainedModel):
         cache = self.cache_prefix(inputs, plan.layout)
         actions = self.action_pass(cache, differentiable=plan.rtc_method == "guidance")
         committed = inputs.committed
-        steps = self.conditioning(inputs.times, shared=committed is None).steps()
+        steps = self.conditioning(inputs.times, actions.expert_weights if committed is None else None).steps()
         if committed is not None:  # committed actions take the conditioning of flow time 0
             clean = self.conditioning(inputs.times.new_zeros(1)).steps()[0]
             steps = [step.per_token(self.config.action_horizon, committed, clean) for step in steps]
