@@ -191,8 +191,8 @@ def test_sampling_runs_the_gemms_on_transposed_weights_and_accumulates_in_place(
     the GEMMs on them: `add_projection` adds a projection into the residual with one in-place `addmm_` (no transpose,
     no separate add; an out-of-place `addmm` would copy the residual first on CUDA), the numbers of the module call.
     Layers whose call is more than the GEMM (a `nn.Linear` subclass such as LoRA, a tensor-subclass weight, hooks on
-    a projection or norm, a replaced `forward`, global hooks, autocast) and compiled layers call their modules
-    (`CALL_MODULES`)."""
+    a projection or norm, a replaced `forward`, global hooks, autocast) call their modules (`CALL_MODULES`), and so
+    do compiled layers and layers with hooks of their own (block offloading puts the weights in place in one)."""
     torch.manual_seed(0)
     config = PI0Config.from_preset("pi0_small")
     layer = JointDecoderLayer(config)
@@ -235,13 +235,15 @@ def test_sampling_runs_the_gemms_on_transposed_weights_and_accumulates_in_place(
         "a pre-hook on a norm": lambda layer: layer.expert.mlp_norm.register_forward_pre_hook(lambda *_: None),
         "a replaced forward": lambda layer: setattr(layer.expert.o_proj, "forward", layer.expert.o_proj.forward),
         "a compiled layer": lambda layer: layer.compile_run(),
+        "a hook on the layer": lambda layer: layer.register_forward_pre_hook(lambda *_: None),
     }
     for change, apply in changes.items():
         layer = JointDecoderLayer(config)
         apply(layer)
         vlm_weights, expert_weights = layer.sampling_weights(vlm=True, expert=True)
         assert expert_weights is CALL_MODULES, change
-        assert (vlm_weights is CALL_MODULES) == (change == "a compiled layer"), change  # (the VLM's own layer is plain)
+        whole_layer = change in ("a compiled layer", "a hook on the layer")
+        assert (vlm_weights is CALL_MODULES) == whole_layer, change  # (the VLM's own projections are plain)
     with torch.autocast("cpu", dtype=torch.bfloat16):
         assert expert.sampling_weights() is CALL_MODULES
     handle = nn.modules.module.register_module_forward_hook(lambda *_: None)
@@ -266,6 +268,30 @@ def test_sampling_keeps_hooks_and_runs_under_autocast() -> None:
         getattr(model.layers[0].expert, name).register_forward_hook(lambda *_, name=name: calls.append(name))
     model.generate_actions(**inputs, noise=noise, num_steps=2)
     assert sorted(set(calls)) == ["down_proj", "gate_up_proj", "o_proj", "qkv_proj"] and len(calls) == 4 * 3  # π0: state, 2 steps
+
+
+def test_sampling_sees_weights_that_a_layer_hook_puts_in_place() -> None:
+    """Block offloading: a pre-hook on each decoder layer puts its weights in place and a post-hook takes them away
+    again. Sampling reads the weights the hook put there (the layer calls its modules), the same actions as without."""
+    model = PI0ForActionGeneration(PI0Config.from_preset("pi0_small")).eval()
+    inputs = random_batch(model.config, batch=1, seed=8)
+    noise = torch.randn(1, model.config.action_horizon, model.config.action_dim, generator=torch.Generator().manual_seed(9))
+    expected = model.generate_actions(**inputs, noise=noise, num_steps=2)
+    for layer in model.layers:
+        weights = {parameter: parameter.data for parameter in layer.parameters()}
+
+        def load(*_: Any, weights: dict = weights) -> None:
+            for parameter, data in weights.items():
+                parameter.data = data
+
+        def unload(*_: Any, weights: dict = weights) -> None:
+            for parameter, data in weights.items():
+                parameter.data = torch.zeros_like(data)
+
+        layer.register_forward_pre_hook(load)
+        layer.register_forward_hook(unload)
+        unload()
+    torch.testing.assert_close(model.generate_actions(**inputs, noise=noise, num_steps=2), expected, rtol=0, atol=0)
 
 
 def test_pi05_sampling_adds_the_adarms_shift_in_the_projection_exactly() -> None:

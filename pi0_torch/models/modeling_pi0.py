@@ -278,8 +278,10 @@ class JointDecoderLayer(GradientCheckpointingLayer):
 
     def sampling_weights(self, vlm: bool, expert: bool) -> tuple[SamplingWeights, SamplingWeights]:
         """The (VLM, action expert) `SamplingWeights` of a sampling pass that runs the given experts. A compiled layer
-        calls its modules (`CALL_MODULES`) and keeps the adds, which Inductor fuses itself."""
-        if self.compiled:
+        calls its modules (`CALL_MODULES`) and keeps the adds, which Inductor fuses itself; so does a layer with hooks
+        or a replaced `forward` of its own (block offloading puts the weights in place in a hook, after this is
+        called; a hook that keeps the layer's outputs must not see them updated in place)."""
+        if self.compiled or _runs_extra_code(self):
             return CALL_MODULES, CALL_MODULES
         vlm_weights = self.vlm.sampling_weights() if vlm else CALL_MODULES
         return vlm_weights, self.expert.sampling_weights() if expert else CALL_MODULES
