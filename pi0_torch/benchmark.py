@@ -7,7 +7,8 @@ CUDA allocator's peak on GPU, the process's peak resident set size (sampled ever
     pi0-torch bench                                     # small + medium, 1 and 3 cameras, batch 1 and 8
     pi0-torch bench --presets pi0 --dtypes bfloat16 --cameras 3 --batches 1   # full size
     pi0-torch bench --presets pi0,pi05 --dtypes bfloat16 --compile --device cuda
-                                                        # GPU: eager, graph, compiled, compiled+graph rows, set-up
+                                                        # GPU: eager, graph, compiled, compiled+graph rows, set-up,
+                                                        # and each row's GPU work (profiler: activities, GPU ms)
     pi0-torch bench --ops                               # ATen ops of one generate_actions (a launch-count proxy)
     pi0-torch bench --side-by-side                      # against transformers' PI0, identical weights
     pi0-torch bench --loading                           # peak RSS of from_pretrained on a full-size bf16 checkpoint
@@ -106,6 +107,20 @@ def time_call(fn: Callable[[], object], device: torch.device, repeats: int, warm
     with peak_memory(device) as peak:
         durations = [seconds(fn, device) for _ in range(repeats)]
     return Timing(statistics.median(durations), min(durations), max(durations), peak[0])
+
+
+def gpu_work(fn: Callable[[], object], device: torch.device) -> tuple[int, float]:
+    """What one call of `fn` runs on a CUDA `device`, by the profiler (CUPTI): the number of GPU activities (kernels,
+    copies, memsets) and their summed GPU time in seconds. Against the call's wall time it tells a launch-bound call
+    (wall time far above the GPU time) from a GPU-bound one."""
+    from torch.profiler import ProfilerActivity, profile
+
+    torch.cuda.synchronize(device)
+    with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as profiler:
+        fn()
+        torch.cuda.synchronize(device)
+    work = [event for event in profiler.events() if event.device_type == torch.autograd.DeviceType.CUDA]
+    return len(work), sum(event.time_range.elapsed_us() for event in work) / 1e6
 
 
 def time_alternating(fns: Sequence[Callable[[], object]], device: torch.device, repeats: int) -> list[list[float]]:
@@ -223,8 +238,10 @@ def bench_generate(args: argparse.Namespace, device: torch.device) -> None:
           "first call in each mode (compiling, capturing)")
     peaks = {dtype: matmul_throughput(device, getattr(torch, dtype)) for dtype in args.dtypes}
     print("measured matmul ceiling: " + ", ".join(f"{d} {v / 1e9:.0f} GFLOP/s" for d, v in peaks.items()))
+    cuda = device.type == "cuda"  # (then also the GPU work of one call: activities and their time, by the profiler)
     print(f"{'preset':12s} {'dtype':9s} {'mode':14s} {'cams':>4s} {'batch':>5s} {'set-up s':>8s} {'median ms':>10s} "
-          f"{'min ms':>10s} {'max ms':>10s} {'peak MiB':>10s} {'GFLOP/s':>8s} {'% peak':>6s}")
+          f"{'min ms':>10s} {'max ms':>10s} {'peak MiB':>10s} {'GFLOP/s':>8s} {'% peak':>6s}"
+          + (f" {'GPU ops':>7s} {'GPU ms':>7s}" if cuda else ""))
     for preset in args.presets:
         config = PI0Config.from_preset(preset)
         for dtype_name in args.dtypes:
@@ -237,8 +254,12 @@ def bench_generate(args: argparse.Namespace, device: torch.device) -> None:
                         setup = seconds(lambda: model.generate_actions(**inputs), device)
                         timing = time_call(lambda: model.generate_actions(**inputs), device, args.repeats)
                         achieved = generate_flops(config, cameras, batch) / timing.median
+                        work = ""
+                        if cuda:
+                            activities, gpu_seconds = gpu_work(lambda: model.generate_actions(**inputs), device)
+                            work = f" {activities:7d} {gpu_seconds * 1e3:7.1f}"
                         print(f"{preset:12s} {dtype_name:9s} {mode:14s} {cameras:4d} {batch:5d} {setup:8.1f} {timing.row()} "
-                              f"{achieved / 1e9:8.0f} {100 * achieved / peaks[dtype_name]:6.0f}")
+                              f"{achieved / 1e9:8.0f} {100 * achieved / peaks[dtype_name]:6.0f}{work}")
             del model
             gc.collect()
 

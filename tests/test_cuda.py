@@ -133,3 +133,19 @@ def test_compiled_sampling_replays_as_one_graph(reference: OpenpiReference) -> N
     assert model.sampling_compiled and model.sampling_captured
     for _ in range(2):
         assert relative(model.generate_actions(**inputs, noise=noise), eager) <= 2e-2
+
+
+def test_bench_counts_the_gpu_work_of_a_call(reference: OpenpiReference) -> None:
+    """`pi0-torch bench` on CUDA adds each row's GPU work (activities and GPU time, by the profiler). A graph replay
+    runs the eager call's kernels (plus its input copies) and no more; the numbers are printed for the notes."""
+    from pi0_torch.benchmark import gpu_work
+
+    model, inputs, noise = on_cuda(reference, torch.bfloat16)
+    eager_ops, eager_seconds = gpu_work(lambda: model.generate_actions(**inputs, noise=noise), CUDA)
+    model.capture_sampling()
+    model.generate_actions(**inputs, noise=noise)  # (captured here)
+    graph_ops, graph_seconds = gpu_work(lambda: model.generate_actions(**inputs, noise=noise), CUDA)
+    print(f"GPU work of one call: eager {eager_ops} activities, {eager_seconds * 1e3:.2f} ms; "
+          f"graph {graph_ops} activities, {graph_seconds * 1e3:.2f} ms")
+    assert eager_ops > 0 and eager_seconds > 0 and graph_seconds > 0
+    assert graph_ops <= eager_ops + 16
