@@ -374,6 +374,27 @@ def test_regional_compilation_compiles_each_layer_kind_once() -> None:
     assert entries == [3, 3]
 
 
+@pytest.mark.slow
+def test_regional_compilation_serves_many_models_in_one_process() -> None:
+    """The compiled layers' code is shared by every model of a process. π0 and π0.5, float32 and bf16, batch 1 and 2
+    make 24 decoder-layer graphs, past Dynamo's default limit of 8 per code object (a `fullgraph` compile then fails):
+    each compiles and keeps its numbers."""
+    torch._dynamo.reset()
+    for preset in ("pi0_small", "pi05_small"):
+        for dtype, tolerance in ((torch.float32, 1e-4), (torch.bfloat16, 3e-2)):
+            torch.manual_seed(0)
+            model = PI0ForActionGeneration(PI0Config.from_preset(preset, num_hidden_layers=2)).eval().to(dtype)
+            for batch in (1, 2):
+                inputs = random_batch(model.config, batch, seed=batch)
+                noise = torch.randn(batch, model.config.action_horizon, model.config.action_dim, generator=torch.Generator().manual_seed(batch))
+                eager = model.generate_actions(**inputs, noise=noise, num_steps=2)
+                model.compile_sampling()
+                compiled = model.generate_actions(**inputs, noise=noise, num_steps=2)
+                model.compile_sampling(disable=True)
+                torch.testing.assert_close(compiled, eager, rtol=tolerance, atol=tolerance)
+    assert len(torch._dynamo.eval_frame._debug_get_cache_entry_list(JointDecoderLayer.run.__code__)) > 8
+
+
 def test_capture_sampling_leaves_cpu_sampling_eager() -> None:
     """CUDA graphs only replace sampling on CUDA inputs: on the CPU a model with `capture_sampling` samples as before."""
     model = PI0ForActionGeneration(PI0Config.from_preset("pi05_small")).eval()

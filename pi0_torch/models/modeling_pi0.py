@@ -695,6 +695,10 @@ class PI0ForActionGeneration(SiglipImageEmbedding, PI0PreTrainedModel):
 
     # prefix slots of a captured sampling graph are a multiple of this: prompts of similar length share a graph
     GRAPH_PREFIX_BUCKET = 32
+    # Regional compilation shares each compiled layer's code among every model, pass, dtype and batch-size class (1, or
+    # more) of the process: π0 and π0.5 in float32 and bf16 are 24 decoder-layer graphs. Dynamo's default limit of 8 per
+    # code object would fail a `fullgraph` compile after a few of them, so `compile_sampling` raises it to this.
+    RECOMPILE_LIMIT = 64
 
     def __init__(self, config: PI0Config) -> None:
         super().__init__(config)
@@ -1183,7 +1187,9 @@ class PI0ForActionGeneration(SiglipImageEmbedding, PI0PreTrainedModel):
         `compile_kwargs` go to `torch.compile`, with `fullgraph=True` and `dynamic=True` unless given.
         `mode="reduce-overhead"` means: compile, and (on CUDA) replay the whole sampling as one CUDA graph
         (`capture_sampling`), which then holds the compiled kernels. For inference: a compiled decoder layer skips
-        gradient checkpointing. `compile_sampling(disable=True)` goes back to eager layers (and no graphs).
+        gradient checkpointing. `compile_sampling(disable=True)` goes back to eager layers (and no graphs). Raises
+        Dynamo's recompile limit to `RECOMPILE_LIMIT` (process-wide) when it is lower: the compiled layers of every
+        model in the process share their code.
         """
         self._graphs = None
         vision_layers = self.vision_tower.encoder.layers
@@ -1198,6 +1204,9 @@ class PI0ForActionGeneration(SiglipImageEmbedding, PI0PreTrainedModel):
             compile_kwargs.pop("mode")
         compile_kwargs.setdefault("fullgraph", True)
         compile_kwargs.setdefault("dynamic", True)  # one graph for every prompt length and batch size above 1
+        dynamo = torch._dynamo.config
+        limit = "recompile_limit" if hasattr(dynamo, "recompile_limit") else "cache_size_limit"  # (torch < 2.7)
+        setattr(dynamo, limit, max(getattr(dynamo, limit), self.RECOMPILE_LIMIT))
         for layer in self.layers:
             layer.compile_run(**compile_kwargs)
         for layer in vision_layers:
