@@ -275,11 +275,12 @@ def test_published_fast_checkpoint_converts_with_its_settings(
 
 def test_readme_quick_start_runs_as_written(bucket: FakeBucket, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """The README's Quick start, copied verbatim: its `pi0-torch` command (run in this process; the bucket serves
-    the small π0.5 fixture as pi05_droid), then its Python block."""
+    the small π0.5 fixture as pi05_droid), then its Python block, then its GPU block with "cuda" read as "cpu" (there
+    `capture_sampling` leaves sampling eager)."""
     readme = (Path(__file__).parents[1] / "README.md").read_text()
     section = readme.split("## Quick start", 1)[1].split("\n## ", 1)[0]
     (command,) = re.findall(r"```bash\n(.*?)```", section, flags=re.S)
-    (code,) = re.findall(r"```python\n(.*?)```", section, flags=re.S)
+    code, gpu_code = re.findall(r"```python\n(.*?)```", section, flags=re.S)
     program, *arguments = shlex.split(command)
     assert program == ".venv/bin/pi0-torch"
     monkeypatch.chdir(tmp_path)
@@ -288,6 +289,9 @@ def test_readme_quick_start_runs_as_written(bucket: FakeBucket, tmp_path: Path, 
     exec(compile(code, "README.md", "exec"), names)
     assert tuple(names["chunk"].shape) == (1, 15, 32) and tuple(names["actions"].shape) == (1, 15, 8)
     assert torch.isfinite(names["loss"])
+    exec(compile(gpu_code.replace('"cuda"', '"cpu"'), "README.md", "exec"), names)
+    assert names["model"].dtype == torch.bfloat16 and names["model"].sampling_captured
+    assert tuple(names["chunk"].shape) == (1, 15, 32) and torch.isfinite(names["chunk"]).all()
 
 
 def test_readme_offline_quick_start_runs_as_written(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture) -> None:

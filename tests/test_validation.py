@@ -106,6 +106,36 @@ def test_forward_refuses_bad_inputs(model: PI0ForActionGeneration, changes: dict
         model(**batch)
 
 
+@pytest.mark.parametrize("name", ["pixel_values", "image_masks", "input_ids", "attention_mask", "state", "noise"])
+def test_inputs_on_another_device_than_the_model_are_named(model: PI0ForActionGeneration, name: str) -> None:
+    """Before: a CUDA model given a processor's CPU tensors failed deep inside with torch's "Expected all tensors to be
+    on the same device" (here the `meta` device plays the other one)."""
+    batch = {**inputs(model.config), "noise": torch.zeros(1, 4, 8)}
+    batch[name] = batch[name].to("meta")
+    with pytest.raises(ValueError, match=rf"{name} is on meta but the model is on cpu: move the inputs .*inputs.to\(model.device\)"):
+        model.generate_actions(**batch)
+    batch.pop("noise")
+    if name != "noise":
+        with pytest.raises(ValueError, match=rf"{name} is on meta but the model is on cpu"):
+            model(**batch)
+
+
+def test_a_model_split_or_offloaded_by_a_device_map_is_refused(saved: Path, tmp_path: Path, model: PI0ForActionGeneration) -> None:
+    """`from_pretrained(..., device_map=...)` that offloads layers leaves their weights on `meta` until each module runs;
+    sampling read some outside their modules and failed with "Tensor on device meta is not on the expected device
+    cpu!". Now a one-line refusal says what to do. A device map with one place works as before."""
+    pytest.importorskip("accelerate")
+    device_map = {name: "cpu" for name, _ in model.named_children()} | {"layers": "disk"}
+    offloaded = PI0ForActionGeneration.from_pretrained(saved, device_map=device_map, offload_folder=str(tmp_path / "offload"))
+    batch = inputs(model.config)
+    for run in (lambda: offloaded.generate_actions(**batch), lambda: offloaded(**batch)):
+        with pytest.raises(ValueError, match=r"device_map placing its weights on \['cpu', 'disk'\]; it runs with every weight on one device"):
+            run()
+    placed = PI0ForActionGeneration.from_pretrained(saved, device_map={"": "cpu"}).eval()
+    noise = torch.randn(1, 4, 8, generator=torch.Generator().manual_seed(0))
+    torch.testing.assert_close(placed.generate_actions(**batch, noise=noise), model.generate_actions(**batch, noise=noise), rtol=0, atol=0)
+
+
 def test_policy_refuses_a_state_that_overflows_float32(model: PI0ForActionGeneration, tokenizer) -> None:
     """Before: 1e308 passed the float64 check and became inf -> NaN actions."""
     policy = PI0Policy(model, PI0Processor.from_config(model.config, tokenizer, norm_stats=STATS), seed=0)

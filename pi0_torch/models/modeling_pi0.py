@@ -1239,6 +1239,20 @@ class PI0ForActionGeneration(SiglipImageEmbedding, PI0PreTrainedModel):
 
     # -- input checks --------------------------------------------------------------------------------------------------
 
+    def _check_placement(self) -> None:
+        """Refuse a model that `from_pretrained(..., device_map=...)` split across devices or offloaded ("cpu" or
+        "disk" among several places): offloaded weights stay on the `meta` device until the module holding them runs,
+        and this model reads some outside their module's `forward` (the flow-time terms and the action expert's norm
+        scales it computes once for every sampling step)."""
+        device_map = getattr(self, "hf_device_map", None) or {}
+        places = {f"cuda:{place}" if isinstance(place, int) else str(place) for place in device_map.values()}
+        if len(places) > 1 or places & {"disk", "meta"}:
+            raise ValueError(
+                f"{type(self).__name__} was loaded with a device_map placing its weights on {sorted(places)}; it runs with "
+                "every weight on one device: load it onto one (device_map=\"cuda\", or no device_map and then "
+                ".to(device); a full-size model in bf16 needs about 7 GB of GPU memory)"
+            )
+
     def _check_inputs(
         self,
         pixel_values: torch.Tensor,
@@ -1252,9 +1266,10 @@ class PI0ForActionGeneration(SiglipImageEmbedding, PI0PreTrainedModel):
         layout need. Errors name the argument, expected and actual.
 
         `floats` are further float tensors to check when given: `noise` / `actions` `[B, horizon, action_dim]`, `time`
-        `[B]` (all finite).
+        `[B]` (all finite). Every tensor must be on the model's device.
         """
-        config = self.config
+        config, device = self.config, self.device
+        self._check_placement()
         if not isinstance(pixel_values, torch.Tensor) or pixel_values.dim() != 5:
             raise ValueError(
                 f"pixel_values must be a float tensor [B, num_cameras={config.num_cameras}, 3, {config.image_size}, "
@@ -1263,16 +1278,17 @@ class PI0ForActionGeneration(SiglipImageEmbedding, PI0PreTrainedModel):
         batch = pixel_values.shape[0]
         if batch == 0:
             raise ValueError("pixel_values: a batch of 0 samples; expected at least one")
-        _check_tensor("pixel_values", pixel_values, (batch, config.num_cameras, 3, config.image_size, config.image_size), floating=True, finite=False)
-        _check_tensor("image_masks", image_masks, (batch, config.num_cameras), dtypes=(torch.bool,))
+        image_shape = (batch, config.num_cameras, 3, config.image_size, config.image_size)
+        _check_tensor("pixel_values", pixel_values, image_shape, floating=True, finite=False, device=device)
+        _check_tensor("image_masks", image_masks, (batch, config.num_cameras), dtypes=(torch.bool,), device=device)
         if (not isinstance(input_ids, torch.Tensor) or input_ids.dim() != 2 or input_ids.shape[0] != batch
                 or not 1 <= input_ids.shape[1] <= config.max_token_len):
             raise ValueError(
                 f"input_ids must be a torch.Tensor [B={batch}, L] with 1 <= L <= max_token_len={config.max_token_len}, "
                 f"got {describe(input_ids)}"
             )
-        _check_tensor("input_ids", input_ids, tuple(input_ids.shape), dtypes=(torch.long, torch.int32))
-        _check_tensor("attention_mask", attention_mask, tuple(input_ids.shape), dtypes=(torch.bool, torch.long, torch.int32))
+        _check_tensor("input_ids", input_ids, tuple(input_ids.shape), dtypes=(torch.long, torch.int32), device=device)
+        _check_tensor("attention_mask", attention_mask, tuple(input_ids.shape), dtypes=(torch.bool, torch.long, torch.int32), device=device)
         if not config.pi05 or state is not None:
             if state is None:
                 raise ValueError(f"state is required by pi0: a float tensor [B={batch}, action_dim={config.action_dim}]")
@@ -1280,7 +1296,7 @@ class PI0ForActionGeneration(SiglipImageEmbedding, PI0PreTrainedModel):
         shapes = {"state": (batch, config.action_dim), "time": (batch,)}
         checked = {name: value for name, value in floats.items() if value is not None}
         for name, value in checked.items():
-            _check_tensor(name, value, shapes.get(name, (batch, config.action_horizon, config.action_dim)), floating=True, finite=False)
+            _check_tensor(name, value, shapes.get(name, (batch, config.action_horizon, config.action_dim)), floating=True, finite=False, device=device)
 
         # the one read: pixel range, token id range, finiteness, cameras shown and text tokens per sample
         ranges = torch.cat([torch.stack(pixel_values.aminmax()).float(), torch.stack(input_ids.aminmax()).float()])

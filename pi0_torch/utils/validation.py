@@ -111,13 +111,17 @@ def check_tensor(
     floating: bool = False,
     dtypes: tuple[torch.dtype, ...] = (),
     finite: bool = True,
+    device: torch.device | None = None,
 ) -> None:
     """A torch tensor of exactly `shape`; floating point if `floating` (and then finite unless `finite=False`);
-    with a dtype in `dtypes` when given."""
+    with a dtype in `dtypes` when given; on `device` (the model's) when given."""
     if not isinstance(value, torch.Tensor):
         raise ValueError(f"{name} must be a torch.Tensor of shape {tuple(shape)}, got {describe(value)}")
     if tuple(value.shape) != tuple(shape):
         raise ValueError(f"{name} must have shape {tuple(shape)}, got {tuple(value.shape)}")
+    if device is not None and value.device != device:
+        raise ValueError(f"{name} is on {value.device} but the model is on {device}: move the inputs to the model's "
+                         "device first (a processor's output: `inputs.to(model.device)`)")
     if floating and not value.is_floating_point():
         raise ValueError(f"{name} must be a floating-point tensor, got dtype {value.dtype}")
     if dtypes and value.dtype not in dtypes:
