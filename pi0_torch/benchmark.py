@@ -9,6 +9,7 @@ CUDA allocator's peak on GPU, the process's peak resident set size (sampled ever
     pi0-torch bench --presets pi0,pi05 --dtypes bfloat16 --compile --device cuda
                                                         # GPU: eager, graph, compiled, compiled+graph rows, set-up,
                                                         # and each row's GPU work (profiler: activities, GPU ms)
+    pi0-torch bench --rtc guidance,conditioning         # also chunks continued by real-time chunking
     pi0-torch bench --ops                               # ATen ops of one generate_actions (a launch-count proxy)
     pi0-torch bench --side-by-side                      # against transformers' PI0, identical weights
     pi0-torch bench --loading                           # peak RSS of from_pretrained on a full-size bf16 checkpoint
@@ -21,6 +22,7 @@ bfloat16 is emulated, many times slower than float32, and its rows would time th
 from __future__ import annotations
 
 import argparse
+import functools
 import gc
 import statistics
 import sys
@@ -40,9 +42,11 @@ from pi0_torch.models.configuration_pi0_fast import PI0FastConfig, fast_preset_n
 from pi0_torch.models.flow_matching import euler_times
 from pi0_torch.models.modeling_pi0 import InputFacts, PI0ForActionGeneration, SamplingInputs, SamplingPlan
 from pi0_torch.models.modeling_pi0_fast import PI0FastForActionGeneration
+from pi0_torch.models.rtc import DEFAULT_MAX_GUIDANCE, METHODS
 from pi0_torch.utils.op_count import AtenOpCounter
 
 TEXT_TOKENS = 48
+RTC_DELAY, RTC_EXECUTED = 3, 5  # --rtc rows: the continued chunk's inference delay and the steps executed before it
 BF16_MAX_SLOWDOWN = 4.0  # a bfloat16 matmul this many times slower than the float32 one is emulated
 
 
@@ -233,17 +237,27 @@ def set_sampling_mode(model: PI0ForActionGeneration, mode: str) -> None:
         model.capture_sampling()
 
 
+def rtc_options(config: PI0Config, batch: int, device: torch.device, method: str) -> dict[str, Any]:
+    """`generate_actions` arguments that continue a (random) previous chunk by real-time chunking with `method`:
+    `RTC_DELAY` steps of inference delay, `RTC_EXECUTED` executed since the previous chunk started."""
+    generator = torch.Generator().manual_seed(1)
+    previous = torch.randn(batch, config.action_horizon, config.action_dim, generator=generator).to(device)
+    return dict(previous_actions=previous, inference_delay=RTC_DELAY, execution_horizon=RTC_EXECUTED, rtc_method=method)
+
+
 def bench_generate(args: argparse.Namespace, device: torch.device) -> None:
     print(f"\ngenerate_actions on {device_name(device)}, {TEXT_TOKENS} text tokens, 50 actions, 10 steps; set-up: the "
-          "first call in each mode (compiling, capturing)")
+          "first call in each mode (compiling, capturing)"
+          + (f"; rtc: continuing a chunk (delay {RTC_DELAY}, {RTC_EXECUTED} steps executed; FLOP/s of plain sampling "
+             "not shown)" if args.rtc else ""))
     peaks = {dtype: matmul_throughput(device, getattr(torch, dtype)) for dtype in args.dtypes}
     print("measured matmul ceiling: " + ", ".join(f"{d} {v / 1e9:.0f} GFLOP/s" for d, v in peaks.items()))
     cuda = device.type == "cuda"  # (then also the GPU work of one call: activities and their time, by the profiler)
-    print(f"{'preset':12s} {'dtype':9s} {'mode':14s} {'cams':>4s} {'batch':>5s} {'set-up s':>8s} {'median ms':>10s} "
+    print(f"{'preset':12s} {'dtype':9s} {'mode':14s} {'rtc':12s} {'cams':>4s} {'batch':>5s} {'set-up s':>8s} {'median ms':>10s} "
           f"{'min ms':>10s} {'max ms':>10s} {'peak MiB':>10s} {'GFLOP/s':>8s} {'% peak':>6s}"
           + (f" {'GPU ops':>7s} {'GPU ms':>7s}" if cuda else ""))
     for preset in args.presets:
-        config = PI0Config.from_preset(preset)
+        config = PI0Config.from_preset(preset, rtc_max_delay=RTC_DELAY if "conditioning" in args.rtc else 0)
         for dtype_name in args.dtypes:
             model = random_model(config, getattr(torch, dtype_name), device)
             for mode in sampling_modes(args.compile, device):
@@ -251,15 +265,19 @@ def bench_generate(args: argparse.Namespace, device: torch.device) -> None:
                 for cameras in args.cameras:
                     for batch in args.batches:
                         inputs = example_batch(config, cameras, batch, device)
-                        setup = seconds(lambda: model.generate_actions(**inputs), device)
-                        timing = time_call(lambda: model.generate_actions(**inputs), device, args.repeats)
-                        achieved = generate_flops(config, cameras, batch) / timing.median
-                        work = ""
-                        if cuda:
-                            activities, gpu_seconds = gpu_work(lambda: model.generate_actions(**inputs), device)
-                            work = f" {activities:7d} {gpu_seconds * 1e3:7.1f}"
-                        print(f"{preset:12s} {dtype_name:9s} {mode:14s} {cameras:4d} {batch:5d} {setup:8.1f} {timing.row()} "
-                              f"{achieved / 1e9:8.0f} {100 * achieved / peaks[dtype_name]:6.0f}{work}")
+                        for method in [None, *args.rtc]:
+                            options = {} if method is None else rtc_options(config, batch, device, method)
+                            call = functools.partial(model.generate_actions, **inputs, **options)
+                            setup = seconds(call, device)
+                            timing = time_call(call, device, args.repeats)
+                            achieved = generate_flops(config, cameras, batch) / timing.median
+                            rate = f"{achieved / 1e9:8.0f} {100 * achieved / peaks[dtype_name]:6.0f}" if method is None else f"{'-':>8s} {'-':>6s}"
+                            work = ""
+                            if cuda:
+                                activities, gpu_seconds = gpu_work(call, device)
+                                work = f" {activities:7d} {gpu_seconds * 1e3:7.1f}"
+                            print(f"{preset:12s} {dtype_name:9s} {mode:14s} {method or '-':12s} {cameras:4d} {batch:5d} "
+                                  f"{setup:8.1f} {timing.row()} {rate}{work}")
             del model
             gc.collect()
 
@@ -315,10 +333,12 @@ def sample_on_meta(
         noise=torch.empty(actions, device=meta),
         times=torch.empty(steps, device=meta),
         target=None if rtc_method is None else torch.empty(actions, device=meta),
+        weights=torch.empty(actions[:2], device=meta) if rtc_method == "guidance" else None,
         committed=torch.empty(actions[:2], dtype=torch.bool, device=meta) if rtc_method == "conditioning" else None,
     )
+    max_guidance = DEFAULT_MAX_GUIDANCE if rtc_method == "guidance" else 0.0
     with torch.no_grad(), AtenOpCounter() as counter:
-        sampled = model._sample(inputs, SamplingPlan(layout, tuple(euler_times(steps)), rtc_method))
+        sampled = model._sample(inputs, SamplingPlan(layout, tuple(euler_times(steps)), rtc_method, max_guidance))
     return sampled, counter
 
 
@@ -491,6 +511,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--repeats", type=int, default=5, help="timed runs per row, after warm-up")
     parser.add_argument("--compile", action="store_true", help="also time regionally compiled sampling (on CUDA also "
                         "compiled inside the CUDA graph); on CUDA the hand-captured graph is always timed")
+    parser.add_argument("--rtc", type=_csv(str), default="", help="also time chunks continued by real-time chunking "
+                        "with these methods (comma list of guidance, conditioning)")
     parser.add_argument("--ops", action="store_true", help="also count the ATen ops of one generate_actions per preset")
     parser.add_argument("--train", action="store_true", help="also time a training step")
     parser.add_argument("--side-by-side", action="store_true", help="also compare with transformers' PI0")
@@ -510,6 +532,10 @@ def run(args: argparse.Namespace) -> int:
     unknown = sorted(set(args.dtypes) - {"float32", "bfloat16"})
     if unknown:
         print(f"pi0-torch bench: error: --dtypes: expected float32 and/or bfloat16, got {', '.join(unknown)}", file=sys.stderr)
+        return 2
+    unknown = sorted(set(args.rtc) - set(METHODS))
+    if unknown:
+        print(f"pi0-torch bench: error: --rtc: expected guidance and/or conditioning, got {', '.join(unknown)}", file=sys.stderr)
         return 2
     args.bf16_note = bf16_unsupported(device) if "bfloat16" in args.dtypes or args.side_by_side else None
     if args.bf16_note:

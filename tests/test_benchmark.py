@@ -22,9 +22,24 @@ def test_generate_and_train_tables(capsys: pytest.CaptureFixture[str], compiled:
     out = bench(capsys, "--presets", "pi0_small", "--dtypes", "float32", "--cameras", "2", "--batches", "1", "--train",
                 *(["--compile"] if compiled else []))
     assert re.search(r"measured matmul ceiling: float32 \d+ GFLOP/s", out)
-    rows = re.findall(r"^pi0_small\s+float32\s+(\S+)\s+(\d)\s+1\s+[\d.]+\s+[\d.]+\s+[\d.]+\s+[\d.]+\s+\d+\s+\d+\s+\d+$", out, re.MULTILINE)
+    rows = re.findall(r"^pi0_small\s+float32\s+(\S+)\s+-\s+(\d)\s+1\s+[\d.]+\s+[\d.]+\s+[\d.]+\s+[\d.]+\s+\d+\s+\d+\s+\d+$", out, re.MULTILINE)
     assert rows == [("eager", "2"), ("compiled", "2")][: 2 if compiled else 1], out  # no CUDA-graph rows on CPU
     assert re.search(r"^pi0_small\s+float32\s+1\s+[\d.]+", out.split("training step")[1], re.MULTILINE), out
+
+
+def test_real_time_chunking_rows(capsys: pytest.CaptureFixture[str]) -> None:
+    """`--rtc` adds a row per method after each plain one: chunks continued by real-time chunking (guidance
+    differentiates every step, so its FLOP/s of plain sampling are not shown)."""
+    out = bench(capsys, "--presets", "pi05_small", "--dtypes", "float32", "--cameras", "1", "--batches", "1", "--rtc",
+                "guidance,conditioning")
+    rows = re.findall(r"^pi05_small\s+float32\s+eager\s+(\S+)\s+1\s+1\s+[\d.]+\s+([\d.]+)\s+[\d.]+\s+[\d.]+\s+\d+\s+(\S+)\s+(\S+)$",
+                      out, re.MULTILINE)
+    assert [(method, rate, share) for method, _, rate, share in rows][1:] == [("guidance", "-", "-"), ("conditioning", "-", "-")], out
+    assert rows[0][0] == "-" and float(rows[0][2]) > 0, out
+    parser = argparse.ArgumentParser()
+    benchmark.add_arguments(parser)
+    assert benchmark.run(parser.parse_args(["--rtc", "guided"])) == 2
+    assert "--rtc: expected guidance and/or conditioning, got guided" in capsys.readouterr().err
 
 
 def test_side_by_side_with_transformers_agrees(capsys: pytest.CaptureFixture[str]) -> None:

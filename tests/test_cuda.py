@@ -69,22 +69,28 @@ def test_cuda_graph_sampling_matches_eager_and_keeps_earlier_outputs(reference: 
         assert relative_error(replays[0], reference["bf16_infer/actions"]) <= BF16_TOLERANCE
 
 
-def test_cuda_graph_captures_conditioning_and_runs_guidance_eagerly(reference: OpenpiReference) -> None:
-    """Real-time chunking: "conditioning" replays a graph of its own; "guidance" (a VJP per step) runs eagerly."""
+def test_cuda_graph_captures_both_real_time_chunking_methods(reference: OpenpiReference) -> None:
+    """Real-time chunking: "conditioning" and "guidance" (its vector-Jacobian product per step recorded with the rest)
+    each replay a graph of their own, which another previous chunk replays too; `capture_sampling(guidance=False)`
+    leaves guidance eager."""
     model, inputs, noise = on_cuda(reference, torch.bfloat16)
     model.config = copy.deepcopy(model.config)  # (the fixture's config is shared)
     model.config.rtc_max_delay = 4
-    previous = torch.randn_like(noise)
-    rtc = dict(noise=noise, previous_actions=previous, inference_delay=3, execution_horizon=5)
-    eager = {method: model.generate_actions(**inputs, **rtc, rtc_method=method) for method in ("conditioning", "guidance")}
+    previous = [torch.randn_like(noise), torch.randn_like(noise)]
+    rtc = dict(noise=noise, inference_delay=3, execution_horizon=5)
+    eager = {(method, index): model.generate_actions(**inputs, **rtc, previous_actions=chunk, rtc_method=method)
+             for method in ("conditioning", "guidance") for index, chunk in enumerate(previous)}
     model.capture_sampling()
-    conditioned = model.generate_actions(**inputs, **rtc, rtc_method="conditioning")
-    assert len(model._graphs.graphs) == 1
-    assert relative(conditioned, eager["conditioning"]) <= 2e-2
-    torch.testing.assert_close(conditioned[:, :3], previous[:, 5:8])  # the committed actions, unchanged
-    guided = model.generate_actions(**inputs, **rtc, rtc_method="guidance")
-    assert len(model._graphs.graphs) == 1
-    assert relative(guided, eager["guidance"]) <= 2e-2
+    for index, chunk in enumerate(previous):
+        conditioned = model.generate_actions(**inputs, **rtc, previous_actions=chunk, rtc_method="conditioning")
+        assert relative(conditioned, eager["conditioning", index]) <= 2e-2
+        torch.testing.assert_close(conditioned[:, :3], chunk[:, 5:8])  # the committed actions, unchanged
+        guided = model.generate_actions(**inputs, **rtc, previous_actions=chunk, rtc_method="guidance")
+        assert relative(guided, eager["guidance", index]) <= 2e-2
+    assert len(model._graphs.graphs) == 2
+    model.capture_sampling(guidance=False)
+    guided = model.generate_actions(**inputs, **rtc, previous_actions=previous[0], rtc_method="guidance")
+    assert relative(guided, eager["guidance", 0]) <= 2e-2 and not model._graphs.graphs
 
 
 def test_bad_inputs_after_capture_raise_named_errors(reference: OpenpiReference) -> None:

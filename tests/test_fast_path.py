@@ -142,10 +142,11 @@ def test_varlen_packing_equals_sdpa(monkeypatch: pytest.MonkeyPatch, group_rows:
 
 
 @pytest.mark.parametrize("pi05", [False, True])
-@pytest.mark.parametrize("rtc_method", [None, "conditioning"])
+@pytest.mark.parametrize("rtc_method", [None, "conditioning", "guidance"])
 def test_sampling_never_reads_the_device(pi05: bool, rtc_method: str | None) -> None:
-    """What a CUDA graph captures (plain sampling and RTC conditioning) has no host read at all: on the meta device,
-    which holds no values, any read of one (`.item()`, `bool()`, `.tolist()`, `nonzero`, boolean indexing) raises."""
+    """What a CUDA graph captures (plain sampling, and both real-time chunking methods: guidance with its
+    vector-Jacobian product per step) has no host read at all: on the meta device, which holds no values, any read of
+    one (`.item()`, `bool()`, `.tolist()`, `nonzero`, boolean indexing) raises."""
     config = PI0Config.from_preset("pi05_small" if pi05 else "pi0_small", rtc_max_delay=4)
     facts = InputFacts(image_masks=((True, True, False), (True, False, False)), text_counts=(20, 9), text_length=48)
     actions, _ = sample_on_meta(config, facts, steps=3, rtc_method=rtc_method)
@@ -431,6 +432,59 @@ def test_a_policy_samples_eagerly_when_cuda_refuses_the_capture(monkeypatch: pyt
         np.testing.assert_array_equal(policy.model_actions(batch, warmup=True), expected)
     assert attempts == [True, False, False] and not policy.captured
     assert caplog.text.count("this policy samples eagerly from now on") == 1
+
+
+def test_a_policy_keeps_its_graphs_when_only_the_guided_capture_is_refused(
+    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Should CUDA refuse the capture of a chunk guided by real-time chunking (simulated here), that chunk and later
+    guided ones sample eagerly (`capture_sampling(guidance=False)`), while plain chunks keep replaying graphs."""
+    policy = tiny_policy(rtc_max_delay=0)
+    observation = {"images": {"base_0_rgb": np.zeros((32, 32, 3), np.uint8)}, "state": np.ones(3), "prompt": "reach"}
+    batch = policy._batch([policy.prepare(observation)])
+    policy.model.capture_sampling()  # (the CPU samples eagerly all the same)
+    guided = policy._warmup_options(1)[1]
+    assert guided["rtc_method"] == "guidance"
+    expected = policy.model_actions(batch, warmup=True, **guided)
+    generate, attempts = policy.model.generate_actions, []
+
+    def guided_capture_refused(*args: Any, **kwargs: Any) -> torch.Tensor:
+        graphs = policy.model._graphs
+        attempts.append(graphs is not None and graphs.covers(kwargs.get("rtc_method")))
+        if attempts[-1] and kwargs.get("rtc_method") == "guidance":
+            raise SamplingCaptureError("could not capture sampling with RTC guidance as a CUDA graph (...)", "guidance")
+        return generate(*args, **kwargs)
+
+    monkeypatch.setattr(policy.model, "generate_actions", guided_capture_refused)
+    with caplog.at_level(logging.WARNING):
+        np.testing.assert_array_equal(policy.model_actions(batch, warmup=True, **guided), expected)
+        policy.model_actions(batch, warmup=True, **guided)
+        policy.model_actions(batch, warmup=True)
+    assert attempts == [True, False, False, True] and policy.captured
+    assert caplog.text.count("samples chunks guided by real-time chunking eagerly from now on") == 1
+
+
+@pytest.mark.parametrize("rtc_method", ["guidance", "conditioning"])
+def test_warmup_of_a_captured_policy_also_runs_its_real_time_chunking(monkeypatch: pytest.MonkeyPatch, rtc_method: str) -> None:
+    """A chunk continued by real-time chunking is a graph of its own: `warmup` runs one per batch size (after the plain
+    one) so that the first continued request does not capture it while the robot waits. Eager policies warm up plain
+    batch 1 only, and so does a policy whose guidance weight is 0 (guidance is then plain sampling)."""
+    policy = tiny_policy(rtc_max_delay=4 if rtc_method == "conditioning" else 0)
+    calls: list[tuple[int, str | None]] = []
+    generate = policy.model.generate_actions
+    monkeypatch.setattr(policy.model, "generate_actions", lambda **kwargs: calls.append(
+        (len(kwargs["input_ids"]), kwargs.get("rtc_method"))) or generate(**kwargs))
+    policy.warmup(2)
+    assert calls == [(1, None)]
+    calls.clear()
+    policy.model.capture_sampling()  # (on the CPU sampling stays eager; the policy warms up as it would on CUDA)
+    policy.warmup(2)
+    assert calls == [(1, None), (1, rtc_method), (2, None), (2, rtc_method)]
+    if rtc_method == "guidance":
+        calls.clear()
+        policy.rtc_max_guidance = 0.0
+        policy.warmup(1)
+        assert calls == [(1, None)]
 
 
 def test_attention_kernel_setting_is_checked() -> None:

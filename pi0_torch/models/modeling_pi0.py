@@ -1087,7 +1087,7 @@ class PI0ForActionGeneration(SiglipImageEmbedding, PI0PreTrainedModel):
         if previous_actions is not None:
             prefix = self._chunk_prefix(batch, previous_actions, inference_delay, execution_horizon, rtc_method, rtc_max_guidance, rtc_schedule)
         method = None if prefix is None or (rtc_method == "guidance" and rtc_max_guidance == 0) else rtc_method
-        graphs = self._graphs if method != "guidance" and pixel_values.is_cuda else None
+        graphs = self._graphs if pixel_values.is_cuda and self._graphs is not None and self._graphs.covers(method) else None
         layout = facts.layout(config.tokens_per_image, self.GRAPH_PREFIX_BUCKET if graphs is not None else 1)
         pixel_values, image_masks = self._camera_inputs(pixel_values, image_masks, layout)
         inputs = SamplingInputs(
@@ -1214,20 +1214,22 @@ class PI0ForActionGeneration(SiglipImageEmbedding, PI0PreTrainedModel):
         if graph and self.device.type == "cuda":
             self.capture_sampling()
 
-    def capture_sampling(self, disable: bool = False, batch_sizes: Sequence[int] | None = None) -> None:
+    def capture_sampling(self, disable: bool = False, batch_sizes: Sequence[int] | None = None, guidance: bool = True) -> None:
         """Opt in to CUDA graphs for `generate_actions` on CUDA: the sampling of each (batch size, step count, prompt
-        length, prefix layout, real-time chunking method) is captured once (a warm-up run, then the capture: its
+        length, prefix layout, real-time chunking method) is captured once (two warm-up runs, then the capture: its
         first call takes a few eager calls' time) and replayed after that, so the CPU launches one graph instead of
         thousands of kernels. Inputs are copied into the graph's static buffers; each call returns a tensor of its
-        own. Plain sampling and RTC "conditioning" are captured; RTC "guidance" (a vector-Jacobian product per step)
-        runs eagerly. A model moved to another device or dtype captures again. Works with `compile_sampling` (the
-        graphs then replay the compiled kernels). With `batch_sizes`, another batch size is refused (`ValueError`)
-        rather than captured mid-run. `capture_sampling(disable=True)` goes back to eager.
+        own. Plain sampling and both real-time chunking methods are captured, RTC "guidance" with its
+        vector-Jacobian product per step (`guidance=False`: guided chunks sample eagerly). A model moved to another
+        device or dtype captures again. Works with `compile_sampling` (the graphs then replay the compiled kernels;
+        guidance's differentiated steps run the eager layers). With `batch_sizes`, another batch size is refused
+        (`ValueError`) rather than captured mid-run. Should CUDA refuse a capture, the call raises
+        `SamplingCaptureError` (its `rtc_method` names the plan). `capture_sampling(disable=True)` goes back to eager.
         """
         from pi0_torch.models.sampling_graphs import SamplingGraphs
 
         sizes = None if batch_sizes is None else tuple(check_int("batch_sizes", size, minimum=1) for size in batch_sizes)
-        self._graphs = None if disable else SamplingGraphs(self, sizes)
+        self._graphs = None if disable else SamplingGraphs(self, sizes, guidance)
 
     def _apply(self, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
         """`nn.Module._apply` (what `.to()`, `.cuda()`, `.half()` ... run): captured graphs read the old tensors, so

@@ -2,7 +2,9 @@
 
 Eager sampling of a full-size π0 launches thousands of small kernels per chunk, and the CPU that launches them, not
 the GPU, sets the pace. A CUDA graph records those launches once and replays them with one call. The sampling after
-the input checks never reads the device from the host (`PI0ForActionGeneration._sample`), so it records as is.
+the input checks never reads the device from the host (`PI0ForActionGeneration._sample`), so it records as is, real-time
+chunking's guidance included: its vector-Jacobian product per step is autograd work on the same stream, recorded
+with the rest (as PyTorch records a whole training step's backward).
 
 One graph per `SamplingPlan` (prefix layout, Euler times, real-time chunking method) and input shapes / dtypes: the
 first call of each records it (two warm-up runs on a side stream, then the capture, into one memory pool shared by
@@ -25,7 +27,12 @@ WARMUP_RUNS = 2  # before a capture (cuBLAS / cuDNN pick and allocate on their f
 
 
 class SamplingCaptureError(RuntimeError):
-    """CUDA refused to record the sampling as a graph (the warm-up runs before it succeeded: eager sampling works)."""
+    """CUDA refused to record the sampling as a graph (the warm-up runs before it succeeded: eager sampling works).
+    `rtc_method` is the refused plan's real-time chunking method (None: plain sampling)."""
+
+    def __init__(self, message: str, rtc_method: str | None = None) -> None:
+        super().__init__(message)
+        self.rtc_method = rtc_method
 
 
 @dataclass
@@ -43,9 +50,10 @@ def _signature(inputs: SamplingInputs) -> tuple[Any, ...]:
 class SamplingGraphs:
     """The captured graphs of one model, by plan and input signature."""
 
-    def __init__(self, model: PI0ForActionGeneration, batch_sizes: tuple[int, ...] | None = None) -> None:
+    def __init__(self, model: PI0ForActionGeneration, batch_sizes: tuple[int, ...] | None = None, guidance: bool = True) -> None:
         self.model = model
         self.batch_sizes = batch_sizes  # None: any batch size (captured on first use)
+        self.guidance = guidance  # False: RTC guidance samples eagerly
         self.graphs: dict[tuple[Any, ...], CapturedSampling] = {}
         self.pool: Any = None
 
@@ -54,6 +62,10 @@ class SamplingGraphs:
         self.graphs.clear()
         self.pool = None
 
+    def covers(self, rtc_method: str | None) -> bool:
+        """Whether sampling with this real-time chunking method (None: plain) replays graphs."""
+        return rtc_method != "guidance" or self.guidance
+
     def run(self, inputs: SamplingInputs, plan: SamplingPlan) -> torch.Tensor:
         """Actions `[B, horizon, action_dim]` for `inputs` (on CUDA) by replaying the plan's graph (captured on first use)."""
         batch = inputs.noise.shape[0]
@@ -61,7 +73,7 @@ class SamplingGraphs:
             raise ValueError(f"batch size {batch}: sampling is captured for batch sizes {list(self.batch_sizes)} only "
                              "(model.capture_sampling(batch_sizes=...))")
         key = (plan, _signature(inputs))
-        with torch.inference_mode():
+        with torch.no_grad():  # (not inference mode: guidance differentiates its steps with torch.func)
             captured = self.graphs.get(key)
             if captured is None:
                 captured = self.graphs[key] = self._capture(inputs, plan)
@@ -70,7 +82,7 @@ class SamplingGraphs:
                     if static is not None:
                         static.copy_(value)
             captured.graph.replay()
-        return captured.output.clone()  # (outside inference mode: a normal tensor the next replay leaves alone)
+        return captured.output.clone()  # a tensor of its own, which the next replay leaves alone
 
     def _capture(self, inputs: SamplingInputs, plan: SamplingPlan) -> CapturedSampling:
         static = type(inputs)(*(None if value is None else value.clone() for value in _tensors(inputs)))
@@ -85,8 +97,10 @@ class SamplingGraphs:
             with torch.cuda.graph(graph, pool=self.pool):
                 output = self.model._sample(static, plan)
         except RuntimeError as error:
-            raise SamplingCaptureError(f"could not capture sampling as a CUDA graph ({error}); call "
-                                       "model.capture_sampling(disable=True) to sample eagerly") from error
+            what = "sampling" if plan.rtc_method is None else f"sampling with RTC {plan.rtc_method}"
+            advice = "capture_sampling(guidance=False)" if plan.rtc_method == "guidance" else "capture_sampling(disable=True)"
+            raise SamplingCaptureError(f"could not capture {what} as a CUDA graph ({error}); call model.{advice} to "
+                                       "sample it eagerly", plan.rtc_method) from error
         self.pool = graph.pool()
         torch.cuda.synchronize(inputs.noise.device)
         return CapturedSampling(graph, static, output)

@@ -92,9 +92,10 @@ class PI0Policy(BasePolicy):
             on CUDA the sampling also replays as a CUDA graph). The first chunk compiles (seconds): call [`warmup`].
         cuda_graph: on CUDA, replay each chunk's sampling as one CUDA graph, captured by hand without a compiler
             ([`PI0ForActionGeneration.capture_sampling`]); the first chunk of each batch size and prompt-length bucket
-            captures it (about two eager calls): call [`warmup`] first. Chunks guided by real-time chunking
-            ("guidance") run eagerly. Should CUDA refuse a capture, the policy logs a warning and samples eagerly
-            from then on.
+            captures it (about three eager calls), and so does the first chunk continued by real-time chunking (a
+            graph of its own): call [`warmup`] first, which captures both. Should CUDA refuse a capture, the policy
+            logs a warning and samples eagerly from then on (only the chunks guided by real-time chunking, if theirs
+            was the one refused).
     """
 
     model_class = PI0ForActionGeneration
@@ -235,13 +236,25 @@ class PI0Policy(BasePolicy):
             )
         return self.model_actions(batch, **options)
 
+    def _warmup_options(self, batch: int) -> list[dict[str, Any]]:
+        """A plain chunk; with graphs or compiled layers also a chunk continued by this policy's real-time chunking
+        method (a graph of its own, which the first continued request would otherwise capture while the robot waits)."""
+        guided_at_all = self.rtc_method != "guidance" or self.rtc_max_guidance > 0
+        if not (self.compiled or self.captured) or not guided_at_all:
+            return [{}]
+        config = self.model.config
+        previous = torch.zeros(batch, config.action_horizon, config.action_dim, device=self.device)
+        continued = dict(previous_actions=previous, inference_delay=0, execution_horizon=0, rtc_method=self.rtc_method,
+                         rtc_max_guidance=self.rtc_max_guidance, rtc_schedule=self.rtc_schedule)
+        return [{}, continued]
+
     def model_actions(self, batch: Mapping[str, torch.Tensor], warmup: bool = False, **options: Any) -> np.ndarray:  # type: ignore[override]
         """Model-space action chunks `[B, horizon, action_dim]` (float32 numpy) for a batch of model inputs.
         `options` go to `generate_actions` (`noise`, real-time chunking); without `noise` the policy's seeded
         generator draws it (times `noise_scale`), which a warm-up run leaves untouched."""
         if warmup:
             config = self.model.config
-            options = {"noise": torch.zeros(len(batch["input_ids"]), config.action_horizon, config.action_dim, device=self.device)}
+            options["noise"] = torch.zeros(len(batch["input_ids"]), config.action_horizon, config.action_dim, device=self.device)
         elif "noise" not in options:
             config = self.model.config
             shape = (len(batch["input_ids"]), config.action_horizon, config.action_dim)
@@ -249,8 +262,12 @@ class PI0Policy(BasePolicy):
         try:
             actions = self.model.generate_actions(**batch, num_steps=self.num_steps, **options)
         except SamplingCaptureError as error:  # a robot is better served eagerly than not at all
-            logger.warning("%s; this policy samples eagerly from now on", error)
-            self.model.capture_sampling(disable=True)
+            if error.rtc_method == "guidance":  # the other chunks keep their graphs
+                logger.warning("%s; this policy samples chunks guided by real-time chunking eagerly from now on", error)
+                self.model.capture_sampling(guidance=False)
+            else:
+                logger.warning("%s; this policy samples eagerly from now on", error)
+                self.model.capture_sampling(disable=True)
             actions = self.model.generate_actions(**batch, num_steps=self.num_steps, **options)
         return actions.float().cpu().numpy()
 

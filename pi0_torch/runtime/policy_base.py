@@ -250,8 +250,13 @@ class BasePolicy(abc.ABC):
         one = {name: tensor.to(self.device) for name, tensor in self.prepare(blank).inputs.items()}
         for batch in range(1, (max_batch_size if self.compiled or self.captured else 1) + 1):
             inputs = {name: torch.cat([tensor] * batch) for name, tensor in one.items()}  # laid out as real batches
-            self.model_actions(inputs, warmup=True)
+            for options in self._warmup_options(batch):
+                self.model_actions(inputs, warmup=True, **options)
         return time.monotonic() - start
+
+    def _warmup_options(self, batch: int) -> list[dict[str, Any]]:
+        """The calls `warmup` makes per batch size, as options of a member's `model_actions`: one plain call."""
+        return [{}]
 
     # -- inside ------------------------------------------------------------------------------------------------------
 
