@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import copy
 
+import numpy as np
 import pytest
 import torch
 
@@ -91,6 +92,27 @@ def test_cuda_graph_captures_both_real_time_chunking_methods(reference: OpenpiRe
     model.capture_sampling(guidance=False)
     guided = model.generate_actions(**inputs, **rtc, previous_actions=previous[0], rtc_method="guidance")
     assert relative(guided, eager["guidance", 0]) <= 2e-2 and not model._graphs.graphs
+
+
+@pytest.mark.parametrize("rtc_max_delay", [0, 3])  # the policy's method: guidance, conditioning
+def test_a_captured_policy_warms_up_its_real_time_chunking_graph(rtc_max_delay: int) -> None:
+    """`warmup` (in inference mode, as a server runs it) captures a plain and a continued chunk's graph; a continued
+    request then replays it (no capture while the robot waits), and the model still replays outside inference mode."""
+    from test_rollout import tiny_policy
+
+    from pi0_torch.runtime.policy import PI0Policy
+
+    cpu = tiny_policy(rtc_max_delay=rtc_max_delay)
+    policy = PI0Policy(cpu.model.to(CUDA), cpu.processor, num_steps=2, seed=0, cuda_graph=True)
+    policy.warmup(1)
+    assert len(policy.model._graphs.graphs) == 2
+    frame = np.zeros((32, 32, 3), np.uint8)
+    observation = {"images": {"base_0_rgb": frame}, "state": np.ones(3), "prompt": "reach"}
+    first = policy.infer(observation)["actions"]
+    continued = policy.infer({**observation, "previous_actions": first, "inference_delay": 1, "execution_horizon": 2})
+    assert np.isfinite(continued["actions"]).all() and len(policy.model._graphs.graphs) == 2
+    inputs = {name: tensor.to(CUDA) for name, tensor in policy.prepare(observation).inputs.items()}
+    policy.model.generate_actions(**inputs)  # (a direct call: the graph's buffers were made in inference mode)
 
 
 def test_bad_inputs_after_capture_raise_named_errors(reference: OpenpiReference) -> None:

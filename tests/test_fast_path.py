@@ -25,10 +25,12 @@ from pi0_torch.models.modeling_pi0 import (
     InputFacts,
     JointDecoderLayer,
     NormParams,
+    SamplingInputs,
+    SamplingPlan,
     add_projection,
     compact_prefix,
 )
-from pi0_torch.models.sampling_graphs import SamplingCaptureError
+from pi0_torch.models.sampling_graphs import SamplingCaptureError, SamplingGraphs
 from pi0_torch.utils.op_count import AtenOpCounter
 
 # unseen sizes: a shorter prompt limit, 2 kv heads (query heads not folded), head size 16, 3-step horizon
@@ -434,34 +436,41 @@ def test_a_policy_samples_eagerly_when_cuda_refuses_the_capture(monkeypatch: pyt
     assert caplog.text.count("this policy samples eagerly from now on") == 1
 
 
-def test_a_policy_keeps_its_graphs_when_only_the_guided_capture_is_refused(
+def test_a_refused_guidance_capture_samples_eagerly_and_keeps_the_other_graphs(
     monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
 ) -> None:
-    """Should CUDA refuse the capture of a chunk guided by real-time chunking (simulated here), that chunk and later
-    guided ones sample eagerly (`capture_sampling(guidance=False)`), while plain chunks keep replaying graphs."""
-    policy = tiny_policy(rtc_max_delay=0)
-    observation = {"images": {"base_0_rgb": np.zeros((32, 32, 3), np.uint8)}, "state": np.ones(3), "prompt": "reach"}
-    batch = policy._batch([policy.prepare(observation)])
-    policy.model.capture_sampling()  # (the CPU samples eagerly all the same)
-    guided = policy._warmup_options(1)[1]
-    assert guided["rtc_method"] == "guidance"
-    expected = policy.model_actions(batch, warmup=True, **guided)
-    generate, attempts = policy.model.generate_actions, []
+    """Should CUDA refuse to record RTC guidance (simulated here: `_capture` raises as it would), that chunk and later
+    guided ones sample eagerly with a warning, and the graphs already captured stay; a refused plain capture still
+    raises (`SamplingCaptureError`, which a policy turns into eager sampling)."""
+    torch.manual_seed(0)
+    model = PI0ForActionGeneration(PI0Config.from_preset("pi0_small")).eval()
+    batch = dict(pixel_values=torch.rand(1, 3, 3, 224, 224) * 2 - 1, image_masks=torch.ones(1, 3, dtype=torch.bool),
+                 input_ids=torch.ones(1, 12, dtype=torch.long), attention_mask=torch.ones(1, 12, dtype=torch.bool),
+                 state=torch.zeros(1, 32), noise=torch.randn(1, 50, 32), num_steps=2)
+    calls: list[tuple[SamplingInputs, SamplingPlan]] = []
+    sample = model._sample
+    monkeypatch.setattr(model, "_sample", lambda inputs, plan: calls.append((inputs, plan)) or sample(inputs, plan))
+    guided = model.generate_actions(**batch, previous_actions=torch.randn(1, 50, 32), inference_delay=2, execution_horizon=4)
+    model.generate_actions(**batch)
+    (guided_inputs, guided_plan), (plain_inputs, plain_plan) = calls
+    assert guided_plan.rtc_method == "guidance" and plain_plan.rtc_method is None
+    graphs = SamplingGraphs(model)
+    graphs.graphs["captured before"] = kept = object()
 
-    def guided_capture_refused(*args: Any, **kwargs: Any) -> torch.Tensor:
-        graphs = policy.model._graphs
-        attempts.append(graphs is not None and graphs.covers(kwargs.get("rtc_method")))
-        if attempts[-1] and kwargs.get("rtc_method") == "guidance":
-            raise SamplingCaptureError("could not capture sampling with RTC guidance as a CUDA graph (...)", "guidance")
-        return generate(*args, **kwargs)
+    def refused(inputs: SamplingInputs, plan: SamplingPlan) -> None:
+        raise SamplingCaptureError("could not capture sampling with RTC guidance as a CUDA graph (operation not permitted)")
 
-    monkeypatch.setattr(policy.model, "generate_actions", guided_capture_refused)
+    monkeypatch.setattr(graphs, "_capture", refused)
+    assert graphs.covers("guidance")
     with caplog.at_level(logging.WARNING):
-        np.testing.assert_array_equal(policy.model_actions(batch, warmup=True, **guided), expected)
-        policy.model_actions(batch, warmup=True, **guided)
-        policy.model_actions(batch, warmup=True)
-    assert attempts == [True, False, False, True] and policy.captured
-    assert caplog.text.count("samples chunks guided by real-time chunking eagerly from now on") == 1
+        actions = graphs.run(guided_inputs, guided_plan)
+    torch.testing.assert_close(actions, guided, rtol=0, atol=0)
+    assert not actions.is_inference()  # (the caller may change it in place)
+    assert not graphs.covers("guidance") and graphs.covers("conditioning") and graphs.covers(None)
+    assert graphs.graphs == {"captured before": kept}
+    assert caplog.text.count("chunks guided by real-time chunking sample eagerly from now on") == 1
+    with pytest.raises(SamplingCaptureError):
+        graphs.run(plain_inputs, plain_plan)
 
 
 @pytest.mark.parametrize("rtc_method", ["guidance", "conditioning"])

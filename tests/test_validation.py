@@ -131,6 +131,12 @@ def test_a_model_split_or_offloaded_by_a_device_map_is_refused(saved: Path, tmp_
     for run in (lambda: offloaded.generate_actions(**batch), lambda: offloaded(**batch)):
         with pytest.raises(ValueError, match=r"device_map placing its weights on \['cpu', 'disk'\]; it runs with every weight on one device"):
             run()
+    for one_place in ({"": "cpu"}, {"vision_tower": "cuda", "layers": "cuda:0"}):  # (a map as transformers records it)
+        offloaded.hf_device_map = one_place
+        offloaded._check_placement()
+    offloaded.hf_device_map = {"vision_tower": "cuda:0", "layers": "cuda:1"}
+    with pytest.raises(ValueError, match=r"placing its weights on \['cuda:0', 'cuda:1'\]"):
+        offloaded._check_placement()
     placed = PI0ForActionGeneration.from_pretrained(saved, device_map={"": "cpu"}).eval()
     noise = torch.randn(1, 4, 8, generator=torch.Generator().manual_seed(0))
     torch.testing.assert_close(placed.generate_actions(**batch, noise=noise), model.generate_actions(**batch, noise=noise), rtol=0, atol=0)

@@ -1224,7 +1224,8 @@ class PI0ForActionGeneration(SiglipImageEmbedding, PI0PreTrainedModel):
         device or dtype captures again. Works with `compile_sampling` (the graphs then replay the compiled kernels;
         guidance's differentiated steps run the eager layers). With `batch_sizes`, another batch size is refused
         (`ValueError`) rather than captured mid-run. Should CUDA refuse a capture, the call raises
-        `SamplingCaptureError` (its `rtc_method` names the plan). `capture_sampling(disable=True)` goes back to eager.
+        `SamplingCaptureError`, except for guidance: a warning, and guided chunks sample eagerly from then on.
+        `capture_sampling(disable=True)` goes back to eager.
         """
         from pi0_torch.models.sampling_graphs import SamplingGraphs
 
@@ -1246,8 +1247,7 @@ class PI0ForActionGeneration(SiglipImageEmbedding, PI0PreTrainedModel):
         "disk" among several places): offloaded weights stay on the `meta` device until the module holding them runs,
         and this model reads some outside their module's `forward` (the flow-time terms and the action expert's norm
         scales it computes once for every sampling step)."""
-        device_map = getattr(self, "hf_device_map", None) or {}
-        places = {f"cuda:{place}" if isinstance(place, int) else str(place) for place in device_map.values()}
+        places = {_place_name(place) for place in (getattr(self, "hf_device_map", None) or {}).values()}
         if len(places) > 1 or places & {"disk", "meta"}:
             raise ValueError(
                 f"{type(self).__name__} was loaded with a device_map placing its weights on {sorted(places)}; it runs with "
@@ -1328,6 +1328,16 @@ class PI0ForActionGeneration(SiglipImageEmbedding, PI0PreTrainedModel):
             text_counts=tuple(int(v) for v in read[masks_start + batch * cameras :]),
             text_length=input_ids.shape[1],
         )
+
+
+def _place_name(place: int | str | torch.device) -> str:
+    """A device map's place as one name per device: "cuda:0" for 0 (on a CUDA machine), "cuda" and "cuda:0"; "disk"
+    as it is."""
+    try:
+        device = torch.device(place)
+    except RuntimeError:  # "disk"; an index where no accelerator is
+        return str(place)
+    return device.type if device.type in ("cpu", "meta") else f"{device.type}:{device.index or 0}"
 
 
 @functools.lru_cache(maxsize=None)

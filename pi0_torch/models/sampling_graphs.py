@@ -4,7 +4,8 @@ Eager sampling of a full-size π0 launches thousands of small kernels per chunk,
 the GPU, sets the pace. A CUDA graph records those launches once and replays them with one call. The sampling after
 the input checks never reads the device from the host (`PI0ForActionGeneration._sample`), so it records as is, real-time
 chunking's guidance included: its vector-Jacobian product per step is autograd work on the same stream, recorded
-with the rest (as PyTorch records a whole training step's backward).
+with the rest (as PyTorch records a whole training step's backward). Should CUDA refuse to record guidance all the
+same, a warning is logged and guided chunks sample eagerly from then on; the other graphs stay.
 
 One graph per `SamplingPlan` (prefix layout, Euler times, real-time chunking method) and input shapes / dtypes: the
 first call of each records it (two warm-up runs on a side stream, then the capture, into one memory pool shared by
@@ -15,6 +16,7 @@ copy of its output, which the next replay does not overwrite.
 from __future__ import annotations
 
 import dataclasses
+import logging
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -23,16 +25,13 @@ import torch
 if TYPE_CHECKING:
     from pi0_torch.models.modeling_pi0 import PI0ForActionGeneration, SamplingInputs, SamplingPlan
 
+logger = logging.getLogger(__name__)
+
 WARMUP_RUNS = 2  # before a capture (cuBLAS / cuDNN pick and allocate on their first calls)
 
 
 class SamplingCaptureError(RuntimeError):
-    """CUDA refused to record the sampling as a graph (the warm-up runs before it succeeded: eager sampling works).
-    `rtc_method` is the refused plan's real-time chunking method (None: plain sampling)."""
-
-    def __init__(self, message: str, rtc_method: str | None = None) -> None:
-        super().__init__(message)
-        self.rtc_method = rtc_method
+    """CUDA refused to record the sampling as a graph (the warm-up runs before it succeeded: eager sampling works)."""
 
 
 @dataclass
@@ -53,7 +52,7 @@ class SamplingGraphs:
     def __init__(self, model: PI0ForActionGeneration, batch_sizes: tuple[int, ...] | None = None, guidance: bool = True) -> None:
         self.model = model
         self.batch_sizes = batch_sizes  # None: any batch size (captured on first use)
-        self.guidance = guidance  # False: RTC guidance samples eagerly
+        self.guidance = guidance  # False: RTC guidance samples eagerly (also once CUDA refused to record it)
         self.graphs: dict[tuple[Any, ...], CapturedSampling] = {}
         self.pool: Any = None
 
@@ -73,17 +72,24 @@ class SamplingGraphs:
             raise ValueError(f"batch size {batch}: sampling is captured for batch sizes {list(self.batch_sizes)} only "
                              "(model.capture_sampling(batch_sizes=...))")
         key = (plan, _signature(inputs))
-        with torch.no_grad():  # (not inference mode: guidance differentiates its steps with torch.func)
-            captured = self.graphs.get(key)
-            if captured is None:
+        captured = self.graphs.get(key)
+        if captured is None:
+            try:
                 captured = self.graphs[key] = self._capture(inputs, plan)
-            else:
-                for static, value in zip(_tensors(captured.inputs), _tensors(inputs)):
-                    if static is not None:
-                        static.copy_(value)
+            except SamplingCaptureError as error:
+                if plan.rtc_method != "guidance":
+                    raise
+                logger.warning("%s; chunks guided by real-time chunking sample eagerly from now on", error)
+                self.guidance = False
+                return self.model._sample(inputs, plan)
+        with torch.inference_mode():
+            for static, value in zip(_tensors(captured.inputs), _tensors(inputs)):
+                if static is not None:
+                    static.copy_(value)
             captured.graph.replay()
-        return captured.output.clone()  # a tensor of its own, which the next replay leaves alone
+        return captured.output.clone()  # (outside inference mode: a normal tensor the next replay leaves alone)
 
+    @torch.inference_mode()
     def _capture(self, inputs: SamplingInputs, plan: SamplingPlan) -> CapturedSampling:
         static = type(inputs)(*(None if value is None else value.clone() for value in _tensors(inputs)))
         side = torch.cuda.Stream(device=inputs.noise.device)
@@ -98,9 +104,8 @@ class SamplingGraphs:
                 output = self.model._sample(static, plan)
         except RuntimeError as error:
             what = "sampling" if plan.rtc_method is None else f"sampling with RTC {plan.rtc_method}"
-            advice = "capture_sampling(guidance=False)" if plan.rtc_method == "guidance" else "capture_sampling(disable=True)"
-            raise SamplingCaptureError(f"could not capture {what} as a CUDA graph ({error}); call model.{advice} to "
-                                       "sample it eagerly", plan.rtc_method) from error
+            raise SamplingCaptureError(f"could not capture {what} as a CUDA graph ({error}); call "
+                                       "model.capture_sampling(disable=True) to sample eagerly") from error
         self.pool = graph.pool()
         torch.cuda.synchronize(inputs.noise.device)
         return CapturedSampling(graph, static, output)

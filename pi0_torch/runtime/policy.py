@@ -94,8 +94,7 @@ class PI0Policy(BasePolicy):
             ([`PI0ForActionGeneration.capture_sampling`]); the first chunk of each batch size and prompt-length bucket
             captures it (about three eager calls), and so does the first chunk continued by real-time chunking (a
             graph of its own): call [`warmup`] first, which captures both. Should CUDA refuse a capture, the policy
-            logs a warning and samples eagerly from then on (only the chunks guided by real-time chunking, if theirs
-            was the one refused).
+            logs a warning and samples eagerly from then on (only its guided chunks, if guidance is what was refused).
     """
 
     model_class = PI0ForActionGeneration
@@ -262,12 +261,8 @@ class PI0Policy(BasePolicy):
         try:
             actions = self.model.generate_actions(**batch, num_steps=self.num_steps, **options)
         except SamplingCaptureError as error:  # a robot is better served eagerly than not at all
-            if error.rtc_method == "guidance":  # the other chunks keep their graphs
-                logger.warning("%s; this policy samples chunks guided by real-time chunking eagerly from now on", error)
-                self.model.capture_sampling(guidance=False)
-            else:
-                logger.warning("%s; this policy samples eagerly from now on", error)
-                self.model.capture_sampling(disable=True)
+            logger.warning("%s; this policy samples eagerly from now on", error)
+            self.model.capture_sampling(disable=True)
             actions = self.model.generate_actions(**batch, num_steps=self.num_steps, **options)
         return actions.float().cpu().numpy()
 
