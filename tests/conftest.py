@@ -1,13 +1,17 @@
-"""Shared test helpers: the openpi reference fixtures (see tests/fixtures/openpi/README.md)."""
+"""Shared test helpers: the openpi reference fixtures (see tests/fixtures/openpi/README.md) and a tiny π0 policy."""
 
 from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pytest
 import torch
+
+if TYPE_CHECKING:
+    from pi0_torch.runtime.policy import PI0Policy
 
 # Keep the suite predictable on small CI machines.
 torch.set_num_threads(min(2, os.cpu_count() or 1))
@@ -17,6 +21,7 @@ FIXTURES = Path(__file__).parent / "fixtures" / "openpi"
 # machine only makes things slower, never wrong (make test's --timeout bounds each whole test at 1800 s).
 HANG_S = 900
 VARIANTS = ("pi0_small", "pi05_small")
+HORIZON = 8  # of `tiny_policy`'s chunks
 
 
 class OpenpiReference:
@@ -84,3 +89,23 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     for item in items:
         if "gpu" in item.keywords:
             item.add_marker(skip)
+
+
+def tiny_policy(action_dim: int = 3, rtc_max_delay: int = 3, low: float = -1.0, high: float = 1.0,
+                cameras: tuple[str, ...] = ("base_0_rgb", "left_wrist_0_rgb")) -> PI0Policy:
+    """A seeded π0 policy small enough for any test (chunks of `HORIZON` actions, 2 steps), with a test tokenizer and
+    norm stats that map [low, high] to about [-2, 2]; it needs the core install only."""
+    from pi0_torch import PI0Config, PI0ForActionGeneration, PI0Processor
+    from pi0_torch.processing.normalization import NormStats
+    from pi0_torch.processing.tokenization import build_test_tokenizer
+    from pi0_torch.runtime.policy import PI0Policy
+
+    torch.manual_seed(0)
+    config = PI0Config.from_preset(
+        "pi0_small", image_size=28, max_token_len=16, action_horizon=HORIZON, action_dim=4, camera_names=list(cameras),
+        vision_num_layers=1, num_hidden_layers=2, rtc_max_delay=rtc_max_delay, vocab_size=512,
+    )
+    centre, spread = np.full(action_dim, (low + high) / 2), np.full(action_dim, (high - low) / 4)
+    stats = {key: NormStats(mean=centre, std=spread) for key in ("state", "actions")}
+    processor = PI0Processor.from_config(config, tokenizer=build_test_tokenizer(), norm_stats=stats)
+    return PI0Policy(PI0ForActionGeneration(config), processor, num_steps=2, seed=0)

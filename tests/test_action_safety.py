@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 import torch
 import websockets.sync.client
-from test_rollout import HORIZON, tiny_policy
+from conftest import HORIZON, tiny_policy
 
 from pi0_torch.models.rtc import MAX_GUIDANCE, MAX_PREVIOUS_ACTION
 from pi0_torch.processing.normalization import NormStats

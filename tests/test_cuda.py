@@ -98,7 +98,7 @@ def test_cuda_graph_captures_both_real_time_chunking_methods(reference: OpenpiRe
 def test_a_captured_policy_warms_up_its_real_time_chunking_graph(rtc_max_delay: int) -> None:
     """`warmup` (in inference mode, as a server runs it) captures a plain and a continued chunk's graph; a continued
     request then replays it (no capture while the robot waits), and the model still replays outside inference mode."""
-    from test_rollout import tiny_policy
+    from conftest import tiny_policy
 
     from pi0_torch.runtime.policy import PI0Policy
 

@@ -125,7 +125,7 @@ def test_env_kwargs_must_be_a_json_object(capsys: pytest.CaptureFixture[str]) ->
 
 def test_a_policy_camera_the_env_does_not_give_is_a_warning_once(caplog: pytest.LogCaptureFixture) -> None:
     """Issue 28.9: a two-camera policy evaluated with `{"wrist_camera": false}` silently masked the missing camera."""
-    from test_rollout import tiny_policy
+    from conftest import tiny_policy
 
     with caplog.at_level(logging.WARNING, logger="pi0_torch.runtime.rollout"):
         evaluate(LocalPolicy(tiny_policy()), EvalSettings(env="pi0_torch/Reach-v0", episodes=2, num_envs=1, max_steps=4,

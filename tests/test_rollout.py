@@ -14,32 +14,13 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import HANG_S
-from pi0_torch import PI0Config, PI0ForActionGeneration, PI0Processor
+from conftest import HANG_S, HORIZON, tiny_policy
 from pi0_torch.runtime.policy import PI0Policy
-from pi0_torch.processing.normalization import NormStats
-from pi0_torch.processing.tokenization import build_test_tokenizer
 from pi0_torch.runtime.chunking import ChunkSchedule, ChunkStitcher, RealTimeExecutor, continuation_fields
 from pi0_torch.runtime.rollout import EvalSettings, LocalPolicy, RemotePolicy, ScriptedPolicy, evaluate, wilson_interval
 from pi0_torch.runtime.serving import PolicyServer
 
 REPO = Path(__file__).resolve().parents[1]
-HORIZON = 8
-
-
-def tiny_policy(action_dim: int = 3, rtc_max_delay: int = 3, low: float = -1.0, high: float = 1.0,
-                cameras: tuple[str, ...] = ("base_0_rgb", "left_wrist_0_rgb")) -> PI0Policy:
-    torch.manual_seed(0)
-    config = PI0Config.from_preset(
-        "pi0_small", image_size=28, max_token_len=16, action_horizon=HORIZON, action_dim=4, camera_names=list(cameras),
-        vision_num_layers=1, num_hidden_layers=2, rtc_max_delay=rtc_max_delay, vocab_size=512,
-    )
-    centre, spread = np.full(action_dim, (low + high) / 2), np.full(action_dim, (high - low) / 4)
-    stats = {key: NormStats(mean=centre, std=spread) for key in ("state", "actions")}
-    processor = PI0Processor.from_config(config, tokenizer=build_test_tokenizer(), norm_stats=stats)
-    return PI0Policy(PI0ForActionGeneration(config), processor, num_steps=2, seed=0)
-
-
 # -- schedules and stitching ---------------------------------------------------------------------------------------------
 
 

@@ -697,7 +697,8 @@ class PI0ForActionGeneration(SiglipImageEmbedding, PI0PreTrainedModel):
     GRAPH_PREFIX_BUCKET = 32
     # Regional compilation shares each compiled layer's code among every model, pass, dtype and batch-size class (1, or
     # more) of the process: π0 and π0.5 in float32 and bf16 are 24 decoder-layer graphs. Dynamo's default limit of 8 per
-    # code object would fail a `fullgraph` compile after a few of them, so `compile_sampling` raises it to this.
+    # code object would fail a `fullgraph` compile after a few of them, so compiled calls raise it to this
+    # (`_allow_recompiles`).
     RECOMPILE_LIMIT = 64
 
     def __init__(self, config: PI0Config) -> None:
@@ -910,6 +911,8 @@ class PI0ForActionGeneration(SiglipImageEmbedding, PI0PreTrainedModel):
         else:
             x_t, target = noise.float(), None
 
+        if self.sampling_compiled:
+            _allow_recompiles(self.RECOMPILE_LIMIT)
         layout = facts.layout(config.tokens_per_image)
         prefix, prefix_valid = self.embed_prefix(*self._camera_inputs(pixel_values, image_masks, layout), input_ids, attention_mask)
         prefix, first = compact_prefix(prefix, prefix_valid, layout)
@@ -1097,6 +1100,8 @@ class PI0ForActionGeneration(SiglipImageEmbedding, PI0PreTrainedModel):
             committed=prefix.committed if method == "conditioning" else None,
         )
         plan = SamplingPlan(layout, times, method, float(rtc_max_guidance) if method == "guidance" else 0.0)
+        if self.sampling_compiled:
+            _allow_recompiles(self.RECOMPILE_LIMIT)
         return self._sample(inputs, plan) if graphs is None else graphs.run(inputs, plan)
 
     def _sample(self, inputs: SamplingInputs, plan: SamplingPlan) -> torch.Tensor:
@@ -1188,8 +1193,8 @@ class PI0ForActionGeneration(SiglipImageEmbedding, PI0PreTrainedModel):
         `mode="reduce-overhead"` means: compile, and (on CUDA) replay the whole sampling as one CUDA graph
         (`capture_sampling`), which then holds the compiled kernels. For inference: a compiled decoder layer skips
         gradient checkpointing. `compile_sampling(disable=True)` goes back to eager layers (and no graphs). Raises
-        Dynamo's recompile limit to `RECOMPILE_LIMIT` (process-wide) when it is lower: the compiled layers of every
-        model in the process share their code.
+        Dynamo's recompile limit to `RECOMPILE_LIMIT` when it is lower, here and in every thread that calls the model
+        (Dynamo's settings are per thread): the compiled layers of every model in the process share their code.
         """
         self._graphs = None
         vision_layers = self.vision_tower.encoder.layers
@@ -1204,9 +1209,7 @@ class PI0ForActionGeneration(SiglipImageEmbedding, PI0PreTrainedModel):
             compile_kwargs.pop("mode")
         compile_kwargs.setdefault("fullgraph", True)
         compile_kwargs.setdefault("dynamic", True)  # one graph for every prompt length and batch size above 1
-        dynamo = torch._dynamo.config
-        limit = "recompile_limit" if hasattr(dynamo, "recompile_limit") else "cache_size_limit"  # (torch < 2.7)
-        setattr(dynamo, limit, max(getattr(dynamo, limit), self.RECOMPILE_LIMIT))
+        _allow_recompiles(self.RECOMPILE_LIMIT)
         for layer in self.layers:
             layer.compile_run(**compile_kwargs)
         for layer in vision_layers:
@@ -1328,6 +1331,15 @@ class PI0ForActionGeneration(SiglipImageEmbedding, PI0PreTrainedModel):
             text_counts=tuple(int(v) for v in read[masks_start + batch * cameras :]),
             text_length=input_ids.shape[1],
         )
+
+
+def _allow_recompiles(limit: int) -> None:
+    """Raise Dynamo's recompile limit per code object to `limit` where it is lower, for the calling thread: torch keeps
+    a user's Dynamo settings per thread, so a server's model thread needs its own."""
+    config = torch._dynamo.config
+    name = "recompile_limit" if hasattr(config, "recompile_limit") else "cache_size_limit"  # (torch < 2.7)
+    if getattr(config, name) < limit:
+        setattr(config, name, limit)
 
 
 def _place_name(place: int | str | torch.device) -> str:
