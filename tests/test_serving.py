@@ -455,6 +455,16 @@ def test_compiled_policy_is_warmed_up_before_serving_and_serves_the_same_actions
     np.testing.assert_allclose(np.asarray(result["replies"][0]["actions"], np.float32), expected, rtol=1e-4, atol=1e-4)
 
 
+def test_the_warm_up_log_says_which_graphs_were_captured(model_dir: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """A policy that replays CUDA graphs is warmed up for every batch size, plain and continued by its real-time
+    chunking method, and the log says so (on the CPU, `capture_sampling` is set but sampling stays eager)."""
+    captured = PI0Policy.from_pretrained(model_dir, device="cpu", seed=0)
+    captured.model.capture_sampling()
+    with caplog.at_level(logging.INFO, logger="pi0_torch.runtime.serving"), running_server(captured, max_batch_size=2):
+        pass
+    assert "CUDA graphs captured for batch sizes 1 to 2 (plain and continued by RTC guidance)" in caplog.text
+
+
 def test_bad_requests_get_an_error_reply_and_the_server_keeps_serving(
     policy: PI0Policy, client_python: Path, tmp_path: Path
 ) -> None:

@@ -408,7 +408,10 @@ class PolicyServer:
         try:
             # on the model thread, where every later inference runs (CUDA graphs are recorded per thread)
             seconds = await asyncio.get_running_loop().run_in_executor(model_thread, self.policy.warmup, self.max_batch_size)
-            graphs = f"; CUDA graphs captured for batch sizes 1 to {self.max_batch_size}" if getattr(self.policy, "captured", False) else ""
+            graphs = ""
+            if getattr(self.policy, "captured", False):
+                continued = f" (plain and continued by RTC {self.policy.rtc_method})" if self.policy.continues_chunks else ""
+                graphs = f"; CUDA graphs captured for batch sizes 1 to {self.max_batch_size}{continued}"
             logger.info("warm-up in %.1f s%s", seconds, graphs)
             worker = asyncio.create_task(self._run_model(model_thread))
             async with serve(
