@@ -94,6 +94,32 @@ def test_cuda_graph_captures_both_real_time_chunking_methods(reference: OpenpiRe
     assert relative(guided, eager["guidance", 0]) <= 2e-2 and not model._graphs.graphs
 
 
+def test_a_refused_guidance_capture_leaves_cuda_usable(reference: OpenpiReference, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A capture CUDA really refuses (a host read forced into guided sampling while it records): that chunk samples
+    eagerly, the caller's stream is current again, and the caching allocator has no capture left under way (a later
+    capture and `empty_cache` work)."""
+    model, inputs, noise = on_cuda(reference, torch.bfloat16)
+    rtc = dict(noise=noise, previous_actions=torch.randn_like(noise), inference_delay=3, execution_horizon=5, rtc_method="guidance")
+    eager = model.generate_actions(**inputs, **rtc)
+    model.capture_sampling()
+    sample = model._sample
+
+    def reads_the_host_while_recording(sampling_inputs, plan):
+        if torch.cuda.is_current_stream_capturing():
+            sampling_inputs.noise.sum().item()  # not allowed while a stream records
+        return sample(sampling_inputs, plan)
+
+    monkeypatch.setattr(model, "_sample", reads_the_host_while_recording)
+    stream = torch.cuda.current_stream()
+    guided = model.generate_actions(**inputs, **rtc)
+    assert relative(guided, eager) <= 2e-2 and not model.replays_graphs("guidance")
+    assert torch.cuda.current_stream() == stream
+    monkeypatch.undo()
+    torch.cuda.empty_cache()
+    plain = model.generate_actions(**inputs, noise=noise)
+    assert len(model._graphs.graphs) == 1 and torch.isfinite(plain).all()
+
+
 @pytest.mark.parametrize("rtc_max_delay", [0, 3])  # the policy's method: guidance, conditioning
 def test_a_captured_policy_warms_up_its_real_time_chunking_graph(rtc_max_delay: int) -> None:
     """`warmup` (in inference mode, as a server runs it) captures a plain and a continued chunk's graph; a continued

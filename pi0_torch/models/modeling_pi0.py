@@ -1090,7 +1090,7 @@ class PI0ForActionGeneration(SiglipImageEmbedding, PI0PreTrainedModel):
         if previous_actions is not None:
             prefix = self._chunk_prefix(batch, previous_actions, inference_delay, execution_horizon, rtc_method, rtc_max_guidance, rtc_schedule)
         method = None if prefix is None or (rtc_method == "guidance" and rtc_max_guidance == 0) else rtc_method
-        graphs = self._graphs if pixel_values.is_cuda and self._graphs is not None and self._graphs.covers(method) else None
+        graphs = self._graphs if pixel_values.is_cuda and self.replays_graphs(method) else None
         layout = facts.layout(config.tokens_per_image, self.GRAPH_PREFIX_BUCKET if graphs is not None else 1)
         pixel_values, image_masks = self._camera_inputs(pixel_values, image_masks, layout)
         inputs = SamplingInputs(
@@ -1182,6 +1182,11 @@ class PI0ForActionGeneration(SiglipImageEmbedding, PI0PreTrainedModel):
     def sampling_captured(self) -> bool:
         """Whether `generate_actions` on CUDA replays CUDA graphs (see `capture_sampling`)."""
         return self._graphs is not None
+
+    def replays_graphs(self, rtc_method: str | None = None) -> bool:
+        """Whether `generate_actions` on CUDA replays CUDA graphs for chunks sampled with this real-time chunking method
+        (None: plain sampling); see `capture_sampling`."""
+        return self._graphs is not None and self._graphs.covers(rtc_method)
 
     def compile_sampling(self, disable: bool = False, **compile_kwargs: Any) -> None:
         """Opt in to `torch.compile`, regionally: each repeated layer (a joint decoder layer's `run`, a SigLIP encoder

@@ -81,6 +81,7 @@ class SamplingGraphs:
                     raise
                 logger.warning("%s; chunks guided by real-time chunking sample eagerly from now on", error)
                 self.guidance = False
+            if captured is None:  # (outside the `except`: its traceback holds the failed capture's tensors)
                 return self.model._sample(inputs, plan)
         with torch.inference_mode():
             for static, value in zip(_tensors(captured.inputs), _tensors(inputs)):
@@ -91,24 +92,40 @@ class SamplingGraphs:
 
     @torch.inference_mode()
     def _capture(self, inputs: SamplingInputs, plan: SamplingPlan) -> CapturedSampling:
+        device = inputs.noise.device
         static = type(inputs)(*(None if value is None else value.clone() for value in _tensors(inputs)))
-        side = torch.cuda.Stream(device=inputs.noise.device)
-        side.wait_stream(torch.cuda.current_stream(inputs.noise.device))
+        side = torch.cuda.Stream(device=device)
+        side.wait_stream(torch.cuda.current_stream(device))
         with torch.cuda.stream(side):
             for _ in range(WARMUP_RUNS):
                 self.model._sample(static, plan)
-        torch.cuda.current_stream(inputs.noise.device).wait_stream(side)
+        torch.cuda.current_stream(device).wait_stream(side)
+        pool = self.pool if self.pool is not None else torch.cuda.graph_pool_handle()
         graph = torch.cuda.CUDAGraph()
         try:
-            with torch.cuda.graph(graph, pool=self.pool):
-                output = self.model._sample(static, plan)
+            with torch.cuda.stream(torch.cuda.current_stream(device)):  # (this stream again, should the capture fail)
+                with torch.cuda.graph(graph, pool=pool):
+                    output = self.model._sample(static, plan)
         except RuntimeError as error:
+            _release_failed_capture(device, pool)
             what = "sampling" if plan.rtc_method is None else f"sampling with RTC {plan.rtc_method}"
             raise SamplingCaptureError(f"could not capture {what} as a CUDA graph ({error}); call "
                                        "model.capture_sampling(disable=True) to sample eagerly") from error
-        self.pool = graph.pool()
-        torch.cuda.synchronize(inputs.noise.device)
+        self.pool = pool
+        torch.cuda.synchronize(device)
         return CapturedSampling(graph, static, output)
+
+
+def _release_failed_capture(device: torch.device, pool: Any) -> None:
+    """Give the caching allocator back what a refused capture left claimed: torch ends a capture's claim on its memory
+    pool only once the capture succeeded (as torch's own capture helpers do, in `torch.cuda.memory`). Without this a
+    later capture, or `torch.cuda.empty_cache`, would find a capture still under way."""
+    index = device.index if device.index is not None else torch.cuda.current_device()
+    try:
+        torch._C._cuda_endAllocateToPool(index, pool)
+    except RuntimeError:  # (a torch that ended it already)
+        return
+    torch._C._cuda_releasePool(index, pool)
 
 
 def _tensors(inputs: SamplingInputs) -> list[torch.Tensor | None]:

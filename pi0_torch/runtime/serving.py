@@ -410,7 +410,9 @@ class PolicyServer:
             seconds = await asyncio.get_running_loop().run_in_executor(model_thread, self.policy.warmup, self.max_batch_size)
             graphs = ""
             if getattr(self.policy, "captured", False):
-                continued = f" (plain and continued by RTC {self.policy.rtc_method})" if self.policy.continues_chunks else ""
+                rtc_method = getattr(self.policy, "rtc_method", None)  # (a policy that continues chunks)
+                rtc_too = rtc_method is not None and self.policy.model.replays_graphs(rtc_method)
+                continued = f" (plain and continued by RTC {rtc_method})" if rtc_too else ""
                 graphs = f"; CUDA graphs captured for batch sizes 1 to {self.max_batch_size}{continued}"
             logger.info("warm-up in %.1f s%s", seconds, graphs)
             worker = asyncio.create_task(self._run_model(model_thread))
