@@ -12,8 +12,10 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import OpenpiReference, relative_error
+from conftest import OpenpiReference, relative_error, tiny_policy
 from test_parity import BF16_TOLERANCE
+
+from pi0_torch.runtime.policy import PI0Policy
 
 pytestmark = pytest.mark.gpu
 CUDA = torch.device("cuda")
@@ -124,10 +126,6 @@ def test_a_refused_guidance_capture_leaves_cuda_usable(reference: OpenpiReferenc
 def test_a_captured_policy_warms_up_its_real_time_chunking_graph(rtc_max_delay: int) -> None:
     """`warmup` (in inference mode, as a server runs it) captures a plain and a continued chunk's graph; a continued
     request then replays it (no capture while the robot waits), and the model still replays outside inference mode."""
-    from conftest import tiny_policy
-
-    from pi0_torch.runtime.policy import PI0Policy
-
     cpu = tiny_policy(rtc_max_delay=rtc_max_delay)
     policy = PI0Policy(cpu.model.to(CUDA), cpu.processor, num_steps=2, seed=0, cuda_graph=True)
     policy.warmup(1)
