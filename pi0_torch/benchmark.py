@@ -276,9 +276,9 @@ def bench_generate(args: argparse.Namespace, device: torch.device) -> None:
                             if cuda:
                                 activities, gpu_seconds = gpu_work(call, device)
                                 work = f" {activities:7d} {gpu_seconds * 1e3:7.1f}"
-                            if method == "guidance" and model.sampling_captured and not model.replays_graphs(method):
-                                method = "guid. eager"  # CUDA refused to record it (the warning above says why)
-                            print(f"{preset:12s} {dtype_name:9s} {mode:14s} {method or '-':12s} {cameras:4d} {batch:5d} "
+                            refused = method == "guidance" and model.sampling_captured and not model.replays_graphs(method)
+                            label = "guid. eager" if refused else method or "-"  # (refused: the warning above says why)
+                            print(f"{preset:12s} {dtype_name:9s} {mode:14s} {label:12s} {cameras:4d} {batch:5d} "
                                   f"{setup:8.1f} {timing.row()} {rate}{work}")
             del model
             gc.collect()
