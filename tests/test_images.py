@@ -2,12 +2,16 @@
 
 from __future__ import annotations
 
+import multiprocessing
+import threading
+
 import numpy as np
 import pytest
 import torch
 from PIL import Image
 
-from pi0_torch.processing.images import missing_image, resize_with_pad, to_model_image
+from pi0_torch.processing import images
+from pi0_torch.processing.images import missing_image, resize_with_pad, to_model_image, to_model_images
 
 from conftest import FIXTURES
 
@@ -138,3 +142,73 @@ def test_bad_frames(frame: object, kwargs: dict, message: str) -> None:
 def test_error_names_the_camera() -> None:
     with pytest.raises(ValueError, match=r"^images\['wrist'\]: "):
         to_model_image(np.zeros((8, 8, 3), np.int32), 224, name="images['wrist']")
+
+
+def _camera_frames(count: int = 3) -> list[tuple[str, np.ndarray]]:
+    rng = np.random.default_rng(0)
+    return [(f"images['cam{i}']", rng.integers(0, 256, (120 + 8 * i, 160, 3), dtype=np.uint8)) for i in range(count)]
+
+
+def _converting_threads(monkeypatch: pytest.MonkeyPatch) -> set[str]:
+    """The names of the threads that run `to_model_image` from now on."""
+    names: set[str] = set()
+    convert = images.to_model_image
+
+    def recording(*args: object, **kwargs: object) -> np.ndarray:
+        names.add(threading.current_thread().name)
+        return convert(*args, **kwargs)
+
+    monkeypatch.setattr(images, "to_model_image", recording)
+    return names
+
+
+def test_frames_converted_on_threads_equal_one_by_one(monkeypatch: pytest.MonkeyPatch) -> None:
+    frames = _camera_frames()
+    one_by_one = [to_model_image(frame, 224, name=name) for name, frame in frames]
+    monkeypatch.setattr(images, "_usable_cores", lambda: 4)  # threads even on a one-core runner
+    threads = _converting_threads(monkeypatch)
+    together = to_model_images(frames, 224)
+    assert threads and all(name.startswith("pi0-frames") for name in threads)
+    assert len(together) == 3 and all(np.array_equal(a, b) for a, b in zip(together, one_by_one))
+
+
+def test_frames_on_threads_report_the_first_bad_frame(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(images, "_usable_cores", lambda: 4)
+    frames = _camera_frames()
+    frames[1] = ("images['cam1']", np.zeros((8, 8, 3), np.int32))
+    frames[2] = ("images['cam2']", np.full((8, 8, 3), np.nan, np.float32))
+    with pytest.raises(ValueError, match=r"^images\['cam1'\]: expected dtype uint8 or float"):
+        to_model_images(frames, 224)
+
+
+def test_frames_one_by_one_in_a_data_loader_worker_or_when_small(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(images, "_usable_cores", lambda: 4)
+    threads = _converting_threads(monkeypatch)
+    tiny = [(name, frame[:32, :32]) for name, frame in _camera_frames()]
+    to_model_images(tiny, 28)  # 3 x 32 x 32 pixels: threads would cost more than they save
+    assert threads == {threading.current_thread().name}
+    monkeypatch.setattr(images, "get_worker_info", lambda: object())  # what a DataLoader worker sees
+    to_model_images(_camera_frames(), 224)
+    assert threads == {threading.current_thread().name}
+
+
+def _convert_in_child(queue: multiprocessing.Queue) -> None:
+    queue.put([frame.shape for frame in to_model_images(_camera_frames(), 224)])
+
+
+@pytest.mark.skipif("fork" not in multiprocessing.get_all_start_methods(), reason="needs fork")
+def test_a_forked_process_converts_frames_with_a_pool_of_its_own(monkeypatch: pytest.MonkeyPatch) -> None:
+    # a forked child inherits the parent's pool object but not its threads: work sent there would never run
+    monkeypatch.setattr(images, "_usable_cores", lambda: 4)
+    to_model_images(_camera_frames(), 224)  # the parent's pool, its threads started
+    context = multiprocessing.get_context("fork")
+    queue = context.Queue()
+    child = context.Process(target=_convert_in_child, args=(queue,))
+    child.start()
+    try:
+        assert queue.get(timeout=60) == [(3, 224, 224)] * 3
+    finally:
+        child.join(timeout=10)
+        if child.is_alive():
+            child.kill()
+    assert child.exitcode == 0

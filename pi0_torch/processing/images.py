@@ -19,6 +19,11 @@ float frames are resized in float32 with `torch.nn.functional.interpolate(..., a
 openpi's `jax.image.resize` version to ~1e-5 (and float frames are not quantized to uint8 first, unlike openpi's
 policy transforms, a difference of at most one gray level).
 
+`to_model_images` converts several frames (an observation's cameras) on a few threads at once: PIL and numpy release
+the GIL while they resize and scale, so a policy computer's cores share the work. Three 480x640 frames take 4-6 ms
+on one core of the development machine, half of the 10 ms that a whole chunk is meant to take on a GPU. The result
+is the same as converting the frames one by one.
+
 ```python
 >>> import numpy as np
 >>> frame = np.full((180, 320, 3), 255, np.uint8)
@@ -34,18 +39,24 @@ policy transforms, a difference of at most one gray level).
 
 from __future__ import annotations
 
+import math
+import os
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any, TypeVar, Union
 
 import numpy as np
 import torch
 import torch.nn.functional as F
+from torch.utils.data import get_worker_info
 from PIL import Image
 
 from pi0_torch.utils.validation import check_frame_size
 
 FLOAT_RANGES: tuple[tuple[float, float], ...] = ((0.0, 1.0), (-1.0, 1.0))
 RANGE_TOLERANCE = 1e-3
+MAX_FRAME_THREADS = 8  # threads of `to_model_images` (at most one per usable core)
+MIN_PIXELS_FOR_THREADS = 100_000  # below it (tiny simulator frames) starting the threads costs more than it saves
 
 ImageT = TypeVar("ImageT", np.ndarray, torch.Tensor)
 Frame = Union[np.ndarray, torch.Tensor, Image.Image]
@@ -162,6 +173,50 @@ def to_model_image(
     else:
         raise ValueError(f"{name}: expected dtype uint8 or float, got {frame.dtype}")
     return np.ascontiguousarray(np.moveaxis(model, -1, 0), dtype=np.float32)
+
+
+def to_model_images(
+    frames: Sequence[tuple[str, Frame]], size: int | tuple[int, int], float_range: Sequence[float] = (0.0, 1.0)
+) -> list[np.ndarray]:
+    """`to_model_image` of each `(name, frame)`, in order, on several threads where the machine has cores to spare.
+
+    Threads are used for two frames or more with `MIN_PIXELS_FOR_THREADS` pixels in all (each frame's input or
+    output, the larger), except inside a `DataLoader` worker (its processes already share the cores). A bad frame
+    raises the same `ValueError` as `to_model_image`, the first bad one in order.
+    """
+    def convert(item: tuple[str, Frame]) -> np.ndarray:
+        name, frame = item
+        return to_model_image(frame, size, float_range, name)
+
+    height, width = (size, size) if isinstance(size, int) else size
+    pixels = sum(max(_pixel_count(frame), height * width) for _, frame in frames)
+    if len(frames) < 2 or pixels < MIN_PIXELS_FOR_THREADS or _usable_cores() < 2 or get_worker_info() is not None:
+        return [convert(item) for item in frames]
+    return list(_frame_pool().map(convert, frames))
+
+
+def _pixel_count(frame: Any) -> int:
+    if isinstance(frame, Image.Image):
+        return frame.width * frame.height
+    shape = getattr(frame, "shape", ())
+    return math.prod(shape) // 3 if len(shape) == 3 else 0  # (a bad frame: `to_model_image` says why)
+
+
+def _usable_cores() -> int:
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
+_frame_pools: dict[int, ThreadPoolExecutor] = {}  # process id -> its pool (a forked child must not use its parent's)
+
+
+def _frame_pool() -> ThreadPoolExecutor:
+    pid = os.getpid()
+    if pid not in _frame_pools:
+        _frame_pools.clear()
+        _frame_pools[pid] = ThreadPoolExecutor(
+            max_workers=min(MAX_FRAME_THREADS, _usable_cores()), thread_name_prefix="pi0-frames"
+        )
+    return _frame_pools[pid]
 
 
 def missing_image(size: int | tuple[int, int]) -> np.ndarray:

@@ -61,7 +61,7 @@ from transformers import AutoProcessor, BatchFeature
 
 from pi0_torch.models.configuration_base import PI0BaseConfig
 from pi0_torch.models.configuration_pi0 import DEFAULT_CAMERA_NAMES, PI0Config
-from pi0_torch.processing.images import check_float_range, missing_image, to_model_image
+from pi0_torch.processing.images import check_float_range, missing_image, to_model_images
 from pi0_torch.processing.normalization import (
     DEFAULT_MIN_SCALE,
     NORM_MODES,
@@ -469,14 +469,11 @@ class PI0Processor:
             raise ValueError(f"{where}images: required cameras {missing_required} are missing; got {present}")
         if not present:
             raise ValueError(f"{where}images: no camera frame given; expected at least one of {self.camera_names}")
-        frames, masks = [], []
-        for name in self.camera_names:
-            if name in present:
-                field = f"{where}images[{name!r}]"
-                frames.append(to_model_image(images[name], self.image_size, self.float_image_range, field))
-            else:
-                frames.append(missing_image(self.image_size))
-            masks.append(name in present)
+        shown = iter(to_model_images(
+            [(f"{where}images[{name!r}]", images[name]) for name in present], self.image_size, self.float_image_range
+        ))
+        frames = [next(shown) if name in present else missing_image(self.image_size) for name in self.camera_names]
+        masks = [name in present for name in self.camera_names]
         return np.stack(frames), np.asarray(masks, bool)  # [C, 3, H, W], [C]
 
     def encode_actions(self, actions: Any, state: Any, name: str = "actions") -> np.ndarray:
