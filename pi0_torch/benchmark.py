@@ -303,14 +303,15 @@ def bench_op_counts(args: argparse.Namespace) -> None:
         gc.collect()
     print(f"\nATen ops of the sampling a CUDA graph captures, full size, bfloat16, batch 1, {TEXT_TOKENS} prompt tokens, "
           "10 steps (counted on the meta device: no weights)")
-    print(f"{'preset':12s} {'cameras':>7s} {'ops':>6s} {'views':>6s} {'kernels':>7s}")
+    print(f"{'preset':12s} {'cameras':>7s} {'ops':>6s} {'views':>6s} {'kernels':>7s} {'host copies':>11s}")
     for preset in ("pi0", "pi05"):
         for cameras in (1, 3):
             config = PI0Config.from_preset(preset)
             shown = tuple(camera < cameras for camera in range(config.num_cameras))
             _, counter = sample_on_meta(config, InputFacts((shown,), (TEXT_TOKENS,), TEXT_TOKENS), config.num_inference_steps,
                                         torch.bfloat16)
-            print(f"{preset:12s} {cameras:7d} {counter.total:6d} {counter.views:6d} {counter.kernels:7d}")
+            print(f"{preset:12s} {cameras:7d} {counter.total:6d} {counter.views:6d} {counter.kernels:7d} "
+                  f"{counter.host_copies:11d}")
 
 
 def sample_on_meta(

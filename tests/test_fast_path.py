@@ -149,17 +149,26 @@ def test_varlen_packing_equals_sdpa(monkeypatch: pytest.MonkeyPatch, group_rows:
 def test_sampling_never_reads_the_device(pi05: bool, rtc_method: str | None) -> None:
     """What a CUDA graph captures (plain sampling, and both real-time chunking methods: guidance with its
     vector-Jacobian product per step) has no host read at all: on the meta device, which holds no values, any read of
-    one (`.item()`, `bool()`, `.tolist()`, `nonzero`, boolean indexing) raises."""
+    one (`.item()`, `bool()`, `.tolist()`, `nonzero`, boolean indexing) raises. Nor does it copy a host tensor to the
+    device, which a graph would replay from the host memory it saw at capture."""
     config = PI0Config.from_preset("pi05_small" if pi05 else "pi0_small", rtc_max_delay=4)
     facts = InputFacts(image_masks=((True, True, False), (True, False, False)), text_counts=(20, 9), text_length=48)
-    actions, _ = sample_on_meta(config, facts, steps=3, rtc_method=rtc_method)
+    actions, counter = sample_on_meta(config, facts, steps=3, rtc_method=rtc_method)
     assert actions.shape == (2, 50, 32) and actions.is_meta
+    assert counter.host_copies == 0
 
 
-def test_a_host_read_would_be_caught() -> None:
-    """(The meta check above can fail: a read of a meta tensor raises.)"""
+def test_a_host_read_or_copy_would_be_caught() -> None:
+    """(The meta checks above can fail: a read of a meta tensor raises, and a copy from the host is counted.)"""
     with pytest.raises((RuntimeError, NotImplementedError)):
         torch.empty(2, device="meta").sum().item()
+    device_tensor = torch.empty(3, device="meta")
+    with AtenOpCounter() as counter:
+        _ = device_tensor * 2.0  # a Python scalar: passed by value, no copy
+        _ = device_tensor * torch.tensor(2.0)  # a 0-dim host tensor too
+        _ = torch.arange(3).to("meta")
+        device_tensor.copy_(torch.ones(3))
+    assert counter.host_copies == 2
 
 
 @pytest.mark.parametrize("preset, ceiling, kernel_ceiling", [("pi0_small", 1200, 740), ("pi05_small", 1200, 740)])

@@ -11,6 +11,10 @@
 ...     _ = bool(torch.ones(2).sum() > 1)  # the host waits for a value
 >>> counter.host_reads
 1
+>>> with AtenOpCounter() as counter:
+...     _ = torch.ones(2).to("meta")  # a host tensor copied to a device
+>>> counter.host_copies
+1
 >>> x = torch.ones(2, 8)
 >>> with AtenOpCounter() as counter:  # one op on a CUDA build, its decomposition on the CPU
 ...     _ = torch.ops.aten._fused_rms_norm(x, [8], None, 1e-6)
@@ -25,8 +29,10 @@ The calls in `ONE_OP_ON_CUDA` run as one kernel on CUDA (RMSNorm's `_fused_rms_n
 one flash / efficient / cuDNN kernel there) but as several ops elsewhere (their decomposition on the CPU or `meta`, the
 math kernel on `meta`): each call counts as one op, and `dispatched` counts the ops as they ran here instead. Host
 reads are the ops that copy a device value to the host for Python to look at (`.item()`, `bool(tensor)`, `nonzero`);
-on a GPU each one waits for all queued work. (`.tolist()` / `.cpu()` of a CPU tensor dispatch nothing and are not
-seen, nor is work a backend kernel does inside one op: CUDA's out-of-place `addmm` copies its input first.)
+on a GPU each one waits for all queued work. Host copies are the ops that copy a host tensor (not a 0-dim scalar) to
+another device: inside a CUDA graph one would be replayed from the host memory it saw at capture, or refused when that
+memory is not pinned. (`.tolist()` / `.cpu()` of a CPU tensor dispatch nothing and are not seen, nor is work a
+backend kernel does inside one op: CUDA's out-of-place `addmm` copies its input first.)
 """
 
 from __future__ import annotations
@@ -34,7 +40,9 @@ from __future__ import annotations
 from collections import Counter
 from typing import Any
 
+import torch
 from torch.overrides import TorchFunctionMode
+from torch.utils._pytree import tree_flatten
 from torch.utils._python_dispatch import TorchDispatchMode
 
 HOST_READS = frozenset({"_local_scalar_dense", "nonzero", "equal"})
@@ -51,6 +59,7 @@ class AtenOpCounter(TorchDispatchMode):
         self.views = 0
         self.allocations = 0
         self.decomposed = 0
+        self.host_copies = 0
         self._inside_one_op = False
         self._calls = _OneOpCalls(self)
 
@@ -70,7 +79,10 @@ class AtenOpCounter(TorchDispatchMode):
             self.ops[name] += 1
             self.views += func.is_view
             self.allocations += name in ALLOCATIONS
-        return func(*args, **(kwargs or {}))
+        result = func(*args, **(kwargs or {}))
+        if not self._inside_one_op:
+            self.host_copies += _copies_from_host(args, kwargs, result)
+        return result
 
     @property
     def total(self) -> int:
@@ -89,6 +101,14 @@ class AtenOpCounter(TorchDispatchMode):
     @property
     def host_reads(self) -> int:
         return sum(count for name, count in self.ops.items() if name in HOST_READS)
+
+
+def _copies_from_host(args: tuple, kwargs: dict | None, result: Any) -> bool:
+    """Whether an op read a host tensor (not a 0-dim scalar, which kernels take by value) into another device's."""
+    tensors = [value for value in tree_flatten((args, kwargs))[0] if isinstance(value, torch.Tensor)]
+    if not any(tensor.device.type == "cpu" and tensor.dim() > 0 for tensor in tensors):
+        return False
+    return any(isinstance(value, torch.Tensor) and value.device.type != "cpu" for value in tree_flatten(result)[0])
 
 
 class _OneOpCalls(TorchFunctionMode):
