@@ -1,6 +1,7 @@
 """How the package installs and starts: every third-party import declared (core or its extra), a missing extra is
 one line, `import pi0_torch` and `pi0-torch --help` import no torch, AutoModel knows the models, every command's
-help works, and the shipped policy has a name that works from anywhere. (`.ci/install-check` does the same from a
+help works, the GPU tests and benchmark need none of the extras a bare GPU image lacks, and the shipped policy has a
+name that works from anywhere. (`.ci/install-check` does the same from a
 wheel in a clean virtualenv.)"""
 
 from __future__ import annotations
@@ -129,6 +130,25 @@ def test_a_command_without_its_extra_says_so_in_one_line(tmp_path: Path, command
                    f"from pi0_torch.cli import main\nsys.exit(main({command!r}))", tmp_path)
     assert (done.returncode, done.stdout) == (1, "")
     assert done.stderr == f"pi0-torch {command[0]} needs {missing}: pip install 'pi0-torch[{extra}]'\n"
+
+
+GPU_IMAGE_LACKS = ("av", "datasets", "gymnasium", "websockets", "zstandard")  # (issue 26: the device machine's image)
+
+
+def test_the_gpu_tests_and_the_benchmark_need_none_of_the_extras_a_gpu_image_lacks(tmp_path: Path) -> None:
+    """docs/gpu.md's commands run where only torch, transformers and the core packages are installed: the GPU tests
+    are collected and the benchmark and the policy are imported with those extras' modules hidden."""
+    done = _python(
+        "import sys\n"
+        f"sys.modules.update(dict.fromkeys({GPU_IMAGE_LACKS!r}))\n"
+        "import pytest\n"
+        f"code = pytest.main(['-q', '--collect-only', '-p', 'no:cacheprovider', {str(ROOT / 'tests' / 'test_cuda.py')!r}])\n"
+        "import pi0_torch.benchmark, pi0_torch.runtime.policy\n"
+        "sys.exit(int(code))",
+        tmp_path,
+    )
+    assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
+    assert re.search(r"^\d+ tests collected", done.stdout, re.MULTILINE), done.stdout
 
 
 def test_require_extra_names_the_feature_and_the_extra() -> None:
