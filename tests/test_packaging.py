@@ -1,8 +1,7 @@
 """How the package installs and starts: every third-party import declared (core or its extra), a missing extra is
 one line, `import pi0_torch` and `pi0-torch --help` import no torch, AutoModel knows the models, every command's
 help works, the GPU tests and benchmark need none of the extras a bare GPU image lacks, and the shipped policy has a
-name that works from anywhere. (`.ci/install-check` does the same from a
-wheel in a clean virtualenv.)"""
+name that works from anywhere. (`.ci/install-check` does the same from a wheel in a clean virtualenv.)"""
 
 from __future__ import annotations
 
