@@ -97,13 +97,16 @@ def test_cuda_graph_captures_both_real_time_chunking_methods(reference: OpenpiRe
 
 
 def test_a_refused_guidance_capture_leaves_cuda_usable(reference: OpenpiReference, monkeypatch: pytest.MonkeyPatch) -> None:
-    """A capture CUDA really refuses (a host read forced into guided sampling while it records): that chunk samples
-    eagerly, the caller's stream is current again, and the caching allocator has no capture left under way (a later
-    capture and `empty_cache` work)."""
+    """A capture CUDA really refuses (a host read forced into guided sampling while it records), after a plain graph
+    was captured: that chunk samples eagerly, the caller's stream is current again, the plain graph still replays,
+    and a new plain graph is captured (the refused capture's pool was the guided graphs' own, and is not used again)
+    after `empty_cache`."""
     model, inputs, noise = on_cuda(reference, torch.bfloat16)
     rtc = dict(noise=noise, previous_actions=torch.randn_like(noise), inference_delay=3, execution_horizon=5, rtc_method="guidance")
     eager = model.generate_actions(**inputs, **rtc)
+    eager_plain = model.generate_actions(**inputs, noise=noise)
     model.capture_sampling()
+    model.generate_actions(**inputs, noise=noise)  # the plain graph, captured before the refusal
     sample = model._sample
 
     def reads_the_host_while_recording(sampling_inputs, plan):
@@ -118,8 +121,28 @@ def test_a_refused_guidance_capture_leaves_cuda_usable(reference: OpenpiReferenc
     assert torch.cuda.current_stream() == stream
     monkeypatch.undo()
     torch.cuda.empty_cache()
-    plain = model.generate_actions(**inputs, noise=noise)
-    assert len(model._graphs.graphs) == 1 and torch.isfinite(plain).all()
+    assert relative(model.generate_actions(**inputs, noise=noise), eager_plain) <= 2e-2
+    two_steps = model.generate_actions(**inputs, noise=noise, num_steps=2)  # a new plain graph
+    assert len(model._graphs.graphs) == 2 and torch.isfinite(two_steps).all()
+
+
+@pytest.mark.skipif(torch.cuda.device_count() < 2, reason="needs two GPUs")
+def test_a_model_on_another_gpu_than_the_current_one_captures_its_own_kernels(reference: OpenpiReference) -> None:
+    """A model on cuda:1, captured while cuda:0 is current and after a capture there: its graph holds its kernels
+    (torch's default capture stream is made once, on whichever GPU was current: a capture on it would record nothing
+    and replay the capture's actions for any noise)."""
+    first, inputs, noise = on_cuda(reference, torch.bfloat16)
+    first.capture_sampling()
+    first.generate_actions(**inputs, noise=noise)
+    second = torch.device("cuda:1")
+    model = reference.model(torch.bfloat16).to(second)
+    inputs = {name: value.to(second) for name, value in inputs.items()}
+    noises = [noise.to(second) * scale for scale in (1.0, 0.5)]
+    eager = [model.generate_actions(**inputs, noise=each) for each in noises]
+    model.capture_sampling()
+    replays = [model.generate_actions(**inputs, noise=each) for each in noises + noises]
+    for got, want in zip(replays, eager + eager):
+        assert got.device == second and relative(got, want) <= 2e-2
 
 
 @pytest.mark.parametrize("rtc_max_delay", [0, 3])  # the policy's method: guidance, conditioning
@@ -136,7 +159,9 @@ def test_a_captured_policy_warms_up_its_real_time_chunking_graph(rtc_max_delay: 
     continued = policy.infer({**observation, "previous_actions": first, "inference_delay": 1, "execution_horizon": 2})
     assert np.isfinite(continued["actions"]).all() and len(policy.model._graphs.graphs) == 2
     inputs = {name: tensor.to(CUDA) for name, tensor in policy.prepare(observation).inputs.items()}
-    policy.model.generate_actions(**inputs)  # (a direct call: the graph's buffers were made in inference mode)
+    noise = torch.zeros(1, policy.model.config.action_horizon, policy.model.config.action_dim, device=CUDA)
+    direct = policy.model.generate_actions(**inputs, noise=noise, num_steps=2)  # (the buffers were made in inference mode)
+    assert len(policy.model._graphs.graphs) == 2 and torch.isfinite(direct).all() and not direct.is_inference()
 
 
 def test_bad_inputs_after_capture_raise_named_errors(reference: OpenpiReference) -> None:

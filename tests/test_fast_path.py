@@ -448,6 +448,20 @@ def test_capture_sampling_leaves_cpu_sampling_eager() -> None:
     assert not model.sampling_captured
 
 
+def test_compiling_after_capturing_keeps_the_graphs_on_and_captures_them_again() -> None:
+    """docs/gpu.md's order, `capture_sampling()` then `compile_sampling()`: the graphs stay on, with their settings,
+    and those captured with the eager layers are dropped (captured again with the compiled ones on the next call)."""
+    model = PI0ForActionGeneration(PI0Config.from_preset("pi0_small")).eval()
+    model.capture_sampling(batch_sizes=[1], guidance=False)
+    graphs = model._graphs
+    graphs.graphs["captured with the eager layers"] = None  # (what a call on CUDA leaves)
+    model.compile_sampling()
+    assert model._graphs is graphs and not graphs.graphs and graphs.batch_sizes == (1,)
+    assert model.replays_graphs() and not model.replays_graphs("guidance")
+    model.compile_sampling(disable=True)
+    assert not model.sampling_captured and not model.sampling_compiled
+
+
 def test_a_policy_samples_eagerly_when_cuda_refuses_the_capture(monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture) -> None:
     """A capture that CUDA refuses (simulated here: the CPU never captures) is logged and the policy goes on eagerly:
     that chunk is the eager one, and later chunks do not try to capture again."""

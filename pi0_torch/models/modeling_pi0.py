@@ -1196,14 +1196,15 @@ class PI0ForActionGeneration(SiglipImageEmbedding, PI0PreTrainedModel):
 
         `compile_kwargs` go to `torch.compile`, with `fullgraph=True` and `dynamic=True` unless given.
         `mode="reduce-overhead"` means: compile, and (on CUDA) replay the whole sampling as one CUDA graph
-        (`capture_sampling`), which then holds the compiled kernels. For inference: a compiled decoder layer skips
-        gradient checkpointing. `compile_sampling(disable=True)` goes back to eager layers (and no graphs). Raises
+        (`capture_sampling`), which then holds the compiled kernels; graphs switched on before stay on, captured
+        again with the compiled layers. For inference: a compiled decoder layer skips gradient checkpointing.
+        `compile_sampling(disable=True)` goes back to eager layers (and no graphs). Raises
         Dynamo's recompile limit to `RECOMPILE_LIMIT` when it is lower, here and in every thread that calls the model
         (Dynamo's settings are per thread): the compiled layers of every model in the process share their code.
         """
-        self._graphs = None
         vision_layers = self.vision_tower.encoder.layers
         if disable:
+            self._graphs = None
             for layer in self.layers:
                 layer.compile_run(disable=True)
             for layer in vision_layers:
@@ -1219,7 +1220,9 @@ class PI0ForActionGeneration(SiglipImageEmbedding, PI0PreTrainedModel):
             layer.compile_run(**compile_kwargs)
         for layer in vision_layers:
             layer.compile(**compile_kwargs)
-        if graph and self.device.type == "cuda":
+        if self._graphs is not None:
+            self._graphs.clear()  # (they hold the eager layers' kernels)
+        elif graph and self.device.type == "cuda":
             self.capture_sampling()
 
     def capture_sampling(self, disable: bool = False, batch_sizes: Sequence[int] | None = None, guidance: bool = True) -> None:

@@ -8,9 +8,12 @@ with the rest (as PyTorch records a whole training step's backward). Should CUDA
 same, a warning is logged and guided chunks sample eagerly from then on; the other graphs stay.
 
 One graph per `SamplingPlan` (prefix layout, Euler times, real-time chunking method) and input shapes / dtypes: the
-first call of each records it (two warm-up runs on a side stream, then the capture, into one memory pool shared by
-all graphs of the model); later calls copy their inputs into the graph's static buffers, replay it, and return a
-copy of its output, which the next replay does not overwrite.
+first call of each records it (two warm-up runs on a side stream, then the capture, on the model's own capture
+stream); later calls copy their inputs into the graph's static buffers, replay it, and return a copy of its output,
+which the next replay does not overwrite. The graphs share a memory pool, guided ones one of their own: a refused
+capture can leave its pool marked as recording in torch's allocators (there is no Python call that ends that in
+the pinned host allocator), so a pool that saw one is never captured into again, and a refused guidance capture
+never touches the plain graphs' pool.
 """
 
 from __future__ import annotations
@@ -54,12 +57,14 @@ class SamplingGraphs:
         self.batch_sizes = batch_sizes  # None: any batch size (captured on first use)
         self.guidance = guidance  # False: RTC guidance samples eagerly (also once CUDA refused to record it)
         self.graphs: dict[tuple[Any, ...], CapturedSampling] = {}
-        self.pool: Any = None
+        self.pools: dict[bool, Any] = {}  # guided or not -> the memory pool its graphs share
+        self.stream: torch.cuda.Stream | None = None  # every capture's stream (a pool's captures share one)
 
     def clear(self) -> None:
         """Drop every graph (the model's tensors moved, or its attention kernel changed)."""
         self.graphs.clear()
-        self.pool = None
+        self.pools.clear()
+        self.stream = None
 
     def covers(self, rtc_method: str | None) -> bool:
         """Whether sampling with this real-time chunking method (None: plain) replays graphs."""
@@ -93,33 +98,39 @@ class SamplingGraphs:
     @torch.inference_mode()
     def _capture(self, inputs: SamplingInputs, plan: SamplingPlan) -> CapturedSampling:
         device = inputs.noise.device
-        static = type(inputs)(*(None if value is None else value.clone() for value in _tensors(inputs)))
-        side = torch.cuda.Stream(device=device)
-        side.wait_stream(torch.cuda.current_stream(device))
-        with torch.cuda.stream(side):
-            for _ in range(WARMUP_RUNS):
-                self.model._sample(static, plan)
-        torch.cuda.current_stream(device).wait_stream(side)
-        pool = self.pool if self.pool is not None else torch.cuda.graph_pool_handle()
-        graph = torch.cuda.CUDAGraph()
-        try:
-            with torch.cuda.stream(torch.cuda.current_stream(device)):  # (this stream again, should the capture fail)
-                with torch.cuda.graph(graph, pool=pool):
-                    output = self.model._sample(static, plan)
-        except RuntimeError as error:
-            _release_failed_capture(device, pool)
-            what = "sampling" if plan.rtc_method is None else f"sampling with RTC {plan.rtc_method}"
-            raise SamplingCaptureError(f"could not capture {what} as a CUDA graph ({error}); call "
-                                       "model.capture_sampling(disable=True) to sample eagerly") from error
-        self.pool = pool
-        torch.cuda.synchronize(device)
+        with torch.cuda.device(device):  # (the model's GPU, whichever is current)
+            static = type(inputs)(*(None if value is None else value.clone() for value in _tensors(inputs)))
+            side = torch.cuda.Stream(device=device)
+            side.wait_stream(torch.cuda.current_stream(device))
+            with torch.cuda.stream(side):
+                for _ in range(WARMUP_RUNS):
+                    self.model._sample(static, plan)
+            torch.cuda.current_stream(device).wait_stream(side)
+            if self.stream is None:  # (torch's default capture stream is made once, on whichever GPU was current)
+                self.stream = torch.cuda.Stream(device=device)
+            guided = plan.rtc_method == "guidance"
+            pool = self.pools[guided] if guided in self.pools else torch.cuda.graph_pool_handle()
+            graph = torch.cuda.CUDAGraph()
+            try:
+                with torch.cuda.stream(torch.cuda.current_stream(device)):  # (this stream again, should capture fail)
+                    with torch.cuda.graph(graph, pool=pool, stream=self.stream):
+                        output = self.model._sample(static, plan)
+            except Exception as error:
+                self.pools.pop(guided, None)  # (never captured into again)
+                _release_failed_capture(device, pool)
+                what = "sampling" if plan.rtc_method is None else f"sampling with RTC {plan.rtc_method}"
+                raise SamplingCaptureError(f"could not capture {what} as a CUDA graph ({error}); call "
+                                           "model.capture_sampling(disable=True) to sample eagerly") from error
+            self.pools[guided] = pool
+            torch.cuda.synchronize(device)
         return CapturedSampling(graph, static, output)
 
 
 def _release_failed_capture(device: torch.device, pool: Any) -> None:
-    """Give the caching allocator back what a refused capture left claimed: torch ends a capture's claim on its memory
-    pool only once the capture succeeded (as torch's own capture helpers do, in `torch.cuda.memory`). Without this a
-    later capture, or `torch.cuda.empty_cache`, would find a capture still under way."""
+    """Best effort: end the CUDA caching allocator's routing of new memory to a refused capture's pool and give the
+    pool back, in the order torch's own pool helpers use. Some torch versions end that routing only once a capture
+    succeeded; others end it before raising, and then the first call raises and nothing more is done here. (The pinned
+    host allocator's routing has no Python call: that pool is not captured into again, see `SamplingGraphs`.)"""
     index = device.index if device.index is not None else torch.cuda.current_device()
     try:
         torch._C._cuda_endAllocateToPool(index, pool)
