@@ -24,6 +24,7 @@ from __future__ import annotations
 import argparse
 import functools
 import gc
+import io
 import statistics
 import sys
 import tempfile
@@ -66,14 +67,17 @@ class Timing:
 
 @contextmanager
 def peak_memory(device: torch.device) -> Iterator[list[int]]:
-    """Yields a one-element list that holds the peak bytes in use during the block once it ends."""
+    """Yields a one-element list that holds the peak bytes in use during the block once it ends. On CUDA: what the
+    caching allocator held at most (freed blocks given back first), CUDA graphs' memory pools included, whose
+    intermediate tensors count as freed between replays but stay reserved."""
     result = [0]
     if device.type == "cuda":
         torch.cuda.synchronize(device)
+        torch.cuda.empty_cache()
         torch.cuda.reset_peak_memory_stats(device)
         yield result
         torch.cuda.synchronize(device)
-        result[0] = torch.cuda.max_memory_allocated(device)
+        result[0] = torch.cuda.max_memory_reserved(device)
         return
     process = psutil.Process()
     peak = process.memory_info().rss
@@ -123,8 +127,18 @@ def gpu_work(fn: Callable[[], object], device: torch.device) -> tuple[int, float
     with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as profiler:
         fn()
         torch.cuda.synchronize(device)
-    work = [event for event in profiler.events() if event.device_type == torch.autograd.DeviceType.CUDA]
+    work = [event for event in profiler.events()  # (not the GPU copies of annotated ranges: compiled code's calls)
+            if event.device_type == torch.autograd.DeviceType.CUDA and not getattr(event, "is_user_annotation", False)]
     return len(work), sum(event.time_range.elapsed_us() for event in work) / 1e6
+
+
+def in_inference_mode(fn: Callable[[], Any]) -> Callable[[], Any]:
+    """`fn` run in inference mode, as a policy or server runs the model: compiled layers then see the same grad mode
+    in every row, CUDA graphs' warm-ups included, and compile once."""
+    def call() -> Any:
+        with torch.inference_mode():
+            return fn()
+    return call
 
 
 def time_alternating(fns: Sequence[Callable[[], object]], device: torch.device, repeats: int) -> list[list[float]]:
@@ -203,8 +217,11 @@ def example_batch(config: PI0Config, cameras: int, batch: int, device: torch.dev
 
 
 def random_model(config: PI0Config, dtype: torch.dtype, device: torch.device) -> PI0ForActionGeneration:
+    """A model with random weights, initialised on `device` (a full-size one: a minute on a CPU, a second on a GPU)."""
     torch.manual_seed(0)
-    return PI0ForActionGeneration(config).to(device=device, dtype=dtype).eval()
+    with device:
+        model = PI0ForActionGeneration(config)
+    return model.to(dtype).eval()
 
 
 # -- benchmarks -------------------------------------------------------------------------------------------------------------
@@ -267,7 +284,7 @@ def bench_generate(args: argparse.Namespace, device: torch.device) -> None:
                         inputs = example_batch(config, cameras, batch, device)
                         for method in [None, *args.rtc]:
                             options = {} if method is None else rtc_options(config, batch, device, method)
-                            call = functools.partial(model.generate_actions, **inputs, **options)
+                            call = in_inference_mode(functools.partial(model.generate_actions, **inputs, **options))
                             setup = seconds(call, device)
                             timing = time_call(call, device, args.repeats)
                             achieved = generate_flops(config, cameras, batch) / timing.median
@@ -449,13 +466,10 @@ def bench_side_by_side(args: argparse.Namespace, device: torch.device) -> None:
         # transformers' PI0 takes floating inputs (noise too) in its weights' dtype
         their_dtype_inputs = {k: v.to(dtype) if v.is_floating_point() else v for k, v in their_inputs.items()}
         their_dtype_inputs["noise"] = noise.to(dtype)
-        ours_actions = ours.generate_actions(**inputs, noise=noise)
-        their_actions = theirs.sample_actions(**their_dtype_inputs)
-        difference = (ours_actions - their_actions.float()).abs().max().item()
-        ours_times, their_times = time_alternating(
-            [lambda: ours.generate_actions(**inputs, noise=noise), lambda: theirs.sample_actions(**their_dtype_inputs)],
-            device, args.repeats,
-        )
+        ours_call = in_inference_mode(lambda: ours.generate_actions(**inputs, noise=noise))
+        their_call = in_inference_mode(lambda: theirs.sample_actions(**their_dtype_inputs))
+        difference = (ours_call() - their_call().float()).abs().max().item()
+        ours_times, their_times = time_alternating([ours_call, their_call], device, args.repeats)
         ours_median, their_median = statistics.median(ours_times), statistics.median(their_times)
         print(f"{label:14s} {str(dtype).removeprefix('torch.'):9s} {ours_median * 1e3:7.1f} ({min(ours_times) * 1e3:5.1f}) "
               f"{their_median * 1e3:9.1f} ({min(their_times) * 1e3:5.1f}) {their_median / ours_median:7.2f}x {difference:11.2e}")
@@ -532,6 +546,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     device = torch.device(args.device)
+    if isinstance(sys.stdout, io.TextIOWrapper):  # each row as soon as it is measured, into a pipe too (a run cut short)
+        sys.stdout.reconfigure(line_buffering=True)
     unknown = sorted(set(args.dtypes) - {"float32", "bfloat16"})
     if unknown:
         print(f"pi0-torch bench: error: --dtypes: expected float32 and/or bfloat16, got {', '.join(unknown)}", file=sys.stderr)

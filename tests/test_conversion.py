@@ -476,6 +476,7 @@ def test_export_to_transformers_reproduces_openpi(converted: dict, references: d
     out = export_to_transformers(converted["pi0_small", "float32"], tmp_path / "hf")
     hf_model, info = PI0ForConditionalGeneration.from_pretrained(out, output_loading_info=True)
     assert not any(info[k] for k in ("missing_keys", "unexpected_keys", "mismatched_keys")), info
+    assert hf_model.config.dit_config.vocab_size == ref.config.vocab_size  # (set by us: transformers < 5.20 does not)
     inputs = ref.model_inputs()
     actions = hf_model.eval().sample_actions(**transformers_pi0_inputs(inputs, ref.config), noise=ref.tensor("inputs/sample_noise"))
     assert relative_error(actions, ref["fp32/actions"]) <= FLOAT32_TOLERANCE

@@ -153,8 +153,8 @@ def test_a_captured_policy_warms_up_its_real_time_chunking_graph(rtc_max_delay: 
     policy = PI0Policy(cpu.model.to(CUDA), cpu.processor, num_steps=2, seed=0, cuda_graph=True)
     policy.warmup(1)
     assert len(policy.model._graphs.graphs) == 2
-    frame = np.zeros((32, 32, 3), np.uint8)
-    observation = {"images": {"base_0_rgb": frame}, "state": np.ones(3), "prompt": "reach"}
+    frame = np.zeros((32, 32, 3), np.uint8)  # every camera, as the warm-up's layout (one left out: a graph of its own)
+    observation = {"images": {"base_0_rgb": frame, "left_wrist_0_rgb": frame}, "state": np.ones(3), "prompt": "reach"}
     first = policy.infer(observation)["actions"]
     continued = policy.infer({**observation, "previous_actions": first, "inference_delay": 1, "execution_horizon": 2})
     assert np.isfinite(continued["actions"]).all() and len(policy.model._graphs.graphs) == 2

@@ -421,7 +421,9 @@ def _transformers_config(config: PI0Config) -> Any:
             projection_dim=config.vlm_hidden_size,
             image_token_id=config.vocab_size,
         ),
-        dit_config=dict(hidden_size=config.expert_hidden_size, intermediate_size=config.expert_intermediate_size, **gemma),
+        # (the expert's unused embedding table: transformers >= 5.20 sizes it as the VLM's, earlier ones by this vocab_size)
+        dit_config=dict(hidden_size=config.expert_hidden_size, intermediate_size=config.expert_intermediate_size,
+                        vocab_size=config.vocab_size, **gemma),
         chunk_size=config.action_horizon,
         max_state_dim=config.action_dim,
         max_action_dim=config.action_dim,

@@ -59,12 +59,13 @@ class SamplingGraphs:
         self.graphs: dict[tuple[Any, ...], CapturedSampling] = {}
         self.pools: dict[bool, Any] = {}  # guided or not -> the memory pool its graphs share
         self.stream: torch.cuda.Stream | None = None  # every capture's stream (a pool's captures share one)
+        self.warmup_stream: torch.cuda.Stream | None = None  # (one: cuBLAS keeps a workspace per stream)
 
     def clear(self) -> None:
         """Drop every graph (the model's tensors moved, or its attention kernel changed)."""
         self.graphs.clear()
         self.pools.clear()
-        self.stream = None
+        self.stream = self.warmup_stream = None
 
     def covers(self, rtc_method: str | None) -> bool:
         """Whether sampling with this real-time chunking method (None: plain) replays graphs."""
@@ -100,14 +101,13 @@ class SamplingGraphs:
         device = inputs.noise.device
         with torch.cuda.device(device):  # (the model's GPU, whichever is current)
             static = type(inputs)(*(None if value is None else value.clone() for value in _tensors(inputs)))
-            side = torch.cuda.Stream(device=device)
-            side.wait_stream(torch.cuda.current_stream(device))
-            with torch.cuda.stream(side):
+            if self.stream is None:  # (torch's default capture stream is made once, on whichever GPU was current)
+                self.stream, self.warmup_stream = torch.cuda.Stream(device=device), torch.cuda.Stream(device=device)
+            self.warmup_stream.wait_stream(torch.cuda.current_stream(device))
+            with torch.cuda.stream(self.warmup_stream):
                 for _ in range(WARMUP_RUNS):
                     self.model._sample(static, plan)
-            torch.cuda.current_stream(device).wait_stream(side)
-            if self.stream is None:  # (torch's default capture stream is made once, on whichever GPU was current)
-                self.stream = torch.cuda.Stream(device=device)
+            torch.cuda.current_stream(device).wait_stream(self.warmup_stream)
             guided = plan.rtc_method == "guidance"
             pool = self.pools[guided] if guided in self.pools else torch.cuda.graph_pool_handle()
             graph = torch.cuda.CUDAGraph()

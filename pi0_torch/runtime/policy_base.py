@@ -238,8 +238,9 @@ class BasePolicy(abc.ABC):
         """Run chunks on a blank observation (black frames, zero state) so that real requests do not pay for
         compilation, CUDA graph capture or first allocations; returns the seconds it took. A compiled or captured
         policy runs every batch size up to `max_batch_size` (each is its own graph), an eager one batch 1. (Graphs are
-        per prompt-length bucket too: a prompt much longer than the default one captures on its first chunk.) The
-        policy's seeded randomness is left untouched."""
+        per prompt-length bucket and set of cameras shown too: the warm-up shows every camera, so a prompt much longer
+        than the default one, or a request that leaves a camera out, captures on its first chunk.) The policy's seeded
+        randomness is left untouched."""
         start = time.monotonic()
         size = self.processor.image_size
         blank = {
