@@ -132,15 +132,6 @@ def gpu_work(fn: Callable[[], object], device: torch.device) -> tuple[int, float
     return len(work), sum(event.time_range.elapsed_us() for event in work) / 1e6
 
 
-def in_inference_mode(fn: Callable[[], Any]) -> Callable[[], Any]:
-    """`fn` run in inference mode, as a policy or server runs the model: compiled layers then see the same grad mode
-    in every row, CUDA graphs' warm-ups included, and compile once."""
-    def call() -> Any:
-        with torch.inference_mode():
-            return fn()
-    return call
-
-
 def time_alternating(fns: Sequence[Callable[[], object]], device: torch.device, repeats: int) -> list[list[float]]:
     """Seconds of each of `fns` over `repeats` rounds, run in turn (order reversed every other round) so that a
     slower or faster stretch of a shared machine falls on all of them alike."""
@@ -284,7 +275,9 @@ def bench_generate(args: argparse.Namespace, device: torch.device) -> None:
                         inputs = example_batch(config, cameras, batch, device)
                         for method in [None, *args.rtc]:
                             options = {} if method is None else rtc_options(config, batch, device, method)
-                            call = in_inference_mode(functools.partial(model.generate_actions, **inputs, **options))
+                            # in inference mode, as a policy or server runs the model: compiled layers see the same
+                            # grad mode in every row, CUDA graphs' warm-ups included, and compile once
+                            call = torch.inference_mode()(functools.partial(model.generate_actions, **inputs, **options))
                             setup = seconds(call, device)
                             timing = time_call(call, device, args.repeats)
                             achieved = generate_flops(config, cameras, batch) / timing.median
@@ -466,8 +459,8 @@ def bench_side_by_side(args: argparse.Namespace, device: torch.device) -> None:
         # transformers' PI0 takes floating inputs (noise too) in its weights' dtype
         their_dtype_inputs = {k: v.to(dtype) if v.is_floating_point() else v for k, v in their_inputs.items()}
         their_dtype_inputs["noise"] = noise.to(dtype)
-        ours_call = in_inference_mode(lambda: ours.generate_actions(**inputs, noise=noise))
-        their_call = in_inference_mode(lambda: theirs.sample_actions(**their_dtype_inputs))
+        ours_call = torch.inference_mode()(lambda: ours.generate_actions(**inputs, noise=noise))  # (as bench_generate)
+        their_call = torch.inference_mode()(lambda: theirs.sample_actions(**their_dtype_inputs))
         difference = (ours_call() - their_call().float()).abs().max().item()
         ours_times, their_times = time_alternating([ours_call, their_call], device, args.repeats)
         ours_median, their_median = statistics.median(ours_times), statistics.median(their_times)
