@@ -469,11 +469,10 @@ class PI0Processor:
             raise ValueError(f"{where}images: required cameras {missing_required} are missing; got {present}")
         if not present:
             raise ValueError(f"{where}images: no camera frame given; expected at least one of {self.camera_names}")
-        shown = iter(to_model_images(
-            [(f"{where}images[{name!r}]", images[name]) for name in present], self.image_size, self.float_image_range
-        ))
-        frames = [next(shown) if name in present else missing_image(self.image_size) for name in self.camera_names]
-        masks = [name in present for name in self.camera_names]
+        named_frames = [(f"{where}images[{name!r}]", images[name]) for name in present]
+        shown = dict(zip(present, to_model_images(named_frames, self.image_size, self.float_image_range)))
+        frames = [shown[name] if name in shown else missing_image(self.image_size) for name in self.camera_names]
+        masks = [name in shown for name in self.camera_names]
         return np.stack(frames), np.asarray(masks, bool)  # [C, 3, H, W], [C]
 
     def encode_actions(self, actions: Any, state: Any, name: str = "actions") -> np.ndarray:
