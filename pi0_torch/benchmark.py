@@ -15,8 +15,9 @@ CUDA allocator's peak on GPU, the process's peak resident set size (sampled ever
     pi0-torch bench --loading                           # peak RSS of from_pretrained on a full-size bf16 checkpoint
     pi0-torch bench --fast --compile                    # π0-FAST decoding (tokens/s, ms per chunk) after π0's rows
 
-bfloat16 rows are skipped, with a note, on a device without native bfloat16 matmuls ([`bf16_unsupported`]): there
-bfloat16 is emulated, many times slower than float32, and its rows would time the emulation.
+bfloat16 rows are skipped, with a note, on a device without bfloat16 instructions (`pi0_torch.utils.hardware`, read
+from the device's capabilities): there bfloat16 is emulated, many times slower than float32, and its rows would time
+the emulation.
 """
 
 from __future__ import annotations
@@ -44,11 +45,11 @@ from pi0_torch.models.flow_matching import euler_times
 from pi0_torch.models.modeling_pi0 import InputFacts, PI0ForActionGeneration, SamplingInputs, SamplingPlan
 from pi0_torch.models.modeling_pi0_fast import PI0FastForActionGeneration
 from pi0_torch.models.rtc import DEFAULT_MAX_GUIDANCE, METHODS
+from pi0_torch.utils import hardware
 from pi0_torch.utils.op_count import AtenOpCounter
 
 TEXT_TOKENS = 48
 RTC_DELAY, RTC_EXECUTED = 3, 5  # --rtc rows: the continued chunk's inference delay and the steps executed before it
-BF16_MAX_SLOWDOWN = 4.0  # a bfloat16 matmul this many times slower than the float32 one is emulated
 
 
 # -- measuring ------------------------------------------------------------------------------------------------------------
@@ -152,25 +153,6 @@ def matmul_throughput(device: torch.device, dtype: torch.dtype, size: int | None
     b = torch.randn(size, size, device=device, dtype=dtype)
     timing = time_call(lambda: a @ b, device, repeats)
     return 2 * size**3 / timing.minimum
-
-
-def bf16_unsupported(device: torch.device, size: int = 512, repeats: int = 3) -> str | None:
-    """Why `device` cannot run bfloat16 natively (None when it can). On CUDA, torch knows; on a CPU, a bfloat16
-    matmul is timed against a float32 one: without AVX512-BF16 / AMX (x86) or BF16 (Arm) instructions it is
-    emulated, and more than `BF16_MAX_SLOWDOWN` times slower."""
-    if device.type == "cuda":
-        return None if torch.cuda.is_bf16_supported(including_emulation=False) else \
-            f"{torch.cuda.get_device_name(device)} has no native bfloat16"
-    if device.type != "cpu":
-        return None
-    a, b = torch.randn(size, size), torch.randn(size, size)
-    a16, b16 = a.bfloat16(), b.bfloat16()
-    float32_times, bfloat16_times = time_alternating([lambda: a @ b, lambda: a16 @ b16], device, repeats)
-    slowdown = min(bfloat16_times) / min(float32_times)
-    if slowdown <= BF16_MAX_SLOWDOWN:
-        return None
-    return (f"this CPU has no native bfloat16 matmul (a {size} x {size} one took {slowdown:.0f}x the float32 time; "
-            "it needs AVX512-BF16 or AMX on x86, BF16 on Arm)")
 
 
 def generate_flops(config: PI0Config, cameras: int, batch: int, text_tokens: int = TEXT_TOKENS, steps: int | None = None) -> float:
@@ -514,7 +496,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--presets", type=_csv(str), default="pi0_small,pi0_medium", help=f"comma list of {preset_names()}")
     parser.add_argument("--dtypes", type=_csv(str), default="float32,bfloat16",
                         help="comma list of float32, bfloat16 (bfloat16 is skipped, with a note, where the device "
-                             "has no native bfloat16)")
+                             "has no bfloat16 instructions)")
     parser.add_argument("--cameras", type=_csv(int), default="1,3", help="comma list of camera counts")
     parser.add_argument("--batches", type=_csv(int), default="1,8", help="comma list of batch sizes")
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu", help="torch device")
@@ -549,7 +531,7 @@ def run(args: argparse.Namespace) -> int:
     if unknown:
         print(f"pi0-torch bench: error: --rtc: expected guidance and/or conditioning, got {', '.join(unknown)}", file=sys.stderr)
         return 2
-    args.bf16_note = bf16_unsupported(device) if "bfloat16" in args.dtypes or args.side_by_side else None
+    args.bf16_note = hardware.bf16_unsupported(device) if "bfloat16" in args.dtypes or args.side_by_side else None
     if args.bf16_note:
         print(f"bfloat16 rows skipped: {args.bf16_note}")
         args.dtypes = [dtype for dtype in args.dtypes if dtype != "bfloat16"]

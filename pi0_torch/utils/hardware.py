@@ -1,0 +1,74 @@
+"""What a device can do natively, read from its capabilities: never from a timing, which a loaded machine skews.
+
+bfloat16 runs everywhere in torch, but a CPU without bfloat16 instructions emulates it, many times slower than
+float32 (52-66x for a 512 x 512 matmul on an AVX2-only EPYC). Where that matters (the benchmark's rows, the
+doctor's timing column) [`bf16_unsupported`] says why, from what torch and the CPU report:
+
+- x86: AVX512-BF16 or AMX (`torch.cpu` reports both; `/proc/cpuinfo`'s `avx512_bf16` / `amx_bf16` flags where this
+  torch does not);
+- Arm: the `bf16` feature (`/proc/cpuinfo` on Linux, `hw.optional.arm.FEAT_BF16` on macOS);
+- CUDA: compute capability 8.0 or later (torch's `is_bf16_supported(including_emulation=False)`).
+
+>>> bf16_unsupported(torch.device("meta")) is None  # nothing runs there
+True
+"""
+
+from __future__ import annotations
+
+import functools
+import platform
+import subprocess
+from pathlib import Path
+
+import torch
+
+X86 = ("x86_64", "amd64", "i386", "i686")
+ARM = ("aarch64", "arm64")
+
+
+def bf16_unsupported(device: torch.device) -> str | None:
+    """Why `device` has no native bfloat16 arithmetic (None when it has, or when it is neither a CPU nor CUDA)."""
+    if device.type == "cuda":
+        if torch.cuda.is_bf16_supported(including_emulation=False):
+            return None
+        return f"{torch.cuda.get_device_name(device)} has no native bfloat16 (compute capability 8.0 or later has)"
+    if device.type != "cpu" or cpu_has_native_bf16():
+        return None
+    return (f"this CPU ({platform.machine()}, torch's kernels: {torch.backends.cpu.get_cpu_capability()}) has no "
+            "bfloat16 instructions, so bfloat16 is emulated; x86 needs AVX512-BF16 or AMX, Arm the BF16 extension")
+
+
+@functools.lru_cache(maxsize=None)
+def cpu_has_native_bf16() -> bool:
+    """Whether this CPU has bfloat16 instructions (see the module docstring)."""
+    machine = platform.machine().lower()
+    if machine in X86:
+        reported = [getattr(torch.cpu, name, None) for name in ("_is_avx512_bf16_supported", "_is_amx_tile_supported")]
+        if all(check is not None for check in reported):
+            return any(check() for check in reported)
+        return bool(_cpu_flags() & {"avx512_bf16", "amx_bf16"})
+    if machine in ARM:
+        if platform.system() == "Darwin":
+            return _sysctl("hw.optional.arm.FEAT_BF16") == "1"
+        return "bf16" in _cpu_flags()
+    return False
+
+
+def _cpu_flags() -> set[str]:
+    """The feature flags of the first CPU in `/proc/cpuinfo` (`flags` on x86, `Features` on Arm); empty elsewhere."""
+    try:
+        text = Path("/proc/cpuinfo").read_text(errors="replace")
+    except OSError:
+        return set()
+    for line in text.splitlines():
+        name, _, value = line.partition(":")
+        if name.strip().lower() in ("flags", "features"):
+            return set(value.split())
+    return set()
+
+
+def _sysctl(name: str) -> str:
+    try:
+        return subprocess.run(["sysctl", "-n", name], capture_output=True, text=True, timeout=5).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return ""
