@@ -42,7 +42,9 @@ import torch
 from pi0_torch.models.configuration_pi0 import PI0Config, preset_names
 from pi0_torch.models.configuration_pi0_fast import PI0FastConfig, fast_preset_names
 from pi0_torch.models.flow_matching import euler_times
-from pi0_torch.models.modeling_pi0 import InputFacts, PI0ForActionGeneration, SamplingInputs, SamplingPlan
+from pi0_torch.inference.layout import InputFacts
+from pi0_torch.inference.sampling import SamplingInputs, SamplingPlan
+from pi0_torch.models.modeling_pi0 import PI0ForActionGeneration
 from pi0_torch.models.modeling_pi0_fast import PI0FastForActionGeneration
 from pi0_torch.models.rtc import DEFAULT_MAX_GUIDANCE, METHODS
 from pi0_torch.utils import hardware
@@ -307,12 +309,14 @@ def bench_op_counts(args: argparse.Namespace) -> None:
 
 
 def sample_on_meta(
-    config: PI0Config, facts: InputFacts, steps: int, dtype: torch.dtype = torch.float32, rtc_method: str | None = None
+    config: PI0Config, facts: InputFacts, steps: int, dtype: torch.dtype = torch.float32, rtc_method: str | None = None,
+    fused: bool = False,
 ) -> tuple[torch.Tensor, AtenOpCounter]:
     """Run `generate_actions`' sampling region (`_sample`: everything after the input checks, what `capture_sampling`
     records) for a model built on the meta device, with inputs laid out as `facts` says: the actions (shapes only)
-    and the ops it ran. No weights are needed, so a full-size model costs no memory, and any read of a device value
-    on the host (`.item()`, `bool()`, `.tolist()`, `nonzero`) raises."""
+    and the ops it ran (`fused`: the steps in the fused kernels, as on CUDA in bf16, each kernel one op). No weights
+    are needed, so a full-size model costs no memory, and any read of a device value on the host (`.item()`,
+    `bool()`, `.tolist()`, `nonzero`) raises."""
     meta = torch.device("meta")
     with meta:
         model = PI0ForActionGeneration(config).eval().to(dtype)
@@ -333,7 +337,7 @@ def sample_on_meta(
     )
     max_guidance = DEFAULT_MAX_GUIDANCE if rtc_method == "guidance" else 0.0
     with torch.no_grad(), AtenOpCounter() as counter:
-        sampled = model._sample(inputs, SamplingPlan(layout, tuple(euler_times(steps)), rtc_method, max_guidance))
+        sampled = model._sample(inputs, SamplingPlan(layout, tuple(euler_times(steps)), rtc_method, max_guidance, fused))
     return sampled, counter
 
 

@@ -187,7 +187,7 @@ def test_moving_the_model_captures_again(reference: OpenpiReference) -> None:
 
 def test_varlen_kernel_matches_sdpa(reference: OpenpiReference) -> None:
     """FlashAttention's varlen kernel (per-sample key ranges, no mask) against SDPA with the additive mask."""
-    from pi0_torch.models.attention import VARLEN_AVAILABLE
+    from pi0_torch.inference.attention import VARLEN_AVAILABLE
 
     if not VARLEN_AVAILABLE or torch.cuda.get_device_capability() < (8, 0):
         pytest.skip("no varlen_attn with seqused_k in this torch, or a GPU older than sm80")

@@ -11,7 +11,8 @@ import torch
 
 from pi0_torch.masks import prefix_lm_mask
 from pi0_torch.models.flow_matching import euler_times, interpolate, sincos_time_embedding
-from pi0_torch.models.modeling_pi0 import SamplingInputs, compact_prefix
+from pi0_torch.inference.layout import compact_prefix
+from pi0_torch.inference.sampling import SamplingInputs
 
 from conftest import VARIANTS, OpenpiReference, relative_error
 
@@ -166,6 +167,16 @@ def sample_path_errors(ref: OpenpiReference) -> dict[str, float]:
 
     actions = model.generate_actions(**inputs, noise=ref.tensor("inputs/sample_noise"))
     errors["actions"] = relative_error(actions, ref["fp32/actions"])
+
+    # the plain reference loop (openpi's layout and mask, the state token recomputed every step), as openpi
+    plain, plain_cache = model.sample_actions_reference(**inputs, noise=ref.tensor("inputs/sample_noise"), return_cache=True)
+    errors["actions (reference loop)"] = relative_error(plain, ref["fp32/actions"])
+    prefix_len = ref_valid.shape[1]
+    for index, name in enumerate(("k", "v")):
+        reference = ref[f"fp32/sample_path/kv_cache_{name}"]  # [layers, B, P, K, H]
+        ours = torch.stack([layer[index][:, :, :prefix_len].transpose(1, 2) for layer in plain_cache])  # [layers, B, P, K, H]
+        errors[f"kv_cache_{name} (reference loop, valid)"] = max(
+            relative_error(ours[:, b, ref_valid[b]], reference[:, b, ref_valid[b]]) for b in range(ref_valid.shape[0]))
     return errors
 
 

@@ -25,15 +25,9 @@ from transformers.utils import ModelOutput
 
 from pi0_torch.masks import masked_attention, prefix_lm_mask, to_additive_mask
 from pi0_torch.models.configuration_pi0_fast import PI0FastConfig
-from pi0_torch.models.modeling_pi0 import (
-    ExpertLayer,
-    PI0PreTrainedModel,
-    RMSNorm,
-    SiglipImageEmbedding,
-    apply_rope,
-    rope_cos_sin,
-    siglip_vision_tower,
-)
+from pi0_torch.models.layers import ExpertLayer, RMSNorm, apply_rope, rope_cos_sin
+from pi0_torch.models.modeling_pi0 import PI0PreTrainedModel
+from pi0_torch.models.vision import SiglipImageEmbedding, siglip_vision_tower
 from pi0_torch.utils.validation import check_tensor as _check_tensor
 from pi0_torch.utils.validation import describe as _describe
 

@@ -39,7 +39,7 @@ from pi0_torch.models.configuration_pi0 import MAX_INFERENCE_STEPS
 from pi0_torch.models.configuration_pi0_fast import PI0FastConfig
 from pi0_torch.models.modeling_pi0 import PI0ForActionGeneration
 from pi0_torch.models.rtc import DEFAULT_MAX_GUIDANCE, MAX_GUIDANCE, METHODS, SCHEDULES, check_rtc_inputs
-from pi0_torch.models.sampling_graphs import SamplingCaptureError
+from pi0_torch.inference.graphs import SamplingCaptureError
 from pi0_torch.processing.processing_pi0 import PI0Processor
 from pi0_torch.runtime.observation_formats import ObservationError
 from pi0_torch.runtime.policy_base import BasePolicy, ChunkContinuation, PreparedObservation, step_count

@@ -49,7 +49,8 @@ from transformers.models.siglip.modeling_siglip import SiglipEncoderLayer
 from transformers.trainer import SCHEDULER_NAME
 
 from pi0_torch.models.configuration_pi0 import PI0Config
-from pi0_torch.models.modeling_pi0 import AdaRMSNorm, JointDecoderLayer, PI0ForActionGeneration
+from pi0_torch.models.layers import AdaRMSNorm, JointDecoderLayer
+from pi0_torch.models.modeling_pi0 import PI0ForActionGeneration
 from pi0_torch.processing.processing_pi0 import PI0Processor
 from pi0_torch.training.pi0_trainer import CheckpointContents, EMACallback, PI0Trainer
 from pi0_torch.training.trainable import merge_lora

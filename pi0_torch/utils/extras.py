@@ -8,6 +8,7 @@
 | `serve` | `pi0-torch serve`, `eval --policy ws://...` | websockets, msgpack |
 | `envs` | the tabletop envs, `pi0-torch eval` / `demo` (and their videos) | gymnasium, av |
 | `train` | `pi0-torch train`, LeRobot datasets (`demos` writes them) | datasets, pyarrow, pandas, av, peft, accelerate, matplotlib |
+| `kernels` | the fused Triton kernels of sampling on CUDA (torch's CUDA wheels already bring triton) | triton |
 | `all` | every feature | the three above |
 
 A module of an optional feature calls [`require_extra`] before it imports what the extra brings, so that a missing
@@ -32,6 +33,7 @@ EXTRAS: dict[str, tuple[str, ...]] = {
     "serve": ("websockets", "msgpack"),
     "envs": ("gymnasium", "av"),
     "train": ("datasets", "pyarrow", "pandas", "av", "peft", "accelerate", "matplotlib"),
+    "kernels": ("triton",),
 }
 
 

@@ -26,7 +26,8 @@ from typing import TYPE_CHECKING, Any
 import torch
 
 if TYPE_CHECKING:
-    from pi0_torch.models.modeling_pi0 import PI0ForActionGeneration, SamplingInputs, SamplingPlan
+    from pi0_torch.inference.sampling import SamplingInputs, SamplingPlan
+    from pi0_torch.models.modeling_pi0 import PI0ForActionGeneration
 
 logger = logging.getLogger(__name__)
 

@@ -1,0 +1,13 @@
+"""The inference engine of π0 / π0.5: how `generate_actions` runs fast, beside the model math in `pi0_torch.models`.
+
+- `layout`: each pass's tokens laid out so that every query sees one contiguous range of keys (no mask matrix);
+- `attention`: attention over those key ranges, and which kernel runs it;
+- `layer_pass`: one decoder layer's sampling pass on the layer's weights (GEMMs on transposed weights, residuals
+  updated in place, or the fused kernels of `pi0_torch.kernels`);
+- `sampling`: `ActionSampling`, the mixin that gives the model `generate_actions` (the prefix cached once, the Euler
+  steps, real-time chunking), `compile_sampling` and `capture_sampling`;
+- `graphs`: the sampling captured as CUDA graphs by hand, each verified against eager when captured.
+
+`pi0_torch.models.modeling_pi0.PI0ForActionGeneration.sample_actions_reference` is the plain loop the engine is tested
+against at every level.
+"""

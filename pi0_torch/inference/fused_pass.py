@@ -1,0 +1,155 @@
+"""A sampling step of the action expert in the fused ops of `pi0_torch.kernels`: per decoder layer five launches
+(norm + q/k/v + RoPE + cache write, attention over the key range, o-projection + residual, norm + gate/up + GeGLU,
+down-projection + residual), then the final norm, `action_out_proj` and the Euler update in one.
+
+It computes what `ActionSampling.denoise_step` followed by `x_t += dt * velocity` computes, with fewer roundings in
+bf16 (the fused epilogues round once). Used for plain sampling on CUDA in bf16 / fp16 (`ActionSampling.sampling_kernels`,
+"auto"), after `fused_kernels_reason` found the kernels equal to their torch references at the model's own sizes on
+that device (once per device, dtype and sizes); real-time chunking's steps run unfused.
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import torch
+
+from pi0_torch.kernels import ops, reference
+from pi0_torch.models.layers import NormParams, rope_cos_sin
+
+if TYPE_CHECKING:
+    from pi0_torch.inference.layer_pass import SamplingWeights
+    from pi0_torch.inference.sampling import ActionPass
+    from pi0_torch.models.modeling_pi0 import PI0ForActionGeneration, StepConditioning
+
+logger = logging.getLogger(__name__)
+
+SELF_CHECK_TOLERANCE = {torch.float32: 1e-4, torch.bfloat16: 3e-2, torch.float16: 1e-2}  # max error / max |reference|
+
+
+def structural_reason(model: PI0ForActionGeneration, weights: list[SamplingWeights]) -> str | None:
+    """Why the fused step cannot run this model's layers at all (None: it can)."""
+    config = model.config
+    head_dim = config.head_dim
+    if config.num_key_value_heads != 1:
+        return f"the fused attention folds the query heads onto one kv head; this model has {config.num_key_value_heads}"
+    if head_dim < 16 or head_dim & (head_dim - 1):
+        return f"the fused kernels need a head size that is a power of two >= 16, not {head_dim}"
+    if model.sampling_compiled:
+        return "the layers are compiled (compile_sampling)"
+    if not all(own.usable for own in weights):
+        return "a layer's projections are not plain weights (LoRA, quantized or hooked layers, autocast)"
+    return None
+
+
+@functools.lru_cache(maxsize=None)
+def fused_kernels_reason(device: torch.device, dtype: torch.dtype, width: int, heads: int, head_dim: int, mlp_width: int,
+                         action_dim: int) -> str | None:
+    """Why the fused kernels may not run on `device` in `dtype` (None: they may): triton is unusable there, or one of
+    them, run once at these sizes on random inputs, differs from its torch reference by more than
+    `SELF_CHECK_TOLERANCE` or fails. Checked once per device, dtype and sizes (which compiles the kernels too); a
+    refusal is logged once, and the unfused path runs instead."""
+    reason = ops.triton_reason(device)
+    if reason is None:
+        from pi0_torch.kernels import triton_kernels
+
+        try:
+            reason = _self_check(triton_kernels, device, dtype, width, heads, head_dim, mlp_width, action_dim)
+        except Exception as error:  # a triton that cannot compile them, a device they do not fit
+            reason = f"the fused kernels failed on {device} ({type(error).__name__}: {str(error)[:300]})"
+    if reason is not None and device.type == "cuda":
+        logger.warning("sampling runs the unfused torch path: %s", reason)
+    return reason
+
+
+def _self_check(kernels, device, dtype, width, heads, head_dim, mlp_width, action_dim) -> str | None:
+    generator = torch.Generator(device="cpu").manual_seed(0)
+    batch, tokens, slots = 2, 5, 24
+
+    def random(*shape: int, scale: float = 1.0) -> torch.Tensor:
+        return (torch.randn(*shape, generator=generator) * scale).to(device=device, dtype=dtype)
+
+    x, scale = random(batch * tokens, width), 1 + random(width, scale=0.1)
+    cos, sin = rope_cos_sin(torch.arange(tokens, device=device)[None] + torch.tensor([[3], [9]], device=device), head_dim, 10_000.0)
+    cases = {
+        "norm_qkv_rope": lambda: (x, scale, random((heads + 2) * head_dim), random((heads + 2) * head_dim, width, scale=width**-0.5).t(),
+                                  cos, sin, random(batch, slots, head_dim), random(batch, slots, head_dim), 11, 1e-6),
+        "norm_gate_up_geglu": lambda: (x, scale, None, random(2 * mlp_width, width, scale=width**-0.5).t(), 1e-6),
+        "matmul_residual_": lambda: (x.clone(), random(batch * tokens, mlp_width), random(width, mlp_width, scale=mlp_width**-0.5).t(),
+                                     random(width)),
+        "range_attention": lambda: (random(batch, tokens, heads, head_dim), random(batch, slots, head_dim),
+                                    random(batch, slots, head_dim), torch.tensor([2, 7], device=device),
+                                    torch.full((tokens,), slots, device=device)),
+        "norm_linear_euler_": lambda: (torch.randn(batch, tokens, action_dim, generator=generator).to(device), x, scale,
+                                       random(action_dim), random(action_dim, width, scale=width**-0.5).t(), -0.1, 1e-6),
+    }
+    for name, make in cases.items():
+        arguments = make()
+        theirs = [a.clone() if isinstance(a, torch.Tensor) else a for a in arguments]
+        ours = getattr(kernels, name)(*arguments)
+        expected = getattr(reference, name)(*theirs)
+        compared = [(ours, expected)] if ours is not None else []
+        compared += [(a, b) for a, b in zip(arguments, theirs) if isinstance(a, torch.Tensor) and not torch.equal(a, b)]
+        for got, want in compared:  # the result and every tensor the op wrote
+            error = float((got.float() - want.float()).abs().max() / want.float().abs().max().clamp(min=1e-12))
+            if not error <= SELF_CHECK_TOLERANCE[dtype]:
+                return f"the fused kernel {name} differs from its torch reference on {device} in {dtype} (relative error {error:.2e})"
+    return None
+
+
+@dataclass
+class FusedSteps:
+    """What every fused step of one call shares: the caches as `[B, S, H]`, the action tokens' RoPE tables
+    `[B, T, H]`, their key range, the transposed weights, π0's norm scales, and the final bias of each step
+    (`action_out_proj`'s bias, plus π0.5's final adaRMS shift through it)."""
+
+    model: PI0ForActionGeneration
+    actions: ActionPass
+    keys: list[torch.Tensor]
+    values: list[torch.Tensor]
+    cos: torch.Tensor
+    sin: torch.Tensor
+    row_ends: torch.Tensor
+    out_weight: torch.Tensor  # [D1, A]
+    final_scales: torch.Tensor  # [steps or 1, D1]
+    final_biases: torch.Tensor  # [steps or 1, A]
+
+    @classmethod
+    def build(cls, model: PI0ForActionGeneration, actions: ActionPass, conditioning: StepConditioning) -> FusedSteps:
+        """`conditioning`: every step's, with the time axis first (`ActionSampling.step_conditioning`)."""
+        config = model.config
+        cache, stream = actions.cache, actions.stream
+        keys = [k[:, 0] for k in cache.keys]  # [B, S, H] views (one kv head)
+        values = [v[:, 0] for v in cache.values]
+        out_weight = model.action_out_proj.weight.t()
+        final: NormParams = conditioning.final_norm if config.pi05 else actions.final_norm
+        final_biases = model.action_out_proj.bias[None]
+        if final.shift is not None:
+            final_biases = torch.addmm(final_biases, final.shift, out_weight)  # [steps, A]
+        row_ends = torch.full((stream.tokens,), cache.slots, device=cache.first.device)
+        return cls(model, actions, keys, values, stream.cos[:, :, 0], stream.sin[:, :, 0], row_ends, out_weight,
+                   final.scale.view(-1, final.scale.shape[-1]), final_biases)
+
+    def step_(self, x_t: torch.Tensor, index: int, step: StepConditioning, dt: float) -> None:
+        """One Euler step of the flow at `x_t` (float32 `[B, horizon, A]`, updated in place), the `index`-th of the
+        call with its conditioning `step`."""
+        model, actions = self.model, self.actions
+        config = model.config
+        eps, heads, head_dim = config.rms_norm_eps, config.num_attention_heads, config.head_dim
+        batch = x_t.shape[0]
+        tokens = model.embed_actions(x_t, step.condition, actions.action_weight)  # [B * T, D1]
+        norms = step.layer_norms if config.pi05 else actions.expert_norms
+        first_slot = actions.stream.first_slot
+        for own, (attn, mlp), keys, values in zip(actions.expert_weights, norms, self.keys, self.values):
+            q = ops.call(ops.norm_qkv_rope, tokens, attn.scale, attn.shift_projected, own.qkv, self.cos, self.sin,
+                         keys, values, first_slot, eps)
+            attended = ops.call(ops.range_attention, q.view(batch, -1, heads, head_dim), keys, values,
+                                actions.cache.first, self.row_ends)
+            ops.call(ops.matmul_residual_, tokens, attended, own.o, attn.gate)
+            hidden = ops.call(ops.norm_gate_up_geglu, tokens, mlp.scale, mlp.shift_projected, own.gate_up, eps)
+            ops.call(ops.matmul_residual_, tokens, hidden, own.down, mlp.gate)
+        row = index if self.final_scales.shape[0] > 1 else 0  # (π0.5: a final norm per step)
+        ops.call(ops.norm_linear_euler_, x_t, tokens, self.final_scales[row], self.final_biases[row], self.out_weight, dt, eps)

@@ -1,0 +1,512 @@
+"""`generate_actions` as it runs fast: `ActionSampling`, the mixin that gives `PI0ForActionGeneration` its sampling
+(as transformers' `GenerationMixin` gives a model `generate`).
+
+The prefix runs once and every layer's post-RoPE k/v stay in static buffers (`cache_prefix`); each Euler step runs
+only the action tokens against them (`denoise_step`); everything that depends only on the flow time is computed for
+all steps up front. The inputs are read on the host once, by their checks; after that nothing waits for the device,
+so the sampling can be replayed as one CUDA graph (`capture_sampling`, see `pi0_torch.inference.graphs`) or run with
+regionally compiled layers (`compile_sampling`).
+
+`PI0ForActionGeneration.sample_actions_reference` computes the same chunk the plain way (openpi's mask, no layout,
+no cache tricks): the tests compare the two at every level.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import torch
+
+from pi0_torch.inference.attention import KERNELS, choose_kernel
+from pi0_torch.inference.fused_pass import FusedSteps, fused_kernels_reason, structural_reason
+from pi0_torch.inference.layer_pass import CALL_MODULES, SamplingWeights, layer_sampling_weights, sampling_layer_pass
+from pi0_torch.inference.layout import PrefixLayout, camera_inputs, compact_prefix, prefix_stream, suffix_stream
+from pi0_torch.models.flow_matching import euler_times
+from pi0_torch.models.layers import NormParams, StreamPass
+from pi0_torch.models.rtc import DEFAULT_MAX_GUIDANCE, METHODS, ChunkPrefix, check_rtc_inputs, chunk_prefix, guidance_weight
+from pi0_torch.utils.validation import check_int
+from pi0_torch.utils.validation import check_tensor as _check_tensor
+
+if TYPE_CHECKING:
+    from pi0_torch.models.modeling_pi0 import StepConditioning
+
+
+@dataclass
+class PrefixCache:
+    """The prefix (π0: and the state token) run once for sampling: every layer's post-RoPE k/v in static buffers
+    `[B, K, slots, H]` whose last `action_horizon` slots each step's action tokens fill, and each sample's first
+    valid slot `[B]` (its valid prefix tokens end at `layout.length`)."""
+
+    keys: list[torch.Tensor]
+    values: list[torch.Tensor]
+    first: torch.Tensor
+    layout: PrefixLayout
+
+    @property
+    def slots(self) -> int:
+        return self.keys[0].shape[2]
+
+
+@dataclass
+class ActionPass:
+    """What every sampling step shares, built once per call: the cache, the action tokens' stream (RoPE, key range,
+    slots), the action expert's `SamplingWeights` of each layer, and π0's time-independent parts (the action half of
+    `action_time_mlp_in`, transposed, and the action expert's norm params)."""
+
+    cache: PrefixCache
+    stream: StreamPass
+    expert_weights: list[SamplingWeights]
+    action_weight: torch.Tensor | None  # π0: [D1, D1]
+    expert_norms: list[tuple[NormParams, NormParams]] | None  # π0: per layer (attention, MLP)
+    final_norm: NormParams | None  # π0
+
+
+@dataclass
+class SamplingInputs:
+    """The tensors sampling reads once its inputs are checked (what a CUDA graph holds static copies of)."""
+
+    pixel_values: torch.Tensor  # [B, C', 3, H, W]: the cameras of the layout
+    image_masks: torch.Tensor  # bool [B, C']
+    input_ids: torch.Tensor  # [B, L]
+    attention_mask: torch.Tensor  # [B, L]
+    state: torch.Tensor | None  # [B, action_dim] (π0)
+    noise: torch.Tensor  # float32 [B, horizon, action_dim]
+    times: torch.Tensor  # float32 [steps]: the flow time of each Euler step
+    target: torch.Tensor | None = None  # real-time chunking: float32 [B, horizon, action_dim]
+    weights: torch.Tensor | None = None  # guidance: float32 [B, horizon]
+    committed: torch.Tensor | None = None  # conditioning: bool [B, horizon]
+
+
+@dataclass(frozen=True)
+class SamplingPlan:
+    """The host-side settings of one sampling call (a CUDA graph is captured per plan and input shapes)."""
+
+    layout: PrefixLayout
+    times: tuple[float, ...]
+    rtc_method: str | None = None  # None: plain sampling
+    max_guidance: float = 0.0
+    fused: bool = False  # the steps in the fused kernels (`pi0_torch.inference.fused_pass`)
+
+
+class ActionSampling:
+    """`generate_actions` and its fast paths for `PI0ForActionGeneration` (which provides the layers, the embeddings,
+    `conditioning` and the input checks)."""
+
+    # prefix slots of a captured sampling graph are a multiple of this: prompts of similar length share a graph
+    GRAPH_PREFIX_BUCKET = 32
+    # Regional compilation shares each compiled layer's code among every model, pass, dtype and batch-size class (1, or
+    # more) of the process: π0 and π0.5 in float32 and bf16 are 24 decoder-layer graphs. Dynamo's default limit of 8 per
+    # code object would fail a `fullgraph` compile after a few of them, so compiled calls raise it to this
+    # (`allow_recompiles`).
+    RECOMPILE_LIMIT = 64
+
+    SAMPLING_KERNELS = ("auto", "torch", "triton")
+
+    _attention_kernel: str = "auto"
+    _sampling_kernels: str = "auto"
+    _graphs: Any = None  # `SamplingGraphs` once `capture_sampling` is called
+    _device_times: dict[tuple[tuple[float, ...], torch.device], torch.Tensor]
+
+    @property
+    def attention_kernel(self) -> str:
+        """The attention kernel of sampling passes (`pi0_torch.inference.attention.KERNELS`): "auto" (FlashAttention's
+        varlen kernel on CUDA in bf16 / fp16 where the installed torch has it, else SDPA), "sdpa" or "varlen"."""
+        return self._attention_kernel
+
+    @attention_kernel.setter
+    def attention_kernel(self, kernel: str) -> None:
+        if kernel not in KERNELS:
+            raise ValueError(f"attention_kernel must be one of {KERNELS}, got {kernel!r}")
+        self._attention_kernel = kernel
+        if self._graphs is not None:
+            self._graphs.clear()
+
+    @property
+    def sampling_kernels(self) -> str:
+        """What runs the Euler steps of plain sampling: "auto" (the fused Triton kernels of `pi0_torch.kernels`, five
+        launches per decoder layer, on CUDA in bf16 / fp16 where they passed their check against the torch references
+        on that device; else "torch"), "torch" (the layers' GEMMs and ATen ops; the CPU's path) or "triton" (the fused
+        kernels wherever triton runs them, `TRITON_INTERPRET=1` included, or a `ValueError` naming why not). The
+        prefix pass and real-time chunking's steps always run "torch"."""
+        return self._sampling_kernels
+
+    @sampling_kernels.setter
+    def sampling_kernels(self, kernels: str) -> None:
+        if kernels not in self.SAMPLING_KERNELS:
+            raise ValueError(f"sampling_kernels must be one of {self.SAMPLING_KERNELS}, got {kernels!r}")
+        self._sampling_kernels = kernels
+        if self._graphs is not None:
+            self._graphs.clear()
+
+    def fused_steps_reason(self, device: torch.device, dtype: torch.dtype, rtc_method: str | None = None) -> str | None:
+        """Why plain sampling's steps on `device` in `dtype` do not run the fused kernels (None: they do); see
+        `sampling_kernels`. Raises `ValueError` with the reason where "triton" was asked for and cannot be had."""
+        if self._sampling_kernels == "torch":
+            return "sampling_kernels is 'torch'"
+        if rtc_method is not None:
+            return f"real-time chunking ({rtc_method}) steps run unfused"
+        if self._sampling_kernels == "auto" and not (device.type == "cuda" and dtype in (torch.bfloat16, torch.float16)):
+            return "the fused kernels run on CUDA in bf16 / fp16 (sampling_kernels='triton' to force them)"
+        config = self.config
+        reason = structural_reason(self, [layer_sampling_weights(layer, vlm=False, expert=True)[1] for layer in self.layers])
+        if reason is None:
+            reason = fused_kernels_reason(device, dtype, config.expert_hidden_size, config.num_attention_heads,
+                                          config.head_dim, config.expert_intermediate_size, config.action_dim)
+        if reason is not None and self._sampling_kernels == "triton":
+            raise ValueError(f"sampling_kernels='triton' cannot run: {reason}")
+        return reason
+
+    def attention_kernel_for(self, device: torch.device, dtype: torch.dtype, differentiable: bool) -> str:
+        """The attention kernel of a pass: SDPA where gradients flow through attention (training, RTC guidance; the
+        varlen kernel has no backward with per-sample key counts), else `attention_kernel`'s choice."""
+        config = self.config
+        return choose_kernel("sdpa" if differentiable else self._attention_kernel, device, dtype,
+                             config.num_key_value_heads, config.head_dim)
+
+    @torch.no_grad()
+    def generate_actions(
+        self,
+        pixel_values: torch.Tensor,
+        image_masks: torch.Tensor,
+        input_ids: torch.Tensor,
+        attention_mask: torch.Tensor,
+        state: torch.Tensor | None = None,
+        noise: torch.Tensor | None = None,
+        num_steps: int | None = None,
+        generator: torch.Generator | None = None,
+        previous_actions: torch.Tensor | None = None,
+        inference_delay: int | torch.Tensor = 0,
+        execution_horizon: int | torch.Tensor | None = None,
+        rtc_method: str = "guidance",
+        rtc_max_guidance: float = DEFAULT_MAX_GUIDANCE,
+        rtc_schedule: str = "exp",
+    ) -> torch.Tensor:
+        """Sample an action chunk by Euler integration of the flow from noise (t = 1) to actions (t = 0).
+
+        The prefix runs once (`cache_prefix`); each of the `num_steps` steps (default `config.num_inference_steps`)
+        runs only the action tokens against the cached k/v. Everything that depends only on the flow time is computed
+        for all steps up front. The Euler state is kept in float32 whatever the weights' dtype. The inputs are read on
+        the host once, by their checks; after that nothing waits for the device (see `capture_sampling`).
+
+        Real-time chunking (see `pi0_torch.models.rtc`): with `previous_actions`, the new chunk continues the one
+        the robot is executing. Its index 0 is the step at which this inference starts, `execution_horizon` (`s`)
+        steps after the previous one started, and the robot executes `inference_delay` (`d`) more of the previous
+        chunk while this one computes. `rtc_method="guidance"` (inference-time RTC) steers every Euler step toward
+        the previous chunk's remaining actions with the soft mask `rtc_schedule` and guidance weight clipped at
+        `rtc_max_guidance` (beta; 0 gives plain sampling, bit for bit); `"conditioning"` (training-time RTC, for a
+        model trained with `config.rtc_max_delay >= d`) gives the first `d` actions as committed (flow time 0) and
+        returns them unchanged.
+
+        Args: as [`forward`], plus `noise` `[B, horizon, action_dim]` (drawn with `generator` when not given),
+            `previous_actions` float `[B, horizon, action_dim]` (model space, as this method returned it),
+            `inference_delay` / `execution_horizon` ints or long `[B]`.
+
+        Returns:
+            float32 `[B, horizon, action_dim]` actions in normalized model space (see `PI0Processor` to map them
+            back to robot units).
+        """
+        config = self.config
+        times = tuple(euler_times(config.num_inference_steps if num_steps is None else num_steps))
+        facts = self._check_inputs(pixel_values, image_masks, input_ids, attention_mask, state, noise=noise)
+        batch = len(facts.text_counts)
+        if noise is None:
+            noise = torch.randn(batch, config.action_horizon, config.action_dim, generator=generator, device=pixel_values.device)
+        prefix = None
+        if previous_actions is not None:
+            prefix = self._chunk_prefix(batch, previous_actions, inference_delay, execution_horizon, rtc_method, rtc_max_guidance, rtc_schedule)
+        method = None if prefix is None or (rtc_method == "guidance" and rtc_max_guidance == 0) else rtc_method
+        graphs = self._graphs if pixel_values.is_cuda and self.replays_graphs(method) else None
+        layout = facts.layout(config.tokens_per_image, self.GRAPH_PREFIX_BUCKET if graphs is not None else 1)
+        pixel_values, image_masks = camera_inputs(pixel_values, image_masks, layout)
+        inputs = SamplingInputs(
+            pixel_values, image_masks, input_ids, attention_mask, state, noise.float(), self._times_on(times, pixel_values.device),
+            target=prefix.target if method is not None else None,
+            weights=prefix.weights if method == "guidance" else None,
+            committed=prefix.committed if method == "conditioning" else None,
+        )
+        fused = self.fused_steps_reason(pixel_values.device, self.dtype, method) is None
+        plan = SamplingPlan(layout, times, method, float(rtc_max_guidance) if method == "guidance" else 0.0, fused)
+        if self.sampling_compiled:
+            allow_recompiles(self.RECOMPILE_LIMIT)
+        return self._sample(inputs, plan) if graphs is None else graphs.run(inputs, plan)
+
+    def _sample(self, inputs: SamplingInputs, plan: SamplingPlan) -> torch.Tensor:
+        """The sampling of `generate_actions` on checked inputs: no host reads, so it can be captured as a CUDA graph."""
+        cache = self.cache_prefix(inputs, plan.layout)
+        actions = self.action_pass(cache, differentiable=plan.rtc_method == "guidance")
+        committed = inputs.committed
+        conditioning = self.step_conditioning(inputs.times, actions.expert_weights if committed is None else None)
+        dt = -1.0 / len(plan.times)
+        if plan.fused:
+            fused = FusedSteps.build(self, actions, conditioning)
+            x_t = inputs.noise.clone()  # (updated in place)
+            for index, step in enumerate(conditioning.steps()):
+                fused.step_(x_t, index, step, dt)
+            return x_t
+        steps = conditioning.steps()
+        if committed is not None:  # committed actions take the conditioning of flow time 0
+            clean = self.conditioning(inputs.times.new_zeros(1)).steps()[0]
+            steps = [step.per_token(self.config.action_horizon, committed, clean) for step in steps]
+        x_t = inputs.noise if committed is None else torch.where(committed[..., None], inputs.target, inputs.noise)
+        for time, step in zip(plan.times, steps):
+            if plan.rtc_method == "guidance":
+                velocity = self.guided_velocity(actions, x_t, time, step, inputs.target, inputs.weights, plan.max_guidance)
+            else:
+                velocity = self.denoise_step(actions, x_t, step)
+            x_t = torch.add(x_t, velocity, alpha=dt)
+            if committed is not None:  # the committed actions stay as given
+                x_t = torch.where(committed[..., None], inputs.target, x_t)
+        return x_t
+
+    def step_conditioning(self, time: torch.Tensor, weights: Sequence[SamplingWeights] | None = None) -> StepConditioning:
+        """`conditioning(time)` for the sampling steps. With the action expert's `SamplingWeights` of each layer (a
+        sampling pass where each time conditions every token alike), π0.5's adaRMS shifts also go through the
+        projections after their norms (`NormParams.shift_projected`, see `layer_pass.project_normed`)."""
+        conditioning = self.conditioning(time)
+        if conditioning.layer_norms is None or weights is None:
+            return conditioning
+        layer_norms = tuple(
+            (_project_shift(attn, own.qkv), _project_shift(mlp, own.gate_up))
+            for (attn, mlp), own in zip(conditioning.layer_norms, weights)
+        )
+        return type(conditioning)(conditioning.condition, layer_norms, conditioning.final_norm)
+
+    def cache_prefix(self, inputs: SamplingInputs, layout: PrefixLayout) -> PrefixCache:
+        """Run the prefix once (π0: with the state token) and keep every layer's post-RoPE k/v.
+
+        Exact for sampling because the prefix never attends to the suffix, and π0's state token only to the prefix
+        and itself, so neither changes with the noisy actions or the flow time. The buffers have room for the action
+        tokens, whose k/v each denoising step writes in place (no per-step copy of the prefix).
+        """
+        config = self.config
+        prefix, valid = self.embed_prefix(inputs.pixel_values, inputs.image_masks, inputs.input_ids, inputs.attention_mask)
+        prefix, first = compact_prefix(prefix, valid, layout)
+        batch = first.shape[0]
+        slots = layout.length + config.suffix_len
+        kernel = self.attention_kernel_for(prefix.device, prefix.dtype, differentiable=False)
+        shape = (batch, config.num_key_value_heads, slots, config.head_dim)
+        # buffers of their own per layer (views of one shared buffer would alias across a compiled layer's inputs)
+        keys, values = ([prefix.new_empty(shape) for _ in self.layers] for _ in range(2))
+        streams = (
+            prefix_stream(config, first, layout, kernel, slots, self.dtype),
+            None if config.pi05 else suffix_stream(config, first, layout, layout.length, (1,), kernel, slots, self.dtype),
+        )
+        x, state = prefix, None if config.pi05 else self.embed_state(inputs.state)
+        for index, (layer, layer_keys, layer_values) in enumerate(zip(self.layers, keys, values)):
+            weights = layer_sampling_weights(layer, vlm=True, expert=state is not None)
+            x, state = self._layer_pass(layer, x, state, streams, (layer_keys, layer_values), None, weights,
+                                        keys_only=index == len(self.layers) - 1)
+        return PrefixCache(keys, values, first, layout)
+
+    def action_pass(self, cache: PrefixCache, differentiable: bool = False) -> ActionPass:
+        """What every sampling step shares (see `ActionPass`), computed once per call; `differentiable` for steps that
+        are differentiated (RTC guidance)."""
+        config = self.config
+        first_slot = cache.slots - config.action_horizon
+        kernel = self.attention_kernel_for(cache.first.device, cache.keys[0].dtype, differentiable)
+        stream = suffix_stream(config, cache.first, cache.layout, first_slot, (config.action_horizon,), kernel, cache.slots, self.dtype)
+        weights = [layer_sampling_weights(layer, vlm=False, expert=not differentiable)[1] for layer in self.layers]
+        if config.pi05:
+            return ActionPass(cache, stream, weights, None, None, None)
+        expert_norms = [(layer.expert.attn_norm.params(), layer.expert.mlp_norm.params()) for layer in self.layers]
+        action_weight = self.action_time_mlp_in.weight[:, : config.expert_hidden_size].t()
+        return ActionPass(cache, stream, weights, action_weight, expert_norms, self.expert_final_norm.params())
+
+    def denoise_step(
+        self, actions: ActionPass, x_t: torch.Tensor, conditioning: StepConditioning, write_cache: bool = True
+    ) -> torch.Tensor:
+        """Velocity `[B, horizon, action_dim]` (float32) at `x_t` given the cached prefix (in `actions`, from
+        `action_pass`) and this step's `conditioning`. `write_cache=False` leaves the cache untouched (a pure function
+        of `x_t`, to differentiate through)."""
+        tokens = self.embed_actions(x_t, conditioning.condition, actions.action_weight)
+        norms = conditioning.layer_norms if self.config.pi05 else actions.expert_norms
+        cache = actions.cache
+        for layer, keys, values, layer_norms, weights in zip(self.layers, cache.keys, cache.values, norms, actions.expert_weights):
+            _, tokens = self._layer_pass(layer, None, tokens, (None, actions.stream), (keys, values), layer_norms,
+                                         (CALL_MODULES, weights), write_cache=write_cache)
+        final_norm = conditioning.final_norm if self.config.pi05 else actions.final_norm
+        velocity = self.action_out_proj(self.expert_final_norm(tokens, final_norm))
+        return velocity.view(x_t.shape[0], -1, velocity.shape[-1]).float()
+
+    def _layer_pass(
+        self,
+        layer: torch.nn.Module,
+        prefix: torch.Tensor | None,
+        suffix: torch.Tensor | None,
+        streams: tuple[StreamPass | None, StreamPass | None],
+        cache: tuple[torch.Tensor, torch.Tensor],
+        expert_norms: tuple[NormParams, NormParams] | None,
+        weights: tuple[SamplingWeights, SamplingWeights],
+        keys_only: bool = False,
+        write_cache: bool = True,
+    ) -> tuple[torch.Tensor | None, torch.Tensor | None]:
+        """One layer of a sampling pass: on the layer's `weights` (`layer_pass.sampling_layer_pass`) where every stream
+        that runs has them and the pass writes the cache without gradients; else the layer itself (compiled, if
+        `compile_sampling` compiled it; eager where the step is differentiated: functorch transforms cannot enter
+        compiled code)."""
+        differentiated = not write_cache or torch.is_grad_enabled()
+        usable = all(own.usable for own, x in zip(weights, (prefix, suffix)) if x is not None)
+        if usable and not differentiated and not _compiled(layer):
+            return sampling_layer_pass(layer, prefix, suffix, streams, cache, expert_norms, weights, keys_only)
+        call = layer._call_impl if differentiated and _compiled(layer) else layer
+        return call(prefix, suffix, streams, cache, expert_norms, keys_only=keys_only, write_cache=write_cache)
+
+    def guided_velocity(
+        self,
+        actions: ActionPass,
+        x_t: torch.Tensor,
+        time: float,
+        conditioning: StepConditioning,
+        target: torch.Tensor,
+        weights: torch.Tensor,
+        max_guidance: float,
+    ) -> torch.Tensor:
+        """Inference-time real-time chunking: the velocity at `x_t`, corrected so that the predicted clean chunk
+        `x0 = x_t - t * v` moves toward the previous chunk's `target` where the soft mask `weights` asks for it.
+
+        `v' = v - w * J^T (W * (Y - x0))` with `J = dx0 / dx_t` (one vector-Jacobian product through the suffix;
+        the prefix cache is a constant) and `w = min(beta, ((1 - t)^2 + t^2) / (t (1 - t)))`. The minus sign is
+        openpi's convention: v points from data to noise and the Euler steps go down in t.
+        """
+
+        def clean_estimate(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+            velocity = self.denoise_step(actions, x, conditioning, write_cache=False)
+            return x - time * velocity, velocity
+
+        predicted, pullback, velocity = torch.func.vjp(clean_estimate, x_t, has_aux=True)
+        (correction,) = pullback(weights[..., None] * (target - predicted))
+        return velocity - guidance_weight(time, max_guidance) * correction
+
+    def _times_on(self, times: tuple[float, ...], device: torch.device) -> torch.Tensor:
+        """The Euler times as a float32 tensor on `device`, made once (no host-to-device copy per call)."""
+        key = (times, device)
+        if key not in self._device_times:
+            self._device_times[key] = torch.tensor(times, dtype=torch.float32, device=device)
+        return self._device_times[key]
+
+    def _chunk_prefix(
+        self,
+        batch: int,
+        previous_actions: torch.Tensor,
+        inference_delay: int | torch.Tensor,
+        execution_horizon: int | torch.Tensor | None,
+        rtc_method: str,
+        rtc_max_guidance: float,
+        rtc_schedule: str,
+    ) -> ChunkPrefix:
+        """Check the real-time chunking arguments of `generate_actions` (previous chunk and guidance clip within
+        `pi0_torch.models.rtc`'s bounds) and build the new chunk's prefix."""
+        config = self.config
+        _check_tensor("previous_actions", previous_actions, (batch, config.action_horizon, config.action_dim), floating=True)
+        if execution_horizon is None:
+            raise ValueError("execution_horizon is required with previous_actions: the steps of the previous chunk executed "
+                             "between its inference start and this one's")
+        if not isinstance(rtc_method, str) or rtc_method not in METHODS:
+            raise ValueError(f"rtc_method must be one of {METHODS}, got {rtc_method!r:.60}")
+        check_rtc_inputs("previous_actions", previous_actions, rtc_max_guidance)
+        prefix = chunk_prefix(previous_actions.to(self.device), inference_delay, execution_horizon, rtc_schedule)
+        longest = int(prefix.committed.sum(dim=1).max())
+        if rtc_method == "conditioning" and longest > config.rtc_max_delay:
+            raise ValueError(
+                f"rtc_method='conditioning' needs a model trained with delays up to the inference delay ({longest}); this "
+                f"one was trained with rtc_max_delay={config.rtc_max_delay} (train with --rtc-max-delay, or use 'guidance')"
+            )
+        return prefix
+
+    # -- fast paths: compiled layers and CUDA graphs ---------------------------------------------------------------------
+
+    @property
+    def sampling_compiled(self) -> bool:
+        """Whether the repeated layers run compiled (see `compile_sampling`)."""
+        return any(_compiled(layer) for layer in self.layers)
+
+    @property
+    def sampling_captured(self) -> bool:
+        """Whether `generate_actions` on CUDA replays CUDA graphs (see `capture_sampling`)."""
+        return self._graphs is not None
+
+    def replays_graphs(self, rtc_method: str | None = None) -> bool:
+        """Whether `generate_actions` on CUDA replays CUDA graphs for chunks sampled with this real-time chunking method
+        (None: plain sampling); see `capture_sampling`."""
+        return self._graphs is not None and self._graphs.covers(rtc_method)
+
+    def compile_sampling(self, disable: bool = False, **compile_kwargs: Any) -> None:
+        """Opt in to `torch.compile`, regionally: each repeated layer (a joint decoder layer, a SigLIP encoder layer) is
+        compiled once and the compiled code is reused by every layer of its kind; the rest stays eager. Seconds of
+        compiling (a handful of graphs: each pass's layer, batch 1 and larger batches) instead of minutes for the whole
+        unrolled sampling, and no recompiling for another prompt length or batch size.
+
+        `compile_kwargs` go to `torch.compile`, with `fullgraph=True` and `dynamic=True` unless given.
+        `mode="reduce-overhead"` means: compile, and (on CUDA) replay the whole sampling as one CUDA graph
+        (`capture_sampling`), which then holds the compiled kernels; graphs switched on before stay on, captured
+        again with the compiled layers. The compiled layers also run the training forward (a compiled decoder layer
+        skips gradient checkpointing). `compile_sampling(disable=True)` goes back to eager layers (and no graphs).
+        Raises Dynamo's recompile limit to `RECOMPILE_LIMIT` when it is lower, here and in every thread that calls the
+        model (Dynamo's settings are per thread): the compiled layers of every model in the process share their code.
+        """
+        repeated = [*self.layers, *self.vision_tower.encoder.layers]
+        if disable:
+            self._graphs = None
+            for layer in repeated:
+                layer._compiled_call_impl = None  # (what `nn.Module.compile` sets)
+            return
+        graph = compile_kwargs.get("mode") == "reduce-overhead"
+        if graph:
+            compile_kwargs.pop("mode")
+        compile_kwargs.setdefault("fullgraph", True)
+        compile_kwargs.setdefault("dynamic", True)  # one graph for every prompt length and batch size above 1
+        allow_recompiles(self.RECOMPILE_LIMIT)
+        for layer in repeated:
+            layer.compile(**compile_kwargs)
+        if self._graphs is not None:
+            self._graphs.clear()  # (they hold the eager layers' kernels)
+        elif graph and self.device.type == "cuda":
+            self.capture_sampling()
+
+    def capture_sampling(self, disable: bool = False, batch_sizes: Sequence[int] | None = None, guidance: bool = True) -> None:
+        """Opt in to CUDA graphs for `generate_actions` on CUDA: the sampling of each (batch size, step count, prompt
+        length, prefix layout, real-time chunking method) is captured once (two warm-up runs, then the capture: its
+        first call takes a few eager calls' time) and replayed after that, so the CPU launches one graph instead of
+        thousands of kernels. Inputs are copied into the graph's static buffers; each call returns a tensor of its
+        own. Plain sampling and both real-time chunking methods are captured, RTC "guidance" with its
+        vector-Jacobian product per step (`guidance=False`: guided chunks sample eagerly). A model moved to another
+        device or dtype captures again. Works with `compile_sampling` (the graphs then replay the compiled kernels;
+        guidance's differentiated steps run the eager layers). With `batch_sizes`, another batch size is refused
+        (`ValueError`) rather than captured mid-run. Should CUDA refuse a capture, the call raises
+        `SamplingCaptureError`, except for guidance: a warning, and guided chunks sample eagerly from then on.
+        `capture_sampling(disable=True)` goes back to eager.
+        """
+        from pi0_torch.inference.graphs import SamplingGraphs
+
+        sizes = None if batch_sizes is None else tuple(check_int("batch_sizes", size, minimum=1) for size in batch_sizes)
+        self._graphs = None if disable else SamplingGraphs(self, sizes, guidance)
+
+    def _apply(self, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
+        """`nn.Module._apply` (what `.to()`, `.cuda()`, `.half()` ... run): captured graphs read the old tensors, so
+        they are dropped and captured again on the next call."""
+        if getattr(self, "_graphs", None) is not None:
+            self._graphs.clear()
+        self._device_times = {}
+        return super()._apply(fn, *args, **kwargs)
+
+
+def _project_shift(params: NormParams, weight: torch.Tensor | None) -> NormParams:
+    """adaRMS params with their shift also through the (transposed) projection `weight` that follows the norm."""
+    if weight is None:
+        return params
+    return NormParams(params.scale, params.shift, params.gate, params.shift @ weight)
+
+
+def _compiled(layer: torch.nn.Module) -> bool:
+    return getattr(layer, "_compiled_call_impl", None) is not None
+
+
+def allow_recompiles(limit: int) -> None:
+    """Raise Dynamo's recompile limit per code object to `limit` where it is lower, for the calling thread: torch keeps
+    a user's Dynamo settings per thread, so a server's model thread needs its own."""
+    config = torch._dynamo.config
+    name = "recompile_limit" if hasattr(config, "recompile_limit") else "cache_size_limit"  # (torch < 2.7)
+    if getattr(config, name) < limit:
+        setattr(config, name, limit)

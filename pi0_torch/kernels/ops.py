@@ -1,0 +1,116 @@
+"""The fused ops of a sampling step as `torch.library` custom ops (`torch.ops.pi0_torch.*`): each is one op on the
+meta device and to `torch.compile`, and its kernel launches record in a CUDA graph like any other.
+
+Each op runs its Triton kernel (`pi0_torch.kernels.triton_kernels`) where `triton_reason` finds none against it (a
+CUDA tensor and an importable triton, or `TRITON_INTERPRET=1`), else its torch reference
+(`pi0_torch.kernels.reference`). `call` goes through the dispatcher only where something has to see the op itself
+(a dispatch mode such as the op counter or FakeTensor, or compiling): a custom op's dispatch costs 20-70 µs of host
+time per call, more than the kernel it launches.
+
+(No `from __future__ import annotations` here: `torch.library.custom_op` reads the schema from the annotations.)
+"""
+
+import functools
+import importlib.util
+import logging
+import os
+from typing import Any, Callable, Optional
+
+import torch
+from torch.utils._python_dispatch import _get_current_dispatch_mode
+
+from pi0_torch.kernels import reference
+
+logger = logging.getLogger(__name__)
+
+
+@functools.lru_cache(maxsize=None)
+def _triton_import_error() -> Optional[str]:
+    if importlib.util.find_spec("triton") is None:
+        return "triton is not installed (torch's CUDA wheels bring it; pip install 'pi0-torch[kernels]')"
+    try:
+        from pi0_torch.kernels import triton_kernels  # noqa: F401  (compiles nothing yet: kernels JIT on first launch)
+    except Exception as error:  # an incompatible triton
+        return f"the installed triton does not load the kernels ({type(error).__name__}: {error})"
+    return None
+
+
+def triton_reason(device: torch.device) -> Optional[str]:
+    """Why the Triton kernels cannot run on `device` (None: they can): a CUDA device and an importable triton, or
+    any device under `TRITON_INTERPRET=1` (triton's interpreter, for tests on the CPU)."""
+    if device.type != "cuda" and os.environ.get("TRITON_INTERPRET") != "1":
+        return f"the fused kernels are written for CUDA, not {device.type}"
+    return _triton_import_error()
+
+
+def _implementation(name: str, device: torch.device) -> Callable[..., Any]:
+    if triton_reason(device) is None:
+        from pi0_torch.kernels import triton_kernels
+
+        return getattr(triton_kernels, name)
+    return getattr(reference, name)
+
+
+def call(op: Any, *args: Any) -> Any:
+    """Run the custom op `op` (e.g. `norm_qkv_rope`): straight into its implementation, or through the dispatcher
+    where a dispatch mode or the compiler has to see it (see the module docstring)."""
+    if torch.compiler.is_compiling() or _get_current_dispatch_mode() is not None:
+        return op(*args)
+    return _implementation(op._name.split("::")[-1], args[0].device)(*args)
+
+
+@torch.library.custom_op("pi0_torch::norm_qkv_rope", mutates_args=("key_cache", "value_cache"))
+def norm_qkv_rope(
+    x: torch.Tensor, scale: torch.Tensor, bias: Optional[torch.Tensor], weight: torch.Tensor, cos: torch.Tensor,
+    sin: torch.Tensor, key_cache: torch.Tensor, value_cache: torch.Tensor, first_slot: int, eps: float,
+) -> torch.Tensor:
+    return _implementation("norm_qkv_rope", x.device)(x, scale, bias, weight, cos, sin, key_cache, value_cache, first_slot, eps)
+
+
+@norm_qkv_rope.register_fake
+def _(x, scale, bias, weight, cos, sin, key_cache, value_cache, first_slot, eps):
+    head_dim = key_cache.shape[-1]
+    return x.new_empty(x.shape[0], weight.shape[1] - 2 * head_dim)
+
+
+@torch.library.custom_op("pi0_torch::norm_gate_up_geglu", mutates_args=())
+def norm_gate_up_geglu(x: torch.Tensor, scale: torch.Tensor, bias: Optional[torch.Tensor], weight: torch.Tensor, eps: float) -> torch.Tensor:
+    return _implementation("norm_gate_up_geglu", x.device)(x, scale, bias, weight, eps)
+
+
+@norm_gate_up_geglu.register_fake
+def _(x, scale, bias, weight, eps):
+    return x.new_empty(x.shape[0], weight.shape[1] // 2)
+
+
+@torch.library.custom_op("pi0_torch::matmul_residual_", mutates_args=("residual",))
+def matmul_residual_(residual: torch.Tensor, y: torch.Tensor, weight: torch.Tensor, gate: Optional[torch.Tensor]) -> None:
+    _implementation("matmul_residual_", residual.device)(residual, y, weight, gate)
+
+
+@matmul_residual_.register_fake
+def _(residual, y, weight, gate):
+    return None
+
+
+@torch.library.custom_op("pi0_torch::range_attention", mutates_args=())
+def range_attention(query: torch.Tensor, key_cache: torch.Tensor, value_cache: torch.Tensor, first: torch.Tensor,
+                    row_ends: torch.Tensor) -> torch.Tensor:
+    return _implementation("range_attention", query.device)(query, key_cache, value_cache, first, row_ends)
+
+
+@range_attention.register_fake
+def _(query, key_cache, value_cache, first, row_ends):
+    batch, tokens, heads, head_dim = query.shape
+    return query.new_empty(batch * tokens, heads * head_dim)
+
+
+@torch.library.custom_op("pi0_torch::norm_linear_euler_", mutates_args=("x_t",))
+def norm_linear_euler_(x_t: torch.Tensor, tokens: torch.Tensor, scale: torch.Tensor, bias: torch.Tensor,
+                       weight: torch.Tensor, dt: float, eps: float) -> None:
+    _implementation("norm_linear_euler_", x_t.device)(x_t, tokens, scale, bias, weight, dt, eps)
+
+
+@norm_linear_euler_.register_fake
+def _(x_t, tokens, scale, bias, weight, dt, eps):
+    return None

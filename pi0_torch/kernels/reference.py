@@ -1,0 +1,101 @@
+"""The fused ops of a sampling step, in plain torch: what each Triton kernel computes, the oracle it is tested against,
+and the path every device without the kernels runs (the CPU: the same ops, in the same order, as the engine's
+unfused sampling pass, so its numbers stay bit for bit what they were).
+
+Shapes: M = B * T token rows (sample-major), D the expert's width, N query heads, one kv head, H head size, F the MLP
+width, S the k/v cache's slots, A the action dim. Weights are the projections' weights transposed (`[in, out]`
+views, as `pi0_torch.inference.layer_pass.SamplingWeights` holds them).
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+from pi0_torch.models.layers import apply_rope, rms_norm
+
+
+def norm_qkv_rope(
+    x: torch.Tensor,  # [M, D]
+    scale: torch.Tensor,  # [D]: the norm's (1 + weight) or adaRMS (1 + scale)
+    bias: torch.Tensor | None,  # [(N + 2) H]: adaRMS `shift @ W`, or None
+    weight: torch.Tensor,  # [D, (N + 2) H], rows q | k | v
+    cos: torch.Tensor,  # [B or 1, T, H] float32, `rope_cos_sin`'s tables
+    sin: torch.Tensor,
+    key_cache: torch.Tensor,  # [B, S, H]: written at slots first_slot + t
+    value_cache: torch.Tensor,
+    first_slot: int,
+    eps: float,
+) -> torch.Tensor:
+    """RMSNorm, the q/k/v projection, RoPE on q and k; k and v written into the caches. Returns q `[M, N * H]`."""
+    batch, slots, head_dim = key_cache.shape
+    tokens = x.shape[0] // batch
+    normed = rms_norm(x, eps, scale)
+    qkv = torch.mm(normed, weight) if bias is None else torch.addmm(bias, normed, weight)  # [M, (N + 2) H]
+    qk, v = qkv.view(batch, tokens, -1, head_dim).split((qkv.shape[-1] // head_dim - 1, 1), dim=2)
+    rounded = qk.new_empty(qk.shape) if qk.dtype != torch.float32 else None  # (bf16: the rotation rounds itself)
+    q, k = apply_rope(qk, cos[:, :, None], sin[:, :, None], out=rounded).split((qk.shape[2] - 1, 1), dim=2)
+    cache_rows = torch.arange(first_slot, first_slot + tokens, device=x.device)
+    key_cache.index_copy_(1, cache_rows, k[:, :, 0].to(key_cache.dtype))
+    value_cache.index_copy_(1, cache_rows, v[:, :, 0])
+    return q.to(x.dtype).reshape(x.shape[0], -1)
+
+
+def norm_gate_up_geglu(
+    x: torch.Tensor,  # [M, D]
+    scale: torch.Tensor,  # [D]
+    bias: torch.Tensor | None,  # [2F]: adaRMS `shift @ W`, or None
+    weight: torch.Tensor,  # [D, 2F], columns gate | up
+    eps: float,
+) -> torch.Tensor:
+    """RMSNorm, the gate/up projection and the GeGLU between the MLP's projections: `gelu_tanh(gate) * up` `[M, F]`."""
+    normed = rms_norm(x, eps, scale)
+    gate_up = torch.mm(normed, weight) if bias is None else torch.addmm(bias, normed, weight)
+    gate, up = gate_up.chunk(2, dim=-1)
+    return F.gelu(gate, approximate="tanh") * up
+
+
+def matmul_residual_(
+    residual: torch.Tensor,  # [M, D], updated in place
+    y: torch.Tensor,  # [M, K]
+    weight: torch.Tensor,  # [K, D]
+    gate: torch.Tensor | None,  # [D]: adaRMS's residual gate, or None
+) -> None:
+    """`residual += y @ weight` (adaRMS: `residual += (y @ weight) * gate`), in place."""
+    if gate is None:
+        residual.addmm_(y, weight)
+    else:
+        residual.addcmul_(torch.mm(y, weight), gate)
+
+
+def range_attention(
+    query: torch.Tensor,  # [B, T, N, H] post-RoPE, unscaled
+    key_cache: torch.Tensor,  # [B, S, H]
+    value_cache: torch.Tensor,
+    first: torch.Tensor,  # long [B]: each sample's first visible key
+    row_ends: torch.Tensor,  # long [T]: the key where each token's range ends (exclusive)
+) -> torch.Tensor:
+    """Attention of every query head over its token's key range `[first[b], row_ends[t])` of the one kv head, logits
+    scaled by `H ** -0.5`, softmax in float32. Returns `[B * T, N * H]`."""
+    batch, tokens, heads, head_dim = query.shape
+    keys = torch.arange(key_cache.shape[1], device=query.device)
+    visible = (keys[None, None, :] >= first[:, None, None]) & (keys[None, None, :] < row_ends[None, :, None])  # [B, T, S]
+    logits = torch.einsum("btnh,bsh->btns", query.float(), key_cache.float()) * head_dim**-0.5
+    logits = logits.masked_fill(~visible[:, :, None, :], float("-inf"))
+    weights = torch.softmax(logits, dim=-1)
+    attended = torch.einsum("btns,bsh->btnh", weights, value_cache.float())
+    return attended.to(query.dtype).reshape(batch * tokens, heads * head_dim)
+
+
+def norm_linear_euler_(
+    x_t: torch.Tensor,  # float32 [B, horizon, A], updated in place
+    tokens: torch.Tensor,  # [B * horizon, D]: the action tokens after the last layer
+    scale: torch.Tensor,  # [D]: the final norm's scale
+    bias: torch.Tensor,  # [A]: action_out_proj's bias (π0.5: plus the final adaRMS `shift @ W`)
+    weight: torch.Tensor,  # [D, A]: action_out_proj's weight, transposed
+    dt: float,
+    eps: float,
+) -> None:
+    """The last of a sampling step: the final norm, `action_out_proj` and the Euler update `x_t += dt * velocity`."""
+    velocity = torch.addmm(bias, rms_norm(tokens, eps, scale), weight)
+    x_t.add_(velocity.view(x_t.shape).float(), alpha=dt)

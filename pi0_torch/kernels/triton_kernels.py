@@ -1,0 +1,296 @@
+"""Triton kernels for one sampling step of the action expert: five launches per decoder layer instead of about twenty.
+
+Each kernel computes what its namesake in `pi0_torch.kernels.reference` computes:
+
+- `norm_qkv_rope`: RMSNorm folded into the q/k/v GEMM (the row's `rsqrt(mean(x^2) + eps)` is accumulated beside the
+  dot product and applied to the accumulator: it is one scalar per row), RoPE and the k/v cache write in its epilogue;
+- `norm_gate_up_geglu`: RMSNorm folded into the gate/up GEMM, `gelu_tanh(gate) * up` in its epilogue;
+- `matmul_residual_`: the o- or down-projection with the residual (and π0.5's gate) added in its epilogue, in place;
+- `range_attention`: attention of the folded query heads over each token's key range (no mask), one kv head;
+- `norm_linear_euler_`: the final norm, `action_out_proj` and the Euler update of `x_t`, in one.
+
+A paired GEMM (RoPE, GeGLU) gives each program two column sets, `c` and `c + half`, so that both halves a rotation or
+a GeGLU combines are in its accumulators. Accumulation is float32; the dot's operands are `dot_dtype`, the weights'
+dtype on a GPU. Under `TRITON_INTERPRET=1` (the CPU tests) they are float32: the interpreter's bf16 `tl.dot` is wrong
+(about 3e10 off on a 16 x 16 product with triton 3.9), its bf16 loads, stores and casts are right.
+
+Only `tl.load` / `tl.store` / `tl.dot` / `tl.where` / `tl.exp` / `tl.sqrt` / reductions are used, all in the triton
+that torch 2.10's CUDA wheels pin. Block sizes come from `blocks` (small M: the suffix's 50 rows per sample).
+"""
+
+from __future__ import annotations
+
+import os
+
+import torch
+
+from pi0_torch.utils.extras import require_extra
+
+require_extra("kernels", "pi0_torch.kernels.triton_kernels")
+import triton  # noqa: E402
+import triton.language as tl  # noqa: E402
+
+INTERPRETING = os.environ.get("TRITON_INTERPRET") == "1"
+
+_DOT_DTYPES = {torch.bfloat16: tl.bfloat16, torch.float16: tl.float16, torch.float32: tl.float32}
+
+
+def dot_dtype(dtype: torch.dtype) -> tl.dtype:
+    """The operand dtype of `tl.dot` for weights of `dtype`: theirs on a GPU, float32 in the interpreter."""
+    return tl.float32 if INTERPRETING else _DOT_DTYPES[dtype]
+
+
+def blocks(rows: int, columns: int) -> tuple[int, int, int]:
+    """(BLOCK_M, BLOCK_N, BLOCK_K) of a GEMM with `rows` x `columns` outputs: one row block for the suffix's few rows,
+    narrow column blocks so that a skinny GEMM still spreads over many programs (its cost is reading the weights)."""
+    block_m = 16 if rows <= 16 else 32 if rows <= 32 else 64
+    block_n = 16 if columns <= 2048 else 32 if columns <= 8192 else 64
+    return block_m, block_n, 64
+
+
+# -- the shared main loop ---------------------------------------------------------------------------------------------
+
+
+@triton.jit
+def _matmul_tile(
+    x_ptr, stride_xm, scale_ptr, w_ptr, stride_wk, stride_wn, rows, columns, M, K, N,
+    BLOCK_M: tl.constexpr, BLOCK_N: tl.constexpr, BLOCK_K: tl.constexpr, NORM: tl.constexpr, DOT: tl.constexpr,
+):
+    """`x[rows] @ w[:, columns]` in float32 `[BLOCK_M, BLOCK_N]`; with NORM, `x` is scaled by `scale` first and each
+    row's sum of squares of `x` comes back too (for the RMSNorm applied afterwards; zeros without NORM)."""
+    acc = tl.zeros((BLOCK_M, BLOCK_N), dtype=tl.float32)
+    squares = tl.zeros((BLOCK_M,), dtype=tl.float32)
+    row_ok = rows < M
+    column_ok = columns < N
+    for k0 in range(0, K, BLOCK_K):
+        ks = k0 + tl.arange(0, BLOCK_K)
+        k_ok = ks < K
+        x = tl.load(x_ptr + rows[:, None] * stride_xm + ks[None, :], mask=row_ok[:, None] & k_ok[None, :], other=0.0).to(tl.float32)
+        if NORM:
+            squares += tl.sum(x * x, axis=1)
+            x = x * tl.load(scale_ptr + ks, mask=k_ok, other=0.0).to(tl.float32)[None, :]
+        w = tl.load(w_ptr + ks[:, None] * stride_wk + columns[None, :] * stride_wn, mask=k_ok[:, None] & column_ok[None, :], other=0.0)
+        acc += tl.dot(x.to(DOT), w.to(DOT))
+    return acc, squares
+
+
+@triton.jit
+def _gelu_tanh(x):
+    """`0.5 x (1 + tanh(sqrt(2 / pi) (x + 0.044715 x^3)))`, tanh written with exp (float32)."""
+    inner = 0.7978845608028654 * (x + 0.044715 * x * x * x)
+    tanh = 2.0 / (1.0 + tl.exp(-2.0 * inner)) - 1.0
+    return 0.5 * x * (1.0 + tanh)
+
+
+# -- kernels ------------------------------------------------------------------------------------------------------------
+
+
+@triton.jit
+def _norm_qkv_rope_kernel(
+    x_ptr, scale_ptr, bias_ptr, w_ptr, cos_ptr, sin_ptr, q_ptr, key_ptr, value_ptr,
+    M, K, tokens, first_slot, slots, stride_xm, stride_wk, stride_wn, stride_cos_b, stride_cos_t, eps,
+    HEADS: tl.constexpr, HEAD_DIM: tl.constexpr, HAS_BIAS: tl.constexpr, DOT: tl.constexpr,
+    BLOCK_M: tl.constexpr, BLOCK_N: tl.constexpr, BLOCK_K: tl.constexpr,
+):
+    half: tl.constexpr = HEAD_DIM // 2
+    rows = tl.program_id(0) * BLOCK_M + tl.arange(0, BLOCK_M)
+    pairs = tl.program_id(1) * BLOCK_N + tl.arange(0, BLOCK_N)  # column pairs (c, c + H/2) of every head: q..., k, v
+    head = pairs // half
+    lane = pairs % half
+    first_half = head * HEAD_DIM + lane
+    n = (HEADS + 2) * HEAD_DIM
+    acc1, squares = _matmul_tile(x_ptr, stride_xm, scale_ptr, w_ptr, stride_wk, stride_wn, rows, first_half, M, K, n,
+                                 BLOCK_M, BLOCK_N, BLOCK_K, True, DOT)
+    acc2, _ = _matmul_tile(x_ptr, stride_xm, scale_ptr, w_ptr, stride_wk, stride_wn, rows, first_half + half, M, K, n,
+                           BLOCK_M, BLOCK_N, BLOCK_K, True, DOT)
+    inverse = 1.0 / tl.sqrt(squares / K + eps)
+    pair_ok = pairs < (HEADS + 2) * half
+    a1 = acc1 * inverse[:, None]
+    a2 = acc2 * inverse[:, None]
+    if HAS_BIAS:
+        a1 += tl.load(bias_ptr + first_half, mask=pair_ok, other=0.0).to(tl.float32)[None, :]
+        a2 += tl.load(bias_ptr + first_half + half, mask=pair_ok, other=0.0).to(tl.float32)[None, :]
+    sample = rows // tokens
+    token = rows % tokens
+    row_ok = rows < M
+    table = sample[:, None] * stride_cos_b + token[:, None] * stride_cos_t + lane[None, :]
+    cos = tl.load(cos_ptr + table, mask=row_ok[:, None] & pair_ok[None, :], other=1.0)
+    sin = tl.load(sin_ptr + table + half, mask=row_ok[:, None] & pair_ok[None, :], other=0.0)  # (+sin in the second half)
+    rotated = (head < HEADS + 1)[None, :]  # q and k; v is not rotated
+    out1 = tl.where(rotated, a1 * cos - a2 * sin, a1)
+    out2 = tl.where(rotated, a2 * cos + a1 * sin, a2)
+    ok = row_ok[:, None] & pair_ok[None, :]
+    q_offsets = rows[:, None] * (HEADS * HEAD_DIM) + first_half[None, :]
+    is_q = ok & (head < HEADS)[None, :]
+    tl.store(q_ptr + q_offsets, out1.to(q_ptr.dtype.element_ty), mask=is_q)
+    tl.store(q_ptr + q_offsets + half, out2.to(q_ptr.dtype.element_ty), mask=is_q)
+    cache_offsets = (sample * slots + first_slot + token)[:, None] * HEAD_DIM + lane[None, :]
+    is_k = ok & (head == HEADS)[None, :]
+    tl.store(key_ptr + cache_offsets, out1.to(key_ptr.dtype.element_ty), mask=is_k)
+    tl.store(key_ptr + cache_offsets + half, out2.to(key_ptr.dtype.element_ty), mask=is_k)
+    is_v = ok & (head == HEADS + 1)[None, :]
+    tl.store(value_ptr + cache_offsets, out1.to(value_ptr.dtype.element_ty), mask=is_v)
+    tl.store(value_ptr + cache_offsets + half, out2.to(value_ptr.dtype.element_ty), mask=is_v)
+
+
+@triton.jit
+def _norm_gate_up_geglu_kernel(
+    x_ptr, scale_ptr, bias_ptr, w_ptr, out_ptr, M, K, F, stride_xm, stride_wk, stride_wn, eps,
+    HAS_BIAS: tl.constexpr, DOT: tl.constexpr, BLOCK_M: tl.constexpr, BLOCK_N: tl.constexpr, BLOCK_K: tl.constexpr,
+):
+    rows = tl.program_id(0) * BLOCK_M + tl.arange(0, BLOCK_M)
+    columns = tl.program_id(1) * BLOCK_N + tl.arange(0, BLOCK_N)  # gate column c pairs with up column F + c
+    gate, squares = _matmul_tile(x_ptr, stride_xm, scale_ptr, w_ptr, stride_wk, stride_wn, rows, columns, M, K, F,
+                                 BLOCK_M, BLOCK_N, BLOCK_K, True, DOT)
+    up, _ = _matmul_tile(x_ptr, stride_xm, scale_ptr, w_ptr + F * stride_wn, stride_wk, stride_wn, rows, columns, M, K, F,
+                         BLOCK_M, BLOCK_N, BLOCK_K, True, DOT)
+    inverse = (1.0 / tl.sqrt(squares / K + eps))[:, None]
+    column_ok = columns < F
+    gate = gate * inverse
+    up = up * inverse
+    if HAS_BIAS:
+        gate += tl.load(bias_ptr + columns, mask=column_ok, other=0.0).to(tl.float32)[None, :]
+        up += tl.load(bias_ptr + F + columns, mask=column_ok, other=0.0).to(tl.float32)[None, :]
+    hidden = _gelu_tanh(gate) * up
+    ok = (rows < M)[:, None] & column_ok[None, :]
+    tl.store(out_ptr + rows[:, None] * F + columns[None, :], hidden.to(out_ptr.dtype.element_ty), mask=ok)
+
+
+@triton.jit
+def _matmul_residual_kernel(
+    residual_ptr, y_ptr, w_ptr, gate_ptr, M, K, N, stride_rm, stride_ym, stride_wk, stride_wn,
+    HAS_GATE: tl.constexpr, DOT: tl.constexpr, BLOCK_M: tl.constexpr, BLOCK_N: tl.constexpr, BLOCK_K: tl.constexpr,
+):
+    rows = tl.program_id(0) * BLOCK_M + tl.arange(0, BLOCK_M)
+    columns = tl.program_id(1) * BLOCK_N + tl.arange(0, BLOCK_N)
+    acc, _ = _matmul_tile(y_ptr, stride_ym, y_ptr, w_ptr, stride_wk, stride_wn, rows, columns, M, K, N,
+                          BLOCK_M, BLOCK_N, BLOCK_K, False, DOT)
+    column_ok = columns < N
+    if HAS_GATE:
+        acc = acc * tl.load(gate_ptr + columns, mask=column_ok, other=0.0).to(tl.float32)[None, :]
+    ok = (rows < M)[:, None] & column_ok[None, :]
+    pointers = residual_ptr + rows[:, None] * stride_rm + columns[None, :]
+    residual = tl.load(pointers, mask=ok, other=0.0).to(tl.float32)
+    tl.store(pointers, (residual + acc).to(residual_ptr.dtype.element_ty), mask=ok)
+
+
+@triton.jit
+def _norm_linear_euler_kernel(
+    x_t_ptr, tokens_ptr, scale_ptr, bias_ptr, w_ptr, M, K, N, stride_tm, stride_wk, stride_wn, dt, eps,
+    DOT: tl.constexpr, BLOCK_M: tl.constexpr, BLOCK_N: tl.constexpr, BLOCK_K: tl.constexpr,
+):
+    rows = tl.program_id(0) * BLOCK_M + tl.arange(0, BLOCK_M)
+    columns = tl.program_id(1) * BLOCK_N + tl.arange(0, BLOCK_N)
+    acc, squares = _matmul_tile(tokens_ptr, stride_tm, scale_ptr, w_ptr, stride_wk, stride_wn, rows, columns, M, K, N,
+                                BLOCK_M, BLOCK_N, BLOCK_K, True, DOT)
+    column_ok = columns < N
+    velocity = acc / tl.sqrt(squares / K + eps)[:, None] + tl.load(bias_ptr + columns, mask=column_ok, other=0.0).to(tl.float32)[None, :]
+    ok = (rows < M)[:, None] & column_ok[None, :]
+    pointers = x_t_ptr + rows[:, None] * N + columns[None, :]
+    tl.store(pointers, tl.load(pointers, mask=ok, other=0.0) + dt * velocity, mask=ok)
+
+
+@triton.jit
+def _range_attention_kernel(
+    q_ptr, key_ptr, value_ptr, out_ptr, first_ptr, row_ends_ptr, rows_per_sample, heads, slots, max_end, scale,
+    HEAD_DIM: tl.constexpr, DOT: tl.constexpr, BLOCK_M: tl.constexpr, BLOCK_N: tl.constexpr,
+):
+    """Program (i, b): folded query rows `[i * BLOCK_M, ...)` of sample b (row r is token r // heads, head r % heads)
+    over the keys `[first[b], row_ends[token])`, online softmax in float32."""
+    sample = tl.program_id(1)
+    rows = tl.program_id(0) * BLOCK_M + tl.arange(0, BLOCK_M)
+    row_ok = rows < rows_per_sample
+    dims = tl.arange(0, HEAD_DIM)
+    base = sample * rows_per_sample * HEAD_DIM
+    q = tl.load(q_ptr + base + rows[:, None] * HEAD_DIM + dims[None, :], mask=row_ok[:, None], other=0.0)
+    start = tl.load(first_ptr + sample).to(tl.int32)
+    ends = tl.load(row_ends_ptr + rows // heads, mask=row_ok, other=0).to(tl.int32)
+    running_max = tl.full((BLOCK_M,), -1.0e30, dtype=tl.float32)
+    total = tl.zeros((BLOCK_M,), dtype=tl.float32)
+    acc = tl.zeros((BLOCK_M, HEAD_DIM), dtype=tl.float32)
+    cache = sample * slots * HEAD_DIM
+    for k0 in range(start, max_end, BLOCK_N):
+        keys = k0 + tl.arange(0, BLOCK_N)
+        key_ok = keys < max_end
+        k = tl.load(key_ptr + cache + keys[:, None] * HEAD_DIM + dims[None, :], mask=key_ok[:, None], other=0.0)
+        logits = tl.dot(q.to(DOT), tl.trans(k.to(DOT))) * scale  # [BLOCK_M, BLOCK_N]
+        visible = (keys[None, :] < ends[:, None]) & key_ok[None, :]
+        logits = tl.where(visible, logits, -1.0e30)
+        new_max = tl.maximum(running_max, tl.max(logits, axis=1))
+        weights = tl.where(visible, tl.exp(logits - new_max[:, None]), 0.0)
+        correction = tl.exp(running_max - new_max)
+        v = tl.load(value_ptr + cache + keys[:, None] * HEAD_DIM + dims[None, :], mask=key_ok[:, None], other=0.0)
+        acc = acc * correction[:, None] + tl.dot(weights.to(DOT), v.to(DOT))
+        total = total * correction + tl.sum(weights, axis=1)
+        running_max = new_max
+    out = acc / tl.where(total > 0.0, total, 1.0)[:, None]
+    tl.store(out_ptr + base + rows[:, None] * HEAD_DIM + dims[None, :], out.to(out_ptr.dtype.element_ty), mask=row_ok[:, None])
+
+
+# -- launchers (same arguments and results as `pi0_torch.kernels.reference`) ------------------------------------------
+
+
+def norm_qkv_rope(x, scale, bias, weight, cos, sin, key_cache, value_cache, first_slot, eps):
+    rows, width = x.shape
+    batch, slots, head_dim = key_cache.shape
+    heads = weight.shape[1] // head_dim - 2
+    q = x.new_empty(rows, heads * head_dim)
+    block_m, block_n, block_k = blocks(rows, weight.shape[1] // 2)
+    grid = (triton.cdiv(rows, block_m), triton.cdiv((heads + 2) * head_dim // 2, block_n))
+    _norm_qkv_rope_kernel[grid](
+        x, scale, bias if bias is not None else scale, weight, cos, sin, q, key_cache, value_cache,
+        rows, width, rows // batch, first_slot, slots, x.stride(0), weight.stride(0), weight.stride(1),
+        cos.stride(0) if cos.shape[0] > 1 else 0, cos.stride(1), eps,
+        HEADS=heads, HEAD_DIM=head_dim, HAS_BIAS=bias is not None, DOT=dot_dtype(weight.dtype),
+        BLOCK_M=block_m, BLOCK_N=block_n, BLOCK_K=block_k,
+    )
+    return q
+
+
+def norm_gate_up_geglu(x, scale, bias, weight, eps):
+    rows, width = x.shape
+    mlp_width = weight.shape[1] // 2
+    out = x.new_empty(rows, mlp_width)
+    block_m, block_n, block_k = blocks(rows, mlp_width)
+    grid = (triton.cdiv(rows, block_m), triton.cdiv(mlp_width, block_n))
+    _norm_gate_up_geglu_kernel[grid](
+        x, scale, bias if bias is not None else scale, weight, out, rows, width, mlp_width, x.stride(0),
+        weight.stride(0), weight.stride(1), eps,
+        HAS_BIAS=bias is not None, DOT=dot_dtype(weight.dtype), BLOCK_M=block_m, BLOCK_N=block_n, BLOCK_K=block_k,
+    )
+    return out
+
+
+def matmul_residual_(residual, y, weight, gate):
+    rows, width = residual.shape
+    block_m, block_n, block_k = blocks(rows, width)
+    grid = (triton.cdiv(rows, block_m), triton.cdiv(width, block_n))
+    _matmul_residual_kernel[grid](
+        residual, y, weight, gate if gate is not None else weight, rows, y.shape[1], width, residual.stride(0), y.stride(0),
+        weight.stride(0), weight.stride(1),
+        HAS_GATE=gate is not None, DOT=dot_dtype(weight.dtype), BLOCK_M=block_m, BLOCK_N=block_n, BLOCK_K=block_k,
+    )
+
+
+def norm_linear_euler_(x_t, tokens, scale, bias, weight, dt, eps):
+    rows, width = tokens.shape
+    actions = weight.shape[1]
+    block_m, block_n, block_k = blocks(rows, actions)
+    grid = (triton.cdiv(rows, block_m), triton.cdiv(actions, block_n))
+    _norm_linear_euler_kernel[grid](
+        x_t, tokens, scale, bias, weight, rows, width, actions, tokens.stride(0), weight.stride(0), weight.stride(1),
+        dt, eps, DOT=dot_dtype(weight.dtype), BLOCK_M=block_m, BLOCK_N=block_n, BLOCK_K=block_k,
+    )
+
+
+def range_attention(query, key_cache, value_cache, first, row_ends):
+    batch, tokens, heads, head_dim = query.shape
+    out = query.new_empty(batch * tokens, heads * head_dim)
+    rows = tokens * heads
+    block_m = 16 if batch * rows <= 64 * 16 else 64  # (few rows: more programs over them)
+    grid = (triton.cdiv(rows, block_m), batch)
+    _range_attention_kernel[grid](
+        query, key_cache, value_cache, out, first, row_ends, rows, heads, key_cache.shape[1], key_cache.shape[1],
+        head_dim**-0.5, HEAD_DIM=head_dim, DOT=dot_dtype(query.dtype), BLOCK_M=block_m, BLOCK_N=32,
+    )
+    return out

@@ -1,0 +1,196 @@
+"""The fused kernels of a sampling step (`pi0_torch.kernels`) against their torch references, and the engine's fused
+steps against its unfused ones and the plain reference loop.
+
+On a machine without CUDA the Triton kernels run in triton's interpreter (conftest sets `TRITON_INTERPRET=1`), with
+float32 dot operands (its bf16 `tl.dot` is wrong; loads, stores and casts in bf16 are right). Skipped, with the
+reason, only where triton cannot be imported.
+"""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from conftest import OpenpiReference, relative_error
+
+from pi0_torch import PI0Config, PI0ForActionGeneration
+from pi0_torch.benchmark import sample_on_meta
+from pi0_torch.inference import fused_pass
+from pi0_torch.inference.layout import InputFacts
+from pi0_torch.kernels import ops, reference
+from pi0_torch.models.layers import rope_cos_sin
+from pi0_torch.utils.op_count import AtenOpCounter
+
+TRITON_REASON = ops.triton_reason(torch.device("cuda" if torch.cuda.is_available() else "cpu"))
+pytestmark = pytest.mark.skipif(TRITON_REASON is not None, reason=str(TRITON_REASON))
+DEVICE = torch.device("cuda" if torch.cuda.is_available() else "cpu")
+TOLERANCE = {torch.float32: 2e-6, torch.bfloat16: 2e-2}
+
+# (width, heads, head_dim, mlp_width, action_dim): π0-like and π0.5-like small sizes, and odd ones (no block divides)
+SIZES = {"small": (64, 2, 16, 128, 32), "odd": (48, 3, 32, 72, 7)}
+
+
+def relative(got: torch.Tensor, want: torch.Tensor) -> float:
+    return float((got.float() - want.float()).abs().max() / want.float().abs().max())
+
+
+def kernels():
+    from pi0_torch.kernels import triton_kernels
+
+    return triton_kernels
+
+
+def random(generator: torch.Generator, dtype: torch.dtype, *shape: int, scale: float = 1.0) -> torch.Tensor:
+    return (torch.randn(*shape, generator=generator) * scale).to(device=DEVICE, dtype=dtype)
+
+
+def compare(name: str, arguments: tuple, dtype: torch.dtype) -> None:
+    """The Triton kernel and the reference on copies of `arguments`: the result and every tensor written agree."""
+    theirs = tuple(a.clone() if isinstance(a, torch.Tensor) else a for a in arguments)
+    ours = getattr(kernels(), name)(*arguments)
+    expected = getattr(reference, name)(*theirs)
+    if expected is not None:
+        assert relative(ours, expected) <= TOLERANCE[dtype], name
+    for mine, other in zip(arguments, theirs):
+        if isinstance(mine, torch.Tensor):
+            assert relative(mine, other) <= TOLERANCE[dtype] or torch.equal(mine, other), name
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16])
+@pytest.mark.parametrize("sizes", SIZES)
+@pytest.mark.parametrize("batch, tokens", [(1, 5), (3, 17)])
+def test_each_kernel_equals_its_reference(dtype: torch.dtype, sizes: str, batch: int, tokens: int) -> None:
+    width, heads, head_dim, mlp_width, action_dim = SIZES[sizes]
+    generator = torch.Generator().manual_seed(batch * 100 + tokens)
+    rows, slots = batch * tokens, tokens + 23
+    x, scale = random(generator, dtype, rows, width), 1 + random(generator, dtype, width, scale=0.1)
+    first = torch.randint(0, 20, (batch,), generator=generator).to(DEVICE)
+    positions = torch.arange(tokens, device=DEVICE)[None] + first[:, None] + 3
+    cos, sin = rope_cos_sin(positions, head_dim, 10_000.0)  # [B, T, H]: per-sample positions
+    qkv_columns = (heads + 2) * head_dim
+    for bias in (None, random(generator, dtype, qkv_columns)):  # π0, π0.5 (adaRMS shift through the projection)
+        compare("norm_qkv_rope", (x, scale, bias, random(generator, dtype, qkv_columns, width, scale=width**-0.5).t(), cos, sin,
+                                  torch.zeros(batch, slots, head_dim, dtype=dtype, device=DEVICE),
+                                  torch.zeros(batch, slots, head_dim, dtype=dtype, device=DEVICE), slots - tokens, 1e-6), dtype)
+    compare("norm_qkv_rope", (x, scale, None, random(generator, dtype, qkv_columns, width).t(), cos[:1], sin[:1],
+                              random(generator, dtype, batch, slots, head_dim), random(generator, dtype, batch, slots, head_dim),
+                              0, 1e-6), dtype)  # one RoPE table for every sample, the cache's first slots
+    for bias in (None, random(generator, dtype, 2 * mlp_width)):
+        compare("norm_gate_up_geglu", (x, scale, bias, random(generator, dtype, 2 * mlp_width, width, scale=width**-0.5).t(), 1e-6), dtype)
+    for gate in (None, random(generator, dtype, width)):
+        compare("matmul_residual_", (x.clone(), random(generator, dtype, rows, mlp_width),
+                                     random(generator, dtype, width, mlp_width, scale=mlp_width**-0.5).t(), gate), dtype)
+    keys, values = random(generator, dtype, batch, slots, head_dim), random(generator, dtype, batch, slots, head_dim)
+    query = random(generator, dtype, batch, tokens, heads, head_dim)
+    compare("range_attention", (query, keys, values, first, torch.full((tokens,), slots, device=DEVICE)), dtype)
+    ends = torch.cat([torch.full((1,), slots - tokens + 1), torch.full((tokens - 1,), slots)]).to(DEVICE)  # π0's state row
+    compare("range_attention", (query, keys, values, first, ends), dtype)
+    compare("norm_linear_euler_", (torch.randn(batch, tokens, action_dim, generator=generator).to(DEVICE), x, scale,
+                                   random(generator, dtype, action_dim), random(generator, dtype, action_dim, width).t(), -0.1, 1e-6), dtype)
+
+
+def test_each_op_is_one_op_on_the_meta_device_and_traces_under_compile() -> None:
+    """Registered as custom ops: the op counter sees one op per call (their fake implementations give the shapes),
+    and `torch.compile(fullgraph=True)` traces through one (no graph break)."""
+    meta = torch.device("meta")
+    x, scale, weight, down = (torch.empty(*shape, device=meta) for shape in ((10, 64), (64,), (64, 256), (128, 64)))
+    with AtenOpCounter() as counter:
+        hidden = ops.call(ops.norm_gate_up_geglu, x, scale, None, weight, 1e-6)
+        ops.call(ops.matmul_residual_, x, hidden, down, None)
+    assert hidden.shape == (10, 128) and counter.total == 2 and counter.ops["norm_gate_up_geglu"] == 1, counter.ops
+
+    def mlp(x: torch.Tensor, scale: torch.Tensor, gate_up: torch.Tensor, down: torch.Tensor) -> torch.Tensor:
+        out = x.clone()
+        ops.call(ops.matmul_residual_, out, ops.call(ops.norm_gate_up_geglu, x, scale, None, gate_up, 1e-6), down, None)
+        return out
+
+    generator = torch.Generator().manual_seed(0)
+    arguments = (torch.randn(6, 32, generator=generator), 1 + torch.randn(32, generator=generator) * 0.1,
+                 torch.randn(32, 96, generator=generator) / 6, torch.randn(48, 32, generator=generator) / 7)
+    torch.testing.assert_close(torch.compile(mlp, fullgraph=True, backend="aot_eager")(*arguments), mlp(*arguments))
+
+
+def sampling_inputs(config: PI0Config, batch: int, seed: int) -> dict[str, torch.Tensor]:
+    """Padded prompts of several lengths and a camera no sample shows."""
+    generator = torch.Generator().manual_seed(seed)
+    masks = torch.ones(batch, config.num_cameras, dtype=torch.bool)
+    masks[:, -1] = False
+    lengths = torch.randint(1, config.max_token_len + 1, (batch,), generator=generator)
+    return dict(
+        pixel_values=torch.rand(batch, config.num_cameras, 3, config.image_size, config.image_size, generator=generator) * 2 - 1,
+        image_masks=masks,
+        input_ids=torch.randint(0, config.vocab_size, (batch, config.max_token_len), generator=generator),
+        attention_mask=torch.arange(config.max_token_len)[None] < lengths[:, None],
+        state=torch.randn(batch, config.action_dim, generator=generator),
+        noise=torch.randn(batch, config.action_horizon, config.action_dim, generator=generator),
+    )
+
+
+@pytest.mark.parametrize("preset", ["pi0_small", "pi05_small"])
+@pytest.mark.parametrize("dtype, tolerance", [(torch.float32, 1e-5), (torch.bfloat16, 3e-2)])
+@pytest.mark.parametrize("batch", [1, 3])
+def test_fused_steps_equal_the_unfused_ones_and_the_reference_loop(preset: str, dtype: torch.dtype, tolerance: float,
+                                                                     batch: int) -> None:
+    """`sampling_kernels="triton"`: every Euler step in the fused kernels. The actions equal the unfused engine's and
+    `sample_actions_reference`'s (float32 tightly; bf16 to its rounding: the fused epilogues round less often)."""
+    torch.manual_seed(0)
+    config = PI0Config.from_preset(preset, image_size=28, vision_hidden_size=32, vision_intermediate_size=64,
+                                   vision_num_layers=1, vision_num_heads=2, max_token_len=12, action_horizon=10)
+    model = PI0ForActionGeneration(config).eval().to(DEVICE, dtype)
+    inputs = {name: value.to(DEVICE) for name, value in sampling_inputs(config, batch, seed=batch).items()}
+    if config.pi05:
+        inputs.pop("state")
+    model.sampling_kernels = "torch"
+    unfused = model.generate_actions(**inputs, num_steps=3)
+    plain = model.sample_actions_reference(**inputs, num_steps=3)
+    model.sampling_kernels = "triton"
+    assert model.fused_steps_reason(DEVICE, dtype) is None
+    fused = model.generate_actions(**inputs, num_steps=3)
+    assert relative(fused, unfused) <= tolerance and relative(fused, plain) <= tolerance
+
+
+@pytest.mark.slow  # (5 minutes in the interpreter; on CUDA in bf16 "auto" fuses, and test_cuda checks the fixtures)
+def test_fused_steps_match_openpi(references: dict[str, OpenpiReference]) -> None:
+    """The openpi fixtures' actions, sampled with every step fused (float32 in the interpreter on a CPU)."""
+    for ref in references.values():
+        model = ref.model().to(DEVICE)
+        model.sampling_kernels = "triton"
+        inputs = {name: value.to(DEVICE) for name, value in ref.model_inputs().items()}
+        actions = model.generate_actions(**inputs, noise=ref.tensor("inputs/sample_noise").to(DEVICE))
+        assert relative_error(actions, ref["fp32/actions"]) <= 1e-4
+
+
+def test_auto_runs_the_fused_steps_only_where_they_apply(monkeypatch: pytest.MonkeyPatch) -> None:
+    """"auto" fuses only on CUDA in bf16 / fp16; "triton" refuses, naming why, a model it cannot run; a kernel that
+    differs from its reference on a device keeps that device on the torch path (checked once, logged)."""
+    model = PI0ForActionGeneration(PI0Config.from_preset("pi0_small")).eval()
+    assert "run on CUDA in bf16 / fp16" in model.fused_steps_reason(torch.device("cpu"), torch.float32)
+    assert model.fused_steps_reason(torch.device("cpu"), torch.float32, "guidance").startswith("real-time chunking")
+    model.sampling_kernels = "triton"
+    grouped = PI0ForActionGeneration(PI0Config.from_preset("pi0_small", num_key_value_heads=2)).eval()
+    grouped.sampling_kernels = "triton"
+    with pytest.raises(ValueError, match="sampling_kernels='triton' cannot run: the fused attention folds the query heads onto one kv head"):
+        grouped.fused_steps_reason(torch.device("cpu"), torch.float32)
+    with pytest.raises(ValueError, match="sampling_kernels must be one of"):
+        model.sampling_kernels = "cuda"
+
+    fused_pass.fused_kernels_reason.cache_clear()
+    broken = kernels().norm_gate_up_geglu
+    monkeypatch.setattr(kernels(), "norm_gate_up_geglu", lambda *args: broken(*args) * 1.5)
+    reason = fused_pass.fused_kernels_reason(DEVICE, torch.float32, 64, 2, 16, 128, 32)
+    assert reason.startswith("the fused kernel norm_gate_up_geglu differs from its torch reference"), reason
+    fused_pass.fused_kernels_reason.cache_clear()
+
+
+def test_the_fused_steps_run_few_kernels_per_layer_and_step() -> None:
+    """Counted on the meta device at full size (no weights): each fused step is five ops per decoder layer plus the
+    action embedding and the fused final norm + Euler update."""
+    for preset in ("pi0", "pi05"):
+        config = PI0Config.from_preset(preset)
+        facts = InputFacts(((True, True, True),), (48,), 48)
+        _, unfused = sample_on_meta(config, facts, 10, torch.bfloat16)
+        _, fused = sample_on_meta(config, facts, 10, torch.bfloat16, fused=True)
+        layers = config.num_hidden_layers
+        for name in ("norm_qkv_rope", "range_attention", "norm_gate_up_geglu"):
+            assert fused.ops[name] == 10 * layers, (name, fused.ops)
+        assert fused.ops["matmul_residual_"] == 2 * 10 * layers and fused.ops["norm_linear_euler_"] == 10
+        assert fused.kernels < unfused.kernels - 10 * layers * 5, (fused.kernels, unfused.kernels)
