@@ -40,6 +40,11 @@ MASKED_LOGIT = -2.3819763e38
 # FlexAttention's tile size: block sparsity skips work only in whole BLOCK_SIZE x BLOCK_SIZE tiles.
 BLOCK_SIZE = 128
 
+# Every mask given to SDPA is contiguous with its key count a multiple of this (keys padded to match, masked out):
+# cuDNN's attention reads the mask in 16-byte vectors and fails on a sliced or odd-length one ("misaligned address",
+# and a CUDA context lost; seen with π0-FAST's decoding masks on an H200). See `sdpa_with_mask`.
+KEY_ALIGNMENT = 8
+
 # mask_mod(b, h, q_idx, kv_idx) -> bool tensor; the arguments are integer index tensors that broadcast together.
 MaskMod = Callable[[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]
 
@@ -421,6 +426,46 @@ def block_mask_from_dense(mask: torch.Tensor, block_size: int = BLOCK_SIZE) -> B
 # ----------------------------------------------------------------------------------------------------------------
 
 
+def aligned_key_count(keys: int) -> int:
+    """`keys` rounded up to a multiple of `KEY_ALIGNMENT` (the key count of every mask given to SDPA)."""
+    return -(-keys // KEY_ALIGNMENT) * KEY_ALIGNMENT
+
+
+def pad_keys(mask: torch.Tensor, keys: int | None = None) -> torch.Tensor:
+    """An additive mask `[..., L, S]` with its key axis padded to `keys` (default `aligned_key_count(S)`) by -inf
+    columns: keys no row attends to, not even a row with every real key masked, which still averages the real keys'
+    values (as openpi, see `to_additive_mask`)."""
+    keys = aligned_key_count(mask.shape[-1]) if keys is None else keys
+    return F.pad(mask, (0, keys - mask.shape[-1]), value=float("-inf")) if keys != mask.shape[-1] else mask
+
+
+def sdpa_with_mask(
+    query: torch.Tensor,
+    key: torch.Tensor,
+    value: torch.Tensor,
+    mask: torch.Tensor,
+    scale: float | None = None,
+    enable_gqa: bool = False,
+) -> torch.Tensor:
+    """`scaled_dot_product_attention` with an additive `mask` `[..., L, S']`, the one way this package calls it with
+    a mask. The mask SDPA gets is contiguous and its key count is a multiple of `KEY_ALIGNMENT`: callers that can
+    build it so (`pad_keys`; k/v buffers with as many slots, finite) pay nothing here; otherwise the mask is padded
+    by `pad_keys` and key / value `[..., S, H]` with zeros, copies that a hot path should avoid.
+
+    >>> q = k = v = torch.ones(1, 1, 2, 4)
+    >>> mask = torch.zeros(1, 1, 2, 2)  # two keys: padded to 8, six of them masked out
+    >>> sdpa_with_mask(q, k, v, mask).shape
+    torch.Size([1, 1, 2, 4])
+    """
+    mask = pad_keys(mask)
+    keys = mask.shape[-1]
+    if key.shape[-2] < keys:
+        key, value = (F.pad(tensor, (0, 0, 0, keys - tensor.shape[-2])) for tensor in (key, value))
+    elif key.shape[-2] > keys:
+        key, value = key[..., :keys, :], value[..., :keys, :]
+    return F.scaled_dot_product_attention(query, key, value, attn_mask=mask.contiguous(), scale=scale, enable_gqa=enable_gqa)
+
+
 def masked_attention(
     query: torch.Tensor,
     key: torch.Tensor,
@@ -430,7 +475,8 @@ def masked_attention(
     *,
     additive: bool = False,
 ) -> torch.Tensor:
-    """Grouped-query attention with a mask through `scaled_dot_product_attention`.
+    """Grouped-query attention with a mask through `scaled_dot_product_attention` (by `sdpa_with_mask`: a contiguous
+    mask whose key count is a multiple of `KEY_ALIGNMENT`).
 
     Args:
         query: `[B, N, L, H]`; key, value: `[B, K, S, H]` with N a multiple of K (query head n uses kv head
@@ -470,6 +516,4 @@ def masked_attention(
         )
     # an additive mask built in the residual stream's dtype meets bf16 queries under autocast: cast it (no-op otherwise)
     attn_mask = mask4.to(query.dtype) if additive else to_additive_mask(mask4, query.dtype)
-    return F.scaled_dot_product_attention(
-        query, key, value, attn_mask=attn_mask, scale=scale, enable_gqa=query.shape[1] != key.shape[1]
-    )
+    return sdpa_with_mask(query, key, value, attn_mask, scale=scale, enable_gqa=query.shape[1] != key.shape[1])

@@ -5,6 +5,7 @@ graph), its ATen op count stays low, and regional compilation compiles each laye
 from __future__ import annotations
 
 import logging
+import re
 import threading
 from typing import Any
 
@@ -20,7 +21,7 @@ from pi0_torch.benchmark import sample_on_meta
 from pi0_torch.masks import prefix_lm_mask
 from pi0_torch.inference import attention
 from pi0_torch.inference.attention import KeyRanges, attend, plan_attention
-from pi0_torch.inference.graphs import SamplingCaptureError, SamplingGraphs
+from pi0_torch.inference.graphs import CapturedSampling, SamplingCaptureError, SamplingGraphs, _signature
 from pi0_torch.inference.layer_pass import CALL_MODULES, add_projection, expert_sampling_weights, layer_sampling_weights
 from pi0_torch.inference.layout import InputFacts, camera_inputs, compact_prefix, prefix_stream, suffix_stream
 from pi0_torch.inference.sampling import SamplingInputs, SamplingPlan
@@ -54,7 +55,8 @@ def visible_slots(stream, batch: int, heads: int) -> torch.Tensor:
     plan = stream.attention
     if plan.mask is None:
         return torch.ones(batch, stream.tokens, plan.num_keys, dtype=torch.bool)
-    seen = plan.mask[:, 0] == 0  # [B, rows, keys]
+    assert plan.mask.shape[-1] % 8 == 0 and torch.isneginf(plan.mask[..., plan.num_keys :]).all()  # (padding keys)
+    seen = plan.mask[:, 0, :, : plan.num_keys] == 0  # [B, rows, keys]
     if seen.shape[1] == 1:
         return seen.expand(-1, stream.tokens, -1)
     return seen[:, ::heads] if plan.fold_heads else seen
@@ -493,7 +495,7 @@ def test_a_refused_guidance_capture_samples_eagerly_and_keeps_the_other_graphs(
     model.generate_actions(**batch)
     (guided_inputs, guided_plan), (plain_inputs, plain_plan) = calls
     assert guided_plan.rtc_method == "guidance" and plain_plan.rtc_method is None
-    graphs = SamplingGraphs(model)
+    graphs = SamplingGraphs(model, guidance=True)
     graphs.graphs["captured before"] = kept = object()
 
     def refused(inputs: SamplingInputs, plan: SamplingPlan) -> None:
@@ -514,11 +516,73 @@ def test_a_refused_guidance_capture_samples_eagerly_and_keeps_the_other_graphs(
         graphs.run(plain_inputs, plain_plan)
 
 
+def test_a_graph_whose_first_replay_differs_from_eager_is_refused_and_its_plan_samples_eagerly(
+    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Verification at capture (simulated here: the CPU captures nothing, so `_capture` returns a graph whose replay
+    writes given actions, as a broken capture would): a graph that replays other actions than the warm-up's eager run
+    is refused with a warning naming its plan and the deviation, that call returns the eager actions, and the plan
+    samples eagerly from then on without capturing again; a faithful graph is kept and replayed; `verify=False`
+    keeps whatever was captured."""
+    torch.manual_seed(0)
+    model = PI0ForActionGeneration(PI0Config.from_preset("pi0_small", rtc_max_delay=4)).eval()
+    batch = dict(pixel_values=torch.rand(1, 3, 3, 224, 224) * 2 - 1, image_masks=torch.ones(1, 3, dtype=torch.bool),
+                 input_ids=torch.ones(1, 12, dtype=torch.long), attention_mask=torch.ones(1, 12, dtype=torch.bool),
+                 state=torch.zeros(1, 32), noise=torch.randn(1, 50, 32), num_steps=2)
+    calls: list[tuple[SamplingInputs, SamplingPlan]] = []
+    sample = model._sample
+    monkeypatch.setattr(model, "_sample", lambda inputs, plan: calls.append((inputs, plan)) or sample(inputs, plan))
+    plain = model.generate_actions(**batch)
+    conditioned = model.generate_actions(**batch, previous_actions=torch.randn(1, 50, 32), inference_delay=2,
+                                         execution_horizon=4, rtc_method="conditioning")
+    (plain_inputs, plain_plan), (conditioned_inputs, conditioned_plan) = calls
+
+    class ReplayOf:  # a "graph" whose replay writes `actions` into the captured output
+        def __init__(self, output: torch.Tensor, actions: torch.Tensor) -> None:
+            self.output, self.actions = output, actions
+
+        def replay(self) -> None:
+            self.output.copy_(self.actions)
+
+    captures: list[str | None] = []
+
+    def capture(inputs: SamplingInputs, plan: SamplingPlan) -> tuple[CapturedSampling, torch.Tensor]:
+        captures.append(plan.rtc_method)
+        eager = sample(inputs, plan)
+        output = torch.empty_like(eager)
+        replayed = eager * 3.0 if plan.rtc_method is None else eager.clone()  # the plain graph is wrong
+        static = type(inputs)(*(None if value is None else value.clone() for value in vars(inputs).values()))
+        return CapturedSampling(ReplayOf(output, replayed), static, output), eager
+
+    graphs = SamplingGraphs(model)
+    monkeypatch.setattr(graphs, "_capture", capture)
+    with caplog.at_level(logging.WARNING), torch.no_grad():
+        first = graphs.run(plain_inputs, plain_plan)
+        again = graphs.run(plain_inputs, plain_plan)
+        kept = graphs.run(conditioned_inputs, conditioned_plan)
+    torch.testing.assert_close(first, plain, rtol=0, atol=0)  # the eager actions, not the graph's
+    torch.testing.assert_close(again, plain, rtol=0, atol=0)
+    torch.testing.assert_close(kept, conditioned, rtol=0, atol=0)
+    assert captures == [None, "conditioning"]  # the refused plan is not captured again
+    assert list(graphs.refused) == [(plain_plan, _signature(plain_inputs))] and len(graphs.graphs) == 1
+    assert caplog.text.count("was refused") == 1, caplog.text
+    assert re.search(r"the CUDA graph of sampling \(batch 1, 2 steps, \d+ prefix slots\) was refused: its first replay "
+                     r"deviates from eager sampling by 2 of the largest action \(bound 0.0001\); that plan samples "
+                     r"eagerly from now on", caplog.text), caplog.text
+
+    unverified = SamplingGraphs(model, verify=False)
+    monkeypatch.setattr(unverified, "_capture", capture)
+    with torch.no_grad():
+        torch.testing.assert_close(unverified.run(plain_inputs, plain_plan), plain * 3.0)
+    assert not unverified.refused
+
+
 @pytest.mark.parametrize("rtc_method", ["guidance", "conditioning"])
 def test_warmup_of_a_captured_policy_also_runs_its_real_time_chunking(monkeypatch: pytest.MonkeyPatch, rtc_method: str) -> None:
     """A chunk continued by real-time chunking is a graph of its own: `warmup` runs one per batch size (after the plain
     one) so that the first continued request does not capture it while the robot waits. Eager policies warm up plain
-    batch 1 only, and so does a policy whose guidance weight is 0 (guidance is then plain sampling)."""
+    batch 1 only, and so do a policy whose guided chunks sample eagerly (graphs without `guidance=True`) and one whose
+    guidance weight is 0 (guidance is then plain sampling)."""
     policy = tiny_policy(rtc_max_delay=4 if rtc_method == "conditioning" else 0)
     calls: list[tuple[int, str | None]] = []
     generate = policy.model.generate_actions
@@ -529,6 +593,11 @@ def test_warmup_of_a_captured_policy_also_runs_its_real_time_chunking(monkeypatc
     calls.clear()
     policy.model.capture_sampling()  # (on the CPU sampling stays eager; the policy warms up as it would on CUDA)
     policy.warmup(2)
+    if rtc_method == "guidance":  # guided chunks sample eagerly unless their graph is asked for
+        assert calls == [(1, None), (2, None)]
+        calls.clear()
+        policy.model.capture_sampling(guidance=True)
+        policy.warmup(2)
     assert calls == [(1, None), (1, rtc_method), (2, None), (2, rtc_method)]
     if rtc_method == "guidance":
         calls.clear()

@@ -74,6 +74,24 @@ def test_guided_sampling_equals_an_autograd_reference(model: PI0ForActionGenerat
     torch.testing.assert_close(guided, x_t, rtol=1e-4, atol=1e-4)
 
 
+def test_guidance_works_in_inference_mode(model: PI0ForActionGeneration, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A policy and a server call the model in inference mode, with inputs made there. Before torch 2.12,
+    `torch.func.vjp` in inference mode recorded nothing and returned zeros (pytorch#177318): guided chunks came out
+    plain, silently (the GPU image's torch 2.11; its captured guidance graph replayed exactly that). Guided sampling
+    therefore differentiates outside inference mode: the same chunk as under no_grad, bit for bit."""
+    batch, previous = small_batch(model.config), noise(2)
+    rtc = dict(num_steps=3, previous_actions=previous, inference_delay=4, execution_horizon=10)
+    expected = model.generate_actions(**batch, noise=noise(1), **rtc)
+    seen = []
+    step = model.denoise_step
+    monkeypatch.setattr(model, "denoise_step", lambda *a, **k: seen.append(torch.is_inference_mode_enabled()) or step(*a, **k))
+    with torch.inference_mode():
+        made_there = {name: value.clone() for name, value in batch.items()}
+        guided = model.generate_actions(**made_there, noise=noise(1).clone(), **{**rtc, "previous_actions": previous.clone()})
+    assert torch.equal(guided, expected) and seen and not any(seen)
+    assert not torch.equal(guided, model.generate_actions(**batch, noise=noise(1), num_steps=3))
+
+
 def test_guidance_pulls_the_new_chunk_onto_the_previous_one(model: PI0ForActionGeneration) -> None:
     batch, delay, executed = small_batch(model.config), 5, 10
     previous = model.generate_actions(**batch, noise=noise(2), num_steps=5)

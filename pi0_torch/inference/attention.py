@@ -9,7 +9,8 @@ token `[first, prefix_len + 1)` (the prefix and itself); its action tokens and a
 Two kernels read those ranges ([`attend`]):
 
 - `"sdpa"`: `scaled_dot_product_attention` with an additive mask built from the ranges once per pass (no mask at all
-  when no sample is padded and every row sees every key), shared by every layer;
+  when no sample is padded and every row sees every key), shared by every layer; its key count is padded to a
+  multiple of 8 (`pi0_torch.masks.sdpa_with_mask`: cuDNN fails on other masks), which the k/v buffers' slots match;
 - `"varlen"`: FlashAttention's variable-length kernel (`torch.nn.attention.varlen.varlen_attn`, CUDA, bf16/fp16),
   which takes each sample's first key and key count as device tensors (`seqused_k`) and needs no mask.
 
@@ -21,9 +22,11 @@ With one kv head (every released π0), the query heads are folded into the query
 >>> ranges = KeyRanges(first=torch.tensor([0, 2]), group_rows=(1, 2), group_ends=(3, 5))
 >>> plan = plan_attention(ranges, num_heads=1, kv_heads=1, dtype=torch.float32, kernel="sdpa")
 >>> (plan.mask[1, 0] == 0).int()  # sample 1: its prefix starts at key 2; row 0 stops after key 2, rows 1-2 see all
-tensor([[0, 0, 1, 0, 0],
-        [0, 0, 1, 1, 1],
-        [0, 0, 1, 1, 1]], dtype=torch.int32)
+tensor([[0, 0, 1, 0, 0, 0, 0, 0],
+        [0, 0, 1, 1, 1, 0, 0, 0],
+        [0, 0, 1, 1, 1, 0, 0, 0]], dtype=torch.int32)
+>>> plan.mask.shape  # 5 keys, padded to 8 (-inf: never attended)
+torch.Size([2, 1, 3, 8])
 
 ```
 """
@@ -37,7 +40,7 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
-from pi0_torch.masks import to_additive_mask
+from pi0_torch.masks import pad_keys, sdpa_with_mask, to_additive_mask
 
 try:  # torch >= 2.10 (with per-sample key counts)
     from torch.nn.attention.varlen import varlen_attn
@@ -85,7 +88,7 @@ class AttentionPlan:
     kernel: str  # "sdpa" or "varlen"
     num_keys: int  # keys the pass reads (the k/v given to `attend` may have more slots after them)
     fold_heads: bool  # one kv head: query heads folded into the query length
-    mask: torch.Tensor | None = None  # "sdpa": additive [B, 1, rows, num_keys], rows 1 (all alike), T or T * N
+    mask: torch.Tensor | None = None  # "sdpa": additive [B, 1, rows, aligned_key_count(num_keys)], rows 1, T or T * N
     varlen: tuple[VarlenGroup, ...] = ()  # "varlen": one call per group of rows
 
 
@@ -150,23 +153,30 @@ def plan_attention(ranges: KeyRanges, num_heads: int, kv_heads: int, dtype: torc
             [(visible & (keys < end))[:, None, :].expand(-1, rows * repeat, -1) for rows, end in zip(ranges.group_rows, ranges.group_ends)],
             dim=1,
         )[:, None]  # [B, 1, rows, keys]
-    return AttentionPlan("sdpa", ranges.num_keys, fold, mask=to_additive_mask(rows_mask, dtype))
+    return AttentionPlan("sdpa", ranges.num_keys, fold, mask=pad_keys(to_additive_mask(rows_mask, dtype)))
 
 
 def attend(query: torch.Tensor, key: torch.Tensor, value: torch.Tensor, plan: AttentionPlan) -> torch.Tensor:
     """Attention of `query` `[B, T, N, H]` (post-RoPE, unscaled; contiguous) over `key` / `value` `[B, K, slots, H]`
-    (the first `plan.num_keys` slots are read), logits scaled by `H ** -0.5`, softmax in float32. Returns
-    `[B * T, N * H]`, the layout of the o-projection's input."""
+    (the first `plan.num_keys` slots are read; with a mask, its aligned key count, where the caller's buffers have
+    that many finite slots), logits scaled by `H ** -0.5`, softmax in float32. Returns `[B * T, N * H]`, the layout of
+    the o-projection's input."""
     batch, tokens, heads, head_dim = query.shape
     if plan.kernel == "varlen":
         return _attend_varlen(query, key, value, plan)
-    if key.shape[2] != plan.num_keys:
-        key, value = key[:, :, : plan.num_keys], value[:, :, : plan.num_keys]
-    mask = plan.mask if plan.mask is None or plan.mask.dtype == query.dtype else plan.mask.to(query.dtype)  # (autocast)
     if plan.fold_heads:  # [B, 1, T * N, H] against the one kv head
-        attended = F.scaled_dot_product_attention(query.view(batch, 1, tokens * heads, head_dim), key, value, attn_mask=mask)
+        query = query.view(batch, 1, tokens * heads, head_dim)
+    else:
+        query = query.transpose(1, 2)
+    if plan.mask is None:
+        if key.shape[2] != plan.num_keys:
+            key, value = key[:, :, : plan.num_keys], value[:, :, : plan.num_keys]
+        attended = F.scaled_dot_product_attention(query, key, value, enable_gqa=not plan.fold_heads)
+    else:
+        mask = plan.mask if plan.mask.dtype == query.dtype else plan.mask.to(query.dtype)  # (autocast)
+        attended = sdpa_with_mask(query, key, value, mask, enable_gqa=not plan.fold_heads)
+    if plan.fold_heads:
         return attended.view(batch * tokens, heads * head_dim)
-    attended = F.scaled_dot_product_attention(query.transpose(1, 2), key, value, attn_mask=mask, enable_gqa=True)
     return attended.transpose(1, 2).reshape(batch * tokens, heads * head_dim)
 
 

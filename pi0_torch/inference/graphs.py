@@ -2,22 +2,28 @@
 
 Eager sampling of a full-size π0 launches thousands of small kernels per chunk, and the CPU that launches them, not
 the GPU, sets the pace. A CUDA graph records those launches once and replays them with one call. The sampling after
-the input checks never reads the device from the host (`PI0ForActionGeneration._sample`), so it records as is, real-time
-chunking's guidance included: its vector-Jacobian product per step is autograd work on the same stream, recorded
-with the rest (as PyTorch records a whole training step's backward). Should CUDA refuse to record guidance all the
-same, a warning is logged and guided chunks sample eagerly from then on; the other graphs stay.
+the input checks never reads the device from the host (`ActionSampling._sample`), so it records as is.
 
-One graph per `SamplingPlan` (prefix layout, Euler times, real-time chunking method) and input shapes / dtypes: the
-first call of each records it (two warm-up runs on a side stream, then the capture, on the model's own capture
-stream); later calls copy their inputs into the graph's static buffers, replay it, and return a copy of its output,
-which the next replay does not overwrite. The graphs share a memory pool, guided ones one of their own: a refused
-capture can leave its pool marked as recording in torch's allocators (there is no Python call that ends that in
-the pinned host allocator), so a pool that saw one is never captured into again, and a refused guidance capture
-never touches the plain graphs' pool.
+One graph per `SamplingPlan` (prefix layout, Euler times, real-time chunking method, fused steps) and input shapes /
+dtypes: the first call of each records it (two warm-up runs on a side stream, then the capture, on the model's own
+capture stream); later calls copy their inputs into the graph's static buffers, replay it, and return a copy of its
+output, which the next replay does not overwrite.
+
+Every graph is verified when it is captured: its first replay must give the actions of the last warm-up run, an eager
+run of the same inputs, within `VERIFY_TOLERANCE` (relative to the largest action). A graph that does not is refused
+with a warning naming its plan and the deviation, and that plan samples eagerly from then on: no graph ever replays
+other actions than eager sampling silently. (The first GPU run found one that did: real-time chunking's guidance, whose
+per-step vector-Jacobian product is autograd work, replayed as if the product were zero; guided chunks therefore
+sample eagerly unless `capture_sampling(guidance=True)` asks to try, see `capture_sampling`.)
+
+The graphs share a memory pool, guided ones one of their own: a capture CUDA refuses can leave its pool marked as
+recording in torch's allocators (there is no Python call that ends that in the pinned host allocator), so a pool that
+saw one is never captured into again, and a refused guidance capture never touches the plain graphs' pool.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import logging
 from dataclasses import dataclass
@@ -32,6 +38,11 @@ if TYPE_CHECKING:
 logger = logging.getLogger(__name__)
 
 WARMUP_RUNS = 2  # before a capture (cuBLAS / cuDNN pick and allocate on their first calls)
+# A graph's first replay against eager sampling of the same inputs, max |difference| / max |eager action|. Both run the
+# same kernels, so they agree to rounding; a wrong graph is off by the actions' own size (guidance: 1.1-1.2). The
+# bounds are the openpi fixtures' (tests/test_parity.py): float32 agrees with openpi to 1e-4; bf16 sampling differs from
+# float32 by 3.8e-3-5.5e-3 there, and 1e-2 is twice that (fp16 likewise).
+VERIFY_TOLERANCE = {torch.float32: 1e-4, torch.bfloat16: 1e-2, torch.float16: 1e-2}
 
 
 class SamplingCaptureError(RuntimeError):
@@ -50,21 +61,40 @@ def _signature(inputs: SamplingInputs) -> tuple[Any, ...]:
     return tuple(None if value is None else (tuple(value.shape), value.dtype, value.device) for value in _tensors(inputs))
 
 
-class SamplingGraphs:
-    """The captured graphs of one model, by plan and input signature."""
+def describe_plan(plan: SamplingPlan, batch: int) -> str:
+    """`sampling with RTC guidance (batch 1, 10 steps, 800 prefix slots, fused steps)`: a plan in a log line."""
+    what = "sampling" if plan.rtc_method is None else f"sampling with RTC {plan.rtc_method}"
+    return (f"{what} (batch {batch}, {len(plan.times)} steps, {plan.layout.length} prefix slots"
+            f"{', fused steps' if plan.fused else ''})")
 
-    def __init__(self, model: PI0ForActionGeneration, batch_sizes: tuple[int, ...] | None = None, guidance: bool = True) -> None:
+
+def relative_deviation(got: torch.Tensor, want: torch.Tensor) -> float:
+    """max |got - want| / max |want| (inf where `got` is not finite)."""
+    got, want = got.float(), want.float()
+    if not bool(torch.isfinite(got).all()):
+        return float("inf")
+    return float((got - want).abs().max() / want.abs().max().clamp(min=1e-12))
+
+
+class SamplingGraphs:
+    """The captured graphs of one model, by plan and input signature, and the plans refused at capture."""
+
+    def __init__(self, model: PI0ForActionGeneration, batch_sizes: tuple[int, ...] | None = None, guidance: bool = False,
+                 verify: bool = True) -> None:
         self.model = model
         self.batch_sizes = batch_sizes  # None: any batch size (captured on first use)
         self.guidance = guidance  # False: RTC guidance samples eagerly (also once CUDA refused to record it)
+        self.verify = verify  # compare each graph's first replay with eager sampling (see the module docstring)
         self.graphs: dict[tuple[Any, ...], CapturedSampling] = {}
+        self.refused: dict[tuple[Any, ...], str] = {}  # plan key -> why its graph was refused: it samples eagerly
         self.pools: dict[bool, Any] = {}  # guided or not -> the memory pool its graphs share
         self.stream: torch.cuda.Stream | None = None  # every capture's stream (a pool's captures share one)
         self.warmup_stream: torch.cuda.Stream | None = None  # (one: cuBLAS keeps a workspace per stream)
 
     def clear(self) -> None:
-        """Drop every graph (the model's tensors moved, or its attention kernel changed)."""
+        """Drop every graph (the model's tensors moved, or its kernels changed)."""
         self.graphs.clear()
+        self.refused.clear()
         self.pools.clear()
         self.stream = self.warmup_stream = None
 
@@ -73,16 +103,20 @@ class SamplingGraphs:
         return rtc_method != "guidance" or self.guidance
 
     def run(self, inputs: SamplingInputs, plan: SamplingPlan) -> torch.Tensor:
-        """Actions `[B, horizon, action_dim]` for `inputs` (on CUDA) by replaying the plan's graph (captured on first use)."""
+        """Actions `[B, horizon, action_dim]` for `inputs` (on CUDA) by replaying the plan's graph (captured and
+        verified on first use), or eagerly for a plan whose graph was refused."""
         batch = inputs.noise.shape[0]
         if self.batch_sizes is not None and batch not in self.batch_sizes:
             raise ValueError(f"batch size {batch}: sampling is captured for batch sizes {list(self.batch_sizes)} only "
                              "(model.capture_sampling(batch_sizes=...))")
         key = (plan, _signature(inputs))
+        if key in self.refused:
+            return self.model._sample(inputs, plan)
         captured = self.graphs.get(key)
         if captured is None:
+            eager = None
             try:
-                captured = self.graphs[key] = self._capture(inputs, plan)
+                captured, eager = self._capture(inputs, plan)
             except SamplingCaptureError as error:
                 if plan.rtc_method != "guidance":
                     raise
@@ -90,6 +124,13 @@ class SamplingGraphs:
                 self.guidance = False
             if captured is None:  # (outside the `except`: its traceback holds the failed capture's tensors)
                 return self.model._sample(inputs, plan)
+            refusal = self._verify(captured, eager, plan) if self.verify else None
+            if refusal is not None:
+                self.refused[key] = refusal
+                logger.warning("the CUDA graph of %s was refused: %s; that plan samples eagerly from now on",
+                               describe_plan(plan, batch), refusal)
+                return eager.clone()  # (these inputs' eager actions)
+            self.graphs[key] = captured
         with torch.inference_mode():
             for static, value in zip(_tensors(captured.inputs), _tensors(inputs)):
                 if static is not None:
@@ -97,19 +138,32 @@ class SamplingGraphs:
             captured.graph.replay()
         return captured.output.clone()  # (outside inference mode: a normal tensor the next replay leaves alone)
 
-    @torch.inference_mode()
-    def _capture(self, inputs: SamplingInputs, plan: SamplingPlan) -> CapturedSampling:
+    def _verify(self, captured: CapturedSampling, eager: torch.Tensor, plan: SamplingPlan) -> str | None:
+        """Why the graph's first replay is refused (None: it gives the actions of `eager`, the last warm-up run of the
+        same inputs, within `VERIFY_TOLERANCE`)."""
+        with torch.inference_mode():
+            captured.graph.replay()
+        deviation = relative_deviation(captured.output, eager)
+        bound = VERIFY_TOLERANCE.get(self.model.dtype, VERIFY_TOLERANCE[torch.float32])
+        if deviation <= bound:
+            return None
+        return f"its first replay deviates from eager sampling by {deviation:.3g} of the largest action (bound {bound:g})"
+
+    def _capture(self, inputs: SamplingInputs, plan: SamplingPlan) -> tuple[CapturedSampling, torch.Tensor]:
+        """Warm up and capture the plan's graph: the graph, and the last warm-up run's actions (eager sampling of the
+        same inputs, to verify the graph against)."""
         device = inputs.noise.device
-        with torch.cuda.device(device):  # (the model's GPU, whichever is current)
+        guided = plan.rtc_method == "guidance"
+        with torch.cuda.device(device), _capture_mode(guided):  # (the model's GPU, whichever is current)
             static = type(inputs)(*(None if value is None else value.clone() for value in _tensors(inputs)))
             if self.stream is None:  # (torch's default capture stream is made once, on whichever GPU was current)
                 self.stream, self.warmup_stream = torch.cuda.Stream(device=device), torch.cuda.Stream(device=device)
             self.warmup_stream.wait_stream(torch.cuda.current_stream(device))
             with torch.cuda.stream(self.warmup_stream):
                 for _ in range(WARMUP_RUNS):
-                    self.model._sample(static, plan)
+                    eager = self.model._sample(static, plan)
+                eager = eager.clone()
             torch.cuda.current_stream(device).wait_stream(self.warmup_stream)
-            guided = plan.rtc_method == "guidance"
             pool = self.pools[guided] if guided in self.pools else torch.cuda.graph_pool_handle()
             graph = torch.cuda.CUDAGraph()
             try:
@@ -119,12 +173,25 @@ class SamplingGraphs:
             except Exception as error:
                 self.pools.pop(guided, None)  # (never captured into again)
                 _release_failed_capture(device, pool)
-                what = "sampling" if plan.rtc_method is None else f"sampling with RTC {plan.rtc_method}"
-                raise SamplingCaptureError(f"could not capture {what} as a CUDA graph ({error}); call "
-                                           "model.capture_sampling(disable=True) to sample eagerly") from error
+                raise SamplingCaptureError(f"could not capture {describe_plan(plan, inputs.noise.shape[0])} as a CUDA "
+                                           f"graph ({error}); call model.capture_sampling(disable=True) to sample eagerly") from error
             self.pools[guided] = pool
             torch.cuda.synchronize(device)
-        return CapturedSampling(graph, static, output)
+        return CapturedSampling(graph, static, output), eager
+
+
+@contextlib.contextmanager
+def _capture_mode(guided: bool) -> Any:
+    """The autograd state a capture runs in. Plain and conditioned sampling: inference mode (as a policy or server
+    calls the model). Guided sampling differentiates every step: no_grad instead (functorch's transforms re-enable
+    gradients inside it), and backward on this thread (`set_multithreading_enabled(False)`): for CUDA tensors autograd
+    otherwise runs the backward on its own device thread, outside the thread whose stream is being captured."""
+    if not guided:
+        with torch.inference_mode():
+            yield
+        return
+    with torch.no_grad(), torch.autograd.set_multithreading_enabled(False):
+        yield
 
 
 def _release_failed_capture(device: torch.device, pool: Any) -> None:

@@ -23,6 +23,7 @@ from pi0_torch.inference.attention import KERNELS, choose_kernel
 from pi0_torch.inference.fused_pass import FusedSteps, fused_kernels_reason, structural_reason
 from pi0_torch.inference.layer_pass import CALL_MODULES, SamplingWeights, layer_sampling_weights, sampling_layer_pass
 from pi0_torch.inference.layout import PrefixLayout, camera_inputs, compact_prefix, prefix_stream, suffix_stream
+from pi0_torch.masks import aligned_key_count
 from pi0_torch.models.flow_matching import euler_times
 from pi0_torch.models.layers import NormParams, StreamPass
 from pi0_torch.models.rtc import DEFAULT_MAX_GUIDANCE, METHODS, ChunkPrefix, check_rtc_inputs, chunk_prefix, guidance_weight
@@ -43,10 +44,7 @@ class PrefixCache:
     values: list[torch.Tensor]
     first: torch.Tensor
     layout: PrefixLayout
-
-    @property
-    def slots(self) -> int:
-        return self.keys[0].shape[2]
+    slots: int  # the prefix's and the suffix's; the buffers may hold more (zeros: `cache_prefix`)
 
 
 @dataclass
@@ -233,9 +231,17 @@ class ActionSampling:
         return self._sample(inputs, plan) if graphs is None else graphs.run(inputs, plan)
 
     def _sample(self, inputs: SamplingInputs, plan: SamplingPlan) -> torch.Tensor:
-        """The sampling of `generate_actions` on checked inputs: no host reads, so it can be captured as a CUDA graph."""
-        cache = self.cache_prefix(inputs, plan.layout)
-        actions = self.action_pass(cache, differentiable=plan.rtc_method == "guidance")
+        """The sampling of `generate_actions` on checked inputs: no host reads, so it can be captured as a CUDA graph.
+
+        Guided sampling runs outside inference mode (under no_grad; functorch re-enables gradients for its vjp): before
+        torch 2.12, `torch.func.vjp` inside `torch.inference_mode()` records nothing and returns zeros (pytorch#177318),
+        so a policy or server, which call the model in inference mode, sampled guided chunks without guidance."""
+        guided = plan.rtc_method == "guidance"
+        if guided and torch.is_inference_mode_enabled():
+            with torch.inference_mode(False), torch.no_grad():
+                return self._sample(inputs, plan)
+        cache = self.cache_prefix(inputs, plan.layout, differentiable_steps=guided)
+        actions = self.action_pass(cache, differentiable=guided)
         committed = inputs.committed
         conditioning = self.step_conditioning(inputs.times, actions.expert_weights if committed is None else None)
         dt = -1.0 / len(plan.times)
@@ -273,12 +279,13 @@ class ActionSampling:
         )
         return type(conditioning)(conditioning.condition, layer_norms, conditioning.final_norm)
 
-    def cache_prefix(self, inputs: SamplingInputs, layout: PrefixLayout) -> PrefixCache:
+    def cache_prefix(self, inputs: SamplingInputs, layout: PrefixLayout, differentiable_steps: bool = False) -> PrefixCache:
         """Run the prefix once (π0: with the state token) and keep every layer's post-RoPE k/v.
 
         Exact for sampling because the prefix never attends to the suffix, and π0's state token only to the prefix
         and itself, so neither changes with the noisy actions or the flow time. The buffers have room for the action
-        tokens, whose k/v each denoising step writes in place (no per-step copy of the prefix).
+        tokens, whose k/v each denoising step writes in place (no per-step copy of the prefix). `differentiable_steps`:
+        the steps will attend through SDPA's mask (RTC guidance), so the buffers are laid out for it.
         """
         config = self.config
         prefix, valid = self.embed_prefix(inputs.pixel_values, inputs.image_masks, inputs.input_ids, inputs.attention_mask)
@@ -286,19 +293,25 @@ class ActionSampling:
         batch = first.shape[0]
         slots = layout.length + config.suffix_len
         kernel = self.attention_kernel_for(prefix.device, prefix.dtype, differentiable=False)
-        shape = (batch, config.num_key_value_heads, slots, config.head_dim)
-        # buffers of their own per layer (views of one shared buffer would alias across a compiled layer's inputs)
-        keys, values = ([prefix.new_empty(shape) for _ in self.layers] for _ in range(2))
+        # SDPA's masks (only a padded layout has any) cover a multiple of 8 keys (`pi0_torch.masks.sdpa_with_mask`), and
+        # so do the buffers then: the slots past `slots` (and the suffix's, while the prefix runs) are masked out, and
+        # zeros (finite) for that
+        masked = layout.padded and (kernel == "sdpa" or differentiable_steps)
+        shape = (batch, config.num_key_value_heads, aligned_key_count(slots) if masked else slots, config.head_dim)
+        if masked:  # (one zeroing for every layer's buffer)
+            keys, values = (list(prefix.new_zeros(len(self.layers), *shape).unbind(0)) for _ in range(2))
+        else:
+            keys, values = ([prefix.new_empty(shape) for _ in self.layers] for _ in range(2))
         streams = (
-            prefix_stream(config, first, layout, kernel, slots, self.dtype),
-            None if config.pi05 else suffix_stream(config, first, layout, layout.length, (1,), kernel, slots, self.dtype),
+            prefix_stream(config, first, layout, kernel, shape[2], self.dtype),
+            None if config.pi05 else suffix_stream(config, first, layout, layout.length, (1,), kernel, shape[2], self.dtype),
         )
         x, state = prefix, None if config.pi05 else self.embed_state(inputs.state)
         for index, (layer, layer_keys, layer_values) in enumerate(zip(self.layers, keys, values)):
             weights = layer_sampling_weights(layer, vlm=True, expert=state is not None)
             x, state = self._layer_pass(layer, x, state, streams, (layer_keys, layer_values), None, weights,
                                         keys_only=index == len(self.layers) - 1)
-        return PrefixCache(keys, values, first, layout)
+        return PrefixCache(keys, values, first, layout, slots)
 
     def action_pass(self, cache: PrefixCache, differentiable: bool = False) -> ActionPass:
         """What every sampling step shares (see `ActionPass`), computed once per call; `differentiable` for steps that
@@ -306,7 +319,8 @@ class ActionSampling:
         config = self.config
         first_slot = cache.slots - config.action_horizon
         kernel = self.attention_kernel_for(cache.first.device, cache.keys[0].dtype, differentiable)
-        stream = suffix_stream(config, cache.first, cache.layout, first_slot, (config.action_horizon,), kernel, cache.slots, self.dtype)
+        stream = suffix_stream(config, cache.first, cache.layout, first_slot, (config.action_horizon,), kernel,
+                               cache.keys[0].shape[2], self.dtype)
         weights = [layer_sampling_weights(layer, vlm=False, expert=not differentiable)[1] for layer in self.layers]
         if config.pi05:
             return ActionPass(cache, stream, weights, None, None, None)
@@ -465,23 +479,33 @@ class ActionSampling:
         elif graph and self.device.type == "cuda":
             self.capture_sampling()
 
-    def capture_sampling(self, disable: bool = False, batch_sizes: Sequence[int] | None = None, guidance: bool = True) -> None:
+    def capture_sampling(
+        self, disable: bool = False, batch_sizes: Sequence[int] | None = None, guidance: bool = False, verify: bool = True
+    ) -> None:
         """Opt in to CUDA graphs for `generate_actions` on CUDA: the sampling of each (batch size, step count, prompt
         length, prefix layout, real-time chunking method) is captured once (two warm-up runs, then the capture: its
         first call takes a few eager calls' time) and replayed after that, so the CPU launches one graph instead of
         thousands of kernels. Inputs are copied into the graph's static buffers; each call returns a tensor of its
-        own. Plain sampling and both real-time chunking methods are captured, RTC "guidance" with its
-        vector-Jacobian product per step (`guidance=False`: guided chunks sample eagerly). A model moved to another
-        device or dtype captures again. Works with `compile_sampling` (the graphs then replay the compiled kernels;
-        guidance's differentiated steps run the eager layers). With `batch_sizes`, another batch size is refused
-        (`ValueError`) rather than captured mid-run. Should CUDA refuse a capture, the call raises
-        `SamplingCaptureError`, except for guidance: a warning, and guided chunks sample eagerly from then on.
-        `capture_sampling(disable=True)` goes back to eager.
+        own. A model moved to another device or dtype captures again. Works with `compile_sampling` (the graphs then
+        replay the compiled kernels).
+
+        Every graph is verified when captured (`verify=True`): its first replay is compared with the last warm-up run,
+        an eager run of the same inputs (so verifying costs no extra eager call); a graph whose actions deviate beyond
+        `pi0_torch.inference.graphs.VERIFY_TOLERANCE` is refused with a warning naming the plan and the deviation, and
+        that plan samples eagerly from then on. `verify=False` opts out.
+
+        Plain sampling and real-time chunking's "conditioning" are captured. "guidance" (a vector-Jacobian product per
+        step) samples eagerly unless `guidance=True`: its graph replayed wrong actions on the first GPU it met (as if
+        the product were zero), so it is only tried on request, captured with autograd's backward on the capturing
+        thread, and verified like every graph. With `batch_sizes`, another batch size is refused (`ValueError`)
+        rather than captured mid-run. Should CUDA refuse a capture, the call raises `SamplingCaptureError`, except for
+        guidance: a warning, and guided chunks sample eagerly from then on. `capture_sampling(disable=True)` goes back
+        to eager.
         """
         from pi0_torch.inference.graphs import SamplingGraphs
 
         sizes = None if batch_sizes is None else tuple(check_int("batch_sizes", size, minimum=1) for size in batch_sizes)
-        self._graphs = None if disable else SamplingGraphs(self, sizes, guidance)
+        self._graphs = None if disable else SamplingGraphs(self, sizes, guidance, verify)
 
     def _apply(self, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
         """`nn.Module._apply` (what `.to()`, `.cuda()`, `.half()` ... run): captured graphs read the old tensors, so

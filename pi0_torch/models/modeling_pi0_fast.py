@@ -23,7 +23,7 @@ from torch import nn
 from transformers.modeling_layers import GradientCheckpointingLayer
 from transformers.utils import ModelOutput
 
-from pi0_torch.masks import masked_attention, prefix_lm_mask, to_additive_mask
+from pi0_torch.masks import aligned_key_count, masked_attention, pad_keys, prefix_lm_mask, to_additive_mask
 from pi0_torch.models.configuration_pi0_fast import PI0FastConfig
 from pi0_torch.models.layers import ExpertLayer, RMSNorm, apply_rope, rope_cos_sin
 from pi0_torch.models.modeling_pi0 import PI0PreTrainedModel
@@ -77,7 +77,7 @@ class FastDecoderLayer(GradientCheckpointingLayer):
             value_buffer.index_copy_(2, kv_slots, v)
             k, v = key_buffer, value_buffer
         if last_only:
-            q, x, mask = q[:, :, -1:], x[:, -1:], mask[:, :, -1:]
+            q, x, mask = q[:, :, -1:], x[:, -1:], mask[:, :, -1:].contiguous()
         attended = masked_attention(q, k, v, mask, scale=q.shape[-1] ** -0.5, additive=True)  # [B, N, T, H]
         x = x + block.o_proj(attended.transpose(1, 2).flatten(2))
         return x + block.down_proj(block.geglu(block.gate_up_proj(block.mlp_norm(x))))
@@ -262,15 +262,15 @@ class PI0FastForActionGeneration(SiglipImageEmbedding, PI0FastPreTrainedModel):
         mask, _ = prefix_lm_mask(valid, flags)
         tokens, valid, mask = left_to_right_align(tokens, valid, mask)
         batch, prefix_len = valid.shape
-        slots = prefix_len + max_new_tokens
+        slots = aligned_key_count(prefix_len + max_new_tokens)  # (SDPA's masks cover a multiple of 8 keys; the rest masked)
         device = tokens.device
 
         buffer_shape = (batch, config.num_key_value_heads, slots, config.head_dim)
         keys = [tokens.new_zeros(buffer_shape) for _ in self.layers]  # zeros: fully masked rows average them, as openpi
         values = [tokens.new_zeros(buffer_shape) for _ in self.layers]
-        prefix_mask = F.pad(mask, (0, max_new_tokens))[:, None]  # [B, 1, P, S]
+        prefix_mask = F.pad(mask, (0, max_new_tokens))[:, None]  # [B, 1, P, P + max_new_tokens]
         cos, sin = (table[:, None] for table in rope_cos_sin(torch.cumsum(valid.long(), dim=1) - 1, config.head_dim, config.rope_theta))
-        additive = to_additive_mask(prefix_mask, tokens.dtype)
+        additive = pad_keys(to_additive_mask(prefix_mask, tokens.dtype), slots)  # [B, 1, P, S]
         prefix_slots = torch.arange(prefix_len, device=device)
         x = tokens
         for index, (layer, key_buffer, value_buffer) in enumerate(zip(self.layers, keys, values)):
@@ -280,7 +280,7 @@ class PI0FastForActionGeneration(SiglipImageEmbedding, PI0FastPreTrainedModel):
 
         valid_count = valid.sum(dim=1, keepdim=True)  # [B, 1]
         steps = torch.arange(max_new_tokens, device=device)
-        slot_index = torch.arange(slots, device=device)
+        slot_index = torch.arange(prefix_len + max_new_tokens, device=device)
         window_start = prefix_len - valid_count  # [B, 1]
         sees = (slot_index[None, None, :] >= window_start[:, :, None]) & (
             slot_index[None, None, :] <= (prefix_len + steps)[None, :, None]
@@ -290,7 +290,7 @@ class PI0FastForActionGeneration(SiglipImageEmbedding, PI0FastPreTrainedModel):
         cache = DecodingCache(
             keys=keys,
             values=values,
-            masks=to_additive_mask(sees[:, None], tokens.dtype),
+            masks=pad_keys(to_additive_mask(sees[:, None], tokens.dtype), slots),
             cos=decode_cos,
             sin=decode_sin,
             slots=prefix_len + steps,

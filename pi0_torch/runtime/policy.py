@@ -92,9 +92,11 @@ class PI0Policy(BasePolicy):
             on CUDA the sampling also replays as a CUDA graph). The first chunk compiles (seconds): call [`warmup`].
         cuda_graph: on CUDA, replay each chunk's sampling as one CUDA graph, captured by hand without a compiler
             ([`PI0ForActionGeneration.capture_sampling`]); the first chunk of each batch size and prompt-length bucket
-            captures it (about three eager calls), and so does the first chunk continued by real-time chunking (a
-            graph of its own): call [`warmup`] first, which captures both. Should CUDA refuse a capture, the policy
-            logs a warning and samples eagerly from then on (only its guided chunks, if guidance is what was refused).
+            captures it (about three eager calls) and verifies it against eager sampling, and so does the first chunk
+            continued by real-time chunking "conditioning" (a graph of its own; "guidance" samples eagerly, see
+            [`PI0ForActionGeneration.capture_sampling`]): call [`warmup`] first, which captures both. Should CUDA
+            refuse a capture, the policy logs a warning and samples eagerly from then on (only its guided chunks, if
+            guidance is what was refused); a graph refused by its verification samples eagerly too.
     """
 
     model_class = PI0ForActionGeneration
@@ -239,7 +241,7 @@ class PI0Policy(BasePolicy):
         """A plain chunk; with graphs or compiled layers also a chunk continued by this policy's real-time chunking
         method (a graph of its own, which the first continued request would otherwise capture while the robot waits)."""
         guided_at_all = self.rtc_method != "guidance" or self.rtc_max_guidance > 0
-        if not (self.compiled or self.captured) or not guided_at_all:
+        if not (self.compiled or self.model.replays_graphs(self.rtc_method)) or not guided_at_all:
             return [{}]
         config = self.model.config
         previous = torch.zeros(batch, config.action_horizon, config.action_dim, device=self.device)
