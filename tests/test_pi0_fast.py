@@ -279,3 +279,25 @@ def test_processor_inputs_save_and_reload(tmp_path: Path, fast_reference: FastRe
     np.testing.assert_allclose(robot[0], 2 * fast_reference["tokenizer/extracted_actions"][0], atol=1e-5)
     with pytest.raises(ValueError, match="prompt: empty"):
         processor(images={"base_0_rgb": frame}, prompt=" _ ", state=state[0])
+
+
+def test_compiled_decoding_is_verified_against_eager_and_refused_when_it_differs(
+    fast_reference: FastReference, caplog: pytest.LogCaptureFixture
+) -> None:
+    """After `compile_decoding`, the first `VERIFY_CALLS` calls also decode eagerly along the same tokens: a faithful
+    compiled decoding stays on; one whose logits deviate (simulated: a step that scales them, as a broken CUDA graph
+    would) is switched off with a warning, and that call returns the eager tokens."""
+    model = fast_reference.model()
+    infer = fast_reference.inputs("infer")
+    expected = model.generate_tokens(**infer, max_new_tokens=4)
+    model.compile_decoding(backend="eager")
+    for _ in range(model.VERIFY_CALLS + 1):
+        assert torch.equal(model.generate_tokens(**infer, max_new_tokens=4), expected)
+    assert model.decoding_compiled and model._calls_to_verify == 0
+    model.compile_decoding(backend="eager")
+    compiled_step = model._compiled_decode_step
+    model._compiled_decode_step = lambda *args: compiled_step(*args) * 3.0
+    with caplog.at_level(logging.WARNING):
+        tokens = model.generate_tokens(**infer, max_new_tokens=4)
+    assert torch.equal(tokens, expected) and not model.decoding_compiled
+    assert "compiled decoding was refused: its logits deviate from eager decoding by 2 of the largest" in caplog.text

@@ -457,12 +457,16 @@ def test_compiled_policy_is_warmed_up_before_serving_and_serves_the_same_actions
 
 def test_the_warm_up_log_says_which_graphs_were_captured(model_dir: Path, caplog: pytest.LogCaptureFixture) -> None:
     """A policy that replays CUDA graphs is warmed up for every batch size, plain and continued by its real-time
-    chunking method, and the log says so (on the CPU, `capture_sampling` is set but sampling stays eager)."""
+    chunking method where that replays a graph too, and the log says so (on the CPU, `capture_sampling` is set but
+    sampling stays eager). Guided chunks replay graphs only on request (`capture_sampling(guidance=True)`)."""
     captured = PI0Policy.from_pretrained(model_dir, device="cpu", seed=0)
-    captured.model.capture_sampling()
-    with caplog.at_level(logging.INFO, logger="pi0_torch.runtime.serving"), running_server(captured, max_batch_size=2):
-        pass
-    assert "CUDA graphs captured for batch sizes 1 to 2 (plain and continued by RTC guidance)" in caplog.text
+    for guidance, logged in ((False, "CUDA graphs captured for batch sizes 1 to 2\n"),
+                             (True, "CUDA graphs captured for batch sizes 1 to 2 (plain and continued by RTC guidance)")):
+        caplog.clear()
+        captured.model.capture_sampling(guidance=guidance)
+        with caplog.at_level(logging.INFO, logger="pi0_torch.runtime.serving"), running_server(captured, max_batch_size=2):
+            pass
+        assert logged in caplog.text, caplog.text
 
 
 def test_bad_requests_get_an_error_reply_and_the_server_keeps_serving(

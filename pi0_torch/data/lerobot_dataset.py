@@ -48,7 +48,7 @@ from tqdm.auto import tqdm
 
 from pi0_torch.utils.extras import require_extra
 
-require_extra("train", __name__)
+require_extra("train", __name__, modules=("datasets", "pyarrow", "av"))
 import av
 import datasets
 import pyarrow as pa

@@ -43,7 +43,7 @@ from PIL import Image
 
 from pi0_torch.utils.extras import require_extra
 
-require_extra("train", __name__)
+require_extra("train", __name__, modules=("datasets", "pandas", "pyarrow", "av"))
 import datasets
 import pandas as pd
 import pyarrow as pa

@@ -13,7 +13,9 @@ K kv heads, H head size, D width, V vocabulary.
 
 from __future__ import annotations
 
+import logging
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -23,6 +25,7 @@ from torch import nn
 from transformers.modeling_layers import GradientCheckpointingLayer
 from transformers.utils import ModelOutput
 
+from pi0_torch.inference.graphs import VERIFY_TOLERANCE, relative_deviation
 from pi0_torch.masks import aligned_key_count, masked_attention, pad_keys, prefix_lm_mask, to_additive_mask
 from pi0_torch.models.configuration_pi0_fast import PI0FastConfig
 from pi0_torch.models.layers import ExpertLayer, RMSNorm, apply_rope, rope_cos_sin
@@ -30,6 +33,8 @@ from pi0_torch.models.modeling_pi0 import PI0PreTrainedModel
 from pi0_torch.models.vision import SiglipImageEmbedding, siglip_vision_tower
 from pi0_torch.utils.validation import check_tensor as _check_tensor
 from pi0_torch.utils.validation import describe as _describe
+
+logger = logging.getLogger(__name__)
 
 if TYPE_CHECKING:
     from pi0_torch.processing.processing_pi0_fast import PI0FastProcessor
@@ -147,6 +152,8 @@ class PI0FastForActionGeneration(SiglipImageEmbedding, PI0FastPreTrainedModel):
     ```
     """
 
+    VERIFY_CALLS = 3  # `generate_tokens` calls checked against eager decoding after `compile_decoding`
+
     def __init__(self, config: PI0FastConfig) -> None:
         super().__init__(config)
         self.vision_tower = siglip_vision_tower(config)
@@ -156,6 +163,7 @@ class PI0FastForActionGeneration(SiglipImageEmbedding, PI0FastPreTrainedModel):
         self.final_norm = RMSNorm(config.hidden_size, config.rms_norm_eps)
         self._compiled_decode_step: Any = None  # set by `compile_decoding`
         self._compiled_prefill: Any = None
+        self._calls_to_verify = 0  # `generate_tokens` calls still to check against eager decoding
         self.post_init()
 
     # -- inputs: images and prompt -------------------------------------------------------------------------------------
@@ -340,19 +348,48 @@ class PI0FastForActionGeneration(SiglipImageEmbedding, PI0FastPreTrainedModel):
             raise ValueError(f"max_new_tokens must be >= 1, got {max_new_tokens}")
         if temperature < 0:
             raise ValueError(f"temperature must be >= 0, got {temperature}")
-        prepare = self.prepare_decoding if self._compiled_prefill is None else self._compiled_prefill
-        decode_step = self.decode_step if self._compiled_decode_step is None else self._compiled_decode_step
-        cache, logits = prepare(pixel_values, image_masks, input_ids, attention_mask, token_ar_mask, max_new_tokens)
-        output = torch.zeros(pixel_values.shape[0], max_new_tokens, dtype=torch.long, device=pixel_values.device)
-        steps = torch.arange(max_new_tokens, device=pixel_values.device)
-        for step in range(max_new_tokens):
-            token = _pick_token(logits, temperature, generator)  # [B]
-            output[:, step] = token
+        inputs = (pixel_values, image_masks, input_ids, attention_mask, token_ar_mask, max_new_tokens)
+        if self._compiled_prefill is None:
+            return self.decode(self.prepare_decoding, self.decode_step, inputs, temperature, generator)[0]
+        tokens, logits = self.decode(self._compiled_prefill, self._compiled_decode_step, inputs, temperature, generator)
+        if self._calls_to_verify > 0:  # the compiled (CUDA graph) decoding against eager decoding of the same tokens
+            self._calls_to_verify -= 1
+            _, eager_logits = self.decode(self.prepare_decoding, self.decode_step, inputs, temperature, None, forced=tokens)
+            deviation = max(relative_deviation(got, want) for got, want in zip(logits, eager_logits))
+            bound = VERIFY_TOLERANCE.get(self.dtype, VERIFY_TOLERANCE[torch.float32])
+            if not deviation <= bound:
+                logger.warning("compiled decoding was refused: its logits deviate from eager decoding by %.3g of the "
+                               "largest (bound %g); generate_tokens decodes eagerly from now on", deviation, bound)
+                self.compile_decoding(disable=True)
+                return self.decode(self.prepare_decoding, self.decode_step, inputs, temperature, generator)[0]
+        return tokens
+
+    def decode(
+        self,
+        prepare: Callable[..., tuple[DecodingCache, torch.Tensor]],
+        step: Callable[..., torch.Tensor],
+        inputs: tuple[Any, ...],
+        temperature: float,
+        generator: torch.Generator | None,
+        forced: torch.Tensor | None = None,
+    ) -> tuple[torch.Tensor, list[torch.Tensor]]:
+        """The decoding loop of `generate_tokens` with the given prefill and step functions (eager or compiled): the
+        tokens `[B, max_new_tokens]` and the logits `[B, V]` each token was picked from. `forced` `[B, T]`: feed these
+        tokens instead of picking (to compare another decoding's logits along the same tokens)."""
+        cache, logits = prepare(*inputs)
+        batch, max_new_tokens = inputs[0].shape[0], inputs[-1]
+        output = torch.zeros(batch, max_new_tokens, dtype=torch.long, device=inputs[0].device)
+        steps = torch.arange(max_new_tokens, device=inputs[0].device)
+        seen = []
+        for index in range(max_new_tokens):
+            seen.append(logits.clone())  # (a compiled step's output is overwritten by its next replay)
+            token = _pick_token(logits, temperature, generator) if forced is None else forced[:, index]  # [B]
+            output[:, index] = token
             eos = self.config.eos_token_id
-            if step == max_new_tokens - 1 or (eos is not None and bool((token == eos).all())):
+            if index == max_new_tokens - 1 or (eos is not None and bool((token == eos).all())):
                 break
-            logits = decode_step(cache, token, steps[step : step + 1])
-        return output
+            logits = step(cache, token, steps[index : index + 1])
+        return output, seen
 
     @torch.no_grad()
     def generate_actions(
@@ -388,17 +425,22 @@ class PI0FastForActionGeneration(SiglipImageEmbedding, PI0FastPreTrainedModel):
         """Whether `generate_tokens` runs through `torch.compile` (see `compile_decoding`)."""
         return self._compiled_decode_step is not None
 
-    def compile_decoding(self, **compile_kwargs: Any) -> None:
+    def compile_decoding(self, verify: bool = True, **compile_kwargs: Any) -> None:
         """Opt in to `torch.compile` for `generate_tokens`: the prefill as one graph and the per-token step as
         another (the same graph for every step). `compile_kwargs` go to `torch.compile`, with `fullgraph=True`
-        unless given; on CUDA `mode="reduce-overhead"` replays each as a CUDA graph. `compile_decoding(disable=True)`
-        goes back to eager."""
+        unless given; on CUDA `mode="reduce-overhead"` replays each as a CUDA graph. With `verify` (the default) the
+        first `VERIFY_CALLS` calls of `generate_tokens` (CUDA graphs record on the second and replay from the third)
+        also decode eagerly along the same tokens; logits that deviate beyond
+        `pi0_torch.inference.graphs.VERIFY_TOLERANCE` switch compiling off with a warning, and that call returns the
+        eager tokens. `compile_decoding(disable=True)` goes back to eager."""
         if compile_kwargs.get("disable"):
             self._compiled_decode_step = self._compiled_prefill = None
+            self._calls_to_verify = 0
             return
         compile_kwargs.setdefault("fullgraph", True)
         self._compiled_prefill = torch.compile(self.prepare_decoding, **compile_kwargs)
         self._compiled_decode_step = torch.compile(self.decode_step, **compile_kwargs)
+        self._calls_to_verify = self.VERIFY_CALLS if verify else 0
 
     # -- input checks --------------------------------------------------------------------------------------------------
 

@@ -20,7 +20,7 @@ from typing import Any
 
 from pi0_torch.utils.extras import require_extra
 
-require_extra("train", __name__)  # transformers.trainer needs accelerate
+require_extra("train", __name__, modules=("accelerate",))  # transformers.trainer needs accelerate
 import torch
 from transformers.trainer import TRAINER_STATE_NAME
 from transformers.trainer_utils import PREFIX_CHECKPOINT_DIR

@@ -31,7 +31,7 @@ from typing import Any
 
 from pi0_torch.utils.extras import require_extra
 
-require_extra("train", __name__)  # transformers.trainer needs accelerate
+require_extra("train", __name__, modules=("accelerate", "peft"))  # transformers.trainer needs accelerate; LoRA peft
 import torch
 import torch.distributed.checkpoint as dcp
 from torch import nn

@@ -25,7 +25,7 @@ from typing import Any
 
 from pi0_torch.utils.extras import require_extra
 
-require_extra("train", __name__)  # the Trainer needs accelerate
+require_extra("train", __name__, modules=("accelerate",))  # the Trainer needs accelerate
 import torch
 from safetensors.torch import load_file, save_file
 from torch import nn

@@ -12,8 +12,11 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-from pi0_torch.training.trainable import LORA_RANK_EXPERT, LORA_RANK_VLM
 from pi0_torch.utils.validation import MAX_SEED, check_float, check_int
+
+# openpi's LoRA variants (src/openpi/models/gemma.py): gemma_2b_lora rank 16 / alpha 16, gemma_300m_lora 32 / 32
+LORA_RANK_VLM = 16
+LORA_RANK_EXPERT = 32
 
 # openpi defaults (src/openpi/training/optimizer.py: AdamW, CosineDecaySchedule; config.py: TrainConfig.ema_decay)
 OPENPI_PEAK_LR = 2.5e-5

@@ -15,16 +15,14 @@ from collections.abc import Sequence
 
 from pi0_torch.utils.extras import require_extra
 
-require_extra("train", __name__)  # LoRA is peft's
+require_extra("train", __name__, modules=("peft",))  # LoRA is peft's (nothing else of [train])
 from torch import nn
 
 from pi0_torch.models.configuration_pi0 import PI0Config
 from pi0_torch.models.configuration_pi0_fast import PI0FastConfig
 from pi0_torch.models.modeling_pi0 import PI0ForActionGeneration
+from pi0_torch.training.settings import LORA_RANK_EXPERT, LORA_RANK_VLM
 
-# openpi's LoRA variants (src/openpi/models/gemma.py): gemma_2b_lora rank 16 / alpha 16, gemma_300m_lora 32 / 32
-LORA_RANK_VLM = 16
-LORA_RANK_EXPERT = 32
 LORA_TARGETS = ("qkv_proj", "o_proj", "gate_up_proj", "down_proj")
 
 FREEZE_GROUPS = ("vision", "vlm")

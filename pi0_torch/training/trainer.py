@@ -53,6 +53,8 @@ from pi0_torch.training.checkpoints import (
 from pi0_torch.training.model_setup import build_model, build_processor, check_memory, is_model_folder, load_config
 from pi0_torch.training.pi0_trainer import EMACallback, PI0Trainer, SaveProcessorCallback
 from pi0_torch.training.settings import (
+    LORA_RANK_EXPERT,
+    LORA_RANK_VLM,
     OPENPI_BETAS,
     OPENPI_CLIP_NORM,
     OPENPI_EMA_DECAY,
@@ -65,7 +67,7 @@ from pi0_torch.training.settings import (
     TrainSettings,
     check_settings,
 )
-from pi0_torch.training.trainable import FREEZE_GROUPS, LORA_RANK_EXPERT, LORA_RANK_VLM, count_trainable, merge_lora
+from pi0_torch.training.trainable import FREEZE_GROUPS, count_trainable, merge_lora
 from pi0_torch.utils import files
 from pi0_torch.utils.threads import add_threads_argument, set_threads
 from pi0_torch.utils.validation import first_line

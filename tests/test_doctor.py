@@ -1,0 +1,66 @@
+"""`pi0-torch doctor`: every sampling path against its reference, one table, a non-zero exit on any failure."""
+
+from __future__ import annotations
+
+import argparse
+import re
+
+import pytest
+import torch
+
+from pi0_torch import doctor
+
+
+def run_doctor(capsys: pytest.CaptureFixture[str], *argv: str) -> tuple[int, str]:
+    parser = argparse.ArgumentParser()
+    doctor.add_arguments(parser)
+    code = doctor.run(parser.parse_args(list(argv)))
+    return code, capsys.readouterr().out
+
+
+def test_doctor_passes_at_the_small_size_on_this_machine(capsys: pytest.CaptureFixture[str]) -> None:
+    """The CPU runs every row that needs no CUDA (the CUDA rows say so); each is within its bound."""
+    code, out = run_doctor(capsys, "--device", "cpu")
+    assert code == 0, out
+    rows = re.findall(r"^(π0\S*|π0-FAST) (.+?)\s+cpu\s+(float32|bfloat16)\s+(\S+)\s+(\S+)\s+(pass|FAIL|skip)", out, re.MULTILINE)
+    results = [row[-1] for row in rows]
+    assert results.count("pass") >= 20 and "FAIL" not in results, out
+    assert all(note == "needs CUDA" for note in re.findall(r"skip\s+[\d.]+\s+(.*)$", out, re.MULTILINE)), out
+    assert re.search(r"^\d+ passed, 0 failed, \d+ skipped$", out, re.MULTILINE), out
+    for path in ("eager", "RTC guidance, eager", "RTC conditioning, eager", "training forward vs reference step",
+                 "training step, bf16 autocast", "LoRA (adapters, merged)", "CUDA graph", "fused kernels"):
+        assert re.search(rf"^π0\.5 {re.escape(path)}\s", out, re.MULTILINE), path
+    assert re.search(r"^π0-FAST decoding, 60 new tokens\s+cpu\s+bfloat16", out, re.MULTILINE), out
+
+
+def test_a_row_out_of_bounds_or_raising_fails_and_a_lost_cuda_context_stops_the_run(
+    capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    checkup = doctor.Doctor(torch.device("cpu"), full=False)
+    checkup.row("within", torch.float32, lambda: (1e-6, 1e-4, ""))
+    checkup.row("beyond", torch.float32, lambda: (1e-3, 1e-4, ""))
+    checkup.row("raises", torch.float32, lambda: 1 / 0)
+    assert [row.result for row in checkup.rows] == ["pass", "FAIL", "FAIL"]
+    assert checkup.rows[2].note == "ZeroDivisionError: division by zero"
+    checkup.cuda = True  # (as on a GPU whose context a kernel lost)
+    monkeypatch.setattr(doctor, "_cuda_usable", lambda device: False)
+    with pytest.raises(doctor.ContextLost, match="the CUDA context was lost in the row 'broken'"):
+        checkup.row("broken", torch.bfloat16, lambda: (_ for _ in ()).throw(RuntimeError("CUDA error: misaligned address")))
+
+    def lost(self: doctor.Doctor, preset: str) -> None:
+        self.cuda = True
+        self.row("the row that breaks CUDA", torch.bfloat16, lambda: 1 / 0)
+
+    monkeypatch.setattr(doctor.Doctor, "pi0_rows", lost)
+    code, out = run_doctor(capsys, "--device", "cpu")
+    assert code == 1 and "STOPPED: the CUDA context was lost in the row 'the row that breaks CUDA'" in out, out
+
+
+def test_bad_devices_are_refused_in_one_line(capsys: pytest.CaptureFixture[str]) -> None:
+    parser = argparse.ArgumentParser()
+    doctor.add_arguments(parser)
+    assert doctor.run(parser.parse_args(["--device", "tpu"])) == 2
+    assert "--device: 'tpu' is not a torch device" in capsys.readouterr().err
+    if not torch.cuda.is_available():
+        assert doctor.run(parser.parse_args(["--device", "cuda"])) == 2
+        assert "sees no CUDA GPU" in capsys.readouterr().err
