@@ -108,7 +108,7 @@ class Doctor:
     # -- π0 / π0.5 --------------------------------------------------------------------------------------------------
 
     def pi0_rows(self, preset: str) -> None:
-        device, cuda = self.device, self.cuda
+        device = self.device
         config = PI0Config.from_preset(preset, rtc_max_delay=DELAY)
         name = "π0.5" if config.pi05 else "π0"
         torch.manual_seed(0)
@@ -198,8 +198,6 @@ class Doctor:
             return max(relative_deviation(replay, eager16[0]) for replay in replays), VERIFY_TOLERANCE[torch.bfloat16], "vs eager bf16"
 
         self.row(f"{name} compiled layers + CUDA graph", torch.bfloat16, compiled_graph, needs_cuda=True)
-        del model
-        _free(device)
 
     # -- π0-FAST ------------------------------------------------------------------------------------------------------
 
@@ -232,8 +230,6 @@ class Doctor:
             return float(max(int((tokens != eager).sum()) for tokens in calls)), 0.0, "tokens differing from eager"
 
         self.row("π0-FAST compiled decoding (CUDA graphs)", torch.bfloat16, compiled, needs_cuda=True)
-        del model
-        _free(device)
 
 
 def pi0_inputs(config: PI0Config, device: torch.device) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
@@ -272,14 +268,14 @@ def autograd_guidance(model: PI0ForActionGeneration, inputs: dict[str, torch.Ten
     no inference mode): every step `v + w * grad_x 0.5 * sum(W * (Y - x0(x))^2)` with `x0 = x - t v(x)`."""
     prefix = chunk_prefix(previous, DELAY, EXECUTED)
     x_t = noise.float()
-    for time in euler_times(STEPS):
+    for flow_time in euler_times(STEPS):
         with torch.enable_grad():
             x = x_t.clone().requires_grad_(True)
-            velocity = model(**inputs, noise=x, time=torch.full((x.shape[0],), time, device=x.device)).velocity
-            estimate = x - time * velocity
+            velocity = model(**inputs, noise=x, time=torch.full((x.shape[0],), flow_time, device=x.device)).velocity
+            estimate = x - flow_time * velocity
             objective = 0.5 * (prefix.weights[..., None] * (prefix.target - estimate) ** 2).sum()
             (gradient,) = torch.autograd.grad(objective, x)
-        x_t = x_t - (velocity.detach() + guidance_weight(time, 5.0) * gradient) / STEPS
+        x_t = x_t - (velocity.detach() + guidance_weight(flow_time, 5.0) * gradient) / STEPS
     return x_t
 
 
@@ -414,9 +410,9 @@ def run(args: argparse.Namespace) -> int:
     sizes = ("pi0", "pi05", "pi0_fast") if args.full else ("pi0_small", "pi05_small", "pi0_fast_small")
     try:
         with _quiet_warnings():
-            doctor.pi0_rows(sizes[0])
-            doctor.pi0_rows(sizes[1])
-            doctor.fast_rows(sizes[2])
+            for rows, preset in ((doctor.pi0_rows, sizes[0]), (doctor.pi0_rows, sizes[1]), (doctor.fast_rows, sizes[2])):
+                rows(preset)
+                _free(device)  # (each model's memory back before the next)
     except ContextLost as error:
         print(f"STOPPED: {error}")
         return 1

@@ -1,6 +1,11 @@
-"""A sampling step of the action expert in the fused ops of `pi0_torch.kernels`: per decoder layer five launches
-(norm + q/k/v + RoPE + cache write, attention over the key range, o-projection + residual, norm + gate/up + GeGLU,
-down-projection + residual), then the final norm, `action_out_proj` and the Euler update in one.
+"""Sampling in the fused ops of `pi0_torch.kernels`.
+
+- Each Euler step of the action expert (`FusedSteps`): per decoder layer five launches (norm + q/k/v + RoPE + cache
+  write, attention over the key range, o-projection + residual, norm + gate/up + GeGLU, down-projection + residual),
+  then the final norm, `action_out_proj` and the Euler update in one.
+- The prefix pass (`prefix_layer`): the VLM's GEMMs stay cuBLAS's (compute-bound at 800+ rows) with RoPE and the cache
+  write, and the GeGLU, fused around them (nine launches per layer instead of fifteen); π0's state token, one row,
+  goes through the action expert's fused ops (five instead of fifteen).
 
 It computes what `ActionSampling.denoise_step` followed by `x_t += dt * velocity` computes, with fewer roundings in
 bf16 (the fused epilogues round once). Used for plain sampling on CUDA in bf16 / fp16 (`ActionSampling.sampling_kernels`,
@@ -17,13 +22,14 @@ from typing import TYPE_CHECKING
 
 import torch
 
+from pi0_torch.inference.attention import attend
 from pi0_torch.kernels import ops, reference
-from pi0_torch.models.layers import NormParams, rope_cos_sin
+from pi0_torch.models.layers import JointDecoderLayer, NormParams, StepConditioning, StreamPass, rms_norm, rope_cos_sin
 
 if TYPE_CHECKING:
     from pi0_torch.inference.layer_pass import SamplingWeights
     from pi0_torch.inference.sampling import ActionPass
-    from pi0_torch.models.modeling_pi0 import PI0ForActionGeneration, StepConditioning
+    from pi0_torch.models.modeling_pi0 import PI0ForActionGeneration
 
 logger = logging.getLogger(__name__)
 
@@ -77,7 +83,10 @@ def _self_check(kernels, device, dtype, width, heads, head_dim, mlp_width, actio
     cases = {
         "norm_qkv_rope": lambda: (x, scale, random((heads + 2) * head_dim), random((heads + 2) * head_dim, width, scale=width**-0.5).t(),
                                   cos, sin, random(batch, slots, head_dim), random(batch, slots, head_dim), 11, 1e-6),
+        "rope_cache_write": lambda: (random(batch * tokens, (heads + 2) * head_dim), cos, sin, random(batch, slots, head_dim),
+                                     random(batch, slots, head_dim), 3),
         "norm_gate_up_geglu": lambda: (x, scale, None, random(2 * mlp_width, width, scale=width**-0.5).t(), 1e-6),
+        "geglu": lambda: (random(batch * tokens, 2 * mlp_width),),
         "matmul_residual_": lambda: (x.clone(), random(batch * tokens, mlp_width), random(width, mlp_width, scale=mlp_width**-0.5).t(),
                                      random(width)),
         "range_attention": lambda: (random(batch, tokens, heads, head_dim), random(batch, slots, head_dim),
@@ -153,3 +162,38 @@ class FusedSteps:
             ops.call(ops.matmul_residual_, tokens, hidden, own.down, mlp.gate)
         row = index if self.final_scales.shape[0] > 1 else 0  # (π0.5: a final norm per step)
         ops.call(ops.norm_linear_euler_, x_t, tokens, self.final_scales[row], self.final_biases[row], self.out_weight, dt, eps)
+
+
+def prefix_layer(
+    layer: JointDecoderLayer,
+    prefix: torch.Tensor,  # [B * P, D0], updated in place
+    state: torch.Tensor | None,  # π0: [B, D1], updated in place
+    streams: tuple[StreamPass, StreamPass | None],
+    cache: tuple[torch.Tensor, torch.Tensor],  # [B, 1, S, H]
+    scales: tuple[torch.Tensor, ...],  # the layer's norm scales (1 + weight): VLM attention, MLP; π0: the expert's too
+    weights: tuple[SamplingWeights, SamplingWeights],
+    first: torch.Tensor,
+    state_ends: torch.Tensor | None,  # π0: long [1], where the state token's keys end (it sees the prefix and itself)
+    eps: float,
+    keys_only: bool,
+) -> tuple[torch.Tensor | None, torch.Tensor | None]:
+    """`sampling_layer_pass` of the prefix pass (π0: with the state token) in the fused ops; returns (prefix, state)."""
+    (vlm, expert), (prefix_pass, state_pass) = weights, streams
+    keys, values = cache[0][:, 0], cache[1][:, 0]  # [B, S, H]
+    batch, head_dim = keys.shape[0], keys.shape[-1]
+    qkv = torch.mm(rms_norm(prefix, eps, scales[0]), vlm.qkv)
+    q = ops.call(ops.rope_cache_write, qkv, prefix_pass.cos[:, :, 0], prefix_pass.sin[:, :, 0], keys, values, 0)
+    if state is not None:
+        state_q = ops.call(ops.norm_qkv_rope, state, scales[2], None, expert.qkv, state_pass.cos[:, :, 0],
+                           state_pass.sin[:, :, 0], keys, values, state_pass.first_slot, eps)
+    if keys_only:
+        return None, None
+    attended = attend(q.view(batch, prefix_pass.tokens, -1, head_dim), cache[0], cache[1], prefix_pass.attention)
+    prefix.addmm_(attended, vlm.o)
+    prefix.addmm_(ops.call(ops.geglu, torch.mm(rms_norm(prefix, eps, scales[1]), vlm.gate_up)), vlm.down)
+    if state is not None:
+        attended = ops.call(ops.range_attention, state_q.view(batch, 1, -1, head_dim), keys, values, first, state_ends)
+        ops.call(ops.matmul_residual_, state, attended, expert.o, None)
+        ops.call(ops.matmul_residual_, state, ops.call(ops.norm_gate_up_geglu, state, scales[3], None, expert.gate_up, eps),
+                 expert.down, None)
+    return prefix, state

@@ -15,23 +15,22 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import torch
 
 from pi0_torch.inference.attention import KERNELS, choose_kernel
+from pi0_torch.inference import fused_pass
 from pi0_torch.inference.fused_pass import FusedSteps, fused_kernels_reason, structural_reason
 from pi0_torch.inference.layer_pass import CALL_MODULES, SamplingWeights, layer_sampling_weights, sampling_layer_pass
 from pi0_torch.inference.layout import PrefixLayout, camera_inputs, compact_prefix, prefix_stream, suffix_stream
 from pi0_torch.masks import aligned_key_count
 from pi0_torch.models.flow_matching import euler_times
-from pi0_torch.models.layers import NormParams, StreamPass
+from pi0_torch.models.layers import AdaRMSNorm, NormParams, RMSNorm, StepConditioning, StreamPass
 from pi0_torch.models.rtc import DEFAULT_MAX_GUIDANCE, METHODS, ChunkPrefix, check_rtc_inputs, chunk_prefix, guidance_weight
 from pi0_torch.utils.validation import check_int
 from pi0_torch.utils.validation import check_tensor as _check_tensor
 
-if TYPE_CHECKING:
-    from pi0_torch.models.modeling_pi0 import StepConditioning
 
 
 @dataclass
@@ -240,7 +239,7 @@ class ActionSampling:
         if guided and torch.is_inference_mode_enabled():
             with torch.inference_mode(False), torch.no_grad():
                 return self._sample(inputs, plan)
-        cache = self.cache_prefix(inputs, plan.layout, differentiable_steps=guided)
+        cache = self.cache_prefix(inputs, plan.layout, differentiable_steps=guided, fused=plan.fused)
         actions = self.action_pass(cache, differentiable=guided)
         committed = inputs.committed
         conditioning = self.step_conditioning(inputs.times, actions.expert_weights if committed is None else None)
@@ -267,25 +266,30 @@ class ActionSampling:
         return x_t
 
     def step_conditioning(self, time: torch.Tensor, weights: Sequence[SamplingWeights] | None = None) -> StepConditioning:
-        """`conditioning(time)` for the sampling steps. With the action expert's `SamplingWeights` of each layer (a
-        sampling pass where each time conditions every token alike), π0.5's adaRMS shifts also go through the
-        projections after their norms (`NormParams.shift_projected`, see `layer_pass.project_normed`)."""
-        conditioning = self.conditioning(time)
-        if conditioning.layer_norms is None or weights is None:
-            return conditioning
-        layer_norms = tuple(
-            (_project_shift(attn, own.qkv), _project_shift(mlp, own.gate_up))
-            for (attn, mlp), own in zip(conditioning.layer_norms, weights)
-        )
-        return type(conditioning)(conditioning.condition, layer_norms, conditioning.final_norm)
+        """`conditioning(time)` for the sampling steps, π0.5's adaRMS params of every norm computed together
+        (`ada_rms_norm_params`). With the action expert's `SamplingWeights` of each layer (a sampling pass where each
+        time conditions every token alike), π0.5's shifts also go through the projections after their norms
+        (`NormParams.shift_projected`, see `layer_pass.project_normed`)."""
+        if not self.config.pi05:
+            return self.conditioning(time)
+        norms = [norm for layer in self.layers for norm in (layer.expert.attn_norm, layer.expert.mlp_norm)]
+        params = ada_rms_norm_params([*norms, self.expert_final_norm], self.time_conditioning(time))
+        layer_norms = tuple(zip(params[:-1:2], params[1:-1:2]))  # per layer (attention, MLP)
+        if weights is not None:
+            layer_norms = tuple((_project_shift(attn, own.qkv), _project_shift(mlp, own.gate_up))
+                                for (attn, mlp), own in zip(layer_norms, weights))
+        return StepConditioning(None, layer_norms, params[-1])
 
-    def cache_prefix(self, inputs: SamplingInputs, layout: PrefixLayout, differentiable_steps: bool = False) -> PrefixCache:
+    def cache_prefix(
+        self, inputs: SamplingInputs, layout: PrefixLayout, differentiable_steps: bool = False, fused: bool = False
+    ) -> PrefixCache:
         """Run the prefix once (π0: with the state token) and keep every layer's post-RoPE k/v.
 
         Exact for sampling because the prefix never attends to the suffix, and π0's state token only to the prefix
         and itself, so neither changes with the noisy actions or the flow time. The buffers have room for the action
         tokens, whose k/v each denoising step writes in place (no per-step copy of the prefix). `differentiable_steps`:
-        the steps will attend through SDPA's mask (RTC guidance), so the buffers are laid out for it.
+        the steps will attend through SDPA's mask (RTC guidance), so the buffers are laid out for it. `fused`: the
+        layers run `fused_pass.prefix_layer` (the fused kernels around cuBLAS's GEMMs).
         """
         config = self.config
         prefix, valid = self.embed_prefix(inputs.pixel_values, inputs.image_masks, inputs.input_ids, inputs.attention_mask)
@@ -307,10 +311,19 @@ class ActionSampling:
             None if config.pi05 else suffix_stream(config, first, layout, layout.length, (1,), kernel, shape[2], self.dtype),
         )
         x, state = prefix, None if config.pi05 else self.embed_state(inputs.state)
+        norms = [norm for layer in self.layers for norm in (layer.vlm.attn_norm, layer.vlm.mlp_norm)
+                 + (() if config.pi05 else (layer.expert.attn_norm, layer.expert.mlp_norm))] if fused else []
+        scales = iter(norm.scale for norm in rms_norm_params(norms))  # (fused: 2 or 4 per layer, in order)
+        state_ends = streams[1].slots[:1] + 1 if fused and streams[1] is not None else None  # (the prefix and itself)
         for index, (layer, layer_keys, layer_values) in enumerate(zip(self.layers, keys, values)):
             weights = layer_sampling_weights(layer, vlm=True, expert=state is not None)
-            x, state = self._layer_pass(layer, x, state, streams, (layer_keys, layer_values), None, weights,
-                                        keys_only=index == len(self.layers) - 1)
+            last = index == len(self.layers) - 1
+            layer_scales = tuple(next(scales) for _ in range(2 if config.pi05 else 4)) if fused else ()
+            if fused and all(own.usable for own, x in zip(weights, (x, state)) if x is not None):
+                x, state = fused_pass.prefix_layer(layer, x, state, streams, (layer_keys, layer_values), layer_scales,
+                                                   weights, first, state_ends, config.rms_norm_eps, keys_only=last)
+            else:
+                x, state = self._layer_pass(layer, x, state, streams, (layer_keys, layer_values), None, weights, keys_only=last)
         return PrefixCache(keys, values, first, layout, slots)
 
     def action_pass(self, cache: PrefixCache, differentiable: bool = False) -> ActionPass:
@@ -324,9 +337,11 @@ class ActionSampling:
         weights = [layer_sampling_weights(layer, vlm=False, expert=not differentiable)[1] for layer in self.layers]
         if config.pi05:
             return ActionPass(cache, stream, weights, None, None, None)
-        expert_norms = [(layer.expert.attn_norm.params(), layer.expert.mlp_norm.params()) for layer in self.layers]
+        norms = rms_norm_params([norm for layer in self.layers for norm in (layer.expert.attn_norm, layer.expert.mlp_norm)]
+                                + [self.expert_final_norm])
+        expert_norms = list(zip(norms[:-1:2], norms[1:-1:2]))  # per layer (attention, MLP)
         action_weight = self.action_time_mlp_in.weight[:, : config.expert_hidden_size].t()
-        return ActionPass(cache, stream, weights, action_weight, expert_norms, self.expert_final_norm.params())
+        return ActionPass(cache, stream, weights, action_weight, expert_norms, norms[-1])
 
     def denoise_step(
         self, actions: ActionPass, x_t: torch.Tensor, conditioning: StepConditioning, write_cache: bool = True
@@ -514,6 +529,19 @@ class ActionSampling:
             self._graphs.clear()
         self._device_times = {}
         return super()._apply(fn, *args, **kwargs)
+
+
+def rms_norm_params(norms: list[RMSNorm]) -> list[NormParams]:
+    """`norm.params()` of each RMSNorm, `1 + weight`, in one op for all of them (`_foreach_add`: one or two kernels on
+    CUDA instead of one per norm; the same numbers)."""
+    return [NormParams(scale) for scale in torch._foreach_add([norm.weight for norm in norms], 1)] if norms else []
+
+
+def ada_rms_norm_params(norms: list[AdaRMSNorm], condition: torch.Tensor) -> list[NormParams]:
+    """`norm.params(condition)` of each adaRMS norm, their `1 + scale` in one op (`_foreach_add`); the same numbers."""
+    chunks = [norm.modulation(condition).chunk(3, dim=-1) for norm in norms]
+    scales = torch._foreach_add([scale for scale, _, _ in chunks], 1)
+    return [NormParams(scale, shift, gate) for scale, (_, shift, gate) in zip(scales, chunks)]
 
 
 def _project_shift(params: NormParams, weight: torch.Tensor | None) -> NormParams:

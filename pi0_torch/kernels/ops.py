@@ -114,3 +114,24 @@ def norm_linear_euler_(x_t: torch.Tensor, tokens: torch.Tensor, scale: torch.Ten
 @norm_linear_euler_.register_fake
 def _(x_t, tokens, scale, bias, weight, dt, eps):
     return None
+
+
+@torch.library.custom_op("pi0_torch::rope_cache_write", mutates_args=("key_cache", "value_cache"))
+def rope_cache_write(qkv: torch.Tensor, cos: torch.Tensor, sin: torch.Tensor, key_cache: torch.Tensor,
+                     value_cache: torch.Tensor, first_slot: int) -> torch.Tensor:
+    return _implementation("rope_cache_write", qkv.device)(qkv, cos, sin, key_cache, value_cache, first_slot)
+
+
+@rope_cache_write.register_fake
+def _(qkv, cos, sin, key_cache, value_cache, first_slot):
+    return qkv.new_empty(qkv.shape[0], qkv.shape[1] - 2 * key_cache.shape[-1])
+
+
+@torch.library.custom_op("pi0_torch::geglu", mutates_args=())
+def geglu(gate_up: torch.Tensor) -> torch.Tensor:
+    return _implementation("geglu", gate_up.device)(gate_up)
+
+
+@geglu.register_fake
+def _(gate_up):
+    return gate_up.new_empty(gate_up.shape[0], gate_up.shape[1] // 2)

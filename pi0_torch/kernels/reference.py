@@ -10,16 +10,15 @@ views, as `pi0_torch.inference.layer_pass.SamplingWeights` holds them).
 from __future__ import annotations
 
 import torch
-import torch.nn.functional as F
 
-from pi0_torch.models.layers import apply_rope, rms_norm
+from pi0_torch.models.layers import ExpertLayer, apply_rope, rms_norm
 
 
 def norm_qkv_rope(
     x: torch.Tensor,  # [M, D]
     scale: torch.Tensor,  # [D]: the norm's (1 + weight) or adaRMS (1 + scale)
     bias: torch.Tensor | None,  # [(N + 2) H]: adaRMS `shift @ W`, or None
-    weight: torch.Tensor,  # [D, (N + 2) H], rows q | k | v
+    weight: torch.Tensor,  # [D, (N + 2) H], columns q | k | v
     cos: torch.Tensor,  # [B or 1, T, H] float32, `rope_cos_sin`'s tables
     sin: torch.Tensor,
     key_cache: torch.Tensor,  # [B, S, H]: written at slots first_slot + t
@@ -28,17 +27,30 @@ def norm_qkv_rope(
     eps: float,
 ) -> torch.Tensor:
     """RMSNorm, the q/k/v projection, RoPE on q and k; k and v written into the caches. Returns q `[M, N * H]`."""
-    batch, slots, head_dim = key_cache.shape
-    tokens = x.shape[0] // batch
     normed = rms_norm(x, eps, scale)
     qkv = torch.mm(normed, weight) if bias is None else torch.addmm(bias, normed, weight)  # [M, (N + 2) H]
+    return rope_cache_write(qkv, cos, sin, key_cache, value_cache, first_slot)
+
+
+def rope_cache_write(
+    qkv: torch.Tensor,  # [M, (N + 2) H]: a q/k/v projection's output
+    cos: torch.Tensor,  # [B or 1, T, H] float32
+    sin: torch.Tensor,
+    key_cache: torch.Tensor,  # [B, S, H]: written at slots first_slot + t
+    value_cache: torch.Tensor,
+    first_slot: int,
+) -> torch.Tensor:
+    """RoPE on q and k (one rotation for both, float32, rounded once); k and v written into the caches. Returns q
+    `[M, N * H]`."""
+    batch, slots, head_dim = key_cache.shape
+    tokens = qkv.shape[0] // batch
     qk, v = qkv.view(batch, tokens, -1, head_dim).split((qkv.shape[-1] // head_dim - 1, 1), dim=2)
     rounded = qk.new_empty(qk.shape) if qk.dtype != torch.float32 else None  # (bf16: the rotation rounds itself)
     q, k = apply_rope(qk, cos[:, :, None], sin[:, :, None], out=rounded).split((qk.shape[2] - 1, 1), dim=2)
-    cache_rows = torch.arange(first_slot, first_slot + tokens, device=x.device)
+    cache_rows = torch.arange(first_slot, first_slot + tokens, device=qkv.device)
     key_cache.index_copy_(1, cache_rows, k[:, :, 0].to(key_cache.dtype))
     value_cache.index_copy_(1, cache_rows, v[:, :, 0])
-    return q.to(x.dtype).reshape(x.shape[0], -1)
+    return q.to(qkv.dtype).reshape(qkv.shape[0], -1)
 
 
 def norm_gate_up_geglu(
@@ -50,9 +62,12 @@ def norm_gate_up_geglu(
 ) -> torch.Tensor:
     """RMSNorm, the gate/up projection and the GeGLU between the MLP's projections: `gelu_tanh(gate) * up` `[M, F]`."""
     normed = rms_norm(x, eps, scale)
-    gate_up = torch.mm(normed, weight) if bias is None else torch.addmm(bias, normed, weight)
-    gate, up = gate_up.chunk(2, dim=-1)
-    return F.gelu(gate, approximate="tanh") * up
+    return geglu(torch.mm(normed, weight) if bias is None else torch.addmm(bias, normed, weight))
+
+
+def geglu(gate_up: torch.Tensor) -> torch.Tensor:
+    """`gelu_tanh(gate) * up` `[M, F]` of a gate/up projection's output `[M, 2F]`."""
+    return ExpertLayer.geglu(gate_up)
 
 
 def matmul_residual_(
@@ -80,10 +95,11 @@ def range_attention(
     batch, tokens, heads, head_dim = query.shape
     keys = torch.arange(key_cache.shape[1], device=query.device)
     visible = (keys[None, None, :] >= first[:, None, None]) & (keys[None, None, :] < row_ends[None, :, None])  # [B, T, S]
-    logits = torch.einsum("btnh,bsh->btns", query.float(), key_cache.float()) * head_dim**-0.5
+    read = visible.any(dim=1)[..., None]  # [B, S, 1]: the slots some row sees (the others may hold anything, NaN too)
+    logits = torch.einsum("btnh,bsh->btns", query.float(), key_cache.float().masked_fill(~read, 0)) * head_dim**-0.5
     logits = logits.masked_fill(~visible[:, :, None, :], float("-inf"))
     weights = torch.softmax(logits, dim=-1)
-    attended = torch.einsum("btns,bsh->btnh", weights, value_cache.float())
+    attended = torch.einsum("btns,bsh->btnh", weights, value_cache.float().masked_fill(~read, 0))
     return attended.to(query.dtype).reshape(batch * tokens, heads * head_dim)
 
 

@@ -7,7 +7,9 @@ Each kernel computes what its namesake in `pi0_torch.kernels.reference` computes
 - `norm_gate_up_geglu`: RMSNorm folded into the gate/up GEMM, `gelu_tanh(gate) * up` in its epilogue;
 - `matmul_residual_`: the o- or down-projection with the residual (and π0.5's gate) added in its epilogue, in place;
 - `range_attention`: attention of the folded query heads over each token's key range (no mask), one kv head;
-- `norm_linear_euler_`: the final norm, `action_out_proj` and the Euler update of `x_t`, in one.
+- `norm_linear_euler_`: the final norm, `action_out_proj` and the Euler update of `x_t`, in one;
+- `rope_cache_write` and `geglu`: the elementwise work around the prefix pass's GEMMs (which stay cuBLAS's: at 800
+  rows and more they are compute-bound, and cuBLAS is near peak there).
 
 A paired GEMM (RoPE, GeGLU) gives each program two column sets, `c` and `c + half`, so that both halves a rotation or
 a GeGLU combines are in its accumulators. Accumulation is float32; the dot's operands are `dot_dtype`, the weights'
@@ -192,11 +194,13 @@ def _norm_linear_euler_kernel(
 
 @triton.jit
 def _range_attention_kernel(
-    q_ptr, key_ptr, value_ptr, out_ptr, first_ptr, row_ends_ptr, rows_per_sample, heads, slots, max_end, scale,
+    q_ptr, key_ptr, value_ptr, out_ptr, first_ptr, row_ends_ptr, rows_per_sample, heads, slots, scale,
     HEAD_DIM: tl.constexpr, DOT: tl.constexpr, BLOCK_M: tl.constexpr, BLOCK_N: tl.constexpr,
 ):
     """Program (i, b): folded query rows `[i * BLOCK_M, ...)` of sample b (row r is token r // heads, head r % heads)
-    over the keys `[first[b], row_ends[token])`, online softmax in float32."""
+    over the keys `[first[b], row_ends[token])`, online softmax in float32. Only keys before the block's last end are
+    read: the slots after it may not be written yet (π0's state token runs while the action slots are empty), and a
+    masked-out NaN value would still poison the weighted sum (0 * NaN)."""
     sample = tl.program_id(1)
     rows = tl.program_id(0) * BLOCK_M + tl.arange(0, BLOCK_M)
     row_ok = rows < rows_per_sample
@@ -205,6 +209,7 @@ def _range_attention_kernel(
     q = tl.load(q_ptr + base + rows[:, None] * HEAD_DIM + dims[None, :], mask=row_ok[:, None], other=0.0)
     start = tl.load(first_ptr + sample).to(tl.int32)
     ends = tl.load(row_ends_ptr + rows // heads, mask=row_ok, other=0).to(tl.int32)
+    max_end = tl.max(ends, axis=0)
     running_max = tl.full((BLOCK_M,), -1.0e30, dtype=tl.float32)
     total = tl.zeros((BLOCK_M,), dtype=tl.float32)
     acc = tl.zeros((BLOCK_M, HEAD_DIM), dtype=tl.float32)
@@ -225,6 +230,49 @@ def _range_attention_kernel(
         running_max = new_max
     out = acc / tl.where(total > 0.0, total, 1.0)[:, None]
     tl.store(out_ptr + base + rows[:, None] * HEAD_DIM + dims[None, :], out.to(out_ptr.dtype.element_ty), mask=row_ok[:, None])
+
+
+@triton.jit
+def _rope_cache_write_kernel(
+    qkv_ptr, cos_ptr, sin_ptr, q_ptr, key_ptr, value_ptr, M, tokens, first_slot, slots, stride_qkv, stride_cos_b,
+    stride_cos_t, HEADS: tl.constexpr, HEAD_DIM: tl.constexpr, BLOCK_M: tl.constexpr,
+):
+    """The epilogue of `_norm_qkv_rope_kernel` on a q/k/v projection's output (the prefix: its GEMMs stay cuBLAS's)."""
+    half: tl.constexpr = HEAD_DIM // 2
+    rows = tl.program_id(0) * BLOCK_M + tl.arange(0, BLOCK_M)
+    lane = tl.arange(0, half)
+    row_ok = (rows < M)[:, None]
+    sample = rows // tokens
+    token = rows % tokens
+    table = sample[:, None] * stride_cos_b + token[:, None] * stride_cos_t + lane[None, :]
+    cos = tl.load(cos_ptr + table, mask=row_ok, other=1.0)
+    sin = tl.load(sin_ptr + table + half, mask=row_ok, other=0.0)
+    cache_offsets = (sample * slots + first_slot + token)[:, None] * HEAD_DIM + lane[None, :]
+    for head in tl.static_range(HEADS + 2):
+        source = qkv_ptr + rows[:, None] * stride_qkv + head * HEAD_DIM + lane[None, :]
+        a1 = tl.load(source, mask=row_ok, other=0.0).to(tl.float32)
+        a2 = tl.load(source + half, mask=row_ok, other=0.0).to(tl.float32)
+        if head < HEADS + 1:  # q and k rotate; v does not
+            a1, a2 = a1 * cos - a2 * sin, a2 * cos + a1 * sin
+        if head < HEADS:
+            target = q_ptr + rows[:, None] * (HEADS * HEAD_DIM) + head * HEAD_DIM + lane[None, :]
+        elif head == HEADS:
+            target = key_ptr + cache_offsets
+        else:
+            target = value_ptr + cache_offsets
+        tl.store(target, a1.to(target.dtype.element_ty), mask=row_ok)
+        tl.store(target + half, a2.to(target.dtype.element_ty), mask=row_ok)
+
+
+@triton.jit
+def _geglu_kernel(gate_up_ptr, out_ptr, M, F, stride_gm, BLOCK_M: tl.constexpr, BLOCK_N: tl.constexpr):
+    rows = tl.program_id(0) * BLOCK_M + tl.arange(0, BLOCK_M)
+    columns = tl.program_id(1) * BLOCK_N + tl.arange(0, BLOCK_N)
+    ok = (rows < M)[:, None] & (columns < F)[None, :]
+    source = gate_up_ptr + rows[:, None] * stride_gm + columns[None, :]
+    gate = tl.load(source, mask=ok, other=0.0).to(tl.float32)
+    up = tl.load(source + F, mask=ok, other=0.0).to(tl.float32)
+    tl.store(out_ptr + rows[:, None] * F + columns[None, :], (_gelu_tanh(gate) * up).to(out_ptr.dtype.element_ty), mask=ok)
 
 
 # -- launchers (same arguments and results as `pi0_torch.kernels.reference`) ------------------------------------------
@@ -284,13 +332,37 @@ def norm_linear_euler_(x_t, tokens, scale, bias, weight, dt, eps):
 
 
 def range_attention(query, key_cache, value_cache, first, row_ends):
+    query = query.contiguous()  # (the engine's is; the kernel reads it as [B, T * N, H])
     batch, tokens, heads, head_dim = query.shape
     out = query.new_empty(batch * tokens, heads * head_dim)
     rows = tokens * heads
     block_m = 16 if batch * rows <= 64 * 16 else 64  # (few rows: more programs over them)
     grid = (triton.cdiv(rows, block_m), batch)
     _range_attention_kernel[grid](
-        query, key_cache, value_cache, out, first, row_ends, rows, heads, key_cache.shape[1], key_cache.shape[1],
-        head_dim**-0.5, HEAD_DIM=head_dim, DOT=dot_dtype(query.dtype), BLOCK_M=block_m, BLOCK_N=32,
+        query, key_cache, value_cache, out, first, row_ends, rows, heads, key_cache.shape[1], head_dim**-0.5,
+        HEAD_DIM=head_dim, DOT=dot_dtype(query.dtype), BLOCK_M=block_m, BLOCK_N=32,
+    )
+    return out
+
+
+def rope_cache_write(qkv, cos, sin, key_cache, value_cache, first_slot):
+    rows = qkv.shape[0]
+    batch, slots, head_dim = key_cache.shape
+    heads = qkv.shape[1] // head_dim - 2
+    q = qkv.new_empty(rows, heads * head_dim)
+    block_m = 16
+    _rope_cache_write_kernel[(triton.cdiv(rows, block_m),)](
+        qkv, cos, sin, q, key_cache, value_cache, rows, rows // batch, first_slot, slots, qkv.stride(0),
+        cos.stride(0) if cos.shape[0] > 1 else 0, cos.stride(1), HEADS=heads, HEAD_DIM=head_dim, BLOCK_M=block_m,
+    )
+    return q
+
+
+def geglu(gate_up):
+    rows, mlp_width = gate_up.shape[0], gate_up.shape[1] // 2
+    out = gate_up.new_empty(rows, mlp_width)
+    block_m, block_n = 16, 128
+    _geglu_kernel[(triton.cdiv(rows, block_m), triton.cdiv(mlp_width, block_n))](
+        gate_up, out, rows, mlp_width, gate_up.stride(0), BLOCK_M=block_m, BLOCK_N=block_n,
     )
     return out

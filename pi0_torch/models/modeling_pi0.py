@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import functools
 import math
-from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -31,7 +30,7 @@ from pi0_torch.inference.sampling import ActionSampling, allow_recompiles
 from pi0_torch.masks import prefix_lm_mask, to_additive_mask
 from pi0_torch.models.configuration_pi0 import PI0Config
 from pi0_torch.models.flow_matching import euler_times, interpolate, sample_flow_time, sincos_time_embedding
-from pi0_torch.models.layers import AdaRMSNorm, JointDecoderLayer, NormParams, RMSNorm, StreamPass, rope_cos_sin
+from pi0_torch.models.layers import AdaRMSNorm, JointDecoderLayer, RMSNorm, StepConditioning, StreamPass, rope_cos_sin
 from pi0_torch.models.rtc import per_sample_steps
 from pi0_torch.models.vision import SiglipImageEmbedding, is_inside_vision_tower, siglip_vision_tower
 from pi0_torch.utils import files
@@ -52,50 +51,6 @@ class PI0Output(ModelOutput):
 
     loss: torch.Tensor | None = None
     velocity: torch.Tensor | None = None
-
-
-@dataclass
-class StepConditioning:
-    """What the flow time contributes to the suffix: π0's time half of `action_time_mlp_in` (its bias included),
-    added to every action token; π0.5's adaRMS params of every expert norm (per layer: attention norm, MLP norm; then
-    the final norm).
-
-    `PI0ForActionGeneration.conditioning` builds it for T flow times at once, every tensor with the time axis first;
-    `steps()` gives one per sampling step, `per_token()` spreads per-sample values over the action tokens.
-    """
-
-    condition: torch.Tensor | None  # π0: [., D1]
-    layer_norms: tuple[tuple[NormParams, NormParams], ...] | None  # π0.5
-    final_norm: NormParams | None  # π0.5
-
-    def tensors(self) -> list[torch.Tensor]:
-        norms = [params for pair in self.layer_norms or () for params in pair] + ([self.final_norm] if self.final_norm else [])
-        return ([self.condition] if self.condition is not None else []) + [t for params in norms for t in params.tensors()]
-
-    def rebuilt(self, values: Iterator[torch.Tensor]) -> StepConditioning:
-        """The same structure holding the next tensors of `values` (in the order of `tensors()`)."""
-        condition = None if self.condition is None else next(values)
-        layer_norms = None if self.layer_norms is None else tuple((a.rebuilt(values), m.rebuilt(values)) for a, m in self.layer_norms)
-        return StepConditioning(condition, layer_norms, None if self.final_norm is None else self.final_norm.rebuilt(values))
-
-    def map(self, fn: Callable[..., torch.Tensor], *others: StepConditioning) -> StepConditioning:
-        """Apply `fn` to every tensor (with the matching tensors of `others` as further arguments)."""
-        return self.rebuilt(iter([fn(*group) for group in zip(self.tensors(), *(other.tensors() for other in others))]))
-
-    def steps(self) -> list[StepConditioning]:
-        """One conditioning per flow time (each tensor's time axis unbound once)."""
-        columns = [tensor.unbind(0) for tensor in self.tensors()]
-        return [self.rebuilt(iter(column[index] for column in columns)) for index in range(len(columns[0]))]
-
-    def per_token(self, tokens: int, committed: torch.Tensor | None = None, clean: StepConditioning | None = None) -> StepConditioning:
-        """Per sample `[B, ...]` (or one step's `[...]` with `committed`) -> per action token `[B * tokens, ...]`.
-        Tokens where `committed` `[B, tokens]` is set (real-time chunking: their actions are given) take the values of
-        `clean` (the conditioning of flow time 0, one step)."""
-        if committed is None:
-            return self.map(lambda value: value.repeat_interleave(tokens, dim=0))
-        return self.map(
-            lambda value, clean_value: torch.where(committed[..., None], clean_value, value.unsqueeze(-2)).flatten(0, 1), clean
-        )
 
 
 class PI0PreTrainedModel(PreTrainedModel):
