@@ -11,6 +11,7 @@ CUDA allocator's peak on GPU, the process's peak resident set size (sampled ever
                                                         # and each row's GPU work (profiler: activities, GPU ms)
     pi0-torch bench --rtc guidance,conditioning         # also chunks continued by real-time chunking
     pi0-torch bench --ops                               # ATen ops of one generate_actions (a launch-count proxy)
+    pi0-torch bench --device cuda --kernels auto,torch --gemms   # fused kernels against the torch path, per GEMM too
     pi0-torch bench --side-by-side                      # against transformers' PI0, identical weights
     pi0-torch bench --loading                           # peak RSS of from_pretrained on a full-size bf16 checkpoint
     pi0-torch bench --fast --compile                    # π0-FAST decoding (tokens/s, ms per chunk) after π0's rows
@@ -245,15 +246,18 @@ def bench_generate(args: argparse.Namespace, device: torch.device) -> None:
     peaks = {dtype: matmul_throughput(device, getattr(torch, dtype)) for dtype in args.dtypes}
     print("measured matmul ceiling: " + ", ".join(f"{d} {v / 1e9:.0f} GFLOP/s" for d, v in peaks.items()))
     cuda = device.type == "cuda"  # (then also the GPU work of one call: activities and their time, by the profiler)
-    print(f"{'preset':12s} {'dtype':9s} {'mode':14s} {'rtc':12s} {'cams':>4s} {'batch':>5s} {'set-up s':>8s} {'median ms':>10s} "
+    print(f"{'preset':12s} {'dtype':9s} {'mode':14s} {'steps':7s} {'rtc':12s} {'cams':>4s} {'batch':>5s} {'set-up s':>8s} {'median ms':>10s} "
           f"{'min ms':>10s} {'max ms':>10s} {'peak MiB':>10s} {'GFLOP/s':>8s} {'% peak':>6s}"
           + (f" {'GPU ops':>7s} {'GPU ms':>7s}" if cuda else ""))
     for preset in args.presets:
         config = PI0Config.from_preset(preset, rtc_max_delay=RTC_DELAY if "conditioning" in args.rtc else 0)
         for dtype_name in args.dtypes:
             model = random_model(config, getattr(torch, dtype_name), device)
-            for mode in sampling_modes(args.compile, device):
+            for mode, kernels in ((mode, kernels) for mode in sampling_modes(args.compile, device) for kernels in args.kernels):
+                if mode.startswith("compiled") and kernels != args.kernels[0]:
+                    continue  # (compiled layers run their own kernels)
                 set_sampling_mode(model, mode)
+                model.sampling_kernels = kernels
                 for cameras in args.cameras:
                     for batch in args.batches:
                         inputs = example_batch(config, cameras, batch, device)
@@ -271,8 +275,9 @@ def bench_generate(args: argparse.Namespace, device: torch.device) -> None:
                                 activities, gpu_seconds = gpu_work(call, device)
                                 work = f" {activities:7d} {gpu_seconds * 1e3:7.1f}"
                             refused = method == "guidance" and model.sampling_captured and not model.replays_graphs(method)
-                            label = "guid. eager" if refused else method or "-"  # (refused: the warning above says why)
-                            print(f"{preset:12s} {dtype_name:9s} {mode:14s} {label:12s} {cameras:4d} {batch:5d} "
+                            label = "guid. eager" if refused else method or "-"  # (guided chunks replay no graph)
+                            fused = "fused" if model.fused_steps_reason(device, model.dtype, method) is None else "torch"
+                            print(f"{preset:12s} {dtype_name:9s} {mode:14s} {fused:7s} {label:12s} {cameras:4d} {batch:5d} "
                                   f"{setup:8.1f} {timing.row()} {rate}{work}")
             del model
             gc.collect()
@@ -297,15 +302,66 @@ def bench_op_counts(args: argparse.Namespace) -> None:
         gc.collect()
     print(f"\nATen ops of the sampling a CUDA graph captures, full size, bfloat16, batch 1, {TEXT_TOKENS} prompt tokens, "
           "10 steps (counted on the meta device: no weights)")
-    print(f"{'preset':12s} {'cameras':>7s} {'ops':>6s} {'views':>6s} {'kernels':>7s} {'host copies':>11s}")
+    print("(steps 'fused': the fused kernels, as on CUDA in bf16, each kernel one op; per layer and step: the kernels of "
+          "the 10 steps / (10 x layers))")
+    print(f"{'preset':12s} {'steps':7s} {'cameras':>7s} {'ops':>6s} {'views':>6s} {'kernels':>7s} {'host copies':>11s} "
+          f"{'per layer-step':>14s}")
     for preset in ("pi0", "pi05"):
-        for cameras in (1, 3):
-            config = PI0Config.from_preset(preset)
-            shown = tuple(camera < cameras for camera in range(config.num_cameras))
-            _, counter = sample_on_meta(config, InputFacts((shown,), (TEXT_TOKENS,), TEXT_TOKENS), config.num_inference_steps,
-                                        torch.bfloat16)
-            print(f"{preset:12s} {cameras:7d} {counter.total:6d} {counter.views:6d} {counter.kernels:7d} "
-                  f"{counter.host_copies:11d}")
+        for fused in (False, True):
+            for cameras in (1, 3):
+                config = PI0Config.from_preset(preset)
+                shown = tuple(camera < cameras for camera in range(config.num_cameras))
+                facts = InputFacts((shown,), (TEXT_TOKENS,), TEXT_TOKENS)
+                _, counter = sample_on_meta(config, facts, config.num_inference_steps, torch.bfloat16, fused=fused)
+                _, one_step = sample_on_meta(config, facts, 1, torch.bfloat16, fused=fused)
+                per_step = (counter.kernels - one_step.kernels) / ((config.num_inference_steps - 1) * config.num_hidden_layers)
+                print(f"{preset:12s} {'fused' if fused else 'torch':7s} {cameras:7d} {counter.total:6d} {counter.views:6d} "
+                      f"{counter.kernels:7d} {counter.host_copies:11d} {per_step:14.2f}")
+
+
+def bench_gemms(args: argparse.Namespace, device: torch.device) -> None:
+    """The GEMMs of one fused sampling step of each preset (bf16, batch x 50 rows): cuBLAS (`torch.mm` on the
+    transposed weight, what the torch path runs) against the fused op that replaces it (its norm, RoPE, GeGLU or
+    residual included), in microseconds and GB/s of weights read (the bound of a skinny GEMM: HBM bandwidth)."""
+    if device.type != "cuda":
+        print(f"\nGEMM shapes: skipped on {device.type} (the fused kernels run on CUDA)")
+        return
+    from pi0_torch.kernels import triton_kernels
+
+    print(f"\nsampling-step GEMMs on {device_name(device)}, bf16: cuBLAS against the fused kernel (median of "
+          f"{args.repeats} x 20 calls)")
+    print(f"{'preset':8s} {'GEMM':9s} {'M':>5s} {'K':>6s} {'N':>6s} {'MiB':>6s} {'cuBLAS us':>10s} {'GB/s':>7s} "
+          f"{'fused us':>9s} {'GB/s':>7s}")
+    generator = torch.Generator().manual_seed(0)
+    for preset in args.presets:
+        config = PI0Config.from_preset(preset)
+        width, mlp, heads, head_dim = (config.expert_hidden_size, config.expert_intermediate_size, config.num_attention_heads,
+                                       config.head_dim)
+        for batch in args.batches:
+            rows = batch * config.action_horizon
+
+            def randn(*shape: int) -> torch.Tensor:
+                return (torch.randn(*shape, generator=generator) * shape[-1] ** -0.5).to(device, torch.bfloat16)
+
+            x, scale = randn(rows, width), 1 + randn(width)
+            cos = sin = torch.ones(batch, config.action_horizon, head_dim, device=device)
+            cache = torch.zeros(batch, 1024, head_dim, device=device, dtype=torch.bfloat16)
+            qkv_w, o_w = randn((heads + 2) * head_dim, width).t(), randn(width, heads * head_dim).t()
+            gate_up_w, down_w = randn(2 * mlp, width).t(), randn(width, mlp).t()
+            attended, hidden = randn(rows, heads * head_dim), randn(rows, mlp)
+            cases = {
+                "qkv": (lambda: x @ qkv_w, lambda: triton_kernels.norm_qkv_rope(x, scale, None, qkv_w, cos, sin, cache, cache, 0, 1e-6), qkv_w),
+                "o": (lambda: attended @ o_w, lambda: triton_kernels.matmul_residual_(x, attended, o_w, None), o_w),
+                "gate_up": (lambda: x @ gate_up_w, lambda: triton_kernels.norm_gate_up_geglu(x, scale, None, gate_up_w, 1e-6), gate_up_w),
+                "down": (lambda: hidden @ down_w, lambda: triton_kernels.matmul_residual_(x, hidden, down_w, None), down_w),
+            }
+            for name, (cublas, fused, weight) in cases.items():
+                size = weight.numel() * weight.element_size()
+                times = time_alternating([lambda: [cublas() for _ in range(20)], lambda: [fused() for _ in range(20)]],
+                                         device, args.repeats)
+                cublas_us, fused_us = (statistics.median(each) / 20 * 1e6 for each in times)
+                print(f"{preset:8s} {name:9s} {rows:5d} {weight.shape[0]:6d} {weight.shape[1]:6d} {size / 2**20:6.1f} "
+                      f"{cublas_us:10.1f} {size / cublas_us / 1e3:7.0f} {fused_us:9.1f} {size / fused_us / 1e3:7.0f}")
 
 
 def sample_on_meta(
@@ -507,6 +563,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--repeats", type=int, default=5, help="timed runs per row, after warm-up")
     parser.add_argument("--compile", action="store_true", help="also time regionally compiled sampling (on CUDA also "
                         "compiled inside the CUDA graph); on CUDA the hand-captured graph is always timed")
+    parser.add_argument("--kernels", type=_csv(str), default="auto", help="comma list of sampling_kernels to time: "
+                        "auto (the fused kernels on CUDA in bf16 where they pass their check), torch, triton")
+    parser.add_argument("--gemms", action="store_true", help="also time the sampling steps' GEMM shapes (CUDA): cuBLAS "
+                        "against the fused kernels, microseconds and GB/s of weights read")
     parser.add_argument("--rtc", type=_csv(str), default="", help="also time chunks continued by real-time chunking "
                         "with these methods (comma list of guidance, conditioning)")
     parser.add_argument("--ops", action="store_true", help="also count the ATen ops of one generate_actions per preset")
@@ -531,6 +591,10 @@ def run(args: argparse.Namespace) -> int:
     if unknown:
         print(f"pi0-torch bench: error: --dtypes: expected float32 and/or bfloat16, got {', '.join(unknown)}", file=sys.stderr)
         return 2
+    unknown = sorted(set(args.kernels) - set(PI0ForActionGeneration.SAMPLING_KERNELS))
+    if unknown:
+        print(f"pi0-torch bench: error: --kernels: expected auto, torch and/or triton, got {', '.join(unknown)}", file=sys.stderr)
+        return 2
     unknown = sorted(set(args.rtc) - set(METHODS))
     if unknown:
         print(f"pi0-torch bench: error: --rtc: expected guidance and/or conditioning, got {', '.join(unknown)}", file=sys.stderr)
@@ -544,6 +608,8 @@ def run(args: argparse.Namespace) -> int:
             bench_generate(args, device)
         if args.ops:
             bench_op_counts(args)
+        if args.gemms:
+            bench_gemms(args, device)
         if args.fast:
             bench_fast_decoding(args, device)
         if args.train:

@@ -23,7 +23,7 @@ def test_generate_and_train_tables(capsys: pytest.CaptureFixture[str], compiled:
     out = bench(capsys, "--presets", "pi0_small", "--dtypes", "float32", "--cameras", "2", "--batches", "1", "--train",
                 *(["--compile"] if compiled else []))
     assert re.search(r"measured matmul ceiling: float32 \d+ GFLOP/s", out)
-    rows = re.findall(r"^pi0_small\s+float32\s+(\S+)\s+-\s+(\d)\s+1\s+[\d.]+\s+[\d.]+\s+[\d.]+\s+[\d.]+\s+\d+\s+\d+\s+\d+$", out, re.MULTILINE)
+    rows = re.findall(r"^pi0_small\s+float32\s+(\S+)\s+torch\s+-\s+(\d)\s+1\s+[\d.]+\s+[\d.]+\s+[\d.]+\s+[\d.]+\s+\d+\s+\d+\s+\d+$", out, re.MULTILINE)
     assert rows == [("eager", "2"), ("compiled", "2")][: 2 if compiled else 1], out  # no CUDA-graph rows on CPU
     assert re.search(r"^pi0_small\s+float32\s+1\s+[\d.]+", out.split("training step")[1], re.MULTILINE), out
 
@@ -33,7 +33,7 @@ def test_real_time_chunking_rows(capsys: pytest.CaptureFixture[str]) -> None:
     differentiates every step, so its FLOP/s of plain sampling are not shown)."""
     out = bench(capsys, "--presets", "pi05_small", "--dtypes", "float32", "--cameras", "1", "--batches", "1", "--rtc",
                 "guidance,conditioning")
-    rows = re.findall(r"^pi05_small\s+float32\s+eager\s+(\S+)\s+1\s+1\s+[\d.]+\s+([\d.]+)\s+[\d.]+\s+[\d.]+\s+\d+\s+(\S+)\s+(\S+)$",
+    rows = re.findall(r"^pi05_small\s+float32\s+eager\s+torch\s+(\S+)\s+1\s+1\s+[\d.]+\s+([\d.]+)\s+[\d.]+\s+[\d.]+\s+\d+\s+(\S+)\s+(\S+)$",
                       out, re.MULTILINE)
     assert [(method, rate, share) for method, _, rate, share in rows][1:] == [("guidance", "-", "-"), ("conditioning", "-", "-")], out
     assert rows[0][0] == "-" and float(rows[0][2]) > 0, out
@@ -57,9 +57,13 @@ def test_op_count_table(capsys: pytest.CaptureFixture[str]) -> None:
     out = bench(capsys, "--skip-generate", "--ops", "--presets", "pi0_small,pi05_small")
     rows = dict(re.findall(r"^(pi0_small|pi05_small)\s+(\d+)\s+\d+\s+\d+\s+\d+\s+0$", out, re.MULTILINE))
     assert sorted(rows) == ["pi05_small", "pi0_small"] and all(int(ops) > 0 for ops in rows.values()), out
-    full_size = re.findall(r"^(pi0|pi05)\s+([13])\s+(\d+)\s+(\d+)\s+(\d+)\s+0$", out, re.MULTILINE)  # meta, no host copy
-    assert [row[:2] for row in full_size] == [("pi0", "1"), ("pi0", "3"), ("pi05", "1"), ("pi05", "3")], out
-    assert all(0 < int(kernels) < int(ops) for _, _, ops, _, kernels in full_size), out
+    full_size = re.findall(r"^(pi0|pi05)\s+(torch|fused)\s+([13])\s+(\d+)\s+(\d+)\s+(\d+)\s+0\s+([\d.]+)$", out, re.MULTILINE)
+    assert [row[:3] for row in full_size] == [(p, k, c) for p in ("pi0", "pi05") for k in ("torch", "fused") for c in "13"], out
+    assert all(0 < int(kernels) < int(ops) for *_, ops, _, kernels, _ in full_size), out  # (meta: no host copy)
+    per_step = {(preset, steps): float(value) for preset, steps, cameras, *_, value in full_size if cameras == "3"}
+    # five fused ops per layer and step, plus each step's action embedding and final norm + Euler update (pi0: 96 a step)
+    assert 5.0 < per_step[("pi0", "fused")] <= 5.4 and 5.0 < per_step[("pi05", "fused")] <= 5.4, per_step
+    assert per_step[("pi0", "torch")] > 15 and per_step[("pi05", "torch")] > 15, per_step
 
 
 def test_fast_decoding_table(capsys: pytest.CaptureFixture[str]) -> None:
