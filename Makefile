@@ -59,13 +59,14 @@ test: $(DEV_STAMP)
 test-slow: $(DEV_STAMP)
 	$(PY) -m pytest -q -m "slow" tests
 
-# On a CUDA machine: the fixtures on the GPU (float32 and bf16), the sampling as CUDA graphs, varlen attention, FSDP.
-# A GPU image without network (no pip install): tests/test_cuda.py with $(PYTHON) as it is (torch, transformers,
-# safetensors and pytest are all it needs).
+# On a CUDA machine: the fixtures on the GPU (float32 and bf16), the sampling as CUDA graphs, varlen attention, FSDP,
+# and the fused kernels on real hardware (tests/test_kernels.py). A GPU image without network (no pip install):
+# tests/test_cuda.py and tests/test_kernels.py with $(PYTHON) as it is (torch, triton, transformers, safetensors and
+# pytest are all they need). benchmarks/gpu_check.sh runs this, the doctor and the benchmark as one bounded command.
 test-gpu:
-	@if $(MAKE) --no-print-directory $(DEV_STAMP); then $(PY) -m pytest -q -m "gpu" tests; \
-	else echo "test-gpu: the [dev] extra could not be installed (no network?): tests/test_cuda.py with $(PYTHON) as it is"; \
-		$(PYTHON) -m pytest -q -m "gpu" -p no:cacheprovider tests/test_cuda.py; fi
+	@if $(MAKE) --no-print-directory $(DEV_STAMP); then $(PY) -m pytest -q -m "gpu" tests && $(PY) -m pytest -q tests/test_kernels.py; \
+	else echo "test-gpu: the [dev] extra could not be installed (no network?): the GPU tests with $(PYTHON) as it is"; \
+		$(PYTHON) -m pytest -q -m "gpu" -p no:cacheprovider tests/test_cuda.py && $(PYTHON) -m pytest -q -p no:cacheprovider tests/test_kernels.py; fi
 
 bench: $(DEV_STAMP)
 	$(PY) -m pi0_torch.cli bench

@@ -111,7 +111,7 @@ def test_key_ranges_equal_openpis_prefix_lm_mask(pi05: bool, seed: int) -> None:
 
 
 def reference_varlen_attn(query, key, value, cu_seq_q, cu_seq_k, max_q, max_k, *, seqused_k=None, scale=None):
-    """FlashAttention's varlen contract (`torch.nn.attention.varlen.varlen_attn`), written out: sequence i's queries
+    """FlashAttention's varlen contract (`attention.flash_varlen`), written out: sequence i's queries
     are rows `[cu_seq_q[i], cu_seq_q[i + 1])`, its keys start at `cu_seq_k[i]` and it reads `seqused_k[i]` of them."""
     out = torch.empty_like(query)
     for i in range(cu_seq_q.shape[0] - 1):
@@ -128,7 +128,7 @@ def test_varlen_packing_equals_sdpa(monkeypatch: pytest.MonkeyPatch, group_rows:
     """The varlen plan (folded query rows, per-sample key starts and counts over the flattened cache) gives what
     the SDPA plan gives, with the kernel replaced by its documented contract (the real one needs a CUDA GPU;
     `make test-gpu` compares it on the fixtures)."""
-    monkeypatch.setattr(attention, "varlen_attn", reference_varlen_attn)
+    monkeypatch.setattr(attention, "flash_varlen", reference_varlen_attn)
     torch.manual_seed(0)
     batch, heads, head_dim, prefix, slots = 3, 4, 8, 10, 17  # slots: prefix + 7 suffix tokens
     first = torch.tensor([0, 3, 9])

@@ -135,14 +135,16 @@ GPU_IMAGE_LACKS = ("av", "datasets", "gymnasium", "websockets", "zstandard")  # 
 
 
 def test_the_gpu_tests_and_the_benchmark_need_none_of_the_extras_a_gpu_image_lacks(tmp_path: Path) -> None:
-    """docs/gpu.md's commands run where only torch, transformers and the core packages are installed: the GPU tests
-    are collected and the benchmark and the policy are imported with those extras' modules hidden."""
+    """docs/gpu.md's commands (benchmarks/gpu_check.sh) run where only torch, triton, transformers and the core packages
+    are installed: the GPU and kernel tests are collected, and the benchmark, the doctor and the policy are imported,
+    with those extras' modules hidden."""
+    tests = [str(ROOT / "tests" / name) for name in ("test_cuda.py", "test_kernels.py")]
     done = _python(
         "import sys\n"
         f"sys.modules.update(dict.fromkeys({GPU_IMAGE_LACKS!r}))\n"
         "import pytest\n"
-        f"code = pytest.main(['-q', '--collect-only', '-p', 'no:cacheprovider', {str(ROOT / 'tests' / 'test_cuda.py')!r}])\n"
-        "import pi0_torch.benchmark, pi0_torch.runtime.policy\n"
+        f"code = pytest.main(['-q', '--collect-only', '-p', 'no:cacheprovider', *{tests!r}])\n"
+        "import pi0_torch.benchmark, pi0_torch.doctor, pi0_torch.runtime.policy\n"
         "sys.exit(int(code))",
         tmp_path,
     )

@@ -11,8 +11,10 @@ Two kernels read those ranges ([`attend`]):
 - `"sdpa"`: `scaled_dot_product_attention` with an additive mask built from the ranges once per pass (no mask at all
   when no sample is padded and every row sees every key), shared by every layer; its key count is padded to a
   multiple of 8 (`pi0_torch.masks.sdpa_with_mask`: cuDNN fails on other masks), which the k/v buffers' slots match;
-- `"varlen"`: FlashAttention's variable-length kernel (`torch.nn.attention.varlen.varlen_attn`, CUDA, bf16/fp16),
-  which takes each sample's first key and key count as device tensors (`seqused_k`) and needs no mask.
+- `"varlen"`: FlashAttention's variable-length kernel (`aten._flash_attention_forward`, the kernel behind
+  `torch.nn.attention.varlen.varlen_attn`; CUDA, bf16/fp16), which takes each sample's first key and key count as
+  device tensors (`seqused_k`) and needs no mask. torch 2.10 and 2.11 take `seqused_k` there only (`varlen_attn`
+  gained it in 2.12), so it is called directly.
 
 With one kv head (every released π0), the query heads are folded into the query length: `[B, T, N, H]` is viewed as
 `[B, 1, T * N, H]` (a view, no copy), so no kernel expands the kv head N times.
@@ -34,7 +36,6 @@ torch.Size([2, 1, 3, 8])
 from __future__ import annotations
 
 import functools
-import inspect
 from dataclasses import dataclass
 
 import torch
@@ -42,13 +43,18 @@ import torch.nn.functional as F
 
 from pi0_torch.masks import pad_keys, sdpa_with_mask, to_additive_mask
 
-try:  # torch >= 2.10 (with per-sample key counts)
-    from torch.nn.attention.varlen import varlen_attn
-except ImportError:  # pragma: no cover - depends on the installed torch
-    varlen_attn = None
-
 KERNELS = ("auto", "sdpa", "varlen")
-VARLEN_AVAILABLE = varlen_attn is not None and "seqused_k" in inspect.signature(varlen_attn).parameters
+_FLASH_FORWARD = getattr(torch.ops.aten, "_flash_attention_forward", None)
+# per-sample key counts: torch >= 2.10 (the GPU image's 2.11 included)
+VARLEN_AVAILABLE = _FLASH_FORWARD is not None and "seqused_k" in str(_FLASH_FORWARD.default._schema)
+
+
+def flash_varlen(query: torch.Tensor, key: torch.Tensor, value: torch.Tensor, cu_seq_q: torch.Tensor,
+                 cu_seq_k: torch.Tensor, max_q: int, max_k: int, seqused_k: torch.Tensor) -> torch.Tensor:
+    """FlashAttention's variable-length forward: sequence i's queries are rows `[cu_seq_q[i], cu_seq_q[i + 1])` of
+    `query` `[total_q, heads, H]`, its keys the `seqused_k[i]` rows of `key` / `value` `[total_k, kv_heads, H]` from
+    `cu_seq_k[i]`; logits scaled by `H ** -0.5`. Returns `[total_q, heads, H]`."""
+    return _FLASH_FORWARD(query, key, value, cu_seq_q, cu_seq_k, max_q, max_k, 0.0, False, False, seqused_k=seqused_k)[0]
 
 
 @dataclass(frozen=True)
@@ -95,7 +101,7 @@ class AttentionPlan:
 def choose_kernel(kernel: str, device: torch.device, dtype: torch.dtype, kv_heads: int, head_dim: int) -> str:
     """The kernel a pass runs: `kernel` if it is "sdpa" or "varlen", else ("auto") varlen where FlashAttention's
     variable-length kernel applies (CUDA with compute capability >= 8.0, bf16 / fp16, one kv head, head size a
-    multiple of 8 up to 256, a torch whose `varlen_attn` takes `seqused_k`), sdpa elsewhere."""
+    multiple of 8 up to 256, a torch whose flash kernel takes `seqused_k`), sdpa elsewhere."""
     if kernel not in KERNELS:
         raise ValueError(f"attention kernel must be one of {KERNELS}, got {kernel!r}")
     usable = (
@@ -109,7 +115,7 @@ def choose_kernel(kernel: str, device: torch.device, dtype: torch.dtype, kv_head
     )
     if kernel == "varlen" and not usable:
         raise ValueError(
-            "attention kernel 'varlen' needs torch.nn.attention.varlen.varlen_attn with seqused_k (torch >= 2.10), a "
+            "attention kernel 'varlen' needs FlashAttention's varlen kernel with seqused_k (torch >= 2.10), a "
             f"CUDA device of compute capability >= 8.0, bf16/fp16, one kv head and head size <= 256; got {device}, "
             f"{dtype}, {kv_heads} kv heads, head size {head_dim}"
         )
@@ -189,7 +195,7 @@ def _attend_varlen(query: torch.Tensor, key: torch.Tensor, value: torch.Tensor, 
     outputs = []
     for group in plan.varlen:
         rows = folded[:, group.row_start * heads : (group.row_start + group.rows) * heads].reshape(-1, 1, head_dim)
-        outputs.append(varlen_attn(
+        outputs.append(flash_varlen(
             rows, flat_key, flat_value, group.query_starts, group.key_starts, group.rows * heads, group.max_keys,
             seqused_k=group.key_counts,
         ).view(batch, group.rows * heads, head_dim))
