@@ -57,6 +57,20 @@ def test_previous_actions_beyond_the_models_range_are_refused_by_name(policy: PI
     assert "\n" not in str(refused.value)
 
 
+@pytest.mark.parametrize(("state", "message"), [
+    ([1e30, 0.0, 0.0], r"observation\.state: dims \[0\] normalize to [\d.]+e\+30 \(1e\+30 raw\), beyond ±1000"),
+    (np.array([np.iinfo(np.uint64).max, 0, 0], np.uint64), r"observation\.state: dims \[0\] normalize to [\d.]+e\+19"),
+    ([0.0, -5e3, 0.0], r"observation\.state: dims \[1\] normalize to -"),
+])
+def test_an_absurd_state_is_refused_by_name(policy: PI0Policy, state: Any, message: str) -> None:
+    """Issue 38.9: `state=[1e30, 0, 0]` (or a uint64 max) gave actions of 1e30 as a normal reply. A state more than
+    `MAX_NORMALIZED_STATE` from 0 in the model's normalized space is refused, naming the dims; a state within it is not."""
+    with pytest.raises(ObservationError, match=message) as refused:
+        policy.infer({**OBSERVATION, "state": state})
+    assert "\n" not in str(refused.value)
+    assert np.isfinite(policy.infer({**OBSERVATION, "state": [3.0, -3.0, 1.0]})["actions"]).all()
+
+
 @pytest.mark.parametrize("guidance", [np.inf, 1e30, -1.0, MAX_GUIDANCE * 2])
 def test_a_guidance_clip_outside_its_range_is_refused(policy: PI0Policy, guidance: float) -> None:
     with pytest.raises(ValueError, match=r"rtc_max_guidance must be a finite number >= 0 and <= 100"):

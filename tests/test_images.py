@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import multiprocessing
+import re
 import threading
 
 import numpy as np
@@ -212,3 +213,22 @@ def test_a_forked_process_converts_frames_with_a_pool_of_its_own(monkeypatch: py
         if child.is_alive():
             child.kill()
     assert child.exitcode == 0
+
+
+@pytest.mark.parametrize("mode, values, expected", [
+    ("I;16", np.full((8, 8), 1000, np.uint16), "a PIL image of mode 'I;16' (integer pixels"),
+    ("I", np.full((8, 8), 70_000, np.int32), "a PIL image of mode 'I' (integer pixels"),
+    ("F", np.full((8, 8), np.nan, np.float32), "contains NaN or inf"),
+    ("F", np.full((8, 8), 3.0, np.float32), "float frame must be in [0, 1], got values in [3, 3]"),
+    ("F", np.full((8, 8), 0.25, np.float32), None),
+])
+def test_pil_images_of_every_mode_mean_their_values_or_are_refused(mode: str, values: np.ndarray, expected: str | None) -> None:
+    """Issue 38.8: PIL images of modes I;16, I and F became all-white or all-black frames (NaN too): integer modes are
+    refused by name, as integer arrays are; mode F is a float frame, checked like one."""
+    image = Image.fromarray(values) if mode == "I;16" else Image.fromarray(values, mode=mode)
+    assert image.mode == mode
+    if expected is None:
+        np.testing.assert_allclose(to_model_image(image, 8), np.full((3, 8, 8), -0.5), atol=1e-6)
+        return
+    with pytest.raises(ValueError, match=re.escape(f"base_0_rgb: {expected}") if "[" in expected else f"base_0_rgb: {re.escape(expected)}"):
+        to_model_image(image, 8, name="base_0_rgb")

@@ -105,6 +105,20 @@ def test_mismatched_checkpoint_refuses_to_load(tiny_pi0: PI0ForActionGeneration,
         PI0ForActionGeneration.from_pretrained(folder)
 
 
+@pytest.mark.parametrize("dtype, stored", [(torch.int32, "I32"), (torch.int64, "I64"), (torch.bool, "BOOL"),
+                                           (torch.float8_e4m3fn, "F8_E4M3")])
+def test_weights_stored_as_another_kind_refuse_to_load(tiny_pi0: PI0ForActionGeneration, tmp_path: Path,
+                                                      dtype: torch.dtype, stored: str) -> None:
+    """Issue 38.7: the demo policy saved as int32 loaded silently (560 of 272,947 parameters non-zero) and served
+    normal-looking actions. A floating parameter stored as integers, booleans or 8-bit floats is refused, named."""
+    tiny_pi0.save_pretrained(tmp_path)
+    weights = load_file(tmp_path / "model.safetensors")
+    weights["action_out_proj.weight"] = weights["action_out_proj.weight"].to(dtype)
+    save_file(weights, tmp_path / "model.safetensors", metadata={"format": "pt"})
+    with pytest.raises(ValueError, match=rf"not floating-point: action_out_proj[.]weight \({stored}\)$"):
+        PI0ForActionGeneration.from_pretrained(tmp_path)
+
+
 def test_pi0_checkpoint_does_not_load_as_pi05(tiny_pi0: PI0ForActionGeneration, tmp_path: Path) -> None:
     tiny_pi0.save_pretrained(tmp_path)
     config = json.loads((tmp_path / "config.json").read_text())

@@ -2,7 +2,8 @@
 
 Accepted frames (one camera, one time step):
 
-- `PIL.Image.Image` of any mode (converted to RGB);
+- `PIL.Image.Image` of an 8-bit mode (converted to RGB) or mode 'F' (float, as a float frame); integer modes ('I',
+  'I;16': depth, 16-bit) are refused by name ([`pil_frame`]);
 - `numpy.ndarray` or `torch.Tensor`, channels last `[H, W, 3]` or channels first `[3, H, W]` (a frame whose first
   and last axes are both 3 is ambiguous and rejected), with dtype
   - `uint8`: values 0..255 (openpi's data pipeline);
@@ -138,7 +139,7 @@ def to_model_image(
     height, width = (size, size) if isinstance(size, int) else size
     low, high = check_float_range(float_range)
     if isinstance(frame, Image.Image):
-        frame = np.asarray(frame.convert("RGB"))
+        frame = pil_frame(frame, name)
     elif not isinstance(frame, (np.ndarray, torch.Tensor)):
         raise ValueError(f"{name}: expected a numpy array, torch tensor or PIL image, got {type(frame).__name__}")
     frame = _channels_last(frame, name)
@@ -173,6 +174,21 @@ def to_model_image(
     else:
         raise ValueError(f"{name}: expected dtype uint8 or float, got {frame.dtype}")
     return np.ascontiguousarray(np.moveaxis(model, -1, 0), dtype=np.float32)
+
+
+def pil_frame(image: Image.Image, name: str = "image") -> np.ndarray:
+    """A PIL image as the frame array its values mean: 8-bit modes ('RGB', 'L', 'P', 'RGBA', ...) as uint8 `[H, W, 3]`
+    (PIL's RGB conversion), 'F' (32-bit float, one channel) as float32 `[H, W, 3]` (then checked against the float
+    range like any float frame). The integer modes ('I', 'I;16', ...: depth or 16-bit images) are refused by name:
+    PIL's RGB conversion clips them to white or black, and an integer array of the same values is refused too."""
+    if image.mode == "F":
+        return np.repeat(np.asarray(image, dtype=np.float32)[..., None], 3, axis=-1)
+    if image.mode.startswith("I"):
+        raise ValueError(
+            f"{name}: a PIL image of mode {image.mode!r} (integer pixels, e.g. depth or 16-bit): expected an 8-bit image "
+            "(mode 'RGB' or 'L'; scale the values to 0..255) or float values in [0, 1] (mode 'F')"
+        )
+    return np.asarray(image.convert("RGB"))
 
 
 def to_model_images(

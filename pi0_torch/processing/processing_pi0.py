@@ -80,6 +80,10 @@ from pi0_torch.utils.validation import check_finite, check_pretrained_location, 
 PROCESSOR_CONFIG_FILE = "processor_config.json"
 NORM_STATS_FILE = "norm_stats.json"
 OBSERVATION_KEYS = ("images", "prompt", "state", "actions")
+# |state| in model space: a state from the training data's distribution lies within a few units of 0 (z-scores, or the
+# q01..q99 span mapped to [-1, 1]); a thousand is no robot's reading (wrong units, a corrupted value, 1e30 or a uint64
+# max), and the model returns unbounded actions for it (`state=[1e30, 0, 0]` gave actions of 1e30 before this bound)
+MAX_NORMALIZED_STATE = 1_000.0
 _HUB_KWARGS = ("trust_remote_code", "cache_dir", "force_download", "local_files_only", "revision", "token", "subfolder")
 
 
@@ -422,8 +426,7 @@ class PI0Processor:
         """One observation -> unbatched model arrays; `where` prefixes error messages (e.g. `"[3] "`)."""
         state = self._model_space_state(self._check_vector(sample.get("state"), where + "state", self.state_dim))
         pixel_values, image_masks = self._encode_images(sample.get("images"), where)
-        normalized_state = self._normalize(state, self._state_stats)
-        check_finite(f"{where}state (normalized)", normalized_state)
+        normalized_state = self._normalized_state(state, where)
 
         prompt = self._prompt(sample, where)
         try:
@@ -511,6 +514,20 @@ class PI0Processor:
     def _model_space_state(self, state: np.ndarray) -> np.ndarray:
         """The robot's state `[..., state_dim]` in the checkpoint's space (unchanged without a value conversion)."""
         return state if self._conversion is None else self._conversion.state_to_model(state)
+
+    def _normalized_state(self, state: np.ndarray, where: str) -> np.ndarray:
+        """The state in model space, refused (naming it) unless finite and within `MAX_NORMALIZED_STATE` of 0."""
+        normalized = self._normalize(state, self._state_stats)
+        check_finite(f"{where}state (normalized)", normalized)
+        if self._state_stats is not None and normalized.size and np.abs(normalized).max() > MAX_NORMALIZED_STATE:
+            dims = [int(i) for i in np.flatnonzero(np.abs(normalized) > MAX_NORMALIZED_STATE)[:8]]
+            raise ValueError(
+                f"{where}state: dims {dims} normalize to {normalized[dims[0]]:.3g} ({state[dims[0]]:.6g} raw), beyond "
+                f"±{MAX_NORMALIZED_STATE:g} in the model's normalized space, where a state of the training data lies "
+                f"within a few units of 0 ({self.norm_mode}); check the state's units and order against the norm stats "
+                f"(a dim that never moved in the training data has a scale floored at min_norm_scale={self.min_norm_scale:g})"
+            )
+        return normalized
 
     def _normalize(self, values: np.ndarray, stats: NormStats | None) -> np.ndarray:
         if stats is None:

@@ -213,7 +213,7 @@ class PI0FastProcessor(PI0Processor):
         """One observation -> unbatched model arrays; `where` prefixes error messages (e.g. `"[3] "`)."""
         state = self._model_space_state(self._check_vector(sample.get("state"), where + "state", self.state_dim))
         pixel_values, image_masks = self._encode_images(sample.get("images"), where)
-        normalized_state = self._normalize(state, self._state_stats)
+        normalized_state = self._normalized_state(state, where)
         prompt = self._prompt(sample, where)
         actions = None
         if sample.get("actions") is not None:
