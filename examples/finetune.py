@@ -10,7 +10,8 @@ On several GPUs (or CPU processes) the same script runs under accelerate, the gl
 
 Without `--dataset` it generates the synthetic reaching dataset (in a temporary folder, removed at the end) and
 fine-tunes a tiny π0 for a minute, so the whole path (dataset -> Trainer -> checkpoint -> `generate_actions`) can be
-tried on a laptop CPU. The output folder gets the model, its processor and `loss.png`.
+tried on a laptop CPU; running it again replaces its own earlier run. The output folder gets the model, its processor
+and `loss.png`. An output folder that holds a run on your data is replaced only with `--overwrite`.
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ from pi0_torch.data.lerobot_dataset import LeRobotEpisodeDataset
 from pi0_torch.processing.processing_pi0 import PI0Processor
 from pi0_torch.data.synthetic_data import DEMO_POLICY_CONFIG, write_synthetic_dataset
 from pi0_torch.training import TrainSettings, train_policy
+from pi0_torch.utils.validation import first_line
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -38,9 +40,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--output-dir", type=Path, default=Path("outputs") / "finetune")
     parser.add_argument("--max-steps", type=int)
     parser.add_argument("--lora", action="store_true", help="LoRA on the Gemma experts (openpi's low-memory recipe)")
+    parser.add_argument("--overwrite", action="store_true", help="replace an output folder that holds an earlier run "
+                        "(only one pi0-torch wrote; the synthetic example replaces its own)")
     args = parser.parse_args(argv)
-    with tempfile.TemporaryDirectory(prefix="pi0-finetune-") as scratch:  # holds the synthetic dataset, if any
-        return finetune(args, Path(scratch))
+    try:
+        with tempfile.TemporaryDirectory(prefix="pi0-finetune-") as scratch:  # holds the synthetic dataset, if any
+            return finetune(args, Path(scratch))
+    except (ValueError, OSError) as error:  # settings, the dataset, the output folder: one line, as `pi0-torch train`
+        print(f"finetune.py: error: {first_line(error)}", file=sys.stderr)
+        return 2
 
 
 def finetune(args: argparse.Namespace, scratch: Path) -> int:
@@ -53,6 +61,7 @@ def finetune(args: argparse.Namespace, scratch: Path) -> int:
             config_overrides=dict(DEMO_POLICY_CONFIG), tokenizer="test", train_split="train",
             max_steps=args.max_steps or 300, batch_size=32, learning_rate=2e-3, warmup_steps=50, end_learning_rate=2e-4,
             logging_steps=25, save_steps=150, ema_decay=0.99, lora=args.lora, progress=True,
+            overwrite=True,  # (its own earlier run: a folder pi0-torch wrote, never one with files of others)
         )
     else:
         # openpi's fine-tuning recipe: AdamW(0.9, 0.95, wd 1e-10), clip 1.0, warmup 1k -> 2.5e-5 -> cosine 2.5e-6,
@@ -61,6 +70,7 @@ def finetune(args: argparse.Namespace, scratch: Path) -> int:
             dataset=str(args.dataset), model=args.model, tokenizer=args.tokenizer, output_dir=str(args.output_dir),
             max_steps=args.max_steps or 30_000, batch_size=32, ema_decay=None if args.lora else 0.99, lora=args.lora,
             bf16=torch.cuda.is_available(), gradient_checkpointing=True, num_workers=4, save_steps=5_000, progress=True,
+            overwrite=args.overwrite,
         )
     result = train_policy(settings)
 

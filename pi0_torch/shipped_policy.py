@@ -16,7 +16,7 @@ def demo_policy_dir() -> Path:
     """The folder of the demo policy shipped inside the package, wherever it is installed.
 
     >>> sorted(p.name for p in demo_policy_dir().glob("*.json"))
-    ['config.json', 'demo_metrics.json', 'norm_stats.json', 'processor_config.json']
+    ['config.json', 'demo_metrics.json', 'norm_stats.json', 'policy_settings.json', 'processor_config.json']
     """
     return Path(__file__).resolve().parent / "demo_policy"
 

@@ -17,7 +17,8 @@
    policy is plain);
 3. evaluates it in closed loop on held-out seeds (`pi0-torch eval`'s `evaluate`, from seed 1,000,000, executing
    `DEMO_REPLAN_STEPS` actions of each chunk, sampled from noise of standard deviation `DEMO_NOISE_SCALE`) and copies
-   the model, the processor and `demo_metrics.json` into the destination.
+   the model, the processor, `demo_metrics.json` and `policy_settings.json` (the noise scale and replan steps it was
+   validated with) into the destination.
 
 A stage whose finished model has the same settings is reused, so a second invocation only evaluates.
 
@@ -40,6 +41,7 @@ import torch
 
 from pi0_torch.data.lerobot_writer import EpisodeRecord, write_lerobot_dataset
 from pi0_torch.demo import DEMO_NOISE_SCALE, DEMO_REPLAN_STEPS
+from pi0_torch.runtime.policy_settings import PolicySettings
 from pi0_torch.envs import ENV_IDS
 from pi0_torch.envs.demos import ACTION_NAMES, STATE_NAMES, successful_episodes
 from pi0_torch.envs.tasks import CAMERA, WRIST_CAMERA
@@ -231,6 +233,8 @@ def main(argv: list[str] | None = None) -> int:
         "threads": args.threads,
     }
     (args.destination / "demo_metrics.json").write_text(json.dumps(metrics, indent=1) + "\n")
+    # how it was validated, for every runner of the folder (PI0Policy, eval, serve) to use unless told otherwise
+    PolicySettings(noise_scale=DEMO_NOISE_SCALE, replan_steps=DEMO_REPLAN_STEPS).save(args.destination)
     print(f"wrote {args.destination} ({minutes:.1f} min of recording and training)")
     return 0
 

@@ -5,6 +5,8 @@ from __future__ import annotations
 import json
 import re
 import runpy
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -74,3 +76,13 @@ def test_demo_recipe_runs_end_to_end_and_shares_its_plain_stages(tmp_path: Path,
         assert list(metrics["steps"]) == stages and metrics["rtc_max_delay"] == delay
         assert metrics["reused_stages"] == ([] if delay == 0 else plain)
         assert json.loads((tmp_path / name / "config.json").read_text())["rtc_max_delay"] == delay
+
+
+def test_the_finetune_example_runs_twice_in_a_row(tmp_path: Path) -> None:
+    """Issue 38.4: a second run ended in a traceback telling to pass --overwrite, which the example refused. The
+    synthetic example replaces its own earlier run; a run on a user's data says what to pass, in one line."""
+    script = [sys.executable, str(EXAMPLES / "finetune.py"), "--max-steps", "2", "--output-dir", str(tmp_path / "out")]
+    for _ in range(2):
+        done = subprocess.run(script, cwd=tmp_path, capture_output=True, text=True, timeout=HANG_S)
+        assert done.returncode == 0, done.stderr[-2000:]
+        assert "predicted first actions" in done.stdout

@@ -44,6 +44,8 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
+from pi0_torch.utils import files
+
 NormMode = Literal["zscore", "quantile", "none"]
 NORM_MODES: tuple[str, ...] = ("zscore", "quantile", "none")
 DEFAULT_MIN_SCALE = 1e-3
@@ -251,9 +253,7 @@ def save_openpi_norm_stats(path: str | Path, stats: Mapping[str, NormStats]) -> 
         path = path / "norm_stats.json"
     path.parent.mkdir(parents=True, exist_ok=True)
     text = json.dumps({"norm_stats": {key: value.to_dict() for key, value in stats.items()}}, indent=2)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(text)
-    tmp.replace(path)
+    files.write_text_atomically(path, text)
     return path
 
 

@@ -75,6 +75,7 @@ from pi0_torch.processing.normalization import (
 )
 from pi0_torch.processing.robot_spaces import get_conversion
 from pi0_torch.processing.tokenization import PromptTokenizer, TokenizerSource, load_tokenizer
+from pi0_torch.utils import files
 from pi0_torch.utils.validation import check_finite, check_pretrained_location, hub_errors, is_hub_id
 
 PROCESSOR_CONFIG_FILE = "processor_config.json"
@@ -283,9 +284,7 @@ class PI0Processor:
         if self.norm_stats is not None:
             written.append(str(save_openpi_norm_stats(directory / NORM_STATS_FILE, self.norm_stats)))
         config_path = directory / PROCESSOR_CONFIG_FILE
-        tmp = config_path.with_name(config_path.name + ".tmp")
-        tmp.write_text(json.dumps(self.to_dict(), indent=2, ensure_ascii=False) + "\n")
-        tmp.replace(config_path)
+        files.write_text_atomically(config_path, json.dumps(self.to_dict(), indent=2, ensure_ascii=False) + "\n")
         written.append(str(config_path))
         return written
 

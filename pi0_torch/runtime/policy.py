@@ -34,16 +34,17 @@ from typing import Any
 import numpy as np
 import torch
 
+from pi0_torch.inference.graphs import SamplingCaptureError
 from pi0_torch.models.configuration_base import PI0BaseConfig
 from pi0_torch.models.configuration_pi0 import MAX_INFERENCE_STEPS
 from pi0_torch.models.configuration_pi0_fast import PI0FastConfig
 from pi0_torch.models.modeling_pi0 import PI0ForActionGeneration
 from pi0_torch.models.rtc import DEFAULT_MAX_GUIDANCE, MAX_GUIDANCE, METHODS, SCHEDULES, check_rtc_inputs
-from pi0_torch.inference.graphs import SamplingCaptureError
 from pi0_torch.processing.processing_pi0 import PI0Processor
 from pi0_torch.runtime.observation_formats import ObservationError
 from pi0_torch.runtime.policy_base import BasePolicy, ChunkContinuation, PreparedObservation, step_count
 from pi0_torch.runtime.policy_fast import PI0FastPolicy
+from pi0_torch.shipped_policy import policy_location
 from pi0_torch.utils.validation import check_float
 
 logger = logging.getLogger(__name__)
@@ -104,6 +105,7 @@ class PI0Policy(BasePolicy):
     num_steps_setting = "num_inference_steps"
     max_num_steps = MAX_INFERENCE_STEPS
     continues_chunks = True  # real-time chunking requests (see the class docstring)
+    recommended_settings = ("noise_scale", "rtc_method")
 
     def __init__(
         self,
@@ -146,20 +148,28 @@ class PI0Policy(BasePolicy):
         compile: bool = False,
         rtc_method: str | None = None,
         rtc_schedule: str = "exp",
-        noise_scale: float = 1.0,
+        noise_scale: float | None = None,
         cuda_graph: bool = False,
+        threads: int | None = None,
     ) -> PI0Policy | PI0FastPolicy:
-        """Load the model and processor saved in `directory` (by `save_pretrained` or the converter): a
-        `PI0Policy`, or for a π0-FAST folder a [`PI0FastPolicy`] ([`policy_class`]).
+        """Load the model and processor saved in `directory` (by `save_pretrained` or the converter; `"demo"`: the
+        policy shipped with the package): a `PI0Policy`, or for a π0-FAST folder a [`PI0FastPolicy`]
+        ([`policy_class`]).
 
         `device` defaults to CUDA when available, else CPU; `dtype` ("float32" / "bfloat16" or a torch dtype)
         defaults to bfloat16 on CUDA and float32 on CPU. `default_prompt` replaces the processor's (used for
         observations without a prompt). `compile`, `cuda_graph`, `rtc_method`, `rtc_schedule` and `noise_scale` as in
         the class (a π0-FAST folder decodes tokens: it takes no `noise_scale`, and `compile` gives its CUDA graphs).
+        `num_steps`, `noise_scale` and `rtc_method` left None take the folder's recommended values
+        (`policy_settings.json`, logged; the demo policy's: noise_scale 0.1, replan_steps 4), else the class's
+        defaults. On a CPU `threads` chooses torch's threads as `pi0-torch eval` does (see
+        [`BasePolicy.from_pretrained`]: one for a small model by default).
         """
-        loading = dict(device=device, dtype=dtype, num_steps=num_steps, seed=seed, default_prompt=default_prompt, compile=compile)
+        directory = policy_location(directory)
+        loading = dict(device=device, dtype=dtype, num_steps=num_steps, seed=seed, default_prompt=default_prompt,
+                       compile=compile, threads=threads)
         if cls is PI0Policy and policy_class(directory) is PI0FastPolicy:
-            if noise_scale != 1.0:
+            if noise_scale is not None:
                 raise ValueError(f"noise_scale applies to flow-matching π0 / π0.5 sampling; {directory} is a π0-FAST "
                                  "model, which decodes tokens (see its temperature)")
             if cuda_graph:

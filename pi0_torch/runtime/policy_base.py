@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import abc
 import dataclasses
+import logging
 import time
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -26,7 +27,12 @@ from pi0_torch import __version__
 from pi0_torch.models.configuration_base import SIZE_LIMITS
 from pi0_torch.runtime.action_safety import UnsafeActionsError, non_finite_count
 from pi0_torch.runtime.observation_formats import CHUNK_FIELDS, ObservationError
+from pi0_torch.runtime.policy_settings import SETTINGS_FILE, PolicySettings
+from pi0_torch.shipped_policy import policy_location
+from pi0_torch.utils.threads import MAX_THREADS, set_threads
 from pi0_torch.utils.validation import check_int, first_line
+
+logger = logging.getLogger(__name__)
 
 _DTYPES = {"float32": torch.float32, "bfloat16": torch.bfloat16}
 # The most sampling steps (π0's Euler steps) or decoded tokens (π0-FAST) any member takes: `from_pretrained` refuses a
@@ -74,8 +80,11 @@ class BasePolicy(abc.ABC):
     num_steps_setting: ClassVar[str]  # the config setting that gives the default `num_steps`
     max_num_steps: ClassVar[int]
     continues_chunks: ClassVar[bool] = False  # takes real-time chunking requests (`previous_actions`, ...)
+    # the constructor's settings that a folder's `policy_settings.json` may recommend (`num_steps` for every policy)
+    recommended_settings: ClassVar[tuple[str, ...]] = ()
 
     def __init__(self, model: Any, processor: Any, num_steps: int | None = None, seed: int | None = None) -> None:
+        self.settings = PolicySettings()  # the folder's recommended settings (`from_pretrained` sets them)
         self.model = model.eval()
         self.processor = processor
         self.num_steps = check_int("num_steps", num_steps if num_steps is not None else getattr(model.config, self.num_steps_setting),
@@ -96,19 +105,33 @@ class BasePolicy(abc.ABC):
         seed: int | None = None,
         default_prompt: str | None = None,
         compile: bool = False,
+        threads: int | None = None,
         **options: Any,
     ) -> Any:
-        """Load the model and processor saved in `directory` (by `save_pretrained` or the converter) into this policy.
+        """Load the model and processor saved in `directory` (by `save_pretrained` or the converter; `"demo"`: the demo
+        policy shipped with the package) into this policy.
 
         `device` defaults to CUDA when available, else CPU; `dtype` ("float32" / "bfloat16" or a torch dtype)
         defaults to bfloat16 on CUDA and float32 on CPU. `default_prompt` replaces the processor's (used for
-        observations without a prompt). `compile` and `options` go to the policy's constructor.
+        observations without a prompt). `compile` and `options` go to the policy's constructor. Settings left None
+        (`num_steps`, and a member's own such as `noise_scale`) take the folder's recommended values
+        (`policy_settings.json`, see `pi0_torch.runtime.policy_settings`), logged when used; the policy keeps them
+        as `settings`.
+
+        On a CPU, torch's threads are chosen as `pi0-torch eval` / `serve` choose them: `threads` (an int), or by
+        default one thread for a model under 10 M parameters (the demo policy: 21 ms a chunk on one thread, 1.1-1.3 s
+        on two busy cores) and torch's default for a larger one (`pi0_torch.utils.threads.set_threads`). torch's
+        thread count is the process's: pass `threads` to choose another.
         """
+        directory = policy_location(directory)
         if not Path(directory).is_dir():
             raise FileNotFoundError(f"model folder not found: {directory} (a folder written by save_pretrained or "
-                                    "the openpi converter)")
+                                    "the openpi converter; 'demo' is the policy shipped with pi0-torch)")
         if num_steps is not None:  # before loading: a bad value fails in a moment, not after the weights load
             check_int("num_steps", num_steps, minimum=1, maximum=_MAX_NUM_STEPS)
+        if threads is not None:
+            check_int("threads", threads, minimum=1, maximum=MAX_THREADS)
+        settings = PolicySettings.load(directory)
         device = torch.device(device if device is not None else ("cuda" if torch.cuda.is_available() else "cpu"))
         if dtype is None:
             dtype = torch.bfloat16 if device.type == "cuda" else torch.float32
@@ -121,9 +144,20 @@ class BasePolicy(abc.ABC):
         except SafetensorError as error:  # truncated or foreign weights: one line naming the folder
             raise ValueError(f"{directory}: the weights are not a readable safetensors file ({first_line(error)}); "
                              "the folder is damaged (convert or copy it again)") from None
+        if device.type == "cpu":
+            set_threads(threads, model)
         overrides = {"default_prompt": default_prompt} if default_prompt is not None else {}
         processor = cls.processor_class.from_pretrained(directory, **overrides)
-        return cls(model, processor, num_steps=num_steps, seed=seed, compile=compile, **options)
+        given = dict(num_steps=num_steps, **{key: options.pop(key) for key in cls.recommended_settings if key in options})
+        resolved = settings.resolve(**given)
+        used = {key: value for key, value in resolved.items() if given[key] is None and value is not None}
+        if used:
+            logger.info("%s: using its recommended %s (%s)", directory, ", ".join(f"{k} {v}" for k, v in used.items()),
+                        SETTINGS_FILE)
+        policy = cls(model, processor, seed=seed, compile=compile, **{k: v for k, v in resolved.items() if v is not None},
+                     **options)
+        policy.settings = settings
+        return policy
 
     # -- what a member supplies ------------------------------------------------------------------------------------
 
@@ -169,6 +203,7 @@ class BasePolicy(abc.ABC):
             "cuda_graph": self.captured,
             "dtype": self._dtype_name,
             "real_time_chunking": None,
+            "replan_steps": self.settings.replan_steps,  # the actions to execute per chunk it was validated with (or None)
         }
 
     def prepare(self, observation: Mapping[str, Any]) -> PreparedObservation:

@@ -30,7 +30,7 @@ import math
 import sys
 import time
 from collections.abc import Mapping, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -47,7 +47,8 @@ from pi0_torch.cli import json_object
 from pi0_torch.shipped_policy import policy_location
 from pi0_torch.runtime.observation_formats import ObservationFormat
 from pi0_torch.utils.extras import require_extra
-from pi0_torch.utils.files import atomic_output_dir, check_output_dir, check_separate
+from pi0_torch.runtime.policy_settings import SETTINGS_FILE
+from pi0_torch.utils.files import atomic_output_dir, check_output_dir, check_separate, check_writable
 from pi0_torch.utils.threads import add_threads_argument, set_threads
 from pi0_torch.utils.validation import MAX_SEED, check_finite, check_float, check_int, first_line
 
@@ -86,6 +87,7 @@ class ScriptedPolicy:
             raise ValueError(f"unknown scripted policy {kind!r}; expected 'expert' or 'random'")
         self.kind = kind
         self.metadata: dict[str, Any] = {"policy": kind, "action_horizon": 1}
+        self.recommended_replan_steps: int | None = None  # (every policy here: see `LocalPolicy`)
         self.envs: Sequence[Any] = []
         self.done: Sequence[bool] = []
         self.actors: list[Any] = []
@@ -122,6 +124,8 @@ class LocalPolicy:
         self.policy = policy
         self.metadata = policy.metadata
         self.source = source
+        # actions to execute per chunk that the policy's folder recommends (`policy_settings.json`), or None
+        self.recommended_replan_steps: int | None = self.metadata.get("replan_steps")
 
     def __call__(self, observations: Sequence[Mapping[str, Any]]) -> list[np.ndarray]:
         prepared = [self.policy.prepare(observation) for observation in observations]
@@ -154,6 +158,7 @@ class RemotePolicy:
         except (OSError, WebSocketException) as error:  # refused, unreachable, a rejected handshake, no metadata
             raise ConnectionError(f"cannot reach the policy server at {url}: {first_line(error) or type(error).__name__}") from None
         self.metadata = _checked_metadata(metadata, url)
+        self.recommended_replan_steps: int | None = self.metadata.get("replan_steps")  # (the served policy's)
         self.pool = concurrent.futures.ThreadPoolExecutor(max_workers=connections)
 
     def _ask(self, socket: Any, observation: Mapping[str, Any]) -> np.ndarray:
@@ -215,6 +220,8 @@ def _checked_metadata(metadata: Any, url: str) -> dict[str, Any]:
     for name in ("action_dim", "state_dim"):
         if metadata.get(name) is not None:
             checked[name] = check_int(f"{where} {name}", metadata[name], 1, MAX_ACTION_DIM)
+    if metadata.get("replan_steps") is not None:
+        checked["replan_steps"] = check_int(f"{where} replan_steps", metadata["replan_steps"], 1, checked["action_horizon"])
     cameras = metadata.get("camera_names")
     if cameras is not None and (not isinstance(cameras, list) or not all(isinstance(c, str) for c in cameras)):
         raise ValueError(f"{where} camera_names must be a list of strings, got {cameras!r:.80}")
@@ -398,13 +405,16 @@ def check_eval_settings(settings: EvalSettings, horizon: int) -> int:
 
 
 def check_eval_output(settings: EvalSettings, policy_source: str | Path | None) -> None:
-    """Refuse an output folder evaluation may not write: see [`pi0_torch.utils.files.check_output_dir`]; never the
-    evaluated policy's folder (nor one inside or around it)."""
+    """Refuse an output folder evaluation may not write, before any episode runs: see
+    [`pi0_torch.utils.files.check_output_dir`]; never the evaluated policy's folder (nor one inside or around it);
+    and one whose file system refuses a file there (read-only, full: `files.check_writable`), which used to surface
+    only after every episode had run."""
     if not settings.output_dir:
         return
     if policy_source is not None and Path(policy_source).is_dir():
         check_separate(policy_source, settings.output_dir)
     check_output_dir(settings.output_dir, settings.overwrite)
+    check_writable(settings.output_dir, "--output-dir")
 
 
 def evaluate(policy: ChunkPolicy, settings: EvalSettings) -> EvalResult:
@@ -490,7 +500,11 @@ def evaluate(policy: ChunkPolicy, settings: EvalSettings) -> EvalResult:
         stopped_by=None if stopped is None else f"{type(stopped).__name__}: {first_line(stopped)}",
     )
     if settings.output_dir:
-        write_outputs(result, frames, Path(settings.output_dir), fps=_control_hz(envs[0]), overwrite=settings.overwrite)
+        try:
+            write_outputs(result, frames, Path(settings.output_dir), fps=_control_hz(envs[0]), overwrite=settings.overwrite)
+        except OSError as error:  # (the disk filled up, or the folder went read-only, while the episodes ran)
+            raise EvaluationStopped(f"the episodes ran, but {settings.output_dir} could not be written "
+                                    f"({first_line(error)}); the summary above is all there is", result) from error
     if stopped is not None:
         written = f"; eval.json in {settings.output_dir} holds them" if settings.output_dir else ""
         raise EvaluationStopped(f"{result.stopped_by} (stopped after {len(results)} finished episodes of "
@@ -633,11 +647,12 @@ def _even(frame: np.ndarray) -> np.ndarray:
 
 
 def load_policy(spec: str, connections: int, api_key: str | None = None, device: str | None = None,
-                num_steps: int | None = None, noise_scale: float = 1.0, rtc_schedule: str = "exp",
+                num_steps: int | None = None, noise_scale: float | None = None, rtc_schedule: str = "exp",
                 timeout: float = DEFAULT_TIMEOUT_S) -> ChunkPolicy:
     """A folder (loaded here; `demo`: the demo policy shipped with the package), `ws://host:port` (a running server;
     `timeout`: seconds to wait for each reply), or `expert` / `random` ([`ScriptedPolicy`]). `device`, `num_steps`,
-    `noise_scale` and `rtc_schedule` apply to a folder (a server samples with its own settings)."""
+    `noise_scale` and `rtc_schedule` apply to a folder (a server samples with its own settings); None takes the
+    folder's recommended setting (`policy_settings.json`)."""
     if spec.startswith(("ws://", "wss://")):
         return RemotePolicy(spec, connections, api_key=api_key, timeout=timeout)
     if spec in ("expert", "random"):
@@ -664,7 +679,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--num-envs", type=int, default=8, help="environments stepped together (one batched call)")
     parser.add_argument("--seed", type=int, default=1_000_000, help="seed of the first episode (demos use 0, 1, ...)")
     parser.add_argument("--replan-steps", type=int, help="actions executed per chunk before the next observation "
-                        "(default: the whole horizon; with an asynchronous execution, horizon - delay)")
+                        "(default: the policy's recommended setting, else the whole horizon; with an asynchronous "
+                        "execution, horizon - delay)")
     parser.add_argument("--execution", choices=EXECUTION_MODES, default="sync",
                         help="how chunks are stitched under inference delay (see docs/closed_loop.md)")
     parser.add_argument("--inference-delay", type=int, default=0, metavar="D",
@@ -676,8 +692,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="a JSON object passed to gymnasium.make")
     parser.add_argument("--prompt", help="instruction for envs whose observations hold none")
     parser.add_argument("--num-steps", type=int, help="Euler steps per chunk (local policy)")
-    parser.add_argument("--noise-scale", type=float, default=1.0, help="standard deviation of the noise each chunk's "
-                        "flow starts from (local policy; default 1, openpi's sampler; the demo policy uses 0.1)")
+    parser.add_argument("--noise-scale", type=float, help="standard deviation of the noise each chunk's flow starts "
+                        "from (local policy; default: the policy's recommended setting, else 1, openpi's sampler; the "
+                        "demo policy recommends 0.1)")
     parser.add_argument("--rtc-schedule", default="exp", help="soft mask of --execution rtc over the previous "
                         "chunk: exp (default, the paper's), linear, ones or hard (local policy)")
     parser.add_argument("--device", help="local policy device (default: CUDA if available)")
@@ -708,12 +725,18 @@ def run(args: argparse.Namespace) -> int:
                              args.noise_scale, args.rtc_schedule, args.timeout)
         if isinstance(policy, LocalPolicy):
             set_threads(args.threads, policy.policy.model)
+        recommended = policy.recommended_replan_steps
+        if settings.replan_steps is None and recommended is not None:
+            settings = replace(settings, replan_steps=recommended)
+            print(f"replan steps {recommended}: the policy's recommended setting ({SETTINGS_FILE}; --replan-steps to change)")
         try:
             result = evaluate(policy, settings)
         finally:
             if isinstance(policy, RemotePolicy):
                 policy.close()
     except (ValueError, OSError, EvaluationStopped) as error:  # settings, files, the server: one line
+        if isinstance(error, EvaluationStopped):  # the finished episodes' result first, whatever became of the files
+            print(error.result.summary())
         print(f"pi0-torch eval: error: {first_line(error)}", file=sys.stderr)
         return 2
     print(result.summary())

@@ -48,6 +48,7 @@ import os
 import shutil
 import socket
 import stat
+import tempfile
 import uuid
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
@@ -66,6 +67,28 @@ RESUMABLE_TAG = "resumable"  # the fixed tag of a partial folder that a later ru
 
 class OutputPathError(ValueError):
     """An output location that cannot be used (it overlaps the input, or exists and may not be replaced)."""
+
+
+def check_writable(output_dir: str | os.PathLike[str], what: str) -> None:
+    """Refuse (`OutputPathError` naming `what`) an output folder whose file system refuses a file: a read-only or full
+    one. The folder or its nearest existing parent gets a small probe file, removed at once."""
+    folder = Path(output_dir)
+    while not folder.exists() and folder != folder.parent:
+        folder = folder.parent
+    try:
+        with tempfile.NamedTemporaryFile(dir=folder, prefix=".pi0-torch-probe-") as probe:
+            probe.write(b"\0" * 4096)
+            probe.flush()
+            os.fsync(probe.fileno())
+    except OSError as error:
+        raise OutputPathError(f"{what} {output_dir}: cannot write there ({error.strerror or error}); nothing was run") from None
+
+
+def write_text_atomically(path: Path, text: str) -> None:
+    """Write `text` to `path` through a temporary file beside it, renamed into place: the file is whole or absent."""
+    temporary = path.with_name(path.name + ".tmp")
+    temporary.write_text(text)
+    temporary.replace(path)
 
 
 def give_default_mode(path: Path) -> None:

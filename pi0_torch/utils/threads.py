@@ -16,6 +16,7 @@ import argparse
 from typing import Any
 
 SMALL_MODEL_PARAMETERS = 10_000_000  # below: one thread (the demo policy, the small presets); medium is 48.7 M
+MAX_THREADS = 1024  # more is no machine's core count (`--threads 1000000` crashed torch's thread pool)
 
 
 def threads_option(text: str) -> int | None:
@@ -25,9 +26,9 @@ def threads_option(text: str) -> int | None:
     try:
         threads = int(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive number of threads or auto, got {text!r}") from None
-    if threads < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive number of threads or auto, got {threads}")
+        raise argparse.ArgumentTypeError(f"expected a number of threads in [1, {MAX_THREADS}] or auto, got {text!r}") from None
+    if not 1 <= threads <= MAX_THREADS:
+        raise argparse.ArgumentTypeError(f"expected a number of threads in [1, {MAX_THREADS}] or auto, got {threads}")
     return threads
 
 
