@@ -584,7 +584,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    device = torch.device(args.device)
+    try:
+        device = hardware.usable_device(args.device, "--device")
+    except ValueError as error:
+        print(f"pi0-torch bench: error: {error}", file=sys.stderr)
+        return 2
     if isinstance(sys.stdout, io.TextIOWrapper):  # each row as soon as it is measured, into a pipe too (a run cut short)
         sys.stdout.reconfigure(line_buffering=True)
     unknown = sorted(set(args.dtypes) - {"float32", "bfloat16"})

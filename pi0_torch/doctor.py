@@ -46,6 +46,7 @@ from pi0_torch.models.flow_matching import euler_times
 from pi0_torch.models.modeling_pi0 import PI0ForActionGeneration
 from pi0_torch.models.modeling_pi0_fast import PI0FastForActionGeneration
 from pi0_torch.models.rtc import chunk_prefix, guidance_weight
+from pi0_torch.utils.hardware import usable_device
 
 FLOAT32_BOUND, BF16_BOUND = 1e-4, 3e-2  # tests/test_parity.py: FLOAT32_TOLERANCE, BF16_TOLERANCE
 STEPS, DELAY, EXECUTED = 10, 3, 5  # Euler steps; real-time chunking's inference delay and steps executed
@@ -395,12 +396,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     try:
-        device = torch.device(args.device)
-    except RuntimeError:
-        print(f"pi0-torch doctor: error: --device: {args.device!r} is not a torch device", file=sys.stderr)
-        return 2
-    if device.type == "cuda" and not torch.cuda.is_available():
-        print(f"pi0-torch doctor: error: --device {args.device}: this torch ({torch.__version__}) sees no CUDA GPU", file=sys.stderr)
+        device = usable_device(args.device, "--device")
+    except ValueError as error:
+        print(f"pi0-torch doctor: error: {error}", file=sys.stderr)
         return 2
     where = torch.cuda.get_device_name(device) if device.type == "cuda" else f"CPU ({torch.get_num_threads()} threads)"
     print(f"pi0-torch doctor on {where}, torch {torch.__version__}, {'full size' if args.full else 'small presets'}, random "

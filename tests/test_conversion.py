@@ -500,3 +500,19 @@ def test_hf_import_errors(transformers_pi0, tmp_path: Path) -> None:
     with pytest.raises(ConversionError, match="cannot read"):
         convert_hf_checkpoint(broken, tmp_path / "out", progress=False)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["broken"]
+
+
+def test_a_truncated_weights_file_is_one_line_naming_the_input(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """Issue 38.15: `convert --from pi0-torch --to transformers` on a truncated model.safetensors gave a traceback;
+    nothing is written either."""
+    from pi0_torch import demo_policy_dir
+    from pi0_torch.cli import main
+
+    shutil.copytree(demo_policy_dir(), tmp_path / "in")
+    weights = tmp_path / "in" / "model.safetensors"
+    weights.write_bytes(weights.read_bytes()[: weights.stat().st_size // 2])
+    assert main(["convert", "--from", "pi0-torch", "--to", "transformers", "--input", str(tmp_path / "in"),
+                 "--output-dir", str(tmp_path / "out")]) == 1
+    error = capsys.readouterr().err
+    assert error.startswith(f"error: {tmp_path / 'in'}: the weights are not a readable safetensors file") and error.count("\n") == 1
+    assert not (tmp_path / "out").exists()

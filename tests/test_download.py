@@ -237,10 +237,7 @@ def test_checksum_mismatch_is_refused_and_nothing_is_left_half_written(bucket: F
 
 
 def test_refusals_before_downloading(bucket: FakeBucket, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
-    """A checkpoint pi0-torch cannot convert yet (pi05_libero), asset ids the checkpoint does not have, and an
-    occupied output folder fail before any file is downloaded."""
-    assert cli_main(["convert", "--checkpoint", "pi05_libero", "--output-dir", str(tmp_path / "out")]) == 1
-    assert "without the state in its prompt" in capsys.readouterr().err and bucket.requests == []
+    """Asset ids the checkpoint does not have, and an occupied output folder, fail before any file is downloaded."""
     with pytest.raises(DownloadError, match="no norm stats for asset id 'trossen'; choices: droid"):
         fetch_openpi_checkpoint(URL, asset_id="trossen")
     assert all(path.startswith("/storage/v1/") for path, _ in bucket.requests)  # the listing only

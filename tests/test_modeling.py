@@ -119,6 +119,14 @@ def test_weights_stored_as_another_kind_refuse_to_load(tiny_pi0: PI0ForActionGen
         PI0ForActionGeneration.from_pretrained(tmp_path)
 
 
+@pytest.mark.parametrize("time", [2.0, 0.0, -0.5])
+def test_flow_times_outside_zero_to_one_are_refused(tiny_pi0: PI0ForActionGeneration, time: float) -> None:
+    """Issue 38.15: `forward(time=2.0)` extrapolated silently; a flow time lies in (0, 1] (1 noise, 0 the actions)."""
+    batch = small_batch(tiny_pi0.config)
+    with pytest.raises(ValueError, match=r"^time: flow times must lie in \(0, 1\]"):
+        tiny_pi0(**batch, time=torch.full((2,), time))
+
+
 def test_pi0_checkpoint_does_not_load_as_pi05(tiny_pi0: PI0ForActionGeneration, tmp_path: Path) -> None:
     tiny_pi0.save_pretrained(tmp_path)
     config = json.loads((tmp_path / "config.json").read_text())

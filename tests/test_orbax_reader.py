@@ -175,3 +175,28 @@ def test_unknown_leaf_and_layer_range() -> None:
         checkpoint.read("PaliGemma/nope")
     with pytest.raises(IndexError, match="layer 3 out of range"):
         checkpoint.read("PaliGemma/llm/layers/mlp/linear", layer=3)
+
+
+@pytest.mark.parametrize("corrupt, message", [
+    (lambda meta, key: meta["tree_metadata"].update({"not a literal": {**meta["tree_metadata"].pop(key), "key_metadata": None}}),
+     "the leaf 'not a literal' has no readable keys"),
+    (lambda meta, key: meta["tree_metadata"].update({"(" * 5000 + ")" * 5000: {**meta["tree_metadata"].pop(key), "key_metadata": None}}),
+     "has no readable keys \\(a flat key of 10000 characters\\)"),
+    (lambda meta, key: meta["tree_metadata"][key].update(key_metadata=[1, 2]), "key_metadata is not a list"),
+    (lambda meta, key: meta["tree_metadata"].update({"['params', 'a']": {**meta["tree_metadata"].pop(key), "key_metadata": None}}),
+     "the flat key is a list, not a tuple of keys"),
+])
+def test_malformed_metadata_is_one_line_naming_the_file(tmp_path: Path, corrupt, message: str) -> None:
+    """Issue 38.15: malformed `_METADATA` files (a literal that is not one, 5,000 nested parentheses, wrong types) gave
+    tracebacks; each is a `CheckpointError` naming the file and the leaf."""
+    write_orbax_checkpoint(tmp_path / "params", {"a/b": np.zeros((2, 2), np.float32)})
+    file = tmp_path / "params" / "_METADATA"
+    metadata = json.loads(file.read_text())
+    corrupt(metadata, next(iter(metadata["tree_metadata"])))
+    file.write_text(json.dumps(metadata))
+    with pytest.raises(CheckpointError, match=f"_METADATA: .*{message}") as refused:
+        OrbaxCheckpoint(tmp_path / "params")
+    assert "\n" not in str(refused.value)
+    file.write_text("[" * 100_000 + "]" * 100_000)  # (nesting json cannot parse)
+    with pytest.raises(CheckpointError, match="not a readable orbax metadata file"):
+        OrbaxCheckpoint(tmp_path / "params")

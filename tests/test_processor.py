@@ -288,9 +288,12 @@ def test_bad_batches_and_dicts(tokenizer, stats) -> None:
     missing = r"^\[1\] images: required cameras \['left_wrist_0_rgb'\] are missing; got \['base_0_rgb'\]"
     with pytest.raises(ValueError, match=missing):
         processor(images={"base_0_rgb": [frame, frame], "left_wrist_0_rgb": [frame, None]}, prompt="x", state=np.zeros((2, 8)))
-    with pytest.raises(ValueError, match=r"^images\['base_0_rgb'\]: batch of 3 but state has a batch of 2"):
+    with pytest.raises(ValueError, match=r"^images\['base_0_rgb'\]: a batch of 3, but state \[2, 8\] is a batch of 2"):
         processor(images={"base_0_rgb": [frame] * 3}, prompt="x", state=np.zeros((2, 8)))
-    with pytest.raises(ValueError, match=r"^prompt: batch of 1 but state has a batch of 2"):
+    with pytest.raises(ValueError, match=r"^images\['base_0_rgb'\]: one frame \(48, 8, 3\), but state \[1, 8\] is a batch of 1 "
+                                         r"\(2-D: one row per observation\); pass the state as a vector \[8\]"):
+        processor(images={"base_0_rgb": np.zeros((48, 8, 3), np.uint8)}, prompt="x", state=np.zeros((1, 8)))  # (was "a batch of 48")
+    with pytest.raises(ValueError, match=r"^prompt: a batch of 1, but state \[2, 8\] is a batch of 2"):
         processor(images={"left_wrist_0_rgb": [frame] * 2}, prompt=["x"], state=np.zeros((2, 8)))
     with pytest.raises(ValueError, match=r"^\[0\] state: contains NaN"):
         processor(images={"left_wrist_0_rgb": [frame] * 2}, prompt="x", state=np.array([[np.nan] * 8, [0.0] * 8]))
@@ -340,3 +343,24 @@ def test_end_to_end_with_fixture_model(tokenizer, stats, variant: str) -> None:
     assert single.shape == (50, 7) and np.allclose(single, robot[0].numpy(), rtol=1e-5, atol=1e-5)
     loss = model(**inputs).loss
     assert loss.ndim == 0 and torch.isfinite(loss)
+
+
+def test_pi05_without_the_state_in_its_prompt_uses_pi0s_prompt() -> None:
+    """openpi's pi05_libero (discrete_state_input=False): a π0.5 prompt without the discretized state is π0's
+    `bos + text + "\\n"`; the published checkpoint's settings say so (it was refused before)."""
+    from pi0_torch.conversion.download import PUBLISHED_CHECKPOINTS
+    from pi0_torch.processing.normalization import NormStats
+    from pi0_torch.processing.tokenization import build_test_tokenizer
+
+    stats = NormStats(mean=np.zeros(3), std=np.ones(3), q01=-np.ones(3), q99=np.ones(3))
+    common = dict(camera_names=["base_0_rgb"], max_token_len=48, norm_stats={"state": stats, "actions": stats})
+    tokenizer = build_test_tokenizer()
+    observation = {"images": {"base_0_rgb": np.zeros((8, 8, 3), np.uint8)}, "prompt": "pick up the cube", "state": np.ones(3)}
+    without = PI0Processor(tokenizer, pi05=True, state_in_prompt=False, **common)(observation)
+    pi0 = PI0Processor(tokenizer, pi05=False, norm_mode="quantile", **common)(observation)
+    with_state = PI0Processor(tokenizer, pi05=True, **common)(observation)
+    assert torch.equal(without["input_ids"], pi0["input_ids"]) and not torch.equal(without["input_ids"], with_state["input_ids"])
+    assert PI0Processor(tokenizer, pi05=True, state_in_prompt=False, **common).to_dict()["state_in_prompt"] is False
+    assert PUBLISHED_CHECKPOINTS["pi05_libero"].processor_options() == {"state_in_prompt": False}
+    with pytest.raises(ValueError, match="state_in_prompt applies to π0.5"):
+        PI0Processor(tokenizer, pi05=False, state_in_prompt=True, **common)

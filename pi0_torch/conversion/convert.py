@@ -44,6 +44,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from safetensors import SafetensorError
+
 from pi0_torch.cli import bool_mask
 from pi0_torch.conversion.convert_hf import convert_hf_checkpoint, export_to_transformers
 from pi0_torch.conversion.convert_openpi import convert_openpi_checkpoint
@@ -130,6 +132,10 @@ def run(args: argparse.Namespace) -> int:
             raise ConversionError("--from pi0-torch needs --to transformers")
     except (CheckpointError, OutputPathError, OSError) as error:
         print(f"error: {first_line(error)}", file=sys.stderr)
+        return 1
+    except SafetensorError as error:  # a truncated or foreign weights file in a pi0-torch / transformers input
+        print(f"error: {args.input}: the weights are not a readable safetensors file ({first_line(error)}); the folder is "
+              "damaged (convert or copy it again)", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
         print("error: interrupted; nothing was written", file=sys.stderr)

@@ -99,11 +99,11 @@ class PublishedCheckpoint:
     fast: bool = False  # π0-FAST: converted with the FAST tokenizer physical-intelligence/fast
     delta_action_mask: tuple[bool, ...] | None = None
     value_conversion: str | None = None
-    unsupported: str | None = None  # why pi0-torch cannot convert it yet
+    state_in_prompt: bool | None = None  # π0.5: openpi's discrete_state_input (None: the processor's default, True)
 
     def processor_options(self) -> dict[str, Any]:
         options = {"delta_action_mask": list(self.delta_action_mask) if self.delta_action_mask else None,
-                   "value_conversion": self.value_conversion}
+                   "value_conversion": self.value_conversion, "state_in_prompt": self.state_in_prompt}
         return {key: value for key, value in options.items() if value is not None}
 
     def config_overrides(self) -> dict[str, Any]:
@@ -122,10 +122,8 @@ PUBLISHED_CHECKPOINTS: dict[str, PublishedCheckpoint] = {
     "pi05_droid": PublishedCheckpoint(asset_id="droid", action_horizon=15),
     "pi0_fast_droid": PublishedCheckpoint(asset_id="droid", action_horizon=10, action_dim=8, fast=True),
     "pi0_libero": PublishedCheckpoint(asset_id="physical-intelligence/libero", delta_action_mask=_LIBERO_DELTAS),
-    "pi05_libero": PublishedCheckpoint(
-        unsupported="pi05_libero was trained without the state in its prompt (openpi's discrete_state_input=False), "
-        "which PI0Processor does not support yet"
-    ),
+    # openpi's pi05_libero: Pi0Config(pi05=True, action_horizon=10, discrete_state_input=False), absolute actions
+    "pi05_libero": PublishedCheckpoint(asset_id="physical-intelligence/libero", action_horizon=10, state_in_prompt=False),
     "pi0_fast_libero": PublishedCheckpoint(asset_id="physical-intelligence/libero", action_horizon=10, action_dim=7,
                                            max_token_len=180, delta_action_mask=_LIBERO_DELTAS, fast=True),
     "pi0_aloha_sim": PublishedCheckpoint(value_conversion="aloha"),
@@ -358,11 +356,8 @@ def fetch_openpi_checkpoint(
 ) -> FetchedCheckpoint:
     """Download an openpi checkpoint and PaliGemma's tokenizer (unless `tokenizer` is given) into the cache, with
     the settings openpi gives a published checkpoint (`asset_id` overrides its asset id); for a published π0-FAST
-    checkpoint also the FAST tokenizer (unless `fast_tokenizer` is given), before the checkpoint. Refuses a
-    published checkpoint that pi0-torch cannot convert yet before downloading it."""
+    checkpoint also the FAST tokenizer (unless `fast_tokenizer` is given), before the checkpoint."""
     published = published_checkpoint(url) or PublishedCheckpoint()
-    if published.unsupported:
-        raise DownloadError(f"{url}: {published.unsupported}")
     asset_id = asset_id or published.asset_id
     if fast_tokenizer is not None:
         fast_tokenizer = Path(fast_tokenizer)

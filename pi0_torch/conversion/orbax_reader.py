@@ -43,6 +43,7 @@ except ImportError:  # optional: without it a chunk is decoded whole by tensorst
     zstandard = None
 
 METADATA_FILE = "_METADATA"
+MAX_FLAT_KEY_CHARS = 2_000  # a leaf's path as a tuple repr: a few hundred characters in openpi's checkpoints
 _STREAM_READ_BYTES = 16 << 20  # compressed bytes fetched per read when a chunk is decompressed as a stream
 VALUE_SUFFIX = "value"
 # orbax value types that hold an array (other entries, e.g. empty nodes, carry no data)
@@ -327,8 +328,8 @@ def _load_metadata(params_dir: Path) -> dict:
     file = params_dir / METADATA_FILE
     try:
         metadata = json.loads(file.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
-        raise CheckpointError(f"{file} is not a readable orbax metadata file: {first_line(error)}") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as error:  # (RecursionError: absurd nesting)
+        raise CheckpointError(f"{file} is not a readable orbax metadata file: {first_line(error) or type(error).__name__}") from None
     if not isinstance(metadata, dict) or not isinstance(metadata.get("tree_metadata"), dict):
         raise CheckpointError(f"{file} has no 'tree_metadata': not an orbax PyTree checkpoint")
     return metadata
@@ -339,17 +340,32 @@ def _array_leaf_keys(metadata: dict, params_dir: Path) -> list[tuple[str, ...]]:
     leaves = []
     for flat_key, entry in metadata["tree_metadata"].items():
         value = entry.get("value_metadata", {}) if isinstance(entry, dict) else {}
-        if value.get("value_type") not in _ARRAY_VALUE_TYPES or value.get("skip_deserialize", False):
+        if not isinstance(value, dict) or value.get("value_type") not in _ARRAY_VALUE_TYPES or value.get("skip_deserialize", False):
             continue
-        key_metadata = entry.get("key_metadata")
-        if key_metadata:
-            keys = tuple(str(k["key"]) for k in key_metadata)
-        else:  # older metadata: the flat key is the tuple's repr
-            keys = tuple(str(k) for k in ast.literal_eval(flat_key))
-        leaves.append(keys)
+        leaves.append(_leaf_keys(flat_key, entry.get("key_metadata"), params_dir / METADATA_FILE))
     if not leaves:
         raise CheckpointError(f"{params_dir / METADATA_FILE} lists no array leaves")
     return leaves
+
+
+def _leaf_keys(flat_key: str, key_metadata: Any, file: Path) -> tuple[str, ...]:
+    """The tree keys of one leaf: from its `key_metadata` (a list of `{"key": ...}`), or in older metadata from the
+    flat key, the tuple's repr. Anything else (a repr that is no tuple literal, absurd nesting, wrong types) is a
+    `CheckpointError` naming the file and the leaf."""
+    try:
+        if key_metadata:
+            if not isinstance(key_metadata, list) or not all(isinstance(k, dict) and "key" in k for k in key_metadata):
+                raise TypeError(f"key_metadata is not a list of {{'key': ...}} entries: {str(key_metadata)[:80]}")
+            return tuple(str(k["key"]) for k in key_metadata)
+        if not isinstance(flat_key, str) or len(flat_key) > MAX_FLAT_KEY_CHARS:
+            raise ValueError(f"a flat key of {len(str(flat_key))} characters")
+        keys = ast.literal_eval(flat_key)
+        if not isinstance(keys, tuple):
+            raise TypeError(f"the flat key is a {type(keys).__name__}, not a tuple of keys")
+        return tuple(str(k) for k in keys)
+    except (ValueError, TypeError, SyntaxError, RecursionError, MemoryError) as error:
+        raise CheckpointError(f"{file}: the leaf {str(flat_key)[:60]!r} has no readable keys "
+                              f"({first_line(error) or type(error).__name__}): not an orbax PyTree checkpoint") from None
 
 
 def _leaf_path(keys: tuple[str, ...], all_keys: list[tuple[str, ...]]) -> str:

@@ -502,14 +502,17 @@ class PI0ForActionGeneration(SiglipImageEmbedding, ActionSampling, PI0PreTrained
         for name, value in checked.items():
             _check_tensor(name, value, shapes.get(name, (batch, config.action_horizon, config.action_dim)), floating=True, finite=False, device=device)
 
-        # the one read: pixel range, token id range, finiteness, cameras shown and text tokens per sample
-        ranges = torch.cat([torch.stack(pixel_values.aminmax()).float(), torch.stack(input_ids.aminmax()).float()])
+        # the one read: pixel range, token id range, flow-time range, finiteness, cameras shown and text tokens per sample
+        time = checked.get("time")
+        ranges = torch.cat([torch.stack(pixel_values.aminmax()).float(), torch.stack(input_ids.aminmax()).float(),
+                            torch.stack(time.aminmax()).float() if time is not None else torch.zeros(2, device=pixel_values.device)])
         finite = [torch.isfinite(value).all() for value in checked.values()]
         read = torch.cat([
             ranges, torch.stack(finite).float() if finite else ranges.new_empty(0), image_masks.flatten().float(),
             attention_mask.sum(dim=1).float(),
         ]).cpu().tolist()
-        pixel_low, pixel_high, id_low, id_high = read[:4]
+        pixel_low, pixel_high, id_low, id_high, time_low, time_high = read[:6]
+        read = read[6:]
         if not -1.001 <= pixel_low <= pixel_high <= 1.001:  # (NaN fails every comparison)
             raise ValueError(
                 f"pixel_values must lie in [-1, 1] (uint8 images map to x / 255 * 2 - 1), got range [{pixel_low:.4g}, {pixel_high:.4g}]"
@@ -519,10 +522,13 @@ class PI0ForActionGeneration(SiglipImageEmbedding, ActionSampling, PI0PreTrained
                 f"input_ids must be token ids in [0, vocab_size={config.vocab_size}), got values in "
                 f"[{int(id_low)}, {int(id_high)}] (a tokenizer larger than the model's vocabulary?)"
             )
-        for (name, value), is_finite in zip(checked.items(), read[4 : 4 + len(checked)]):
+        for (name, value), is_finite in zip(checked.items(), read[: len(checked)]):
             if not is_finite:
                 raise nonfinite_error(name, value)
-        masks_start = 4 + len(checked)
+        if time is not None and not 0.0 < time_low <= time_high <= 1.0:  # (a non-finite one is named above)
+            raise ValueError(f"time: flow times must lie in (0, 1] (1 is noise, 0 the actions), got values in "
+                             f"[{time_low:.4g}, {time_high:.4g}]")
+        masks_start = len(checked)
         cameras = config.num_cameras
         shown = read[masks_start : masks_start + batch * cameras]
         return InputFacts(

@@ -98,6 +98,8 @@ class PI0Processor:
         image_size: the model's square image size (224).
         max_token_len: prompt length in tokens (48 for π0, 200 for π0.5).
         pi05: True for π0.5's prompt (`Task: ..., State: ...;\\nAction: ` with the discretized state).
+        state_in_prompt: π0.5 only: whether the discretized state is in the prompt (openpi's `discrete_state_input`;
+            default True). openpi's `pi05_libero` was trained without it: its prompt is then π0's (`bos + text + "\\n"`).
         norm_mode: `"zscore"`, `"quantile"` or `"none"`; default quantile for π0.5, z-score for π0 (as openpi).
         norm_stats: `{"state": NormStats, "actions": NormStats}` at the robot's dims, or a path to openpi's
             `norm_stats.json` (file, folder or checkpoint step folder). Required unless `norm_mode="none"`. Stats
@@ -127,6 +129,7 @@ class PI0Processor:
         image_size: int = 224,
         max_token_len: int = 48,
         pi05: bool = False,
+        state_in_prompt: bool | None = None,
         norm_mode: str | None = None,
         norm_stats: Mapping[str, NormStats] | str | Path | None = None,
         state_dim: int | None = None,
@@ -148,6 +151,9 @@ class PI0Processor:
         self.image_size = int(image_size)
         self.max_token_len = int(max_token_len)
         self.pi05 = bool(pi05)
+        self.state_in_prompt = self.pi05 if state_in_prompt is None else bool(state_in_prompt)
+        if self.state_in_prompt and not self.pi05:
+            raise ValueError("state_in_prompt applies to π0.5 (pi05=True); π0 feeds the state to the action expert")
         self.norm_mode = norm_mode if norm_mode is not None else ("quantile" if self.pi05 else "zscore")
         if self.norm_mode not in NORM_MODES:
             raise ValueError(f"norm_mode must be one of {NORM_MODES}, got {self.norm_mode!r}")
@@ -256,6 +262,7 @@ class PI0Processor:
             "image_size": self.image_size,
             "max_token_len": self.max_token_len,
             "pi05": self.pi05,
+            "state_in_prompt": self.state_in_prompt,
             "norm_mode": self.norm_mode,
             "state_dim": self.state_dim,
             "action_dim_robot": self.action_dim_robot,
@@ -402,7 +409,13 @@ class PI0Processor:
                 return None
             if isinstance(value, (list, tuple)) or (hasattr(value, "shape") and not isinstance(value, str)):
                 if len(value) != size:
-                    raise ValueError(f"{name}: batch of {len(value)} but state has a batch of {size}")
+                    one_frame = name.startswith("images") and len(getattr(value, "shape", ())) == 3
+                    what = f"one frame {tuple(value.shape)}" if one_frame else f"a batch of {len(value)}"
+                    raise ValueError(
+                        f"{name}: {what}, but state {list(state_array.shape)} is a batch of {size} (2-D: one row per "
+                        f"observation); pass the state as a vector [{self.state_dim}] for one observation, or a batch "
+                        f"of {size} for each input"
+                    )
                 return value[i]
             raise ValueError(
                 f"{name}: expected a batch (list or array) of {size} for a batched state, got {type(value).__name__}"
@@ -430,7 +443,7 @@ class PI0Processor:
         prompt = self._prompt(sample, where)
         try:
             input_ids, attention_mask = self.tokenizer.tokenize(
-                prompt, self.max_token_len, normalized_state if self.pi05 else None, self.truncation
+                prompt, self.max_token_len, normalized_state if self.state_in_prompt else None, self.truncation
             )
         except ValueError as error:
             raise ValueError(f"{where}{error}") from None

@@ -114,6 +114,11 @@ class PromptTokenizer:
         """
         if not isinstance(prompt, str):
             raise ValueError(f"prompt: expected a string, got {type(prompt).__name__}")
+        try:
+            prompt.encode("utf-8")
+        except UnicodeEncodeError as error:  # a lone surrogate ("\ud800abc"): the tokenizers fail on it with no reason
+            raise ValueError(f"prompt: not valid text: {prompt[error.start:error.end]!r} at position {error.start} "
+                             "is half of a UTF-16 surrogate pair (a decoding error upstream?)") from None
         text = clean_prompt(prompt)
         if not text.strip():
             raise ValueError(f"prompt: empty after cleaning (got {prompt!r}); give the task instruction")

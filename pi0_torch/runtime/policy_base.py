@@ -29,6 +29,7 @@ from pi0_torch.runtime.action_safety import UnsafeActionsError, non_finite_count
 from pi0_torch.runtime.observation_formats import CHUNK_FIELDS, ObservationError
 from pi0_torch.runtime.policy_settings import SETTINGS_FILE, PolicySettings
 from pi0_torch.shipped_policy import policy_location
+from pi0_torch.utils.hardware import usable_device
 from pi0_torch.utils.threads import MAX_THREADS, set_threads
 from pi0_torch.utils.validation import check_int, first_line
 
@@ -132,7 +133,7 @@ class BasePolicy(abc.ABC):
         if threads is not None:
             check_int("threads", threads, minimum=1, maximum=MAX_THREADS)
         settings = PolicySettings.load(directory)
-        device = torch.device(device if device is not None else ("cuda" if torch.cuda.is_available() else "cpu"))
+        device = usable_device(device)
         if dtype is None:
             dtype = torch.bfloat16 if device.type == "cuda" else torch.float32
         elif isinstance(dtype, str):

@@ -11,6 +11,8 @@ doctor's timing column) [`bf16_unsupported`] says why, from what torch and the C
 
 >>> bf16_unsupported(torch.device("meta")) is None  # nothing runs there
 True
+
+[`usable_device`] turns a `--device` / `device=` value into a device this torch can run, or one line saying why not.
 """
 
 from __future__ import annotations
@@ -24,6 +26,38 @@ import torch
 
 X86 = ("x86_64", "amd64", "i386", "i686")
 ARM = ("aarch64", "arm64")
+
+
+def usable_device(device: str | torch.device | None, name: str = "device") -> torch.device:
+    """`device` as a `torch.device` this torch and machine can use (None: CUDA when present, else the CPU); a
+    `ValueError` naming `name` otherwise: not a device string (`tpu`), CUDA with a torch built without it or no GPU
+    visible, a GPU index past the last one.
+
+    >>> usable_device("cpu")
+    device(type='cpu')
+    >>> usable_device("tpu", "--device")
+    Traceback (most recent call last):
+        ...
+    ValueError: --device: 'tpu' is not a torch device (cpu, cuda, cuda:1, mps, ...)
+    """
+    if device is None:
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        resolved = torch.device(device)
+    except (RuntimeError, TypeError):
+        raise ValueError(f"{name}: {str(device)!r:.40} is not a torch device (cpu, cuda, cuda:1, mps, ...)") from None
+    if resolved.type == "cuda":
+        if torch.version.cuda is None and not torch.cuda.is_available():
+            raise ValueError(f"{name}: {resolved}: this torch ({torch.__version__}) is built without CUDA")
+        if not torch.cuda.is_available():
+            raise ValueError(f"{name}: {resolved}: no CUDA GPU is visible to this torch ({torch.__version__})")
+        if resolved.index is not None and resolved.index >= torch.cuda.device_count():
+            raise ValueError(f"{name}: {resolved}: there are {torch.cuda.device_count()} CUDA GPUs")
+    elif resolved.type == "mps" and not torch.backends.mps.is_available():
+        raise ValueError(f"{name}: mps: Apple's Metal backend is not available here")
+    elif resolved.type not in ("cpu", "cuda", "mps", "meta"):
+        raise ValueError(f"{name}: {resolved.type}: pi0-torch runs on cpu, cuda or mps")
+    return resolved
 
 
 def bf16_unsupported(device: torch.device) -> str | None:
