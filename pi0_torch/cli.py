@@ -14,19 +14,19 @@ import json
 import sys
 from typing import Any
 
-from pi0_torch.utils.extras import MissingExtraError
+from pi0_torch.utils.extras import MissingExtraError, require_extra
 
-# subcommand -> (module, one-line help)
-COMMANDS: dict[str, tuple[str, str]] = {
-    "demo": ("pi0_torch.demo", "Run the shipped demo policy in closed loop on held-out tabletop episodes: success rates and a video."),
-    "convert": ("pi0_torch.conversion.convert", "Convert openpi / LeRobot / transformers checkpoints to pi0-torch folders (and π0 to transformers)."),
-    "train": ("pi0_torch.training.trainer", "Fine-tune π0 / π0.5 / π0-FAST on a LeRobot dataset with the Hugging Face Trainer (openpi's recipe)."),
-    "eval": ("pi0_torch.runtime.rollout", "Closed-loop rollouts of a policy (local or ws://) in gymnasium envs: success with 95% intervals."),
-    "consolidate": ("pi0_torch.training.fsdp", "Turn a sharded checkpoint of `train --fsdp` into a model folder (one process)."),
-    "serve": ("pi0_torch.runtime.serving", "Serve a policy over openpi's websocket protocol (openpi-client compatible)."),
-    "bench": ("pi0_torch.benchmark", "Time generate_actions, a training step and loading; compare with transformers' PI0."),
-    "doctor": ("pi0_torch.doctor", "Check every sampling path of this install on this machine against its reference: one table, pass or FAIL."),
-    "demos": ("pi0_torch.envs.demos", "Record scripted-expert demonstrations of a tabletop env as a LeRobot v3.0 dataset."),
+# subcommand -> (module, one-line help, the extras it needs: checked before its module is imported)
+COMMANDS: dict[str, tuple[str, str, tuple[str, ...]]] = {
+    "demo": ("pi0_torch.demo", "Run the shipped demo policy in closed loop on held-out tabletop episodes: success rates and a video.", ("envs",)),
+    "convert": ("pi0_torch.conversion.convert", "Convert openpi / LeRobot / transformers checkpoints to pi0-torch folders (and π0 to transformers).", ()),
+    "train": ("pi0_torch.training.trainer", "Fine-tune π0 / π0.5 / π0-FAST on a LeRobot dataset with the Hugging Face Trainer (openpi's recipe).", ("train",)),
+    "eval": ("pi0_torch.runtime.rollout", "Closed-loop rollouts of a policy (local or ws://) in gymnasium envs: success with 95% intervals.", ()),
+    "consolidate": ("pi0_torch.training.fsdp", "Turn a sharded checkpoint of `train --fsdp` into a model folder (one process).", ("train",)),
+    "serve": ("pi0_torch.runtime.serving", "Serve a policy over openpi's websocket protocol (openpi-client compatible).", ("serve",)),
+    "bench": ("pi0_torch.benchmark", "Time generate_actions, a training step and loading; compare with transformers' PI0.", ()),
+    "doctor": ("pi0_torch.doctor", "Check every sampling path of this install on this machine against its reference: one table, pass or FAIL.", ()),
+    "demos": ("pi0_torch.envs.demos", "Record scripted-expert demonstrations of a tabletop env as a LeRobot v3.0 dataset.", ("train", "envs")),
 }
 
 
@@ -52,19 +52,40 @@ def json_object(text: str) -> dict[str, Any]:
 def build_parser(argv: list[str]) -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="pi0-torch", description="π0 / π0.5 in PyTorch: everyday jobs.")
     subparsers = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for name, (module_name, help_text) in COMMANDS.items():
+    for name, (module_name, help_text, extras) in COMMANDS.items():
         # argparse %-formats help strings (not descriptions): a literal % ("95% intervals") must be doubled there
         sub = subparsers.add_parser(name, help=help_text.replace("%", "%%"), description=help_text)
         sub.set_defaults(_module=module_name)
-        if argv[:1] == [name]:  # only the chosen command's module is imported
-            importlib.import_module(module_name).add_arguments(sub)
+        if argv[:1] == [name]:  # only the chosen command's module is imported, once its extras are there
+            missing = _missing_extra(extras, name)
+            if missing is None:
+                importlib.import_module(module_name).add_arguments(sub)
+            else:  # --help still works, and says what to install
+                sub.description = f"{help_text}\n\n{missing.message(f'pi0-torch {name}')} (its options are listed once it is installed)"
+                sub.set_defaults(_missing=missing)
     return parser
+
+
+def _missing_extra(extras: tuple[str, ...], command: str) -> MissingExtraError | None:
+    """The first module of `extras` that is not installed (found without importing anything), or None."""
+    for extra in extras:
+        try:
+            require_extra(extra, f"pi0-torch {command}")
+        except MissingExtraError as error:
+            return error
+    return None
 
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     try:
-        args = build_parser(argv).parse_args(argv)
+        parser = build_parser(argv)
+        args, unknown = parser.parse_known_args(argv)  # (--help exits here, a missing extra's included)
+        missing = getattr(args, "_missing", None)
+        if missing is not None:  # at once, before torch or any other heavy import
+            raise missing
+        if unknown:
+            parser.parse_args(argv)  # argparse's own one-line error for the unknown options
         return int(importlib.import_module(args._module).run(args) or 0)
     except MissingExtraError as error:  # the command's module, or what it runs, needs an extra that is not installed
         print(error.message(f"pi0-torch {argv[0]}"), file=sys.stderr)

@@ -117,6 +117,9 @@ def test_weights_stored_as_another_kind_refuse_to_load(tiny_pi0: PI0ForActionGen
     save_file(weights, tmp_path / "model.safetensors", metadata={"format": "pt"})
     with pytest.raises(ValueError, match=rf"not floating-point: action_out_proj[.]weight \({stored}\)$"):
         PI0ForActionGeneration.from_pretrained(tmp_path)
+    tiny_pi0.to(torch.bfloat16).save_pretrained(tmp_path)  # (BF16 is floating: it loads)
+    tiny_pi0.float()
+    assert PI0ForActionGeneration.from_pretrained(tmp_path).dtype == torch.bfloat16
 
 
 @pytest.mark.parametrize("time", [2.0, 0.0, -0.5])

@@ -78,3 +78,15 @@ def test_fast_tokenizer_for_a_pi0_checkpoint_is_refused(tmp_path: Path) -> None:
     with pytest.raises(ConversionError, match="unusable FAST tokenizer"):
         convert_openpi_checkpoint(FAST_DIR / "ckpt" / "0", tmp_path / "out", fast_tokenizer=tmp_path, progress=False)
     assert not (tmp_path / "out").exists()
+
+
+def test_the_summary_names_what_the_processor_lacks_and_tokenizers_by_name(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """Issue 38.18: with norm stats and --tokenizer found, the summary said the processor needed them (it lacked
+    --fast-tokenizer); `--tokenizer test` with --fast-tokenizer was refused naming an object repr."""
+    common = ["convert", "--from", "openpi", "--input", str(FAST_DIR / "ckpt" / "0"), "--no-progress"]
+    assert cli_main([*common, "--output-dir", str(tmp_path / "a"), "--tokenizer", str(FAST_DIR / "tokenizer.model")]) == 0
+    assert "processor: none: it needs --fast-tokenizer\n" in capsys.readouterr().out
+    assert cli_main([*common, "--output-dir", str(tmp_path / "b"), "--tokenizer", "test", "--fast-tokenizer",
+                     str(FAST_DIR / "fast_tokenizer")]) == 1
+    error = capsys.readouterr().err
+    assert error.startswith("error: cannot build the processor with --tokenizer test: FAST ids") and " object at 0x" not in error

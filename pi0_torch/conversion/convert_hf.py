@@ -32,6 +32,7 @@ from pi0_torch.conversion.output_folder import (
     ConversionResult,
     ShardedSafetensorsWriter,
     build_processor,
+    processor_inputs_missing,
     check_disk_space,
     check_output,
     check_tokenizer,
@@ -349,7 +350,7 @@ def convert_hf_checkpoint(
         save_config(config, torch_dtype, out)
         write_processor_files(out, processor, stats, tokenizer)
     return ConversionResult(output_dir, config, torch_dtype, [output_dir / n for n in writer.filenames], writer.total_bytes,
-                            stats_path, weights.dropped, processor=processor is not None)
+                            stats_path, weights.dropped, processor_missing=processor_inputs_missing(config, stats, tokenizer))
 
 
 def lerobot_norm_stats(folder: Path) -> tuple[Path, dict[str, NormStats]] | None:

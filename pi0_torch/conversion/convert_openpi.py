@@ -28,6 +28,7 @@ from pi0_torch.conversion.output_folder import (
     ConversionResult,
     ShardedSafetensorsWriter,
     build_processor,
+    processor_inputs_missing,
     check_disk_space,
     check_output,
     check_tokenizer,
@@ -121,7 +122,7 @@ def convert_openpi_checkpoint(
         if processor is None and action_tokenizer is not None:
             action_tokenizer.save_pretrained(folder / FAST_TOKENIZER_DIR)
     return ConversionResult(output_dir, config, torch_dtype, [output_dir / n for n in writer.filenames], writer.total_bytes,
-                            norm_stats_path, processor=processor is not None)
+                            norm_stats_path, processor_missing=processor_inputs_missing(config, norm_stats, tokenizer, action_tokenizer))
 
 
 def find_norm_stats(step_dir: Path, asset_id: str | None = None) -> Path | None:

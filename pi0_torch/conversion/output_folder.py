@@ -299,17 +299,28 @@ def build_processor(
     before any weight is written so that a bad setting fails fast. `processor_options` (`delta_action_mask`,
     `value_conversion`) need all of them."""
     fast = isinstance(config, PI0FastConfig)
-    if tokenizer is None or norm_stats is None or (fast and fast_tokenizer is None):
+    missing = processor_inputs_missing(config, norm_stats, tokenizer, fast_tokenizer)
+    if missing:
         if processor_options:
-            needed = "--tokenizer, --fast-tokenizer" if fast else "--tokenizer"
-            raise ConversionError(f"processor settings {sorted(processor_options)} need {needed} and norm stats")
+            raise ConversionError(f"processor settings {sorted(processor_options)} need {' and '.join(missing)}")
         return None
     try:
         if fast:
             return PI0FastProcessor.from_config(config, tokenizer, fast_tokenizer, norm_stats, **(processor_options or {}))
         return PI0Processor.from_config(config, tokenizer=tokenizer, norm_stats=norm_stats, **(processor_options or {}))
     except (ValueError, OSError, TypeError) as error:
-        raise ConversionError(f"cannot build the processor with tokenizer {tokenizer}: {error}") from None
+        given = TEST_TOKENIZER if isinstance(tokenizer, PromptTokenizer) else tokenizer  # (its source, not an object repr)
+        raise ConversionError(f"cannot build the processor with --tokenizer {given}: {error}") from None
+
+
+def processor_inputs_missing(
+    config: PI0Config | PI0FastConfig, norm_stats: Any, tokenizer: Any, fast_tokenizer: Any = None
+) -> list[str]:
+    """What a processor still needs ("norm stats", "--tokenizer", π0-FAST's "--fast-tokenizer"); empty: nothing."""
+    needed = {"norm stats": norm_stats, "--tokenizer": tokenizer}
+    if isinstance(config, PI0FastConfig):
+        needed["--fast-tokenizer"] = fast_tokenizer
+    return [name for name, value in needed.items() if value is None]
 
 
 def write_processor_files(
@@ -341,7 +352,7 @@ class ConversionResult:
     weight_bytes: int
     norm_stats: Path | None = None
     dropped: list[str] = field(default_factory=list)  # source tensors deliberately not converted
-    processor: bool = False  # whether the processor files (tokenizer, norm stats, settings) were written
+    processor_missing: list[str] = field(default_factory=list)  # what the processor lacked (empty: it was written)
 
     def summary(self) -> str:
         kind = "π0-FAST" if isinstance(self.config, PI0FastConfig) else "π0.5" if self.config.pi05 else "π0"
@@ -350,8 +361,9 @@ class ConversionResult:
             f"wrote {self.output_dir}: {kind}, {_human(params)} parameters, {_human(self.weight_bytes)}B of "
             f"{str(self.dtype).removeprefix('torch.')} weights in {len(self.weight_files)} file(s)",
             f"norm stats: {self.norm_stats or 'none found'}",
-            "processor: " + ("written (PI0Processor.from_pretrained loads it)" if self.processor else
-                             "none (it needs norm stats and --tokenizer: PaliGemma's SentencePiece file, or test)"),
+            "processor: " + (f"none: it needs {' and '.join(self.processor_missing)}"
+                             + (" (--tokenizer: PaliGemma's SentencePiece file, or test)" if "--tokenizer" in self.processor_missing else "")
+                             if self.processor_missing else "written (PI0Processor.from_pretrained loads it)"),
         ]
         if self.dropped:
             lines.append(f"not converted (unused by the model): {name_list(self.dropped, 6)}")

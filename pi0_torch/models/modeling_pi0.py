@@ -142,7 +142,7 @@ def _non_floating_weights(location: Any, subfolder: str | None, model: nn.Module
         with safe_open(str(path), "pt") as checkpoint:
             for name in checkpoint.keys():
                 dtype = checkpoint.get_slice(name).get_dtype()
-                if name in floating and (dtype[0] in "IUB" or dtype.startswith("F8")):
+                if name in floating and (dtype == "BOOL" or dtype[0] in "IU" or dtype.startswith("F8")):  # (not BF16)
                     found.append(f"{name} ({dtype})")
     return sorted(found)
 
