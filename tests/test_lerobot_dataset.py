@@ -2,10 +2,14 @@
 
 from __future__ import annotations
 
+import io
 import json
 import logging
 import pickle
 import shutil
+import struct
+import zlib
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -13,8 +17,10 @@ import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
+from PIL import Image
 
 from pi0_torch.data.lerobot_dataset import (
+    MAX_TEMPLATE_WIDTH,
     LeRobotDatasetError,
     LeRobotEpisodeDataset,
     VideoFrameReader,
@@ -278,7 +284,8 @@ def test_mismatched_feature_shapes(copy_of) -> None:
     info["features"][CAMERA_KEY]["shape"] = [48, 48, 3]
     info_path.write_text(json.dumps(info))
     dataset = LeRobotEpisodeDataset(root, HORIZON, progress=False)
-    with pytest.raises(LeRobotDatasetError, match=r"decoded frame has shape \(32, 32, 3\).*\(48, 48, 3\)"):
+    with pytest.raises(LeRobotDatasetError, match=r"episode 0 frame 0, camera 'observation.images.base': the image is "
+                                                  r"32 x 32 \(height x width\), but meta/info.json declares 48 x 48"):
         dataset[0]
     with pytest.raises(LeRobotDatasetError, match="state_key 'observation.joints' is not a feature"):
         LeRobotEpisodeDataset(root, HORIZON, state_key="observation.joints", progress=False)
@@ -352,3 +359,160 @@ def test_paths_the_dataset_names_stay_inside_it(where: str, copy_of, tmp_path: P
     (root / "meta" / "info.json").write_text(json.dumps(info))
     with pytest.raises(LeRobotDatasetError, match=f"meta/info.json {key} '../.*' leads outside the dataset folder"):
         LeRobotEpisodeDataset(root, HORIZON, progress=False)
+
+
+# ---------------------------------------------------------------------------------------------------- malformed inputs (issue 38)
+
+
+def _replace_column(path: Path, name: str, values: list) -> None:
+    table = pq.read_table(path)
+    column = pa.array(values, table.schema.field(name).type)
+    pq.write_table(table.set_column(table.schema.get_field_index(name), name, column), path)
+
+
+def _edit_info(root: Path, **changes: object) -> None:
+    info = json.loads((root / "meta" / "info.json").read_text())
+    (root / "meta" / "info.json").write_text(json.dumps({**info, **changes}))
+
+
+def _timestamps(root: Path, change: Callable[[np.ndarray], np.ndarray]) -> None:
+    """Change the parquet timestamps of episode 1 (frames 12..20 of file-000: episode 0 has 12 frames)."""
+    path = root / "data" / "chunk-000" / "file-000.parquet"
+    values = pq.read_table(path)["timestamp"].to_numpy().astype(np.float64)
+    values[12:21] = change(values[12:21])
+    _replace_column(path, "timestamp", values.tolist())
+
+
+def _from_timestamp(root: Path, value: float) -> None:
+    path = root / "meta" / "episodes" / "chunk-000" / "file-000.parquet"
+    episodes = pd.read_parquet(path)
+    episodes.loc[episodes["episode_index"] == 1, f"videos/{CAMERA_KEY}/from_timestamp"] = value
+    episodes.to_parquet(path)
+
+
+TIMESTAMP_FILE = "data/chunk-000/file-000.parquet: episode 1 frame"
+BROKEN_VIDEO_TIMES = {  # how the video times of episode 1 are broken -> what the refusal says
+    "timestamps all 0": (lambda root: _timestamps(root, np.zeros_like),
+                         rf"{TIMESTAMP_FILE} 1 has timestamp 0 s, but its video frame is at 0.1 s .*8 of 9 frames"),
+    "timestamps one frame late": (lambda root: _timestamps(root, lambda t: t + 0.1),
+                                  rf"{TIMESTAMP_FILE} 0 has timestamp 0.1 s, but its video frame is at 0 s"),
+    "timestamps 0.6 frame early": (lambda root: _timestamps(root, lambda t: t - 0.06), rf"{TIMESTAMP_FILE} 0 has timestamp -0.06 s"),
+    "timestamps with a NaN": (lambda root: _timestamps(root, lambda t: np.where(np.arange(len(t)) == 4, np.nan, t)),
+                        rf"{TIMESTAMP_FILE} 4 has timestamp nan s"),
+    "timestamps with an inf": (lambda root: _timestamps(root, lambda t: np.where(np.arange(len(t)) == 2, np.inf, t)),
+                              rf"{TIMESTAMP_FILE} 2 has timestamp inf s"),
+    "from_timestamp null": (lambda root: _from_timestamp(root, float("nan")),
+                           rf"meta/episodes/chunk-000/file-000.parquet: episode 1 has videos/{CAMERA_KEY}/from_timestamp None"),
+    "from_timestamp negative": (lambda root: _from_timestamp(root, -1.0), "episode 1 has .*from_timestamp -1.0; expected"),
+}
+
+
+@pytest.mark.parametrize("broken", sorted(BROKEN_VIDEO_TIMES))
+def test_video_times_that_select_other_frames_are_refused(broken: str, copy_of) -> None:
+    """Issue 38.10: with the parquet timestamps at 0 an episode read its first video frame for every sample (1
+    distinct frame of 18) and training went on. A timestamp more than half a frame from frame_index / fps, or not
+    finite, is refused when the dataset is opened, naming the data file, episode, frame, camera and video file."""
+    root = copy_of("video")
+    change, expected = BROKEN_VIDEO_TIMES[broken]
+    change(root)
+    with pytest.raises(LeRobotDatasetError, match=expected) as refused:
+        LeRobotEpisodeDataset(root, HORIZON, progress=False)
+    if broken.startswith("timestamps"):  # the data file's: it names the camera and video file; other episodes load
+        assert f"'{CAMERA_KEY}' ({root / 'videos' / CAMERA_KEY / 'chunk-000' / 'file-000.mp4'})" in str(refused.value)
+        LeRobotEpisodeDataset(root, HORIZON, episodes=[0, 2, 3, 4, 5], progress=False)
+    image_only = copy_of("image")  # timestamps select nothing in a dataset of images: not checked
+    _timestamps(image_only, np.zeros_like)
+    LeRobotEpisodeDataset(image_only, HORIZON, progress=False)
+
+
+def test_timestamps_within_half_a_frame_select_the_same_frames(copy_of) -> None:
+    """Jitter of less than half a frame still selects the recorded frames (LeRobot's reader tolerance then applies)."""
+    root = copy_of("video")
+    reference = LeRobotEpisodeDataset(root, HORIZON, episodes=[1], progress=False)
+    _timestamps(root, lambda t: t + 0.04)
+    jittered = LeRobotEpisodeDataset(root, HORIZON, episodes=[1], video_tolerance_s=0.045, progress=False)
+    for index in range(len(reference)):
+        np.testing.assert_array_equal(jittered[index]["images"][CAMERA_KEY], reference[index]["images"][CAMERA_KEY])
+
+
+BAD_INFO = {  # meta/info.json field -> values refused by name, and what the refusal says
+    "fps": [(0, r"fps must be a finite number > 0, got 0"), (-10, "fps must be .* got -10"),
+            (float("nan"), "got nan"), ("30", r"got '30' \(str\)"), (True, r"\(bool\)")],
+    "data_path": [
+        (5, r"data_path must be a path template string .* got 5 \(int\)"),
+        (None, r"data_path must be a path template string .* got None"),
+        ("data/{nope}.parquet", r"data_path 'data/\{nope\}.parquet' names the field \{nope\}; its fields are chunk_index, file_index"),
+        ("data/{0}.parquet", r"names the field \{0\}"),
+        ("data/{chunk_index.__class__}.parquet", r"names the field \{chunk_index.__class__\}"),
+        ("data/{chunk_index:0200000000d}.parquet", r"asks for a width of 200000000 characters in \{chunk_index:0200000000d\}"),
+        ("data/{chunk_index:.999f}.parquet", f"asks for a width of 999 characters .* at most {MAX_TEMPLATE_WIDTH}"),
+        ("data/{chunk_index:{file_index}d}.parquet", r"nests a field"),
+        ("data/{chunk_index:s}.parquet", r"cannot be filled \(Unknown format code 's'"),
+        ("data/{chunk_index.parquet", r"is not a format string"),
+        ("data/" + "x" * 5000, r"data_path 'data/x+ makes paths of 5005 characters; a path has at most 4096"),
+        ("data/{chunk_index:032d}" * 200, r"makes paths of 7400 characters"),
+    ],
+    "video_path": [("videos/{video_key}/{episode_index}.mp4", r"video_path .* names the field \{episode_index\}; its fields "
+                                                               r"are video_key, chunk_index, file_index"),
+                   (7, "video_path must be a path template string")],
+}
+
+
+@pytest.mark.parametrize("field, value, expected", [(f, v, e) for f, cases in BAD_INFO.items() for v, e in cases],
+                         ids=lambda x: str(x)[:40])
+def test_info_fields_are_refused_by_name(field: str, value: object, expected: str, copy_of) -> None:
+    """Issue 38.14 / 38.15: `{chunk_index:0200000000d}` built a 200 MB path per episode (17.8 s, +1.3 GB) before
+    failing, `{nope}` and `5` gave tracebacks, fps 0 and -10 were accepted. Each is refused by name at once."""
+    root = copy_of("video")
+    _edit_info(root, **{field: value})
+    with pytest.raises(LeRobotDatasetError, match=rf"meta/info.json: .*{expected}"):
+        LeRobotEpisodeDataset(root, HORIZON, progress=False)
+
+
+def _png(width: int, height: int, pixels: bytes = b"\x00" * 16) -> bytes:
+    """A PNG file whose header says `width` x `height` RGB, with the (compressed) data `pixels`: opening it reads
+    only the header, decoding it fails unless the data is whole."""
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+    header = struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0)
+    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", pixels) + chunk(b"IEND", b"")
+
+
+def _png_bytes(pixels: np.ndarray) -> bytes:
+    buffer = io.BytesIO()
+    Image.fromarray(pixels).save(buffer, format="PNG")
+    return buffer.getvalue()
+
+
+BAD_CELLS = {  # the image cell of episode 1 frame 2 -> what the refusal says after "episode 1 frame 2, camera ...: "
+    "null": (None, r"the image cell is empty \(None\)"),
+    "neither bytes nor path": ({"bytes": None, "path": None}, "the image cell is empty"),
+    "not an image": ({"bytes": b"hello, not a PNG", "path": None}, r"the image cell holds no usable image \(cannot identify"),
+    "a truncated PNG": ({"bytes": _png(32, 32), "path": None}, "the image cell holds no usable image"),
+    "20000 x 20000": ({"bytes": _png(20000, 20000), "path": None}, r"Image size \(400000000 pixels\) exceeds limit .*"
+                      r"meta/info.json declares 32 x 32"),
+    "9000 x 9000": ({"bytes": _png(9000, 9000), "path": None}, r"the image is 9000 x 9000 \(height x width\), but "
+                    r"meta/info.json declares 32 x 32; refused before decoding"),
+    "16-bit": ({"bytes": _png_bytes(np.full((32, 32), 4000, np.uint16)), "path": None},
+               r"the image cell holds no usable image \(the image: a PIL image of mode 'I;16' \(integer pixels"),
+    "a missing file": ({"bytes": None, "path": "images/gone.png"}, r"the image cell holds no usable image \(.*No such file"),
+}
+
+
+@pytest.mark.parametrize("cell", sorted(BAD_CELLS))
+def test_image_cells_that_hold_no_frame_are_refused_naming_episode_and_camera(cell: str, copy_of) -> None:
+    """Issue 38.15: a null cell, a cell that is no image and a 20000 x 20000 PNG gave tracebacks (or a decode of
+    1.2 GB), a 16-bit PNG (a depth camera) was clipped to white. Each is refused naming the data file, episode,
+    frame and camera; the size is checked from the header, before decoding (the truncated 9000 x 9000 PNG would
+    fail to decode: its refusal is the size's)."""
+    root = copy_of("image")
+    path = root / "data" / "chunk-000" / "file-000.parquet"
+    cells = pq.read_table(path)[CAMERA_KEY].to_pylist()
+    value, expected = BAD_CELLS[cell]
+    cells[LENGTHS[0] + 2] = value
+    _replace_column(path, CAMERA_KEY, cells)
+    dataset = LeRobotEpisodeDataset(root, HORIZON, progress=False)
+    dataset[LENGTHS[0] + 1]  # the frame before is whole
+    with pytest.raises(LeRobotDatasetError, match=rf"file-000.parquet: episode 1 frame 2, camera '{CAMERA_KEY}': {expected}"):
+        dataset[LENGTHS[0] + 2]

@@ -1,40 +1,50 @@
-"""Issue 28, classes 2, 5, 6 and 9: what `pi0-torch train` does with its output folder, its checkpoints and the
-model folder it fine-tunes.
+"""Issue 28, classes 2, 5, 6 and 9, and issue 38, classes 10, 11 and 15: what `pi0-torch train` does with its
+output folder, its checkpoints and the model folder it fine-tunes.
 
 - a fresh run never writes into another run's folder (unless `--overwrite`, which removes that run first);
 - re-running a finished run with `latest` trains nothing and rewrites nothing;
 - `latest` skips any checkpoint that cannot be resumed from, naming it, and never suggests unpickling;
-- resuming with other model settings names them;
+- resuming with other model settings names them; with other run settings it refuses them by name or applies them
+  and says so;
+- a save that fails on a full disk says so, leaves nothing half-written, and resuming continues the run;
 - fine-tuning from a model folder keeps every processor setting unless a flag overrides it (with a warning);
-- one corrupt value in a dataset is refused, naming its episode and frame.
+- one corrupt value in a dataset is refused, naming its episode and frame; so are video timestamps that would
+  select other frames (in one line from the command).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
+import re
 import shutil
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
 import pytest
 import torch
+from safetensors import SafetensorError
 from safetensors.torch import load_file
-from test_training import TINY, settings
+from test_training import TINY, losses, settings
 
 from pi0_torch.data.lerobot_dataset import LeRobotDatasetError, LeRobotEpisodeDataset
 from pi0_torch.data.lerobot_writer import EpisodeRecord, write_lerobot_dataset
-from pi0_torch.data.synthetic_data import write_synthetic_dataset
+from pi0_torch.data.synthetic_data import CAMERA_KEY, write_synthetic_dataset
 from pi0_torch.envs.demos import record_demos
+from pi0_torch.models.modeling_pi0 import PI0ForActionGeneration
 from pi0_torch.processing.normalization import NormStats
 from pi0_torch.processing.processing_pi0 import PI0Processor
 from pi0_torch.processing.tokenization import build_test_tokenizer
-from pi0_torch.training.checkpoints import TRAIN_SETTINGS_FILE, resolve_resume_checkpoint
+from pi0_torch.training import checkpoints
+from pi0_torch.training.checkpoints import TRAIN_SETTINGS_FILE, CheckpointSaveError, resolve_resume_checkpoint
 from pi0_torch.training.model_setup import run_processor_settings
-from pi0_torch.training.pi0_trainer import EMA_FILE
-from pi0_torch.training.settings import TrainSettings
-from pi0_torch.training.trainer import train_policy
+from pi0_torch.training.pi0_trainer import EMA_FILE, openpi_learning_rate
+from pi0_torch.training.settings import RESUME_APPLIED, RESUME_REFUSED, RESUME_UNCHECKED, TrainSettings
+from pi0_torch.training.trainer import main, train_policy
 from pi0_torch.utils.files import OutputPathError
 
 DEMO_POLICY = Path(__file__).resolve().parents[1] / "pi0_torch" / "demo_policy"
@@ -183,6 +193,156 @@ def test_resuming_with_other_model_settings_names_them(dataset_root: Path, finis
                               resume_from_checkpoint="latest"))
 
 
+# ---------------------------------------------------------------------------------------------------- resuming with other settings
+
+
+def test_every_setting_has_a_resume_rule() -> None:
+    """Issue 38.11: each setting a resumed run may change is either refused or applied (and logged); a new setting
+    must be put in one of the three groups."""
+    groups = (RESUME_REFUSED, RESUME_APPLIED, RESUME_UNCHECKED)
+    names = [name for group in groups for name in group]
+    assert sorted(names) == sorted(f.name for f in dataclasses.fields(TrainSettings))  # each once
+
+
+@pytest.fixture(scope="module")
+def other_dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return write_synthetic_dataset(tmp_path_factory.mktemp("other") / "reach", num_episodes=8, num_heldout=2,
+                                   episode_length=8, image_size=32, storage="image", seed=2)
+
+
+REFUSED_CHANGES = {  # a change of what the run is -> how the refusal names it
+    "another dataset": (lambda data: dict(dataset=str(data)), r"--dataset \S+/data\d*/reach there, \S+/other\d*/reach now"),
+    "lora": (lambda data: dict(lora=True, ema_decay=None), r"--lora False there, True now"),
+    "freeze vision": (lambda data: dict(freeze=["vision"]), r"--freeze \[\] there, \['vision'\] now"),
+    "norm stats of the model": (lambda data: dict(norm_stats="model"), r"--norm-stats dataset there, model now"),
+    "delta actions": (lambda data: dict(delta_action_mask=[True, False]), r"--delta-action-mask None there, \[True, False\] now"),
+    "camera": (lambda data: dict(camera_map={"base_0_rgb": CAMERA_KEY}), rf"--camera base_0_rgb \(unset\) there, {CAMERA_KEY} now"),
+    "batch size": (lambda data: dict(batch_size=8), r"--batch-size 4 there, 8 now"),
+    "seed": (lambda data: dict(seed=1), r"--seed 0 there, 1 now"),
+    "two at once": (lambda data: dict(seed=1, train_split="heldout"), r"--train-split train there, heldout now; --seed 0 there"),
+}
+
+
+@pytest.mark.parametrize("change", sorted(REFUSED_CHANGES))
+def test_resuming_refuses_a_change_of_what_the_run_is_by_name(change: str, dataset_root: Path, other_dataset: Path,
+                                                              finished_run: Path, tmp_path: Path) -> None:
+    """Issue 38.11: another --dataset was accepted without a word, `--norm-stats model` was recorded while the
+    checkpoint's statistics were used, `--lora` / `--freeze vision` failed on an optimizer size. A change of the
+    data, the model and its processor, what trains, or the batches is refused, naming each flag, before anything
+    is loaded or written."""
+    output = copy_run(finished_run, tmp_path)
+    before = tree(output)
+    changes, expected = REFUSED_CHANGES[change]
+    resumed = settings(dataset_root, output, max_steps=6, save_steps=2, ema_decay=0.9, resume_from_checkpoint="latest")
+    with pytest.raises(ValueError, match=rf"--resume-from-checkpoint \S+/checkpoint-4 continues a run with other settings: "
+                                         rf"{expected}.*: resume with the run's settings, or start a new --output-dir"):
+        train_policy(replace(resumed, **changes(other_dataset)))
+    assert tree(output) == before
+
+
+def test_resuming_applies_a_changed_schedule_and_intervals_and_says_so(dataset_root: Path, finished_run: Path,
+                                                                       tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """Issue 38.11: `--learning-rate 1.0 --warmup-steps 1` on resume kept the checkpoint's peak learning rate (in
+    the scheduler state), weight decay (in the optimizer state) and save interval (in the trainer state), without a
+    word. They now apply from the checkpoint's step on, a warning names each, and the checkpoints and the final
+    settings file record what was done."""
+    changed = settings(dataset_root, tmp_path / "resumed", max_steps=4, save_steps=1, ema_decay=0.5, learning_rate=1e-2,
+                       end_learning_rate=5e-3, warmup_steps=1, weight_decay=0.1,
+                       resume_from_checkpoint=str(finished_run / "checkpoint-2"))
+    with caplog.at_level(logging.WARNING):
+        result = train_policy(changed)
+    warning = next(r.getMessage() for r in caplog.records if "with changed settings" in r.getMessage())
+    for part in ("--learning-rate 0.001 -> 0.01", "--end-learning-rate 0.0001 -> 0.005", "--warmup-steps 2 -> 1",
+                 "--weight-decay 1e-10 -> 0.1", "--ema-decay 0.9 -> 0.5", "--save-steps 2 -> 1"):
+        assert part in warning, warning
+    rates = {entry["step"]: entry["learning_rate"] for entry in result["log_history"] if "learning_rate" in entry}
+    for step in (3, 4):  # the logged rate of step k is the schedule at optimizer step k - 1
+        assert rates[step] == pytest.approx(openpi_learning_rate(step - 1, 1e-2, 1, 4, 5e-3), rel=1e-6)
+    output = Path(result["output_dir"])
+    assert sorted(p.name for p in output.glob("checkpoint-*")) == ["checkpoint-3", "checkpoint-4"]  # every step now
+    groups = torch.load(output / "checkpoint-4" / "optimizer.pt", weights_only=True)["param_groups"]
+    assert [g["weight_decay"] for g in groups] == [0.1, 0.0] and {g["initial_lr"] for g in groups} == {1e-2}
+    for record in (output / "checkpoint-4" / TRAIN_SETTINGS_FILE, output / TRAIN_SETTINGS_FILE):
+        saved = json.loads(record.read_text())
+        assert (saved["learning_rate"], saved["warmup_steps"], saved["weight_decay"], saved["save_steps"]) == (1e-2, 1, 0.1, 1)
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):  # the same settings again: nothing changed, nothing said
+        assert train_policy(replace(changed, resume_from_checkpoint="latest"))["steps_trained"] == 0
+    assert "changed settings" not in caplog.text
+
+
+def test_a_copy_of_the_dataset_resumes_and_other_files_at_its_path_do_not(dataset_root: Path, finished_run: Path,
+                                                                          tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """The dataset is known by its files (meta/: info, tasks, episodes, statistics), not its path: a copy staged
+    elsewhere (a cluster job's local disk) resumes, saying so; other episodes recorded at the same path do not."""
+    output = copy_run(finished_run, tmp_path)
+    copy = Path(shutil.copytree(dataset_root, tmp_path / "staged" / "reach"))
+    with caplog.at_level(logging.WARNING):
+        resumed = train_policy(settings(copy, output, max_steps=4, save_steps=2, ema_decay=0.9, resume_from_checkpoint="latest"))
+    assert resumed["steps_trained"] == 0  # (finished: the settings are checked first)
+    assert f"--dataset {dataset_root} -> {copy} (the same files)" in caplog.text
+    run = settings(copy, tmp_path / "on-copy", max_steps=2, save_steps=1)
+    train_policy(run)
+    shutil.rmtree(copy)
+    write_synthetic_dataset(copy, num_episodes=8, num_heldout=2, episode_length=8, image_size=32, storage="image", seed=5)
+    with pytest.raises(ValueError, match=rf"--dataset {copy} holds other files than when the checkpoint was written"):
+        train_policy(replace(run, max_steps=3, resume_from_checkpoint="latest"))
+
+
+# ---------------------------------------------------------------------------------------------------- a full disk
+
+
+def _fail_on_final_model(original):
+    def save_pretrained(self, folder, *args, **kwargs):
+        if ".final" in str(folder):
+            raise SafetensorError("Error while serializing: I/O error: No space left on device (os error 28)")
+        return original(self, folder, *args, **kwargs)
+
+    return save_pretrained
+
+
+def _fail_on_checkpoint_4(original):
+    def save(obj, path, *args, **kwargs):
+        if "checkpoint-4" in str(path):
+            raise RuntimeError("[enforce fail at inline_container.cc:672] . unexpected pos 576 vs 534")
+        return original(obj, path, *args, **kwargs)
+
+    return save
+
+
+@pytest.mark.parametrize("what", ["checkpoint-4", "the final model"])
+def test_a_save_on_a_full_disk_says_so_and_resuming_continues_the_run(what: str, dataset_root: Path, finished_run: Path,
+                                                                      tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Issue 38.15: a full disk while saving a checkpoint ended in torch's `inline_container` error (resume then
+    worked). The error now says that the disk is full, that nothing half-written was left, and that resuming
+    continues from the last complete checkpoint; and it does. torch's writer reports a full disk only as that
+    error, so the free space decides (here made to look full); safetensors and OSError name ENOSPC themselves."""
+    output = tmp_path / "run"
+    run = settings(dataset_root, output, max_steps=4, save_steps=2, ema_decay=0.9)
+    if what == "checkpoint-4":
+        monkeypatch.setattr(checkpoints, "FULL_DISK_BYTES", 1 << 62)
+        monkeypatch.setattr(torch, "save", _fail_on_checkpoint_4(torch.save))
+        cause = r"\[enforce fail at inline_container.cc:672\] . unexpected pos 576 vs 534"
+    else:
+        monkeypatch.setattr(PI0ForActionGeneration, "save_pretrained", _fail_on_final_model(PI0ForActionGeneration.save_pretrained))
+        cause = r"Error while serializing: I/O error: No space left on device \(os error 28\)"
+    last = "checkpoint-2" if what == "checkpoint-4" else "checkpoint-4"
+    with pytest.raises(CheckpointSaveError, match=rf"^saving {what} into {output} failed: the disk is full \({cause}\); "
+                                                  r"nothing half-written was left in its place\. Free some space and run the "
+                                                  rf"same command with --resume-from-checkpoint latest: it continues from "
+                                                  rf"the last complete checkpoint \({last}\)$"):
+        train_policy(run)
+    assert not [p.name for p in output.iterdir() if ".partial" in p.name]  # removed: the space is free again
+    assert not (output / TRAIN_SETTINGS_FILE).exists()  # no final model that looks finished
+    assert (output / "checkpoint-4").is_dir() == (what == "the final model")
+    monkeypatch.undo()
+    resumed = train_policy(replace(run, resume_from_checkpoint="latest"))
+    assert resumed["steps_trained"] == (2 if what == "checkpoint-4" else 0)
+    expected = json.loads((finished_run / "checkpoint-4" / "trainer_state.json").read_text())["log_history"]
+    assert losses(resumed["log_history"]) == pytest.approx(losses(expected), rel=1e-6)
+    assert json.loads((output / TRAIN_SETTINGS_FILE).read_text())["final_step"] == 4
+
+
 # ---------------------------------------------------------------------------------------------------- processor settings
 
 
@@ -243,3 +403,37 @@ def test_one_corrupt_value_in_a_dataset_is_refused_naming_episode_and_frame(tmp_
     with pytest.raises(LeRobotDatasetError, match="episode 2 frame 5"):
         train_policy(settings(root, tmp_path / "run", max_steps=1, train_split=None))
     assert not (tmp_path / "run").exists()
+
+
+def _zero_timestamps(table: pa.Table) -> pa.Table:
+    zeros = pa.array(np.zeros(len(table)), table.schema.field("timestamp").type)
+    return table.set_column(table.schema.get_field_index("timestamp"), "timestamp", zeros)
+
+
+def _null_images(table: pa.Table) -> pa.Table:
+    index = table.schema.get_field_index(CAMERA_KEY)
+    return table.set_column(index, CAMERA_KEY, pa.nulls(len(table), table.schema.field(index).type))
+
+
+BROKEN_DATA = {  # storage, how the first data file is broken, --num-workers, what the one line says after the file
+    "video timestamps at 0": ("video", _zero_timestamps, 0,
+                              "episode 0 frame 1 has timestamp 0 s, but its video frame is at 0.1 s"),
+    "null image cells, read by a DataLoader worker": ("image", _null_images, 1,
+                                                      rf"episode [01] frame \d+, camera '{CAMERA_KEY}': the image cell is empty"),
+}
+
+
+@pytest.mark.parametrize("broken", sorted(BROKEN_DATA))
+def test_broken_data_stops_the_command_in_one_line(broken: str, tmp_path: Path, capsys) -> None:
+    """Issue 38.10 / 38.15: with every parquet timestamp at 0, episode 0 trained on 1 distinct frame of 18 and
+    `train` exited 0; a null image cell gave a traceback (read by a DataLoader worker: "Caught LeRobotDatasetError in
+    DataLoader worker process 0."). The command now exits 1 with one line naming the data file, episode and frame."""
+    storage, corrupt, workers, expected = BROKEN_DATA[broken]
+    root = write_synthetic_dataset(tmp_path / "reach", num_episodes=2, episode_length=18, image_size=32, seed=1, storage=storage)
+    path = root / "data" / "chunk-000" / "file-000.parquet"
+    pq.write_table(corrupt(pq.read_table(path)), path)
+    code = main(["--dataset", str(root), "--model", "pi0_small", "--config-overrides", json.dumps(TINY), "--tokenizer",
+                 "test", "--output-dir", str(tmp_path / "run"), "--max-steps", "1", "--batch-size", "2",
+                 "--num-workers", str(workers)])
+    error = capsys.readouterr().err.strip().splitlines()[-1]  # a line of its own, after the progress bar
+    assert code == 1 and re.match(rf"error: {re.escape(str(path))}: {expected}", error), error

@@ -14,7 +14,12 @@ A LeRobot dataset folder holds
 - frames in parquet: one row per frame with `episode_index`, `frame_index`, `timestamp`, `task_index`, the state and
   action vectors, and cameras of dtype `image` as `{bytes, path}` structs (PNG/JPEG). Cameras of dtype `video`
   live in the mp4 files: frame `k` of an episode is the video frame at `from_timestamp + timestamp[k]` seconds
-  (decoded with PyAV, so any codec its FFmpeg reads: LeRobot's default AV1, h264, hevc, ...).
+  (decoded with PyAV, so any codec its FFmpeg reads: LeRobot's default AV1, h264, hevc, ...), so `timestamp[k]`
+  must be within half a frame of `k / fps` ([`check_video_timestamps`]).
+
+Whatever the files hold is checked before it is used, and refused with a `LeRobotDatasetError` naming the file and
+field (and the episode, frame and camera where there is one): the path templates ([`check_path_template`]), `fps`,
+the video times, finite state and action values, and each image cell (its size is read before it is decoded).
 
 [`LeRobotEpisodeDataset`] turns every frame into one training sample: the camera images (uint8 HWC), the state,
 the task string as prompt, and the target action chunk of the next `action_horizon` actions.
@@ -35,6 +40,8 @@ import json
 import logging
 import math
 import os
+import re
+import string
 from collections import OrderedDict
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
@@ -56,7 +63,8 @@ import pyarrow.compute as pc
 import pyarrow.parquet as pq
 
 from pi0_torch.masks import generate_chunk_data
-from pi0_torch.utils.validation import first_line, is_hub_id
+from pi0_torch.processing.images import pil_frame
+from pi0_torch.utils.validation import check_float, first_line, is_hub_id
 
 logger = logging.getLogger(__name__)
 
@@ -65,6 +73,13 @@ ShortEpisodePolicy = Literal["pad", "skip", "error"]
 # A handful of values (1 in 10,000 frames, at least one) whose removal shrinks a dimension's std by this factor
 # dominate its normalization statistics: every other value would normalize to about 0 ([`check_value_spread`]).
 DOMINATING_STD_FACTOR = 100.0
+# The fields each path template of meta/info.json may name, by major version ([`check_path_template`]).
+PATH_TEMPLATE_FIELDS: dict[int, dict[str, tuple[str, ...]]] = {
+    2: {"data_path": ("episode_chunk", "episode_index"), "video_path": ("video_key", "episode_chunk", "episode_index")},
+    3: {"data_path": ("chunk_index", "file_index"), "video_path": ("video_key", "chunk_index", "file_index")},
+}
+MAX_TEMPLATE_WIDTH = 32  # the widest field a path template may ask for (LeRobot's widest: `{episode_index:06d}`)
+MAX_PATH_CHARS = 4096  # the longest path a template may make (Linux's PATH_MAX)
 
 
 class LeRobotDatasetError(ValueError):
@@ -120,7 +135,51 @@ def read_info(root: Path) -> dict[str, Any]:
         raise LeRobotDatasetError(f"{path}: unreadable codebase_version {version!r}") from None
     if major not in SUPPORTED_MAJOR_VERSIONS:
         raise LeRobotDatasetError(f"{path}: codebase_version {version} is not supported (v2.x and v3.x are)")
+    try:
+        check_float(f"{path}: fps", info["fps"], minimum=0.0, exclusive_minimum=True)
+    except ValueError as error:
+        raise LeRobotDatasetError(str(error)) from None
+    video_keys = [key for key, feature in info["features"].items() if feature.get("dtype") == "video"]
+    for key, fields in PATH_TEMPLATE_FIELDS[major].items():
+        if key == "data_path" or info.get(key) is not None:  # (a dataset without videos may have no video_path)
+            samples = {field: max(video_keys or ["camera"], key=len) if field == "video_key" else 0 for field in fields}
+            check_path_template(path, key, info[key], samples)
     return info
+
+
+def check_path_template(info_path: Path, key: str, template: Any, samples: dict[str, Any]) -> None:
+    """Refuse (`LeRobotDatasetError` naming `key` of `info_path`) a path template that `str.format` could not fill
+    with the fields of `samples` alone, or would fill with an absurd width, before any path is built from it: not a
+    string, unbalanced braces, a field other than those (`{nope}`, `{0}`, `{chunk_index.real}`), a nested format, a
+    width or precision above `MAX_TEMPLATE_WIDTH` (`{chunk_index:0200000000d}` would build a 200 MB string per
+    episode), or more than `MAX_PATH_CHARS` characters once filled with `samples` (index 0, the longest video key).
+    A path built from it is then longer than that only by the digits of large indices."""
+    fields = list(samples)
+    if not isinstance(template, str):
+        raise LeRobotDatasetError(f"{info_path}: {key} must be a path template string (e.g. "
+                                  f"'data/chunk-{{{fields[0]}:03d}}/...'), got {template!r:.80} ({type(template).__name__})")
+    shown = f"{info_path}: {key} {template!r:.200}"
+    try:
+        parts = list(string.Formatter().parse(template))
+    except ValueError as error:
+        raise LeRobotDatasetError(f"{shown} is not a format string ({first_line(error)})") from None
+    for _, field, spec, _ in parts:
+        if field is None:
+            continue
+        if field not in fields:
+            raise LeRobotDatasetError(f"{shown} names the field {{{field}}}; its fields are {', '.join(fields)}")
+        if "{" in spec:
+            raise LeRobotDatasetError(f"{shown} nests a field in the format of {{{field}:{spec}}}")
+        widest = max((int(number) for number in re.findall(r"\d+", spec)), default=0)
+        if widest > MAX_TEMPLATE_WIDTH:
+            raise LeRobotDatasetError(f"{shown} asks for a width of {widest} characters in {{{field}:{spec}}}; "
+                                      f"at most {MAX_TEMPLATE_WIDTH}")
+    try:
+        filled = template.format(**samples)
+    except (ValueError, TypeError) as error:
+        raise LeRobotDatasetError(f"{shown} cannot be filled ({first_line(error)})") from None
+    if len(filled) > MAX_PATH_CHARS:
+        raise LeRobotDatasetError(f"{shown} makes paths of {len(filled)} characters; a path has at most {MAX_PATH_CHARS}")
 
 
 def inside_root(root: Path, relative: Any, what: str) -> Path:
@@ -215,20 +274,19 @@ def _read_episodes_v3(root: Path, info: dict[str, Any], video_keys: list[str]) -
             raise LeRobotDatasetError(f"{path} lacks columns {missing}")
         rows = _read_parquet(path, columns=wanted).to_pylist()
         for row in rows:
-            data_path = info["data_path"].format(chunk_index=row["data/chunk_index"], file_index=row["data/file_index"])
-            videos = {
-                key: VideoSegment(
-                    inside_root(root, info["video_path"].format(
-                        video_key=key,
-                        chunk_index=row[f"videos/{key}/chunk_index"],
-                        file_index=row[f"videos/{key}/file_index"],
-                    ), "meta/info.json video_path"),
-                    float(row[f"videos/{key}/from_timestamp"]),
-                )
-                for key in video_keys
-            }
-            episodes.append(Episode(int(row["episode_index"]), int(row["length"]), tuple(row["tasks"] or ()),
-                                    inside_root(root, data_path, "meta/info.json data_path"), videos))
+            index = int(row["episode_index"])
+            data_path = _episode_path(root, info, "data_path", index, chunk_index=row["data/chunk_index"],
+                                      file_index=row["data/file_index"])
+            videos = {}
+            for key in video_keys:
+                start = row[f"videos/{key}/from_timestamp"]
+                if not isinstance(start, (int, float)) or not 0.0 <= start < math.inf:
+                    raise LeRobotDatasetError(f"{path}: episode {index} has videos/{key}/from_timestamp {start!r}; "
+                                              "expected the time in seconds (>= 0) of its first frame in the video")
+                video = _episode_path(root, info, "video_path", index, video_key=key,
+                                      chunk_index=row[f"videos/{key}/chunk_index"], file_index=row[f"videos/{key}/file_index"])
+                videos[key] = VideoSegment(video, float(start))
+            episodes.append(Episode(index, int(row["length"]), tuple(row["tasks"] or ()), data_path, videos))
     return episodes
 
 
@@ -238,11 +296,22 @@ def _read_episodes_v2(root: Path, info: dict[str, Any], video_keys: list[str]) -
     for row in _read_jsonl(root / "meta" / "episodes.jsonl"):
         index = int(row["episode_index"])
         names = dict(episode_chunk=index // chunks_size, episode_index=index)
-        videos = {key: VideoSegment(inside_root(root, info["video_path"].format(video_key=key, **names),
-                                                "meta/info.json video_path"), 0.0) for key in video_keys}
-        data_path = inside_root(root, info["data_path"].format(**names), "meta/info.json data_path")
+        videos = {key: VideoSegment(_episode_path(root, info, "video_path", index, video_key=key, **names), 0.0)
+                  for key in video_keys}
+        data_path = _episode_path(root, info, "data_path", index, **names)
         episodes.append(Episode(index, int(row["length"]), tuple(row.get("tasks", ())), data_path, videos))
     return episodes
+
+
+def _episode_path(root: Path, info: dict[str, Any], key: str, episode: int, **names: Any) -> Path:
+    """The file of one episode: the path template `info[key]` (checked by [`read_info`]) filled with `names`, inside
+    `root`; an index of the wrong type (`{chunk_index:03d}` of a string) is refused naming the episode."""
+    try:
+        relative = info[key].format(**names)
+    except (ValueError, TypeError) as error:
+        raise LeRobotDatasetError(f"{root}/meta/info.json: {key} {info[key]!r} cannot be filled for episode {episode} "
+                                  f"with {names} ({first_line(error)})") from None
+    return inside_root(root, relative, f"meta/info.json {key}")
 
 
 def split_episodes(root: str | Path, split: str) -> list[int]:
@@ -419,8 +488,13 @@ class _Frames:
 
 
 def _read_frames(
-    episodes: list[Episode], state_key: str, action_key: str, image_keys: list[str], dims: tuple[int, int], fps: float, progress: bool
+    episodes: list[Episode], state_key: str, action_key: str, camera_keys: tuple[list[str], list[str]],
+    dims: tuple[int, int], fps: float, progress: bool,
 ) -> _Frames:
+    """The frames of `episodes` from their parquet files, checked against the metadata: each episode's frames
+    0..length-1, finite state and action values, and, where `camera_keys` (image keys, video keys) name video
+    cameras, timestamps that select the episode's own video frames ([`check_video_timestamps`])."""
+    image_keys, video_keys = camera_keys
     by_file: dict[Path, list[Episode]] = {}
     for episode in episodes:
         by_file.setdefault(episode.data_path, []).append(episode)
@@ -459,6 +533,8 @@ def _read_frames(
                 if not np.isfinite(values).all():
                     frame = int(np.flatnonzero(~np.isfinite(values).all(axis=1))[0])
                     raise LeRobotDatasetError(f"{path}: {name!r} of episode {episode.index} frame {frame} is not finite")
+            if video_keys:
+                check_video_timestamps(path, episode, video_keys, timestamp[rows], fps)
             per_episode[episode.index] = (
                 state[rows], action[rows], timestamp[rows], task_index[rows],
                 np.stack([np.full(len(rows), file_number), rows], axis=1),
@@ -467,6 +543,25 @@ def _read_frames(
         np.concatenate(parts) for parts in zip(*(per_episode[episode.index] for episode in episodes))
     )
     return _Frames(state, action, timestamp, task_index, image_columns, image_rows)
+
+
+def check_video_timestamps(path: Path, episode: Episode, video_keys: Sequence[str], timestamps: np.ndarray, fps: float) -> None:
+    """Refuse (`LeRobotDatasetError` naming the data file, the episode, its first wrong frame, and the cameras and
+    video files it would be read from) timestamps of an episode that would not select its own video frames: frame
+    k is the video frame at `from_timestamp + timestamp[k]`, and that frame was recorded at k / fps. A timestamp
+    more than half a frame from k / fps (all zeros: every sample would show the first frame) or not finite is
+    refused; what remains is within half a frame, and the video reader then requires a decoded frame within its
+    tolerance of it."""
+    expected = np.arange(len(timestamps)) / fps
+    wrong = ~(np.abs(timestamps - expected) <= 0.5 / fps)  # (NaN compares False: refused too)
+    if wrong.any():
+        frame = int(np.flatnonzero(wrong)[0])
+        videos = ", ".join(f"{key!r} ({episode.videos[key].path})" for key in video_keys if key in episode.videos)
+        raise LeRobotDatasetError(
+            f"{path}: episode {episode.index} frame {frame} has timestamp {timestamps[frame]:.6g} s, but its video "
+            f"frame is at {expected[frame]:.6g} s (frame_index / fps {fps:g}; {int(wrong.sum())} of {len(timestamps)} "
+            f"frames are more than half a frame off): its frames would be read from the wrong times of cameras {videos}"
+        )
 
 
 def dominating_rows(values: np.ndarray) -> tuple[int, int] | None:
@@ -497,15 +592,31 @@ def dominating_rows(values: np.ndarray) -> tuple[int, int] | None:
     return None
 
 
-def _decode_image_cell(cell: dict[str, Any], root: Path) -> np.ndarray:
-    """A `{bytes, path}` image cell (HF `datasets.Image` storage) -> uint8 RGB `[H, W, 3]`."""
-    if cell.get("bytes") is not None:
-        image = Image.open(io.BytesIO(cell["bytes"]))
-    elif cell.get("path"):
-        image = Image.open(inside_root(root, cell["path"], "image cell path"))
-    else:
-        raise LeRobotDatasetError("image cell has neither bytes nor path")
-    return np.asarray(image.convert("RGB"))
+def _decode_image_cell(cell: Any, root: Path, shape: tuple[int, int, int], where: str) -> np.ndarray:
+    """A `{bytes, path}` image cell (HF `datasets.Image` storage) -> RGB `[H, W, 3]`: uint8 for the 8-bit modes,
+    float32 for mode 'F' (`pi0_torch.processing.images.pil_frame`).
+
+    Refused (`LeRobotDatasetError` naming `where`: the episode, frame and camera) when the cell is null or empty,
+    holds no readable image, an image of integer pixels (mode 'I;16', 'I': a depth or 16-bit camera, which an RGB
+    conversion would clip to white or black), or an image whose size differs from the camera's `shape` (height,
+    width, channels) from meta/info.json. The size is read from the file's header before anything is decoded, so a
+    20000 x 20000 PNG costs nothing."""
+    if not isinstance(cell, dict) or (cell.get("bytes") is None and not cell.get("path")):
+        raise LeRobotDatasetError(f"{where}: the image cell is empty ({cell!r:.80}): expected PNG / JPEG bytes or a path")
+    source = io.BytesIO(cell["bytes"]) if cell.get("bytes") is not None else inside_root(root, cell["path"], "image cell path")
+    try:
+        with Image.open(source) as image:
+            size = (image.height, image.width)
+            if size == tuple(shape[:2]):
+                image.load()
+                return pil_frame(image, "the image")
+    except Image.DecompressionBombError as error:
+        raise LeRobotDatasetError(f"{where}: {first_line(error)}; meta/info.json declares {shape[0]} x {shape[1]} "
+                                  "(height x width)") from None
+    except (OSError, SyntaxError, ValueError) as error:  # not an image, truncated, a missing file, integer pixels
+        raise LeRobotDatasetError(f"{where}: the image cell holds no usable image ({first_line(error)})") from None
+    raise LeRobotDatasetError(f"{where}: the image is {size[0]} x {size[1]} (height x width), but meta/info.json declares "
+                              f"{shape[0]} x {shape[1]}; refused before decoding")
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -604,8 +715,10 @@ class LeRobotEpisodeDataset(torch.utils.data.Dataset):
                 if segment is not None and not segment.path.is_file():
                     raise FileNotFoundError(f"video file {segment.path} of camera {key!r}, episode {episode.index} is missing")
         image_keys = [key for key in self.camera_keys if features[key]["dtype"] == "image"]
+        video_keys = [key for key in self.camera_keys if features[key]["dtype"] == "video"]
         self._frames = _read_frames(
-            self.episodes, state_key, action_key, image_keys, (self.state_dim, self.action_dim), self.fps, progress
+            self.episodes, state_key, action_key, (image_keys, video_keys), (self.state_dim, self.action_dim), self.fps,
+            progress,
         )
         lengths = np.array([episode.length for episode in self.episodes], dtype=np.int64)
         self._episode_start = np.concatenate([[0], np.cumsum(lengths)])  # [E + 1]
@@ -683,7 +796,7 @@ class LeRobotEpisodeDataset(torch.utils.data.Dataset):
         else:
             raise LeRobotDatasetError(f"episode {episode.index} has no task (no task_index column and no episode tasks)")
         return {
-            "images": {key: self._image(key, episode, index) for key in self.camera_keys},
+            "images": {key: self._image(key, episode, index, frame_index) for key in self.camera_keys},
             "state": self._frames.state[index],
             "actions": chunks[frame_index],
             "action_is_pad": pad[frame_index],
@@ -693,7 +806,7 @@ class LeRobotEpisodeDataset(torch.utils.data.Dataset):
             "index": index,
         }
 
-    def _image(self, key: str, episode: Episode, index: int) -> np.ndarray:
+    def _image(self, key: str, episode: Episode, index: int, frame_index: int) -> np.ndarray:
         segment = episode.videos.get(key)
         if segment is not None:
             if self._videos is None:
@@ -701,7 +814,9 @@ class LeRobotEpisodeDataset(torch.utils.data.Dataset):
             frame = self._videos.frame(segment.path, segment.from_timestamp + float(self._frames.timestamp[index]))
         else:
             file_number, row = self._frames.image_rows[index]
-            frame = _decode_image_cell(self._frames.images[key][file_number][int(row)].as_py(), self.root)
+            cell = self._frames.images[key][file_number][int(row)].as_py()
+            where = f"{episode.data_path}: episode {episode.index} frame {frame_index}, camera {key!r}"
+            frame = _decode_image_cell(cell, self.root, self.camera_shapes[key], where)
         if frame.shape != self.camera_shapes[key]:
             raise LeRobotDatasetError(
                 f"camera {key!r}, episode {episode.index}: decoded frame has shape {frame.shape}, but meta/info.json "

@@ -4,12 +4,15 @@ the callbacks a run adds to it.
 - [`PI0Trainer`]: a `Trainer` whose flow-matching noise and time are drawn per sample from a generator keyed by
   (seed, optimizer step, position of the sample in the global batch) (`pi0_torch.training.batches.flow_draws`), so a
   run gives the same losses on one process or several with the same global batch, and after a resume; whose
-  learning-rate schedule is openpi's ([`openpi_learning_rate`]); and whose checkpoints appear whole: each is written
-  aside and renamed into place once complete ([`PI0Trainer._save_checkpoint`]).
+  learning-rate schedule is openpi's ([`openpi_learning_rate`]); whose checkpoints appear whole: each is written
+  aside and renamed into place once complete ([`PI0Trainer._save_checkpoint`]); and which, resuming, trains with its
+  own schedule, optimizer settings and intervals rather than the checkpoint's ([`PI0Trainer._prepare_for_training`]).
 - [`EMACallback`]: exponential moving average of the weights (openpi's `ema_decay` 0.99); the final model is the
   average, as openpi saves its EMA parameters for inference.
 - [`SaveProcessorCallback`]: writes the processor (tokenizer, norm stats, settings) into every checkpoint folder,
   so `checkpoint-N/` loads with `from_pretrained` like the final folder.
+- [`SaveRunSettingsCallback`]: records the run's settings in every checkpoint folder, which a resumed run is
+  checked against (`pi0_torch.training.checkpoints.check_resume_run`).
 - log lines that print numbers as numbers ([`numeric_logs`]).
 
 `pi0_torch.training.fsdp` builds the sharded trainer and callbacks of `--fsdp` on these.
@@ -17,6 +20,7 @@ the callbacks a run adds to it.
 
 from __future__ import annotations
 
+import json
 import math
 import shutil
 from collections.abc import Mapping
@@ -27,6 +31,7 @@ from pi0_torch.utils.extras import require_extra
 
 require_extra("train", __name__, modules=("accelerate",))  # the Trainer needs accelerate
 import torch
+from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 from torch import nn
 from transformers import Trainer, TrainerCallback, TrainerControl, TrainerState, TrainingArguments
@@ -36,6 +41,7 @@ from transformers.trainer_utils import PREFIX_CHECKPOINT_DIR, rotate_checkpoints
 from pi0_torch.models.configuration_pi0 import PI0Config
 from pi0_torch.processing.processing_pi0 import PI0Processor
 from pi0_torch.training.batches import flow_draws
+from pi0_torch.training.checkpoints import TRAIN_SETTINGS_FILE, save_failed
 from pi0_torch.training.settings import OPENPI_EMA_DECAY
 from pi0_torch.utils import files
 
@@ -74,6 +80,7 @@ class PI0Trainer(Trainer):
             if self.pop_callback(plain) is not None:
                 self.add_callback(numeric)
         self.lr_schedule = lr_schedule
+        self._run_hyperparameters: list[dict[str, Any]] = []  # the optimizer's param groups as this run made them
         self._draw_step = -1
         self._micro_batch = 0
         self._staging_run_dir: Path | None = None  # set while `_save_checkpoint` writes aside
@@ -91,6 +98,45 @@ class PI0Trainer(Trainer):
             )
             self._created_lr_scheduler = True
         return self.lr_scheduler
+
+    def train(self, *args: Any, **kwargs: Any) -> Any:
+        """The Trainer's `train`; a run that stops on an error closes its progress bar first, so that the error
+        printed next starts a line of its own."""
+        try:
+            return super().train(*args, **kwargs)
+        except BaseException:
+            for callback in self.callback_handler.callbacks:
+                if isinstance(callback, ProgressCallback) and callback.training_bar is not None:
+                    callback.training_bar.close()
+                    callback.training_bar = None
+            raise
+
+    def create_optimizer(self, model: nn.Module | None = None) -> torch.optim.Optimizer:
+        optimizer = super().create_optimizer(model)
+        groups = getattr(optimizer, "optimizer", optimizer).param_groups  # (inside accelerate's wrapper, if any)
+        self._run_hyperparameters = [{k: v for k, v in group.items() if k != "params"} for group in groups]
+        return optimizer
+
+    def _prepare_for_training(self, max_steps: int, train_dataloader: Any, resume_from_checkpoint: str | None) -> Any:
+        """The Trainer's preparation (which loads a checkpoint's trainer, optimizer and scheduler states when
+        resuming); then, when resuming, this run's settings where those states would keep the checkpoint's: the
+        logging / evaluation / saving intervals (the trainer state), the weight decay and other hyperparameters of
+        each parameter group (the optimizer state), and the peak learning rate, from which the schedule continues at
+        the checkpoint's step (the scheduler state). `check_resume_run` has logged which of them changed."""
+        prepared = super()._prepare_for_training(max_steps, train_dataloader, resume_from_checkpoint)
+        if resume_from_checkpoint is not None:
+            self.state.compute_steps(self.args, max_steps)
+            optimizer = getattr(self.optimizer, "optimizer", self.optimizer)
+            for group, chosen in zip(optimizer.param_groups, self._run_hyperparameters, strict=True):
+                group.update({name: value for name, value in chosen.items() if name != "lr"})  # (lr: the schedule's)
+            scheduler = getattr(self.lr_scheduler, "scheduler", self.lr_scheduler)
+            if isinstance(scheduler, torch.optim.lr_scheduler.LambdaLR):  # openpi's, and the Trainer's own schedules
+                scheduler.base_lrs = [chosen["lr"] for chosen in self._run_hyperparameters]
+                rates = [base * rate(scheduler.last_epoch) for base, rate in zip(scheduler.base_lrs, scheduler.lr_lambdas)]
+                for group, base, rate in zip(optimizer.param_groups, scheduler.base_lrs, rates):
+                    group["initial_lr"], group["lr"] = base, rate
+                scheduler._last_lr = rates
+        return prepared
 
     def _flow_keys(self, inputs: Mapping[str, torch.Tensor], training: bool) -> list[tuple[int, ...]]:
         size = inputs["input_ids"].shape[0]
@@ -114,11 +160,30 @@ class PI0Trainer(Trainer):
         `trainer_state.json` that resuming then failed on. Here every process writes into the hidden folder
         `.checkpoint-N.partial-save/checkpoint-N` (the Trainer's own saving code, pointed there), and the main
         process renames the finished folder to `checkpoint-N` (atomic) before the old ones are rotated out. A
-        killed save leaves only the hidden folder, which the next run removes.
+        killed save leaves only the hidden folder, which the next run removes. A save whose writes fail (a full
+        disk: torch reports it as an `inline_container` error) removes the hidden folder and stops the run with a
+        `CheckpointSaveError` that says so and that resuming continues from the last complete checkpoint.
         """
         run_dir = Path(super()._get_output_dir(trial))
         final = run_dir / f"{PREFIX_CHECKPOINT_DIR}-{self.state.global_step}"
         staging = run_dir / files.partial_name(final.name, "save")
+        try:
+            self._save_checkpoint_aside(model, trial, staging, final)
+        except (OSError, RuntimeError, SafetensorError) as error:
+            failure = save_failed(final.name, run_dir, error)
+            if self.args.should_save:
+                shutil.rmtree(staging, ignore_errors=True)
+            raise failure from error
+        if self.args.should_save:
+            files.record_written(run_dir, [final])
+            rotate_checkpoints(
+                str(run_dir), save_total_limit=self.args.save_total_limit,
+                best_model_checkpoint=self.state.best_model_checkpoint, use_mtime=True,
+            )
+        self.accelerator.wait_for_everyone()
+
+    def _save_checkpoint_aside(self, model: nn.Module, trial: Any, staging: Path, final: Path) -> None:
+        """Write the checkpoint `final` into the hidden folder `staging` (every process) and rename it into place."""
         if self.args.should_save:
             shutil.rmtree(staging, ignore_errors=True)  # an earlier attempt at this very step
             staging.mkdir(parents=True)
@@ -136,12 +201,6 @@ class PI0Trainer(Trainer):
         if self.args.should_save:
             files.publish(staging / final.name, final)
             shutil.rmtree(staging, ignore_errors=True)
-            files.record_written(run_dir, [final])
-            rotate_checkpoints(
-                str(run_dir), save_total_limit=self.args.save_total_limit,
-                best_model_checkpoint=self.state.best_model_checkpoint, use_mtime=True,
-            )
-        self.accelerator.wait_for_everyone()
 
     def compute_loss(self, model: nn.Module, inputs: dict[str, Any], return_outputs: bool = False, num_items_in_batch: Any = None) -> Any:
         inputs = dict(inputs)
@@ -241,6 +300,17 @@ class EMACallback(TrainerCallback, CheckpointContents):
     def on_train_end(self, args: TrainingArguments, state: TrainerState, control: TrainerControl, model: nn.Module | None = None, **kwargs: Any) -> None:
         for name, param in self._trainable(model).items():
             param.copy_(self.shadow[name].to(param.dtype))
+
+
+class SaveRunSettingsCallback(TrainerCallback, CheckpointContents):
+    """Writes the run's settings (`pi0_torch.training.checkpoints.run_record`) into every `checkpoint-N` folder: what
+    a run resumed from it is held against (`check_resume_run`)."""
+
+    def __init__(self, record: Mapping[str, Any]) -> None:
+        self.record = dict(record)
+
+    def write_checkpoint(self, folder: Path, state: TrainerState) -> None:
+        (folder / TRAIN_SETTINGS_FILE).write_text(json.dumps(self.record, indent=2) + "\n")
 
 
 class SaveProcessorCallback(TrainerCallback, CheckpointContents):

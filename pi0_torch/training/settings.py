@@ -90,22 +90,50 @@ RUN_LIMITS: dict[str, int] = {
 }
 
 
+# How a resumed run treats a setting that differs from the one its checkpoint recorded
+# (`pi0_torch.training.checkpoints.check_resume_run`); every field of `TrainSettings` is in exactly one of the three.
+RESUME_REFUSED = (
+    # what the run learns from: the data order and the normalization of the steps trained so far
+    "dataset", "train_split", "short_episodes", "state_key", "action_key", "camera_map",
+    # the model and its processor, which the checkpoint holds
+    "model", "config_overrides", "tokenizer", "fast_tokenizer", "norm_stats", "delta_action_mask", "value_conversion",
+    "rtc_max_delay",
+    # what trains: the parameters the checkpoint's optimizer state belongs to
+    "lora", "lora_rank_vlm", "lora_rank_expert", "freeze", "fsdp",
+    # the batches and flow draws of every step (keyed by the seed and the position in the global batch)
+    "batch_size", "seed",
+)
+RESUME_APPLIED = (  # from the checkpoint's step on, with a warning naming each change
+    "max_steps", "learning_rate", "end_learning_rate", "warmup_steps", "decay_steps", "weight_decay", "max_grad_norm",
+    "ema_decay", "gradient_accumulation_steps", "bf16", "gradient_checkpointing", "eval_split", "logging_steps",
+    "save_steps", "save_total_limit", "eval_steps", "num_workers", "threads", "cpu", "report_to",
+)
+RESUME_UNCHECKED = ("output_dir", "resume_from_checkpoint", "overwrite", "progress")  # where and how, not what
+SOURCE_SETTINGS = ("dataset", "model", "tokenizer", "fast_tokenizer", "norm_stats")  # may name files or folders
+
+
+def flag_name(name: str) -> str:
+    """The `pi0-torch train` option of a `TrainSettings` field.
+
+    >>> flag_name("learning_rate"), flag_name("camera_map")
+    ('--learning-rate', '--camera')
+    """
+    return "--camera" if name == "camera_map" else "--" + name.replace("_", "-")
+
+
 def check_settings(settings: TrainSettings) -> None:
     """Refuse settings no run can use (`ValueError` naming the `pi0-torch train` flag): `--max-steps 0` would
     otherwise train one step, a zero batch or save interval would fail deep inside the Trainer."""
-    def flag(name: str) -> str:
-        return "--" + name.replace("_", "-")
-
     for name in ("max_steps", "batch_size", "gradient_accumulation_steps", "logging_steps", "save_steps",
                  "lora_rank_vlm", "lora_rank_expert"):
-        check_int(flag(name), getattr(settings, name), minimum=1, maximum=RUN_LIMITS.get(name))
+        check_int(flag_name(name), getattr(settings, name), minimum=1, maximum=RUN_LIMITS.get(name))
     for name in ("decay_steps", "save_total_limit", "eval_steps"):
         if getattr(settings, name) is not None:
-            check_int(flag(name), getattr(settings, name), minimum=1, maximum=RUN_LIMITS.get(name))
+            check_int(flag_name(name), getattr(settings, name), minimum=1, maximum=RUN_LIMITS.get(name))
     for name in ("warmup_steps", "num_workers", "seed"):
-        check_int(flag(name), getattr(settings, name), minimum=0, maximum=RUN_LIMITS.get(name))
+        check_int(flag_name(name), getattr(settings, name), minimum=0, maximum=RUN_LIMITS.get(name))
     check_float("--learning-rate", settings.learning_rate, minimum=0.0, exclusive_minimum=True)
     for name in ("end_learning_rate", "weight_decay", "max_grad_norm"):
-        check_float(flag(name), getattr(settings, name), minimum=0.0)
+        check_float(flag_name(name), getattr(settings, name), minimum=0.0)
     if not isinstance(settings.config_overrides, Mapping):
         raise ValueError(f"--config-overrides must be a JSON object, got {type(settings.config_overrides).__name__}")

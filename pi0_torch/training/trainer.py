@@ -44,14 +44,16 @@ from pi0_torch.processing.robot_spaces import CONVERSIONS
 from pi0_torch.training import fsdp as sharding
 from pi0_torch.training.batches import PI0DataCollator, default_camera_map
 from pi0_torch.training.checkpoints import (
+    check_resume_run,
     check_resume_settings,
     final_step,
     resolve_resume_checkpoint,
+    run_record,
     save_final_model,
     trained_step,
 )
 from pi0_torch.training.model_setup import build_model, build_processor, check_memory, is_model_folder, load_config
-from pi0_torch.training.pi0_trainer import EMACallback, PI0Trainer, SaveProcessorCallback
+from pi0_torch.training.pi0_trainer import EMACallback, PI0Trainer, SaveProcessorCallback, SaveRunSettingsCallback
 from pi0_torch.training.settings import (
     LORA_RANK_EXPERT,
     LORA_RANK_VLM,
@@ -124,14 +126,22 @@ def _episodes(root: str, split: str | None) -> list[int] | None:
 
 
 def train_policy(settings: TrainSettings) -> dict[str, Any]:
-    """Fine-tune on a LeRobot dataset with `PI0Trainer`; writes `checkpoint-N/` folders (model + processor, + EMA)
-    and the final model + processor into `settings.output_dir`. Returns `{"output_dir", "log_history",
-    "trainable_parameters"}`. Runs under `accelerate launch` unchanged (the global batch is split over processes).
+    """Fine-tune on a LeRobot dataset with `PI0Trainer`; writes `checkpoint-N/` folders (model + processor + the
+    run's settings, + EMA) and the final model + processor into `settings.output_dir`. Returns `{"output_dir",
+    "log_history", "trainable_parameters", "steps_trained"}`. Runs under `accelerate launch` unchanged (the global
+    batch is split over processes). A resumed run is held against the settings its checkpoint recorded
+    (`check_resume_run`: refused by name, or applied from the checkpoint's step on and logged); a save that fails
+    (a full disk) raises `CheckpointSaveError`, an `OSError` saying how to resume.
     """
     check_settings(settings)
     if settings.lora and settings.ema_decay is not None:
         raise ValueError("--ema-decay with --lora: an average of the LoRA factors A and B is not the average of the "
                          "weight update B @ A, so openpi turns EMA off for LoRA fine-tuning; drop one of the two")
+    if settings.warmup_steps >= settings.max_steps:
+        warmup = scaled_warmup_steps(settings.max_steps)
+        logger.info("warm-up of %d steps >= --max-steps %d: scaled to %d steps (openpi's %d of %d) so that the learning "
+                    "rate reaches its peak", settings.warmup_steps, settings.max_steps, warmup, OPENPI_WARMUP_STEPS, OPENPI_TRAIN_STEPS)
+        settings = replace(settings, warmup_steps=warmup)
     settings = replace(settings, resume_from_checkpoint=resolve_resume_checkpoint(settings.output_dir, settings.resume_from_checkpoint))
     check_run_folder(settings)
     sharding.check_settings(settings.fsdp, settings.model, settings.resume_from_checkpoint)
@@ -139,9 +149,11 @@ def train_policy(settings: TrainSettings) -> dict[str, Any]:
     config = load_config(settings)
     if not is_model_folder(settings.model):  # before the dataset loads and the model is built
         check_memory(config)
+    record = run_record(settings)
     done = trained_step(settings.resume_from_checkpoint) if settings.resume_from_checkpoint else 0
     if settings.resume_from_checkpoint:
-        check_resume_settings(config, settings.resume_from_checkpoint)
+        check_resume_settings(config, settings.resume_from_checkpoint)  # the model's settings, by name
+        check_resume_run(record, settings.resume_from_checkpoint)  # the run's: refused, or applied and logged
         finished = final_step(settings.output_dir)
         if done >= settings.max_steps and _continues_in_place(settings) and finished is not None and finished >= done:
             logger.info("%s holds the final model of step %d (--max-steps %d): nothing to train", settings.output_dir,
@@ -205,13 +217,8 @@ def train_policy(settings: TrainSettings) -> dict[str, Any]:
     args.per_device_train_batch_size = args.per_device_eval_batch_size = settings.batch_size // per_step
     if settings.fsdp:
         model = sharding.shard_model(model, bf16=settings.bf16, device_type=args.device.type)
-    if settings.warmup_steps >= settings.max_steps:
-        warmup = scaled_warmup_steps(settings.max_steps)
-        logger.info("warm-up of %d steps >= --max-steps %d: scaled to %d steps (openpi's %d of %d) so that the learning "
-                    "rate reaches its peak", settings.warmup_steps, settings.max_steps, warmup, OPENPI_WARMUP_STEPS, OPENPI_TRAIN_STEPS)
-        settings = replace(settings, warmup_steps=warmup)
 
-    callbacks: list[TrainerCallback] = [SaveProcessorCallback(processor)]
+    callbacks: list[TrainerCallback] = [SaveProcessorCallback(processor), SaveRunSettingsCallback(record)]
     if settings.ema_decay is not None:
         ema_type = sharding.ShardedEMACallback if settings.fsdp else EMACallback
         callbacks.append(ema_type(settings.ema_decay, resume_from=settings.resume_from_checkpoint))
@@ -368,8 +375,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     run_group.add_argument("--save-total-limit", type=int)
     run_group.add_argument("--eval-steps", type=int)
     run_group.add_argument("--resume-from-checkpoint", metavar="DIR|latest",
-                           help="a checkpoint-N folder of an earlier run with the same settings, or 'latest' (the newest "
-                                "readable one in --output-dir; a fresh run when there is none)")
+                           help="a checkpoint-N folder of an earlier run, or 'latest' (the newest readable one in "
+                                "--output-dir; a fresh run when there is none). Another dataset, model, processor, "
+                                "--lora / --freeze, batch size or seed is refused; changed schedule, optimizer and "
+                                "interval settings apply from the checkpoint's step on, with a warning naming them")
     run_group.add_argument("--overwrite", action="store_true", help="replace an earlier run in --output-dir (only a "
                            "folder pi0-torch wrote; without it, a fresh run needs an absent or empty folder)")
     run_group.add_argument("--cpu", action="store_true", help="train on CPU even when a GPU is present")
@@ -385,6 +394,21 @@ def settings_from_args(args: argparse.Namespace) -> TrainSettings:
     return TrainSettings(**values)
 
 
+def error_line(error: BaseException) -> str:
+    """The line `pi0-torch train` prints for a run that stopped on `error`: its first line; for an error raised in a
+    DataLoader worker (`--num-workers`), which torch raises again as "Caught LeRobotDatasetError in DataLoader worker
+    process 0." with the worker's traceback below, the worker's own error line.
+
+    >>> error_line(ValueError("Caught ValueError in DataLoader worker process 0.\\nOriginal Traceback (most recent "
+    ...                       "call last):\\n  File ...\\nValueError: episode 4 frame 6: the image cell is empty"))
+    'episode 4 frame 6: the image cell is empty'
+    """
+    lines = str(error).strip().splitlines()
+    if len(lines) > 2 and lines[0].startswith("Caught ") and lines[1].startswith("Original Traceback"):
+        return lines[-1].split(": ", 1)[-1]
+    return first_line(error)
+
+
 def run(args: argparse.Namespace) -> int:
     # under torchrun / accelerate launch every process runs this: INFO lines from the first one only
     first_process = int(os.environ.get("RANK", "0")) == 0
@@ -394,7 +418,7 @@ def run(args: argparse.Namespace) -> int:
         result = train_policy(settings_from_args(args))
     except (ValueError, OSError) as error:  # settings, config, dataset files: one line (the traceback at DEBUG)
         logger.debug("training failed", exc_info=True)
-        print(f"error: {first_line(error)}", file=sys.stderr)
+        print(f"error: {error_line(error)}", file=sys.stderr)
         return 1
     if result["trainable_parameters"] is None:
         print(f"nothing to train: {result['output_dir']} already holds this run's final model")
