@@ -358,6 +358,8 @@ def test_fine_tuning_the_demo_policy_keeps_its_processor_settings(tmp_path: Path
     reference = json.loads((DEMO_POLICY / "processor_config.json").read_text())
     for name in ("delta_action_mask", "value_conversion", "norm_mode", "min_norm_scale", "float_image_range"):
         assert saved[name] == reference[name], name
+    # the inference settings it was validated with come along (issue 38.3)
+    assert (Path(kept["output_dir"]) / "policy_settings.json").read_text() == (DEMO_POLICY / "policy_settings.json").read_text()
     assert kept["log_history"][0]["loss"] < 0.5  # in the policy's own action space (measured 0.24)
     with caplog.at_level(logging.WARNING):
         absolute = train_policy(settings_from(base, output_dir=str(tmp_path / "absolute"), delta_action_mask=[False] * 3))

@@ -34,6 +34,7 @@ from pi0_torch.models.configuration_pi0 import PI0Config
 from pi0_torch.models.configuration_pi0_fast import PI0FastConfig
 from pi0_torch.models.modeling_pi0 import PI0ForActionGeneration
 from pi0_torch.processing.processing_pi0 import PI0Processor
+from pi0_torch.runtime.policy_settings import PolicySettings
 from pi0_torch.training.settings import RESUME_APPLIED, RESUME_REFUSED, SOURCE_SETTINGS, TrainSettings, flag_name
 from pi0_torch.utils import files
 from pi0_torch.utils.validation import first_line
@@ -324,9 +325,10 @@ def final_step(output_dir: str | Path) -> int | None:
 
 
 def save_final_model(model: PI0ForActionGeneration, processor: PI0Processor, output_dir: str | Path,
-                     settings: Mapping[str, Any], step: int) -> None:
+                     settings: Mapping[str, Any], step: int, policy_settings: PolicySettings | None = None) -> None:
     """Model + processor + the run's `settings` (with the final `step`) into `output_dir`, next to the checkpoint
-    folders: written into a hidden folder, flushed to disk, and moved into place with the settings file last, so a
+    folders, and `policy_settings` (the base model's recommended inference settings, `policy_settings.json`) when
+    given: written into a hidden folder, flushed to disk, and moved into place with the settings file last, so a
     run killed while saving never leaves a half-written final model that looks finished ([`final_step`]). A write
     that fails (a full disk) removes the hidden folder and raises [`CheckpointSaveError`] ([`save_failed`])."""
     output = Path(output_dir)
@@ -337,6 +339,8 @@ def save_final_model(model: PI0ForActionGeneration, processor: PI0Processor, out
         files.claim(staging)
         model.save_pretrained(staging)
         processor.save_pretrained(staging)
+        if policy_settings is not None and policy_settings != PolicySettings():
+            policy_settings.save(staging)
         record = {**settings, FINAL_STEP_KEY: step}
         (staging / TRAIN_SETTINGS_FILE).write_text(json.dumps(record, indent=2, default=str) + "\n")
         files.sync_tree(staging)

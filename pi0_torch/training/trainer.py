@@ -41,6 +41,7 @@ from pi0_torch.data.lerobot_dataset import LeRobotEpisodeDataset, split_episodes
 from pi0_torch.models.configuration_pi0 import preset_names
 from pi0_torch.models.configuration_pi0_fast import PI0FastConfig, fast_preset_names
 from pi0_torch.processing.robot_spaces import CONVERSIONS
+from pi0_torch.runtime.policy_settings import PolicySettings
 from pi0_torch.training import fsdp as sharding
 from pi0_torch.training.batches import PI0DataCollator, default_camera_map
 from pi0_torch.training.checkpoints import (
@@ -249,7 +250,8 @@ def train_policy(settings: TrainSettings) -> dict[str, Any]:
 
     final = sharding.gather_model(trainer.model) if settings.fsdp else merge_lora(trainer.model)  # (all processes)
     if trainer.is_world_process_zero():
-        save_final_model(final, processor, settings.output_dir, vars(settings), trainer.state.global_step)
+        recommended = PolicySettings.load(settings.model) if is_model_folder(settings.model) else None  # (carried over)
+        save_final_model(final, processor, settings.output_dir, vars(settings), trainer.state.global_step, recommended)
         plot_losses(trainer.state.log_history, Path(settings.output_dir) / LOSS_PLOT_FILE)
         files.record_written(Path(settings.output_dir), [Path(settings.output_dir) / LOSS_PLOT_FILE])
     trainer.accelerator.wait_for_everyone()
