@@ -9,7 +9,16 @@ measured client side (send to reply decoded); requests/s = all timed replies / w
     python benchmarks/bench_serving.py                         # random pi0_small, CPU
     python benchmarks/bench_serving.py --model converted/pi0_libero --device cuda --clients 1,4,8 --max-batch-size 1,8
 
-Only 127.0.0.1 is used; the number of requests is bounded by --clients x --requests.
+With `--flood 0,1,3,6` it measures instead one good client's latency while that many other clients loop on a frame the
+server refuses (issue 38.12: a 98 KiB msgpack array of lists of small ints, one object past `--max-objects`, refused
+after 1-10 ms of decoding, by machine): the good client sends `--warmup` untimed, then `--requests` timed observations back to
+back; the attackers run in a third process, each sending its next frame as soon as its refusal arrives, and their
+refusals per second are counted.
+
+    python benchmarks/bench_serving.py --num-steps 1 --flood 0,1,3,6 --requests 40
+
+Only 127.0.0.1 is used; the number of requests is bounded by --clients x --requests (the flood by --requests and the
+good client's time).
 """
 
 from __future__ import annotations
@@ -89,6 +98,86 @@ def _client_process(port: int, clients: int, requests: int, warmup: int, frame_s
                  "wall": time.perf_counter() - start})
 
 
+def refused_frame(max_objects: int = 100_000, items: int = 10_000) -> bytes:
+    """A msgpack array of `max_objects // items` lists of `items` small ints: every list is within the item limit and
+    the frame is 98 KiB, but it holds one object past `max_objects`, so the decoder refuses it at its last list."""
+    inner = b"\xdc" + items.to_bytes(2, "big") + b"\x01" * items
+    return b"\xdc" + (max_objects // items).to_bytes(2, "big") + inner * (max_objects // items)
+
+
+def _attacker_process(port: int, attackers: int, started: Any, stop: Any, results: Any) -> None:
+    """Runs in a child process: `attackers` threads, each looping on `refused_frame()` over its own connection until
+    `stop` is set; puts the count of refusals and the seconds they took on `results`."""
+    import websockets.sync.client
+
+    frame = refused_frame()
+    refusals = [0] * attackers
+    errors: list[str] = []
+    connected = threading.Barrier(attackers + 1)
+
+    def attack(index: int) -> None:
+        try:
+            with websockets.sync.client.connect(f"ws://127.0.0.1:{port}", compression=None, max_size=None) as ws:
+                ws.recv()  # the metadata
+                connected.wait()
+                while not stop.is_set():
+                    ws.send(frame)
+                    reply = ws.recv()
+                    if not (isinstance(reply, str) and reply.startswith("invalid request: ")):
+                        raise RuntimeError(f"not refused: {reply[:100]!r}")
+                    refusals[index] += 1
+        except Exception as error:
+            errors.append(repr(error))
+            connected.abort()
+
+    threads = [threading.Thread(target=attack, args=(i,)) for i in range(attackers)]
+    for thread in threads:
+        thread.start()
+    try:
+        connected.wait()
+    except threading.BrokenBarrierError:
+        pass
+    start = time.perf_counter()
+    started.set()
+    for thread in threads:
+        thread.join()
+    results.put({"refusals": sum(refusals), "seconds": time.perf_counter() - start, "errors": errors})
+
+
+def _flood(policy: Any, args: argparse.Namespace, frame_shape: tuple[int, ...]) -> None:
+    """The good client's latency while 0, 1, 3, ... clients loop on a refused frame (one server each)."""
+    from pi0_torch.runtime.serving import PolicyServer
+
+    print(f"refused frame: {len(refused_frame()) / 1024:.0f} KiB, one object past --max-objects 100000")
+    print("| attackers | good requests | errors | p50 ms | p90 ms | max ms | refusals/s |")
+    print("|---:|---:|---:|---:|---:|---:|---:|")
+    context = multiprocessing.get_context("spawn")
+    for attackers in map(int, args.flood.split(",")):
+        with PolicyServer(policy, host="127.0.0.1", port=0).serve_in_thread() as port:
+            started, stop, results = context.Event(), context.Event(), context.Queue()
+            flood = context.Process(target=_attacker_process, args=(port, attackers, started, stop, results))
+            if attackers:
+                flood.start()
+                started.wait(timeout=600)
+            good = context.Queue()
+            client = context.Process(target=_client_process,
+                                     args=(port, 1, args.requests, args.warmup, frame_shape, good))
+            client.start()
+            summary = good.get(timeout=3600)
+            client.join()
+            stop.set()
+            attack = results.get(timeout=600) if attackers else {"refusals": 0, "seconds": 1.0, "errors": []}
+            if attackers:
+                flood.join()
+        milliseconds = np.asarray(summary["latencies"]) * 1000
+        p50, p90 = np.percentile(milliseconds, [50, 90]) if len(milliseconds) else (np.nan,) * 2
+        print(f"| {attackers} | {len(milliseconds)} | {len(summary['errors']) + len(attack['errors'])} | {p50:.0f} | "
+              f"{p90:.0f} | {milliseconds.max() if len(milliseconds) else np.nan:.0f} | "
+              f"{attack['refusals'] / attack['seconds']:.0f} |", flush=True)
+        for error in (summary["errors"] + attack["errors"])[:3]:
+            print(f"  error: {error}")
+
+
 def _random_model(preset: str, directory: Path, num_steps: int | None) -> Path:
     import torch
 
@@ -153,20 +242,29 @@ def main() -> None:
     parser.add_argument("--requests", type=int, default=10, help="timed requests per client")
     parser.add_argument("--warmup", type=int, default=2, help="untimed requests per client first")
     parser.add_argument("--frame", default="224x224", help="client frame size HxW (2 cameras, uint8)")
+    parser.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: as pi0-torch serve's "
+                        "auto, 1 for a model under 10 M parameters)")
+    parser.add_argument("--flood", default=None, metavar="N,N,...", help="instead of the load test: one good client's "
+                        "latency while N other clients loop on a refused frame, for each N")
     args = parser.parse_args()
 
     import torch
 
     from pi0_torch.runtime.policy import PI0Policy
     from pi0_torch.runtime.serving import PolicyServer
+    from pi0_torch.utils.threads import set_threads
 
     frame_shape = (*map(int, args.frame.split("x")), 3)
     with tempfile.TemporaryDirectory() as scratch:
         model_dir = args.model or _random_model(args.preset, Path(scratch), args.num_steps)
         policy = PI0Policy.from_pretrained(model_dir, device=args.device, dtype=args.dtype, num_steps=args.num_steps)
+        set_threads(args.threads, policy.model)  # as `pi0-torch serve` does
         name = args.model.name if args.model else f"random {args.preset}"
         print(f"model: {name}, {policy.metadata['model_type']}, {policy.num_steps} steps, device {policy.device}, "
               f"dtype {policy.metadata['dtype']}, torch threads {torch.get_num_threads()}, frames {args.frame} x2")
+        if args.flood is not None:
+            _flood(policy, args, frame_shape)
+            return
         print("| server | clients | requests | errors | req/s | p50 ms | p90 ms | p99 ms | mean batch |")
         print("|---|---:|---:|---:|---:|---:|---:|---:|---:|")
         with concurrent.futures.ThreadPoolExecutor(max_workers=1) as model_thread:  # as the server runs the model

@@ -42,8 +42,8 @@ def json_object(text: str) -> dict[str, Any]:
     """Argument type shared by subcommands: a JSON object (e.g. `--metadata`, `--config-overrides`)."""
     try:
         value = json.loads(text)
-    except json.JSONDecodeError as error:
-        raise argparse.ArgumentTypeError(f"not valid JSON: {error}") from None
+    except ValueError as error:  # JSONDecodeError, or an integer of more digits than Python converts
+        raise argparse.ArgumentTypeError(f"not valid JSON: {str(error)[:200]}") from None
     if not isinstance(value, dict):
         raise argparse.ArgumentTypeError(f"expected a JSON object, got a JSON {type(value).__name__}")
     return value

@@ -123,6 +123,13 @@ def test_env_kwargs_must_be_a_json_object(capsys: pytest.CaptureFixture[str]) ->
     assert "argument --env-kwargs: expected a JSON object, got a JSON list" in err and "Traceback" not in err
 
 
+def test_json_options_beyond_pythons_integer_limit_are_one_line(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit):
+        main(["eval", "--policy", "expert", "--env", "pi0_torch/Reach-v0", "--env-kwargs", '{"n": ' + "9" * 5000 + "}"])
+    err = capsys.readouterr().err
+    assert "argument --env-kwargs: not valid JSON: Exceeds the limit (4300 digits)" in err and "9999" not in err, err
+
+
 def test_a_policy_camera_the_env_does_not_give_is_a_warning_once(caplog: pytest.LogCaptureFixture) -> None:
     """Issue 28.9: a two-camera policy evaluated with `{"wrist_camera": false}` silently masked the missing camera."""
     from conftest import tiny_policy

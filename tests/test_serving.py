@@ -322,6 +322,34 @@ def test_codec_refuses_malformed_frames(frame: Any, reason: str) -> None:
         unpack_message(frame)
 
 
+def _numpy_text(code_points: list[int], byteorder: str = "<") -> np.ndarray:
+    """A 0-d numpy string of raw UTF-32 code points, as any client can pack it (numpy cannot build it from text)."""
+    dtype = np.dtype(f"{byteorder}U{len(code_points)}")
+    return np.frombuffer(np.array(code_points, f"{byteorder}u4").tobytes(), dtype).reshape(())
+
+
+@pytest.mark.parametrize(
+    ("message", "field"),
+    [
+        ({"prompt": _numpy_text([0xFFFFFFFF]), "state": np.zeros(3)}, "prompt"),  # issue 38.15
+        ({"images": {"cam_high": _numpy_text([0x61, 0xD800], ">")}}, "images/cam_high"),  # a surrogate, big-endian
+        ({"steps": [1, {"rtc_method": _numpy_text([0x110000])}]}, "steps[1]/rtc_method"),
+        ([_numpy_text([0x61]), _numpy_text([0xFFFFFFFF]), _numpy_text([0xFFFFFFFF])], "[1]"),  # the first is named
+        (_numpy_text([0xFFFFFFFF]), "the message"),
+    ],
+)
+def test_numpy_strings_that_are_no_text_are_refused_naming_the_field(message: Any, field: str) -> None:
+    """numpy fails on such strings wherever they are read (`.item()`, `str()`, printing: a SystemError), so the
+    decoder refuses them, naming the field, expected and actual; text numpy strings still pass."""
+    frame = pack_message(message)
+    with pytest.raises(MessageError) as refused:
+        unpack_message(frame, max_items=100, max_objects=1_000)
+    assert str(refused.value).startswith(f"{field}: expected Unicode text (code points up to U+10FFFF, surrogates "
+                                         "excluded), got a numpy string array (dtype "), str(refused.value)
+    assert " holding 0x" in str(refused.value) and "\n" not in str(refused.value)
+    assert unpack_message(pack_message({"prompt": _numpy_text([0x10FFFF, 0xE9])}))["prompt"].item() == "\U0010ffffé"
+
+
 def test_codec_refuses_to_send_object_arrays() -> None:
     with pytest.raises(TypeError, match="dtype object"):
         pack_message({"x": np.array([None, 1], dtype=object)})
@@ -347,6 +375,12 @@ def test_presets_map_openpi_example_clients_to_the_default_layout() -> None:
         "observation/joint_position": np.arange(7.0), "observation/gripper_position": np.array([0.25]),
     })
     assert droid["state"].tolist() == [0, 1, 2, 3, 4, 5, 6, 0.25] and droid["prompt"] is None
+    # the total (8) alone would let 1 joint + 7 gripper values through: each source has its length
+    with pytest.raises(ObservationError, match=r"'observation/joint_position' must hold 7 values \(droid format\), got 1"):
+        ObservationFormat.from_preset("droid").to_default({
+            "observation/exterior_image_1_left": _frame(), "observation/wrist_image_left": _frame(),
+            "observation/joint_position": np.arange(1.0), "observation/gripper_position": np.arange(7.0),
+        })
 
     aloha = ObservationFormat.from_preset("aloha").to_default({
         "state": np.zeros(14), "images": {"cam_high": _frame((3, 224, 224)), "cam_low": _frame((3, 224, 224))},
@@ -370,7 +404,7 @@ def test_format_errors_name_the_missing_field() -> None:
 
 def test_format_from_json_and_its_checks(tmp_path: Path) -> None:
     spec = {"images": {"base_0_rgb": ["obs", "front"], "left_wrist_0_rgb": "wrist"}, "optional_images": ["left_wrist_0_rgb"],
-            "state": ["arm", ["obs", "gripper"]], "prompt": "task"}
+            "state": ["arm", ["obs", "gripper"]], "state_sizes": [None, 1], "prompt": "task"}
     path = tmp_path / "my_robot.json"
     path.write_text(json.dumps(spec))
     fmt = ObservationFormat.resolve(str(path))
@@ -382,7 +416,10 @@ def test_format_from_json_and_its_checks(tmp_path: Path) -> None:
         fmt.check_cameras(["base_0_rgb"])
     for bad, reason in (({"images": {}, "state": ["s"]}, "maps no camera"), ({"images": "i"}, "missing key 'state'"),
                         ({"images": "i", "state": "s"}, "non-empty list"), ({"images": "i", "state": ["s"], "x": 1}, "unknown keys"),
-                        ({"images": {"a": "k"}, "state": ["s"], "optional_images": ["b"]}, "not mapped")):
+                        ({"images": {"a": "k"}, "state": ["s"], "optional_images": ["b"]}, "not mapped"),
+                        ({"images": "i", "state": ["s", "t"], "state_sizes": [7]}, "2 state sources"),
+                        ({"images": "i", "state": ["s"], "state_sizes": [0]}, "positive integers"),
+                        ({"images": "i", "state": ["s"], "state_sizes": 7}, "list of lengths")):
         with pytest.raises(ValueError, match=reason):
             ObservationFormat.from_dict(bad)
     with pytest.raises(ValueError, match="unknown observation format 'bridge'"):

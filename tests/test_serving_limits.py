@@ -1,14 +1,18 @@
-"""`pi0-torch serve` under hostile or careless clients (issue 17, items 4-7), against a real server process.
+"""`pi0-torch serve` under hostile or careless clients (issue 17, items 4-7; issue 38, items 12-15), against a real
+server process.
 
 One `pi0-torch serve` process (a random `pi0_small`, 1 Euler step, an API key from the environment, a small connection
-cap and idle timeout, the default frame / prompt / image limits) serves every test of this module over loopback. Its
+cap and idle timeout, the default frame / prompt / image limits) serves most tests of this module over loopback. Its
 memory is read with psutil; a well-behaved client measures its latency while others send oversized requests. Every
-loop is bounded, and the numbers are printed (`-s`) for docs/reliability.md.
+loop is bounded, and the numbers are printed (`-s`) for docs/reliability.md. The refusal budget and the displacement of
+idle connections are checked on servers in this process, with a clock the test moves (counted, not timed); the
+latency they keep is measured by `benchmarks/bench_serving.py --flood`.
 """
 
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
 import os
 import re
@@ -26,12 +30,30 @@ import psutil
 import pytest
 import websockets
 import websockets.sync.client
-from test_serving import ACTION_DIM, REPO_ROOT, STATE_DIM, client_python, run_client, save_random_model  # noqa: F401
+from test_serving import (  # noqa: F401  (client_python, model_dir, policy are fixtures)
+    ACTION_DIM,
+    REPO_ROOT,
+    STATE_DIM,
+    _numpy_text,
+    client_python,
+    model_dir,
+    policy,
+    run_client,
+    save_random_model,
+)
 from websockets.exceptions import InvalidStatus
 
 from conftest import HANG_S
 from pi0_torch.runtime import serving
-from pi0_torch.runtime.serving import MessageError, PolicyServer, ServerLimits, pack_message, unpack_message
+from pi0_torch.runtime.policy import PI0Policy
+from pi0_torch.runtime.serving import (
+    MessageError,
+    PolicyServer,
+    RefusalBudget,
+    ServerLimits,
+    pack_message,
+    unpack_message,
+)
 
 # websockets >= 17 warns when connect() is not used as a context manager; these clients are closed explicitly
 pytestmark = pytest.mark.filterwarnings("ignore:connect\\(\\) must be used as a context manager:DeprecationWarning")
@@ -183,6 +205,9 @@ def test_error_replies_are_one_line_naming_the_field(server: ServeProcess) -> No
         "long list": ({"state": [0.0] * 20_000}, "holds more than 10000 items"),
         "big frame": ({"images": {"base_0_rgb": np.zeros((1500, 2000, 3), np.uint8)}},
                       "images['base_0_rgb']: a frame of 1500x2000 = 3000000 pixels; this server's limit is 2073600"),
+        "prompt no text": ({"prompt": _numpy_text([0xFFFFFFFF])},  # issue 38.15: a traceback before
+                           "prompt: expected Unicode text (code points up to U+10FFFF, surrogates excluded), got a "
+                           "numpy string array (dtype <U1, shape ()) holding 0xFFFFFFFF"),
     }
     with server.connect() as ws:
         for name, (change, words) in cases.items():
@@ -297,11 +322,12 @@ def amplifying_frame(outer: int = 10_000, inner: int = 1_600) -> bytes:
     return b"\x81\xa6images" + b"\xdd" + outer.to_bytes(4, "big") + inner_array * outer
 
 
-def test_a_frame_that_decodes_into_millions_of_objects_costs_milliseconds(server: ServeProcess) -> None:
+def test_a_frame_that_decodes_into_millions_of_objects_stalls_nobody(server: ServeProcess) -> None:
     """Three clients send the amplifying frame while `/healthz` is polled and a good client measures its latency:
-    each is refused within a second naming the bound, the health check and the good client do not wait behind them,
-    and the server's memory does not grow by the decoded size (before: 12.8 s health check, 13.7 s good client,
-    +1.0 GB; three clients +2.3 GB and 38.7 s)."""
+    each is refused naming the bound, the health check and the good client do not wait behind them, and the server's
+    memory does not grow by the decoded size (before: 12.8 s health check, 13.7 s good client, +1.0 GB; three clients
+    +2.3 GB and 38.7 s). The refusals themselves are paced by the refusal budget (each decoding stops at the bound,
+    about 100,000 hook calls; the budget lets them take a tenth of a core), so their times are printed, not bounded."""
     frame = amplifying_frame()
     assert 15 * 2**20 < len(frame) < 16 * 2**20
     good = pack_message(good_observation())
@@ -319,10 +345,9 @@ def test_a_frame_that_decodes_into_millions_of_objects_costs_milliseconds(server
 
     def attack() -> None:
         with server.connect() as ws:
-            for _ in range(3):
-                start = time.monotonic()
-                reply = ask(ws, frame)
-                refusals.append((time.monotonic() - start, reply))
+            start = time.monotonic()
+            reply = ask(ws, frame)
+            refusals.append((time.monotonic() - start, reply))
 
     with server.connect() as ws:
         ask(ws, good)
@@ -355,17 +380,17 @@ def test_a_frame_that_decodes_into_millions_of_objects_costs_milliseconds(server
             stop.set()
             for thread in helpers:
                 thread.join(timeout=HANG_S)
-    assert len(refusals) == 9
+    assert len(refusals) == 3
     for seconds, reply in refusals:
         assert isinstance(reply, str) and reply.startswith("invalid request: the message holds more than 100000 objects")
     refused_s = sorted(seconds for seconds, _ in refusals)
     growth = peak[0] - rss_before
-    print(f"\namplifying 15.3 MiB frames x 9 from 3 clients: refused in {1000 * refused_s[4]:.0f} ms p50 (max "
+    print(f"\namplifying 15.3 MiB frames from 3 clients at once: refused in {1000 * refused_s[1]:.0f} ms p50 (max "
           f"{1000 * refused_s[-1]:.0f} ms, round trip of the 15 MiB upload included); /healthz p50 "
           f"{1000 * np.median(health_s):.0f} ms max {1000 * max(health_s):.0f} ms over {len(health_s)} checks; good client "
           f"{1000 * np.median(quiet):.0f} ms quiet, {1000 * np.median(attacked):.0f} ms (max {1000 * max(attacked):.0f} ms) "
           f"under attack; server RSS {rss_before:.0f} MiB, peak +{growth:.0f} MiB")
-    assert refused_s[-1] < 5.0 and max(health_s) < 2.0  # generous for a loaded 2-core machine; before: 13 s, 12.8 s
+    assert max(health_s) < 2.0  # generous for a loaded 2-core machine; before: 12.8 s
     assert growth < 200, f"server RSS grew by {growth:.0f} MiB"  # before: +1.0 GB (one client), +2.3 GB (three)
     assert max(attacked) < 3 * max(quiet) + 2.0, (quiet, attacked)  # before: 13.7 s
 
@@ -398,13 +423,13 @@ def test_the_object_bound_stops_any_amplifying_shape_at_the_bound(shape: str, mo
         keys = b"".join(b"\xa4" + f"{i:04x}".encode() + b"\x92\x90\x90" for i in range(100))
         frame = b"\xdc" + count.to_bytes(2, "big") + (b"\xde" + (100).to_bytes(2, "big") + keys) * count
     counted: list[int] = []
-    add = serving._ObjectBudget.add
+    add = serving._Decoding.add
 
-    def counting(budget: serving._ObjectBudget, items: int) -> None:
+    def counting(budget: serving._Decoding, items: int) -> None:
         counted.append(items)
         add(budget, items)
 
-    monkeypatch.setattr(serving._ObjectBudget, "add", counting)
+    monkeypatch.setattr(serving._Decoding, "add", counting)
     limits = ServerLimits()
     with pytest.raises(MessageError, match="more than 100000 objects in lists and maps"):
         unpack_message(frame, max_items=10_000, max_objects=limits.max_objects)
@@ -412,3 +437,149 @@ def test_the_object_bound_stops_any_amplifying_shape_at_the_bound(shape: str, mo
     monkeypatch.undo()
     observation = {**good_observation(), "previous_actions": np.zeros((50, ACTION_DIM), np.float32), "noise_seed": 3}
     assert unpack_message(pack_message(observation), max_items=10_000, max_objects=1_000)["noise_seed"] == 3
+
+
+# --------------------------------------------------------------------------------------------- in-process servers
+
+
+def _client(port: int) -> websockets.sync.client.ClientConnection:
+    """An openpi-like client of an in-process server, its metadata read."""
+    ws = websockets.sync.client.connect(f"ws://127.0.0.1:{port}", compression=None, max_size=None, open_timeout=HANG_S)
+    unpack_message(ws.recv(timeout=HANG_S))
+    return ws
+
+
+def test_refused_frames_wait_for_the_refusal_budget_one_at_a_time(policy: PI0Policy) -> None:  # noqa: F811
+    """Issue 38.12 (clients looping on refused frames slowed a good client from 33 ms to 1.6 s): the frames of a
+    connection that is not trusted (its last request was refused, or it has had no actions yet) are decoded only while
+    the refusal budget is out of debt, one at a time in arrival order, and each refusal is charged the CPU time it
+    cost; a connection whose last request got actions is never held. Counted, with a budget clock that only the test
+    moves (the latency this keeps: `benchmarks/bench_serving.py --flood`)."""
+    now = [0.0]
+    server = PolicyServer(policy, host="127.0.0.1", port=0)
+    server._refusals = RefusalBudget(share=0.1, burst_s=1e-9, clock=lambda: now[0])  # any refusal puts it in debt
+    good, newcomer_frame = pack_message(good_observation(0)), pack_message(good_observation(7))
+    names = {good: "good", newcomer_frame: "newcomer", b"\xc1 1": "bad 1", b"\xc1 2": "bad 2", b"\xc1 3": "bad 3"}
+    decoded: list[str] = []  # the frames the server decoded, in order
+    prepare = server._prepare
+
+    def counting(frame: bytes) -> Any:
+        decoded.append(names[frame])
+        return prepare(frame)
+
+    server._prepare = counting  # type: ignore[method-assign]
+    refused = "invalid request: not a valid msgpack message"
+    with server.serve_in_thread() as port, _client(port) as trusted, _client(port) as attacker:
+        assert ask(trusted, good)["actions"].shape == (50, ACTION_DIM)  # trusted from now on
+        assert ask(attacker, b"\xc1 1").startswith(refused)  # no debt yet: decoded at once, then charged
+        attacker.send(b"\xc1 2")  # in debt: held
+        with _client(port) as newcomer:
+            newcomer.send(newcomer_frame)  # no actions yet: its turn comes after the attacker's frame
+            for _ in range(3):  # a trusted connection is never held, debt or not
+                assert ask(trusted, good)["actions"].shape == (50, ACTION_DIM)
+            assert decoded == ["good", "bad 1", "good", "good", "good"]
+            now[0] += 1.0  # 0.1 s of budget: out of debt
+            assert attacker.recv(timeout=HANG_S).startswith(refused)
+            assert decoded[-1] == "bad 2"  # and its refusal put the budget in debt again: the newcomer still waits
+            now[0] += 1.0
+            assert unpack_message(newcomer.recv(timeout=HANG_S))["actions"].shape == (50, ACTION_DIM)
+            assert ask(attacker, b"\xc1 3").startswith(refused)  # out of debt: decoded at once, in debt again
+            assert ask(newcomer, newcomer_frame)["actions"].shape == (50, ACTION_DIM)  # trusted now: not held
+    assert decoded == ["good", "bad 1", "good", "good", "good", "bad 2", "newcomer", "bad 3", "newcomer"]
+
+
+def test_a_new_client_displaces_the_connection_longest_without_actions(
+    policy: PI0Policy, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture  # noqa: F811
+) -> None:
+    """Issue 38.13 (sixteen idle sockets held every slot for the 3,600 s idle timeout): when all connections are
+    taken, a new client displaces the one that has gone longest without actions, if longer than the grace period and
+    it has no request with the model; otherwise it gets HTTP 503 as before. The grace is 1 ns here, then an hour."""
+    server = PolicyServer(policy, host="127.0.0.1", port=0, limits=ServerLimits(max_connections=2, displace_idle_s=1e-9))
+    entered, release = threading.Event(), threading.Event()
+    infer = policy.infer_prepared
+
+    def held(prepared: Any) -> list[dict[str, Any]]:  # the next model call waits for the test
+        if not release.is_set():
+            entered.set()
+            release.wait(HANG_S)
+        return infer(prepared)
+
+    good = pack_message(good_observation())
+
+    def displaced(ws: websockets.sync.client.ClientConnection) -> str:
+        with pytest.raises(websockets.ConnectionClosed) as closed:
+            ws.recv(timeout=HANG_S)
+        assert closed.value.rcvd is not None and closed.value.rcvd.code == 1000
+        return closed.value.rcvd.reason
+
+    with caplog.at_level(logging.WARNING, logger="pi0_torch.runtime.serving"), server.serve_in_thread() as port:
+        with _client(port) as idle, _client(port) as busy:
+            assert ask(busy, good)["actions"].shape == (50, ACTION_DIM)
+            with _client(port) as third:  # all taken: `idle` (no actions since it opened) goes
+                assert displaced(idle).startswith("displaced: no actions for 0 s while another client waited")
+                assert ask(third, good)["actions"].shape == (50, ACTION_DIM)
+                monkeypatch.setattr(policy, "infer_prepared", held)
+                busy.send(good)
+                assert entered.wait(HANG_S)  # `busy` has a request in the model: it is longest without actions,
+                with _client(port) as fourth:  # but `third` is displaced instead
+                    assert "displaced: " in displaced(third)
+                    release.set()
+                    assert unpack_message(busy.recv(timeout=HANG_S))["actions"].shape == (50, ACTION_DIM)
+                    assert ask(fourth, good)["actions"].shape == (50, ACTION_DIM)
+                    server.limits = dataclasses.replace(server.limits, displace_idle_s=3600.0)
+                    with pytest.raises(InvalidStatus) as refused:  # nobody idle for an hour: HTTP 503
+                        _client(port)
+    assert refused.value.response.status_code == 503
+    assert refused.value.response.body.decode() == ("the server holds its limit of 2 connections and none has gone "
+                                                   "3600 s without actions; try again later\n")
+    assert caplog.text.count("displaced by 127.0.0.1:") == 2 and "(--displace-idle-after 1e-09)" in caplog.text
+
+
+@pytest.mark.parametrize(
+    ("flags", "words"),
+    [
+        (["--max-message-mib", "inf"], "--max-message-mib must be a finite number > 0 and <= 4096, got inf (float)"),
+        (["--max-message-mib", "nan"], "--max-message-mib must be a finite number > 0 and <= 4096, got nan (float)"),
+        (["--idle-timeout", "nan"], "--idle-timeout must be a finite number >= 0, got nan (float)"),
+        (["--displace-idle-after", "-1"], "--displace-idle-after must be a finite number >= 0, got -1"),
+        (["--refused-share", "1.5"], "--refused-share must be a finite number > 0 and <= 1, got 1.5 (float)"),
+        (["--seed", str(2**70)], f"--seed must be an integer in [0, {2**63 - 1}], got {2**70} (int)"),
+        (["--max-connections", "0"], "--max-connections must be an integer >= 1, got 0 (int)"),
+    ],
+)
+def test_unusable_serve_settings_are_refused_in_one_line_before_loading(
+    flags: list[str], words: str, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Issue 38.14: `--max-message-mib inf` was an OverflowError traceback, nan an unnamed error, a seed of 2**70 a
+    traceback after loading the model. Each is refused by its flag's name before the model loads (a missing folder
+    here: it would be named if it were read)."""
+    with caplog.at_level(logging.ERROR, logger="pi0_torch.runtime.serving"):
+        assert serving.main(["--model", "/nonexistent/model", "--port", "0", "--device", "cpu", *flags]) == 1
+    errors = [record.getMessage() for record in caplog.records if record.levelno >= logging.ERROR]
+    assert len(errors) == 1 and words in errors[0] and "\n" not in errors[0], errors
+
+
+def test_absurd_thread_counts_are_refused_by_argparse(capsys: pytest.CaptureFixture[str]) -> None:
+    """Issue 38.14: `serve --threads 1000000` crashed torch's thread pool (a segfault)."""
+    with pytest.raises(SystemExit) as exited:
+        serving.main(["--model", "/nonexistent/model", "--threads", "1000000"])
+    assert exited.value.code == 2
+    assert "argument --threads: expected a number of threads in [1, 1024] or auto, got 1000000" in capsys.readouterr().err
+
+
+def test_metadata_that_clients_cannot_trust_is_refused_by_name(policy: PI0Policy) -> None:  # noqa: F811
+    """Issue 38.14-15: `--metadata` may add keys (openpi's ALOHA client reads `reset_pose`), never replace one the
+    server sends itself (clients read the cameras and horizon from there), and holds only values that can be sent
+    (integers within 64 bits: a bigger one was an OverflowError traceback)."""
+    own = sorted(PolicyServer(policy).metadata)
+    for extra in ({"camera_names": ["top"]}, {"action_horizon": 5, "reset_pose": [0]},
+                  {key: 1 for key in own}):  # every key the server sends is its own
+        with pytest.raises(ValueError) as refused:
+            PolicyServer(policy, extra_metadata=extra)
+        taken = sorted(set(extra) & set(own))
+        assert str(refused.value).startswith(f"extra metadata (serve --metadata): {taken} are the server's own keys")
+    with pytest.raises(ValueError, match=r"'reset_pose' cannot be sent to clients \(a 71-bit integer does not fit msgpack's 64 bits\); "
+                                         "expected JSON values with integers within 64 bits"):
+        PolicyServer(policy, extra_metadata={"reset_pose": [0, 2**70]})
+    served = PolicyServer(policy, extra_metadata={"reset_pose": [0, 2**64 - 1], "site": "lab"}).metadata
+    assert served["reset_pose"] == [0, 2**64 - 1] and served["camera_names"] == policy.camera_names

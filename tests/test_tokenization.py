@@ -83,7 +83,8 @@ def test_long_prompt_warns_and_truncates(tokenizer: PromptTokenizer) -> None:
 
 @pytest.mark.parametrize(
     ("prompt", "message"),
-    [("", "empty after cleaning"), (" _\n_ ", "empty after cleaning"), (3, "expected a string, got int")],
+    [("", "empty after cleaning"), (" _\n_ ", "empty after cleaning"), (3, "expected a string, got int"),
+     ("pick \ud800up", r"not valid text: '\\ud800' at position 5 is half of a UTF-16 surrogate pair")],
 )
 def test_bad_prompts(tokenizer: PromptTokenizer, prompt: object, message: str) -> None:
     with pytest.raises(ValueError, match=f"^prompt: {message}"):

@@ -11,7 +11,8 @@ An action chunk `[H, A]` becomes a few integer tokens:
 
 Decoding reverses it: BPE ids -> characters -> `ord(c) + min_token` -> `[H, A]` coefficients -> `/ scale` ->
 inverse DCT. A sequence that does not decode to exactly `H * A` coefficients (a model can emit any ids) gives a
-chunk of zeros and a logged warning, as openpi does.
+chunk of zeros and a logged warning, as openpi does (or, with `decode(mark_undecodable=True)`, a chunk of NaN, which a
+policy withholds).
 
 The folder layout is the public `physical-intelligence/fast` one (`processor_config.json` with `scale`,
 `vocab_size`, `min_token`, `time_horizon`, `action_dim`; the BPE's `tokenizer.json` and `tokenizer_config.json`),
@@ -178,33 +179,37 @@ class FASTActionTokenizer:
             )
 
     def decode(
-        self, ids: Iterable[Sequence[int]], time_horizon: int | None = None, action_dim: int | None = None
+        self, ids: Iterable[Sequence[int]], time_horizon: int | None = None, action_dim: int | None = None,
+        mark_undecodable: bool = False,
     ) -> np.ndarray:
         """Action chunks `[B, H, A]` (float64) of id sequences; `H`, `A` default to the tokenizer's settings.
 
         A sequence that does not decode to `H * A` coefficients gives zeros and a logged warning (openpi's FAST
-        behaviour: a model may emit an undecodable sequence; the robot then gets a zero chunk, not a crash).
+        behaviour: a model may emit an undecodable sequence; the robot then gets a zero chunk, not a crash), or
+        with `mark_undecodable` a chunk of NaN, which tells it from a decoded chunk (a policy withholds it).
         """
         horizon = time_horizon if time_horizon is not None else self.time_horizon
         dim = action_dim if action_dim is not None else self.action_dim
         if horizon is None or dim is None:
             raise ValueError("decode needs time_horizon and action_dim (this tokenizer's settings have none)")
+        fill, filled = (np.nan, "NaN (undecodable)") if mark_undecodable else (0.0, "zeros")
         chunks = []
         for sequence in ids:
             sequence = [int(i) for i in sequence]
             shown = sequence[:16] + (["..."] if len(sequence) > 16 else [])
             if any(not 0 <= i < self.vocab_size for i in sequence):
-                logger.warning("FAST tokens %s are not all in [0, %d): returning a chunk of zeros", shown, self.vocab_size)
-                coefficients = np.zeros(horizon * dim)
+                logger.warning("FAST tokens %s are not all in [0, %d): returning a chunk of %s", shown, self.vocab_size,
+                               filled)
+                coefficients = np.full(horizon * dim, fill)
             else:
                 text = self.bpe.decode(sequence)
                 coefficients = np.array([ord(c) for c in text], dtype=np.float64) + self.min_token
                 if coefficients.size != horizon * dim:
                     logger.warning(
-                        "FAST tokens %s decode to %d coefficients, not %d x %d: returning a chunk of zeros",
-                        shown, coefficients.size, horizon, dim,
+                        "FAST tokens %s decode to %d coefficients, not %d x %d: returning a chunk of %s",
+                        shown, coefficients.size, horizon, dim, filled,
                     )
-                    coefficients = np.zeros(horizon * dim)
+                    coefficients = np.full(horizon * dim, fill)
             chunks.append(idct(coefficients.reshape(horizon, dim) / self.scale, axis=0))
         return np.stack(chunks) if chunks else np.zeros((0, horizon, dim))
 

@@ -14,7 +14,8 @@ checks) with openpi's π0-FAST prompt (`FASTTokenizer.tokenize`) and, on the way
   `truncation="error"`);
 - out: the generated tokens are decoded to text, the text between `"Action: "` and `"|"` is encoded again, the ids
   mapped back to FAST ids and FAST-decoded to `[action_horizon, action_dim]` (zeros, with a warning, when that
-  fails), then unnormalized like π0's actions (`postprocess_actions`).
+  fails; NaN with `mark_undecodable`, as `PI0FastPolicy` asks, so that the chunk is withheld), then unnormalized like
+  π0's actions (`postprocess_actions`).
 
 Normalization defaults to quantile (openpi normalizes every model but π0 by quantiles), and an absent camera is a
 black frame with its mask on (openpi's π0-FAST input transforms do not mask padding images). The FAST tokenizer is
@@ -232,13 +233,14 @@ class PI0FastProcessor(PI0Processor):
         """FAST ids <-> prompt-vocabulary ids (the map is its own inverse)."""
         return self.tokenizer.vocab_size - 1 - self.fast_skip_tokens - ids
 
-    def extract_actions(self, tokens: Any) -> np.ndarray:
+    def extract_actions(self, tokens: Any, mark_undecodable: bool = False) -> np.ndarray:
         """openpi's `extract_actions`: generated tokens `[T]` or `[B, T]` -> float32 `[B, action_horizon,
         model_action_dim]` normalized actions.
 
         The tokens are decoded to text; the text between `"Action: "` and `"|"`, stripped, is encoded again and its
         ids mapped back to FAST ids, which the FAST tokenizer decodes. No `"Action: "`, or FAST ids that do not
-        decode to a whole chunk, give a chunk of zeros and a logged warning.
+        decode to a whole chunk, give a chunk of zeros (openpi's behaviour) and a logged warning; with
+        `mark_undecodable`, a chunk of NaN, which tells it from a decoded chunk (a policy withholds it).
         """
         rows = tokens.detach().cpu().numpy() if isinstance(tokens, torch.Tensor) else np.asarray(tokens)
         if rows.ndim == 1:
@@ -248,15 +250,17 @@ class PI0FastProcessor(PI0Processor):
         horizon, dim = self.action_horizon, self.model_action_dim
         if horizon is None:
             raise ValueError("extract_actions needs the processor's action_horizon (build it with from_config)")
-        chunks = np.zeros((len(rows), horizon, dim), np.float32)
+        chunks = np.full((len(rows), horizon, dim), np.nan if mark_undecodable else 0.0, np.float32)
         for index, row in enumerate(rows):
             text = self.tokenizer.decode(row.tolist())
             if ACTION_START not in text:
-                logger.warning("generated tokens hold no %r: returning a chunk of zeros (text: %r)", ACTION_START, text[:80])
+                logger.warning("generated tokens hold no %r: returning a chunk of %s (text: %r)", ACTION_START,
+                               "NaN (undecodable)" if mark_undecodable else "zeros", text[:80])
                 continue
             action_text = text.split(ACTION_START, 1)[1].split(ACTION_END)[0].strip()
             fast_ids = self._fast_to_vocab(np.asarray(self.tokenizer.encode(action_text), dtype=np.int64))
-            chunks[index] = self.action_tokenizer.decode([fast_ids.tolist()], time_horizon=horizon, action_dim=dim)[0]
+            chunks[index] = self.action_tokenizer.decode([fast_ids.tolist()], time_horizon=horizon, action_dim=dim,
+                                                         mark_undecodable=mark_undecodable)[0]
         return chunks
 
     def decode_actions(self, tokens: Any, state: Any = None) -> np.ndarray:

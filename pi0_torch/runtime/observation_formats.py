@@ -12,6 +12,7 @@ message. As a JSON file (`pi0-torch serve --obs-format my_robot.json`):
                  "left_wrist_0_rgb": "observation/wrist_image_left"},
       "optional_images": [],
       "state": ["observation/joint_position", "observation/gripper_position"],
+      "state_sizes": [7, 1],
       "prompt": "prompt"
     }
 
@@ -21,6 +22,8 @@ message. As a JSON file (`pi0-torch serve --obs-format my_robot.json`):
   {model camera name: frame} (the default layout). In the dict form every camera is required unless listed in
   `optional_images`; a model camera that is not mapped, or optional and absent, is fed as a missing (masked) camera.
 - `state` is a list of sources; their 1-D values are concatenated in order (DROID: joints, then gripper).
+  `state_sizes` (optional, one length per source, `null` for any) refuses a source of another length: the total
+  alone cannot tell 1 joint + 7 gripper values from 7 joints + 1 gripper.
 - `prompt` is a source; a message without it gets the processor's default prompt (`--default-prompt`), if any.
 
 The optional real-time chunking fields of [`PI0Policy`] (`previous_actions`, `inference_delay`, `execution_horizon`,
@@ -74,6 +77,16 @@ class ObservationFormat:
     state: tuple[Source, ...]
     prompt: Source = "prompt"
     optional_images: frozenset[str] = frozenset()
+    state_sizes: tuple[int | None, ...] = ()  # the length of each state source (None: any); () checks none
+
+    def __post_init__(self) -> None:
+        if self.state_sizes and len(self.state_sizes) != len(self.state):
+            raise ValueError(f"observation format {self.name!r}: 'state_sizes' gives {len(self.state_sizes)} lengths "
+                             f"for {len(self.state)} state sources; expected one per source")
+        for size in self.state_sizes:
+            if size is not None and (isinstance(size, bool) or not isinstance(size, int) or size < 1):
+                raise ValueError(f"observation format {self.name!r}: 'state_sizes' holds {size!r}; expected "
+                                 "positive integers or null")
 
     @classmethod
     def from_preset(cls, name: str) -> ObservationFormat:
@@ -85,8 +98,9 @@ class ObservationFormat:
 
     @classmethod
     def from_dict(cls, spec: Mapping[str, Any], name: str = "custom") -> ObservationFormat:
-        """Build a format from its JSON form (keys `images`, `state`, optional `prompt`, `optional_images`)."""
-        unknown = set(spec) - {"images", "state", "prompt", "optional_images"}
+        """Build a format from its JSON form (keys `images`, `state`, optional `state_sizes`, `prompt`,
+        `optional_images`)."""
+        unknown = set(spec) - {"images", "state", "state_sizes", "prompt", "optional_images"}
         if unknown:
             raise ValueError(f"observation format {name!r}: unknown keys {sorted(unknown)}")
         for required in ("images", "state"):
@@ -102,6 +116,10 @@ class ObservationFormat:
         state = spec["state"]
         if isinstance(state, str) or not isinstance(state, Sequence) or not state:
             raise ValueError(f"observation format {name!r}: 'state' must be a non-empty list of sources, got {state!r}")
+        sizes = spec.get("state_sizes") or []
+        if isinstance(sizes, str) or not isinstance(sizes, Sequence):
+            raise ValueError(f"observation format {name!r}: 'state_sizes' must be a list of lengths, one per state "
+                             f"source, got {sizes!r}")
         optional = spec.get("optional_images", [])
         if isinstance(optional, str) or not isinstance(optional, Sequence):
             raise ValueError(f"observation format {name!r}: 'optional_images' must be a list of camera names")
@@ -114,6 +132,7 @@ class ObservationFormat:
             state=tuple(_source(s, f"state[{i}]") for i, s in enumerate(state)),
             prompt=_source(spec.get("prompt", "prompt"), "prompt"),
             optional_images=frozenset(str(c) for c in optional),
+            state_sizes=tuple(sizes),
         )
 
     @classmethod
@@ -149,6 +168,7 @@ class ObservationFormat:
             "images": images,
             "optional_images": sorted(self.optional_images),
             "state": [plain(s) for s in self.state],
+            **({"state_sizes": list(self.state_sizes)} if self.state_sizes else {}),
             "prompt": plain(self.prompt),
         }
 
@@ -193,7 +213,7 @@ class ObservationFormat:
 
     def _state(self, message: Mapping[str, Any]) -> np.ndarray:
         parts = []
-        for source in self.state:
+        for index, source in enumerate(self.state):
             value = _lookup(message, source)
             if value is _MISSING:
                 raise ObservationError(f"missing state field {_name(source)!r}")
@@ -202,6 +222,10 @@ class ObservationFormat:
                 raise ObservationError(f"state field {_name(source)!r} must be numeric, got dtype {array.dtype}")
             if array.ndim > 1:
                 raise ObservationError(f"state field {_name(source)!r} must be 1-D, got shape {array.shape}")
+            size = self.state_sizes[index] if self.state_sizes else None
+            if size is not None and array.size != size:
+                raise ObservationError(f"state field {_name(source)!r} must hold {size} values ({self.name} format), "
+                                       f"got {array.size}")
             parts.append(array.astype(np.float64).reshape(-1))  # (in float32, 1e308 would already be inf)
         return np.concatenate(parts)
 
@@ -269,6 +293,7 @@ _DROID = ObservationFormat(
     name="droid",
     images={"base_0_rgb": "observation/exterior_image_1_left", "left_wrist_0_rgb": "observation/wrist_image_left"},
     state=("observation/joint_position", "observation/gripper_position"),
+    state_sizes=(7, 1),  # openpi's DroidInputs: 7 joint positions, then the gripper
 )
 _ALOHA = ObservationFormat(
     name="aloha",

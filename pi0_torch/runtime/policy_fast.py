@@ -15,15 +15,18 @@ kind. openpi's π0-FAST configs use the cameras `base_0_rgb`, `base_1_rgb`, `wri
 >>> config = PI0FastConfig.from_preset("pi0_fast_small")
 >>> processor = PI0FastProcessor.from_config(config, build_test_tokenizer(1024), fast, stats)
 >>> policy = PI0FastPolicy(PI0FastForActionGeneration(config), processor, num_steps=4)
->>> out = policy.infer({"images": {"base_0_rgb": np.zeros((480, 640, 3), np.uint8)}, "state": np.zeros(8), "prompt": "pick up the fork"})
->>> out["actions"].shape  # a random model decodes no chunk: zeros, with a logged warning
-(10, 8)
+>>> observation = {"images": {"base_0_rgb": np.zeros((480, 640, 3), np.uint8)}, "state": np.zeros(8), "prompt": "pick up the fork"}
+>>> policy.infer(observation)  # a random model decodes no chunk: withheld, naming the cause
+Traceback (most recent call last):
+...
+pi0_torch.runtime.action_safety.UnsafeActionsError: the action chunk holds 80 NaN/inf values and was withheld; cause: the generated tokens decode to no action chunk (the logged warning shows them)
 
 ```
 """
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Mapping
 
 import numpy as np
@@ -32,14 +35,18 @@ import torch
 from pi0_torch.models.configuration_base import SIZE_LIMITS
 from pi0_torch.models.modeling_pi0_fast import PI0FastForActionGeneration
 from pi0_torch.processing.processing_pi0_fast import PI0FastProcessor
-from pi0_torch.runtime.policy_base import BasePolicy
+from pi0_torch.runtime.policy_base import BasePolicy, PreparedObservation
 from pi0_torch.utils.validation import check_float
+
+logger = logging.getLogger(__name__)
 
 
 class PI0FastPolicy(BasePolicy):
     """[`PI0FastForActionGeneration`] + [`PI0FastProcessor`] behind openpi's policy interface: a [`BasePolicy`]
     whose chunks are decoded FAST tokens. It takes no real-time chunking requests (`previous_actions`, ...), and a
-    request's `noise_seed` does not apply (no noise is drawn).
+    request's `noise_seed` does not apply (no noise is drawn). Tokens that decode to no chunk give no actions: the
+    chunk is withheld like a non-finite one (`UnsafeActionsError` naming the cause; the server replies
+    `no actions: ...`), never returned as zeros.
 
     Args:
         model, processor: the π0-FAST model (on its device and dtype) and its processor.
@@ -83,11 +90,22 @@ class PI0FastPolicy(BasePolicy):
         return "pi0_fast"
 
     def model_actions(self, batch: Mapping[str, torch.Tensor], warmup: bool = False) -> np.ndarray:
-        """Decode tokens (greedy, or sampled at `temperature`) and extract the chunks `[B, horizon, action_dim]`."""
+        """Decode tokens (greedy, or sampled at `temperature`) and extract the chunks `[B, horizon, action_dim]`; a
+        chunk whose tokens do not decode is all NaN, so that `infer_prepared` withholds it (a warm-up logs it)."""
         tokens = self.model.generate_tokens(
             **batch,
             max_new_tokens=self.num_steps,
             temperature=self.temperature,
             generator=None if warmup else self.generator,
         )
-        return self.processor.extract_actions(tokens.cpu().numpy())
+        chunks = self.processor.extract_actions(tokens.cpu().numpy(), mark_undecodable=True)
+        undecodable = int(np.isnan(chunks).any(axis=(1, 2)).sum())
+        if warmup and undecodable:
+            logger.warning("warm-up: the tokens generated for the blank observation decode to no action chunk (%d of "
+                           "%d chunks); requests whose tokens do not decode get no actions ('no actions: ...'): if "
+                           "real requests do too, check the model and its FAST tokenizer", undecodable, len(chunks))
+        return chunks
+
+    def _sampling_cause(self, prepared: PreparedObservation) -> str:
+        """Why finite weights gave a chunk that is not finite: its tokens decode to no chunk (tokens are never NaN)."""
+        return "the generated tokens decode to no action chunk (the logged warning shows them)"

@@ -19,9 +19,12 @@ unchanged:
 
 Limits ([`ServerLimits`], each a `pi0-torch serve` flag): every request is bounded before any work is done on it
 (frame size, list lengths, the total count of decoded objects, prompt characters, image pixels), connections are
-capped (more get HTTP 503) and closed after an idle time, and with an API key the handshake needs exactly one
+capped (a new client displaces the connection longest without actions once that is idle past a grace period; else it
+gets HTTP 503) and closed after an idle time, and with an API key the handshake needs exactly one
 `Authorization: Api-Key <key>` header, as `WebsocketClientPolicy(api_key=...)` sends it (others get HTTP 401 before
-reaching the model).
+reaching the model). Refusing costs CPU too: the frames the server refuses may take a bounded share of one core
+([`RefusalBudget`]), and a client whose last request was refused waits for it, so clients looping on bad frames
+never starve the model. Numpy strings that are no Unicode text are refused while decoding, naming the field.
 
 A policy never hands back NaN or inf actions: a request whose chunk is not finite gets the one-line reason instead
 (`no actions: ...`, see `pi0_torch.runtime.action_safety`); the other requests of its batch get theirs.
@@ -72,12 +75,13 @@ from pi0_torch.runtime.action_safety import UnsafeActionsError
 from pi0_torch.runtime.observation_formats import ObservationError, ObservationFormat
 from pi0_torch.shipped_policy import policy_location
 from pi0_torch.utils.threads import add_threads_argument, set_threads
-from pi0_torch.utils.validation import check_float, check_int, first_line, one_line
+from pi0_torch.utils.validation import MAX_SEED, check_float, check_int, first_line, one_line
 
 logger = logging.getLogger(__name__)
 
 API_KEY_ENV = "PI0_TORCH_API_KEY"
 MAX_BATCH_SIZE = 1_024
+MAX_MESSAGE_MIB = 4_096  # `--max-message-mib`: more than eight 4K float32 camera frames
 ALL_INTERFACES = ("0.0.0.0", "::", "")
 _ARRAY_KINDS = "biufUS"  # bool, ints, floats, strings; object/void/complex arrays are refused both ways
 
@@ -96,6 +100,8 @@ def _pack_numpy(obj: Any) -> Any:
         return {b"__ndarray__": True, b"data": obj.tobytes(), b"dtype": obj.dtype.str, b"shape": obj.shape}
     if isinstance(obj, np.generic):
         return {b"__npgeneric__": True, b"data": obj.item(), b"dtype": obj.dtype.str}
+    if isinstance(obj, int):  # msgpack packs the others itself
+        raise OverflowError(f"a {obj.bit_length()}-bit integer does not fit msgpack's 64 bits")
     raise TypeError(f"cannot pack {type(obj).__name__}")
 
 
@@ -112,6 +118,8 @@ def _unpack_numpy(obj: dict[Any, Any]) -> Any:
         if len(data) != expected:
             raise MessageError(f"array of shape {tuple(shape)} and dtype {dtype.str} needs {expected} bytes, "
                                f"got {len(data)}")
+        if dtype.kind == "U":
+            _check_code_points(data, dtype, tuple(shape))
         return np.frombuffer(data, dtype=dtype).reshape(shape)
     if b"__npgeneric__" in obj:
         dtype = _wire_dtype(obj.get(b"dtype"))
@@ -120,6 +128,21 @@ def _unpack_numpy(obj: dict[Any, Any]) -> Any:
         except (TypeError, ValueError) as error:
             raise MessageError(f"bad numpy scalar of dtype {dtype.str}: {error}") from None
     return obj
+
+
+class _NotText(MessageError):
+    """A numpy string array holding values that are no Unicode characters (numpy itself fails on them with a
+    SystemError wherever they are read, printed included); the decoder adds where in the message it was."""
+
+
+def _check_code_points(data: bytes, dtype: np.dtype, shape: tuple[int, ...]) -> None:
+    """Refuse UTF-32 string data holding a surrogate or a value past U+10FFFF ([`_NotText`])."""
+    code_points = np.frombuffer(data, dtype=np.dtype(np.uint32).newbyteorder(dtype.byteorder))
+    bad = (code_points > 0x10FFFF) | ((code_points >= 0xD800) & (code_points <= 0xDFFF))
+    if bad.any():
+        more = f" and {int(bad.sum()) - 1} more such values" if bad.sum() > 1 else ""
+        raise _NotText(f"expected Unicode text (code points up to U+10FFFF, surrogates excluded), got a numpy string "
+                       f"array (dtype {dtype.str}, shape {shape}) holding 0x{int(code_points[bad][0]):X}{more}")
 
 
 def _wire_dtype(spec: Any) -> np.dtype:
@@ -146,46 +169,72 @@ def pack_message(obj: Any) -> bytes:
     return msgpack.packb(obj, default=_pack_numpy)
 
 
-class _ObjectBudget:
-    """Counts the objects msgpack builds, as its hooks see each finished list and map, and stops the decoding
-    once there are more than `limit`: nesting can make a small frame decode into millions of objects (10,000 lists
-    of 1,600 empty lists fit in 15 MiB), which per-container limits do not catch."""
+class _Decoding:
+    """msgpack's hooks for decoding one message: numpy maps become arrays, the objects of every finished list and map
+    are counted, and a numpy string that is no text is located.
 
-    def __init__(self, limit: int) -> None:
+    Counting stops the decoding once there are more than `limit` objects: nesting can make a small frame decode into
+    millions of objects (10,000 lists of 1,600 empty lists fit in 15 MiB), which per-container limits do not catch.
+    A numpy string that is no text ([`_NotText`]) is replaced by a marker that each enclosing container passes up,
+    adding its key, so that the refusal names the field."""
+
+    def __init__(self, limit: int | None) -> None:
         self.limit, self.count = limit, 1  # the message itself
+        self.not_text: _NotText | None = None  # the first numpy string that is no text
+        self.path: list[str] = []  # where it is, outermost first
+        self.marker = object()  # what stands in for it, then for each container holding it
 
     def add(self, items: int) -> None:
         self.count += items
-        if self.count > self.limit:
+        if self.limit is not None and self.count > self.limit:
             raise MessageError(f"the message holds more than {self.limit} objects in lists and maps; send long or "
                                "nested sequences as numpy arrays")
 
-    def on_list(self, items: list[Any]) -> list[Any]:
+    def on_list(self, items: list[Any]) -> Any:
         self.add(len(items))
-        return items
+        return self.marker if self.not_text is not None and self._holds_marker(enumerate(items), "[{}]") else items
 
     def on_map(self, items: dict[Any, Any]) -> Any:
         self.add(2 * len(items))
-        return _unpack_numpy(items)
+        if self.not_text is not None and self._holds_marker(items.items(), "/{}"):
+            return self.marker
+        try:
+            return _unpack_numpy(items)
+        except _NotText as error:
+            if self.not_text is not None:
+                return None  # a second one: the message is refused for the first
+            self.not_text = error
+            return self.marker
+
+    def _holds_marker(self, entries: Any, form: str) -> bool:
+        for key, value in entries:
+            if value is self.marker or key is self.marker:
+                self.path.insert(0, form.format(key.decode(errors="replace") if isinstance(key, bytes) else key))
+                return True
+        return False
+
+    def result(self, message: Any) -> Any:
+        """The decoded message, or a [`MessageError`] naming the field of its numpy string that is no text."""
+        if self.not_text is None:
+            return message
+        raise MessageError(f"{''.join(self.path).lstrip('/') or 'the message'}: {self.not_text}")
 
 
 def unpack_message(data: bytes, max_items: int | None = None, max_objects: int | None = None) -> Any:
     """Decode a frame packed by openpi-client (or [`pack_message`]); raises [`MessageError`] if it is malformed.
 
-    Arrays come back read-only, backed by the frame's bytes. Object, void and complex dtypes are refused.
-    `max_items` bounds the length of every list and map before it is built (numpy arrays are not lists);
-    `max_objects` bounds the total count of list items, map keys and values while decoding (a message beyond it
-    stops within milliseconds, holding at most one more container of `max_items`).
+    Arrays come back read-only, backed by the frame's bytes. Object, void and complex dtypes are refused, and so are
+    string arrays holding values that are no Unicode characters (naming the field). `max_items` bounds the length of
+    every list and map before it is built (numpy arrays are not lists); `max_objects` bounds the total count of list
+    items, map keys and values while decoding (a message beyond it stops within milliseconds, holding at most one
+    more container of `max_items`).
     """
     if not isinstance(data, (bytes, bytearray, memoryview)):
         raise MessageError(f"expected a binary frame, got {type(data).__name__}")
     bounds = {} if max_items is None else {"max_array_len": max_items, "max_map_len": max_items}
-    hooks: dict[str, Any] = {"object_hook": _unpack_numpy}
-    if max_objects is not None:
-        budget = _ObjectBudget(max_objects)
-        hooks = {"object_hook": budget.on_map, "list_hook": budget.on_list}
+    decoding = _Decoding(max_objects)
     try:
-        return msgpack.unpackb(data, **hooks, **bounds)
+        message = msgpack.unpackb(data, object_hook=decoding.on_map, list_hook=decoding.on_list, **bounds)
     except MessageError:
         raise
     except Exception as error:  # msgpack raises several unrelated types for corrupt input
@@ -194,6 +243,7 @@ def unpack_message(data: bytes, max_items: int | None = None, max_objects: int |
                                "sequences as numpy arrays") from None
         detail = f"{type(error).__name__}: {error}" if str(error) else type(error).__name__
         raise MessageError(f"not a valid msgpack message ({one_line(detail, 200)})") from None
+    return decoding.result(message)
 
 
 # --- limits -------------------------------------------------------------------------------------------------------
@@ -214,9 +264,19 @@ class ServerLimits:
             the way frames and states travel, are bounded by `max_message_bytes` instead).
         max_objects: a message decodes into at most this many objects in lists and maps, all nesting levels
             together (an openpi observation holds a few dozen; numpy arrays count as one map each).
-        max_connections: connections beyond this many get HTTP 503 in the handshake (the websocket never opens).
+        max_connections: connections beyond this many get HTTP 503 in the handshake (the websocket never opens),
+            unless one can be displaced (`displace_idle_s`).
         idle_timeout_s: a connection that sends no request for this long is closed (code 1000, reason "idle
             timeout"); None: never. Time spent waiting for the server's own reply does not count.
+        displace_idle_s: when all `max_connections` are taken, a new client displaces the connection that has gone
+            longest without being sent actions (counted from its last actions, or from its opening), if that is more
+            than this many seconds and it has no request with the model; the displaced one is closed (code 1000,
+            reason "displaced: ..."). None: never (new clients get HTTP 503 until a slot frees).
+        refused_share: the share of one CPU core that decoding and checking the frames the server refuses may take,
+            all clients together, on average ([`RefusalBudget`]). The frames of a connection whose last request was
+            refused, or that has had no actions yet, wait for this budget and are decoded one at a time, in arrival
+            order; connections whose last request got actions are never held.
+        refused_burst_s: how much refused work the budget allows at once before it holds frames (seconds of CPU).
     """
 
     max_message_bytes: int = 16 * 2**20
@@ -226,13 +286,19 @@ class ServerLimits:
     max_objects: int = 100_000
     max_connections: int = 16
     idle_timeout_s: float | None = 3600.0
+    displace_idle_s: float | None = 30.0
+    refused_share: float = 0.1
+    refused_burst_s: float = 0.05
 
     def __post_init__(self) -> None:
         for name in ("max_message_bytes", "max_prompt_chars", "max_image_pixels", "max_items", "max_objects",
                      "max_connections"):
             check_int(name, getattr(self, name), minimum=1)
-        if self.idle_timeout_s is not None:
-            check_float("idle_timeout_s", self.idle_timeout_s, minimum=0.0, exclusive_minimum=True)
+        for name in ("idle_timeout_s", "displace_idle_s"):
+            if getattr(self, name) is not None:
+                check_float(name, getattr(self, name), minimum=0.0, exclusive_minimum=True)
+        check_float("refused_share", self.refused_share, minimum=0.0, maximum=1.0, exclusive_minimum=True)
+        check_float("refused_burst_s", self.refused_burst_s, minimum=0.0, exclusive_minimum=True)
 
     def check(self, observation: Mapping[str, Any]) -> None:
         """Refuse (with [`ObservationError`]) a default-layout observation whose prompt or frames exceed the limits."""
@@ -249,6 +315,49 @@ class ServerLimits:
                     raise ObservationError(f"images[{camera!r}]: a frame of {height}x{width} = {height * width} pixels; "
                                            f"this server's limit is {self.max_image_pixels} (pi0-torch serve "
                                            "--max-image-pixels)")
+
+
+class RefusalBudget:
+    """A token bucket of CPU seconds for the frames the server refuses, shared by all connections: it holds at most
+    `burst_s`, refills at `share` seconds per second, and each refused frame takes what its decoding and checking
+    cost. A frame that may be refused waits until the bucket is no longer in debt, so refusing takes at most `share`
+    of one core on average, however many clients loop on refused frames, and the model's thread keeps the rest.
+
+    ```python
+    >>> now = [0.0]
+    >>> budget = RefusalBudget(share=0.1, burst_s=0.05, clock=lambda: now[0])
+    >>> budget.delay()  # a full bucket: no wait
+    0.0
+    >>> budget.charge(0.06)  # a refusal that cost 60 ms of CPU: 10 ms in debt
+    >>> round(budget.delay(), 6)  # 10 ms at 0.1 s per second
+    0.1
+    >>> now[0] = 0.1
+    >>> budget.delay()
+    0.0
+
+    ```
+    """
+
+    def __init__(self, share: float, burst_s: float, clock: Callable[[], float] = time.monotonic) -> None:
+        self.share, self.burst_s, self.clock = share, burst_s, clock
+        self._level, self._at = burst_s, clock()
+        self._lock = threading.Lock()  # charged from the prepare threads, read on the event loop
+
+    def _refill(self) -> None:
+        now = self.clock()
+        self._level, self._at = min(self.burst_s, self._level + (now - self._at) * self.share), now
+
+    def charge(self, seconds: float) -> None:
+        """Take the CPU seconds one refused frame cost."""
+        with self._lock:
+            self._refill()
+            self._level -= seconds
+
+    def delay(self) -> float:
+        """Seconds until the bucket is out of debt (0: a frame may be decoded now)."""
+        with self._lock:
+            self._refill()
+            return max(0.0, -self._level / self.share)
 
 
 # --- the server --------------------------------------------------------------------------------------------------
@@ -276,6 +385,15 @@ class ServedPolicy(Protocol):
 
 class _ShuttingDown(RuntimeError):
     pass
+
+
+@dataclasses.dataclass
+class _Client:
+    """What the server keeps of an admitted connection."""
+
+    last_served: float  # when it was last sent actions, or opened (time.monotonic())
+    trusted: bool = False  # its last request got actions: its frames are decoded at once
+    with_model: bool = False  # a request of it is queued for or running in the model
 
 
 @dataclasses.dataclass
@@ -334,17 +452,16 @@ class PolicyServer:
         if api_key is None and host in ALL_INTERFACES:
             logger.warning("listening on all interfaces (%r) without an API key: anyone who reaches port %d can run "
                            "the policy; set --api-key or %s", host, port, API_KEY_ENV)
-        self.metadata = {
-            **policy.metadata,
-            "observation_format": self.obs_format.describe(),
-            "max_batch_size": max_batch_size,
-            **(extra_metadata or {}),
-        }
+        own = {**policy.metadata, "observation_format": self.obs_format.describe(), "max_batch_size": max_batch_size}
+        self.metadata = {**own, **_checked_extra_metadata(extra_metadata or {}, own)}
         self._packed_metadata = pack_message(self.metadata)
         self._queue: asyncio.Queue[_Job] | None = None
         self._stopping = False
         self._requests_served = 0
-        self._admitted: set[ServerConnection] = set()  # handshakes let through, until their connection closes
+        self._clients: dict[ServerConnection, _Client] = {}  # handshakes let through, until their connection closes
+        self._closing: set[asyncio.Task[None]] = set()  # displaced connections being closed
+        self._refusals = RefusalBudget(self.limits.refused_share, self.limits.refused_burst_s)
+        self._untrusted_turn: asyncio.Lock | None = None  # one untrusted frame decoded at a time (FIFO)
 
     @contextlib.contextmanager
     def serve_in_thread(self, timeout: float = 600.0) -> Iterator[int]:
@@ -401,6 +518,7 @@ class PolicyServer:
     async def serve(self, stop: asyncio.Event, on_ready: Callable[[int], None] | None = None) -> None:
         """Serve until `stop` is set. `on_ready(port)` is called once the socket listens (useful with port 0)."""
         self._queue = asyncio.Queue()
+        self._untrusted_turn = asyncio.Lock()
         self._stopping = False
         prepare_pool = concurrent.futures.ThreadPoolExecutor(max_workers=2, thread_name_prefix="pi0-prepare")
         model_thread = concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix="pi0-model")
@@ -457,13 +575,39 @@ class PolicyServer:
                 logger.warning("%s: refused: %s API key", peer, problem)
                 return connection.respond(http.HTTPStatus.UNAUTHORIZED, "missing or wrong API key: send one header "
                                           "'Authorization: Api-Key <key>' (WebsocketClientPolicy(api_key=...))\n")
-        self._admitted = {c for c in self._admitted if c.state is not State.CLOSED}
-        if len(self._admitted) >= self.limits.max_connections:
-            logger.warning("%s: refused: %d connections open (--max-connections)", peer, len(self._admitted))
+        self._clients = {c: client for c, client in self._clients.items() if c.state is not State.CLOSED}
+        if len(self._clients) >= self.limits.max_connections and not self._displace_idle(peer):
+            logger.warning("%s: refused: %d connections open (--max-connections)", peer, len(self._clients))
+            idle = (f" and none has gone {self.limits.displace_idle_s:g} s without actions"
+                    if self.limits.displace_idle_s is not None else "")
             return connection.respond(http.HTTPStatus.SERVICE_UNAVAILABLE, f"the server holds its limit of "
-                                      f"{self.limits.max_connections} connections; try again later\n")
-        self._admitted.add(connection)
+                                      f"{self.limits.max_connections} connections{idle}; try again later\n")
+        self._clients[connection] = _Client(last_served=time.monotonic())
         return None
+
+    def _displace_idle(self, peer: str) -> bool:
+        """Close the open connection that has gone longest without actions, if longer than `displace_idle_s` and
+        it has no request with the model; True if one was displaced (its slot is free at once)."""
+        if self.limits.displace_idle_s is None:
+            return False
+        now = time.monotonic()
+        idle = [(now - client.last_served, connection) for connection, client in self._clients.items()
+                if connection.state is State.OPEN and not client.with_model]
+        if not idle:
+            return False
+        seconds, victim = max(idle, key=lambda entry: entry[0])
+        if seconds <= self.limits.displace_idle_s:
+            return False
+        del self._clients[victim]
+        logger.warning("%s: displaced by %s: no actions for %.0f s while all %d connections were taken "
+                       "(--displace-idle-after %g)", _peer(victim), peer, seconds, self.limits.max_connections,
+                       self.limits.displace_idle_s)
+        closing = asyncio.get_running_loop().create_task(victim.close(1000, (
+            f"displaced: no actions for {seconds:.0f} s while another client waited for one of the server's "
+            f"{self.limits.max_connections} connections")[:123]))  # a close reason holds at most 123 bytes
+        self._closing.add(closing)
+        closing.add_done_callback(self._closing.discard)
+        return True
 
     async def _handle(self, ws: ServerConnection, prepare_pool: concurrent.futures.Executor) -> None:
         peer = _peer(ws)
@@ -501,22 +645,28 @@ class PolicyServer:
         """The reply to one frame: an action dict, an error text, or None when the client disconnected meanwhile."""
         received = time.monotonic()
         loop = asyncio.get_running_loop()
+        client = self._clients.get(ws) or _Client(last_served=received)  # (none: displaced meanwhile)
         try:
-            prepared = await loop.run_in_executor(prepare_pool, self._prepare, frame)
+            prepared = await self._decode(frame, client.trusted, prepare_pool)
             prepared_at = time.monotonic()
             if self._stopping or self._queue is None:
                 raise _ShuttingDown("server is shutting down")
             job = _Job(prepared, loop.create_future())
             self._queue.put_nowait(job)
+            client.with_model = True
             closed = asyncio.ensure_future(ws.wait_closed())
-            await asyncio.wait({job.future, closed}, return_when=asyncio.FIRST_COMPLETED)
-            closed.cancel()
+            try:
+                await asyncio.wait({job.future, closed}, return_when=asyncio.FIRST_COMPLETED)
+            finally:
+                closed.cancel()
+                client.with_model = False
             if not job.future.done():
                 job.future.cancel()  # still queued: the model worker skips it
                 logger.info("%s: disconnected before its actions were ready", peer)
                 return None
             reply = job.future.result()
         except (MessageError, ObservationError) as error:
+            client.trusted = False
             reason = one_line(str(error))
             logger.warning("%s: bad request: %s", peer, reason)
             return f"invalid request: {reason}"
@@ -530,6 +680,7 @@ class PolicyServer:
             logger.exception("%s: request failed", peer)
             return f"internal server error: {type(error).__name__}: {one_line(first_line(error))} (see the server log)"
         self._requests_served += 1
+        client.trusted, client.last_served = True, time.monotonic()
         logger.info(
             "%s: actions %s in %.1f ms (prepare %.1f ms, queued %.1f ms, model %.1f ms, batch %d)",
             peer, "x".join(map(str, np.shape(reply.get("actions")))), (job.finished - received) * 1000,
@@ -538,13 +689,34 @@ class PolicyServer:
         )
         return reply
 
+    async def _decode(self, frame: Any, trusted: bool, prepare_pool: concurrent.futures.Executor) -> Any:
+        """Decode and check one frame on the prepare threads. The frame of a connection that is not trusted (its last
+        request was refused, or it has had no actions yet) may well be refused: it waits its turn (one at a time, in
+        arrival order) and the refusal budget first, so that refusing never takes the model's CPU."""
+        loop = asyncio.get_running_loop()
+        if trusted:
+            return await loop.run_in_executor(prepare_pool, self._prepare, frame)
+        assert self._untrusted_turn is not None
+        async with self._untrusted_turn:
+            while (delay := self._refusals.delay()) > 0:
+                if self._stopping:
+                    raise _ShuttingDown("server is shutting down")
+                await asyncio.sleep(delay)
+            return await loop.run_in_executor(prepare_pool, self._prepare, frame)
+
     def _prepare(self, frame: Any) -> Any:
-        if isinstance(frame, str):
-            raise MessageError("expected a binary msgpack frame, got a text frame")
-        message = unpack_message(frame, max_items=self.limits.max_items, max_objects=self.limits.max_objects)
-        observation = self.obs_format.to_default(message)
-        self.limits.check(observation)
-        return self.policy.prepare(observation)
+        """One frame to model inputs (on a prepare thread); a refused frame's CPU time is charged to the budget."""
+        started = time.thread_time()
+        try:
+            if isinstance(frame, str):
+                raise MessageError("expected a binary msgpack frame, got a text frame")
+            message = unpack_message(frame, max_items=self.limits.max_items, max_objects=self.limits.max_objects)
+            observation = self.obs_format.to_default(message)
+            self.limits.check(observation)
+            return self.policy.prepare(observation)
+        except (MessageError, ObservationError):
+            self._refusals.charge(time.thread_time() - started)
+            raise
 
     async def _run_model(self, model_thread: concurrent.futures.Executor) -> None:
         """The only place the model runs: takes queued jobs (up to max_batch_size at once) in arrival order."""
@@ -586,6 +758,22 @@ class PolicyServer:
                 job.future.set_exception(error)
 
 
+def _checked_extra_metadata(extra: Mapping[Any, Any], own: Mapping[str, Any]) -> dict[str, Any]:
+    """`extra_metadata` if no key is one the server sends itself (clients read those: a model's cameras or horizon
+    must not be overridden) and every value can be sent; else `ValueError` naming the key."""
+    taken = sorted(str(key) for key in extra if key in own)
+    if taken:
+        raise ValueError(f"extra metadata (serve --metadata): {taken} are the server's own keys, which clients read "
+                         f"from the model and the server's settings; expected other keys (the server's: {sorted(own)})")
+    for key, value in extra.items():
+        try:
+            pack_message(value)
+        except (OverflowError, TypeError, ValueError) as error:
+            raise ValueError(f"extra metadata (serve --metadata): {key!r} cannot be sent to clients ({error}); "
+                             "expected JSON values with integers within 64 bits") from None
+    return dict(extra)
+
+
 def _peer(connection: ServerConnection) -> str:
     return "%s:%s" % connection.remote_address[:2] if connection.remote_address else "?"
 
@@ -604,8 +792,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="weights dtype (default: bfloat16 on cuda, float32 on cpu)")
     parser.add_argument("--num-steps", type=int, default=None, help="Euler steps per action chunk "
                         "(default: the model config's num_inference_steps)")
-    parser.add_argument("--noise-scale", type=float, default=1.0, help="standard deviation of the noise each "
-                        "chunk's flow starts from (default 1, openpi's sampler; below 1 nearer the most likely chunk)")
+    parser.add_argument("--noise-scale", type=float, default=None, help="standard deviation of the noise each "
+                        "chunk's flow starts from (default: the model folder's recommended setting, else 1, openpi's "
+                        "sampler; below 1 nearer the most likely chunk)")
     parser.add_argument("--rtc-schedule", default="exp", help="soft mask of real-time chunking guidance over the "
                         "previous chunk: exp (default, the paper's), linear, ones (the whole overlap) or hard")
     parser.add_argument("--obs-format", type=_observation_format, default="default", metavar="default|libero|droid|aloha|PATH.json",
@@ -617,7 +806,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--metadata", type=json_object, default=None, metavar="JSON",
                         help="extra metadata sent to clients, a JSON object (openpi's ALOHA client reads "
                         "'reset_pose' from it)")
-    parser.add_argument("--seed", type=int, default=None, help="seed the sampling noise (reproducible actions)")
+    parser.add_argument("--seed", type=int, default=None, help=f"seed the sampling noise (reproducible actions), "
+                        f"0 to {MAX_SEED}")
     parser.add_argument("--compile", action="store_true", help="torch.compile the model's repeated layers (on cuda the "
                         "sampling also replays as one CUDA graph); compiled during the warm-up, before the server listens")
     parser.add_argument("--cuda-graph", action=argparse.BooleanOptionalAction, default=None,
@@ -630,13 +820,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=f"require the header 'Authorization: Api-Key KEY' (openpi-client: "
                         f"WebsocketClientPolicy(api_key=KEY)); default: ${API_KEY_ENV}, else no access control")
     access.add_argument("--max-connections", type=int, default=defaults.max_connections,
-                        help=f"refuse more connections with HTTP 503 (default {defaults.max_connections})")
+                        help=f"refuse more connections with HTTP 503 (default {defaults.max_connections}), unless one "
+                        "can be displaced (--displace-idle-after)")
     access.add_argument("--idle-timeout", type=float, default=defaults.idle_timeout_s, metavar="SECONDS",
                         help=f"close connections without a request for this long (default {defaults.idle_timeout_s:g}; "
                         "0: never)")
+    access.add_argument("--displace-idle-after", type=float, default=defaults.displace_idle_s, metavar="SECONDS",
+                        help="when all connections are taken, a new client displaces the one longest without actions "
+                        f"if that is longer than this (default {defaults.displace_idle_s:g}; 0: never, HTTP 503)")
+    access.add_argument("--refused-share", type=float, default=defaults.refused_share, metavar="FRACTION",
+                        help="share of one CPU core that decoding refused frames may take, all clients together "
+                        f"(default {defaults.refused_share:g}); frames of clients whose last request was refused wait "
+                        "for it")
     access.add_argument("--max-message-mib", type=float, default=defaults.max_message_bytes / 2**20,
-                        help=f"largest frame in MiB (default {defaults.max_message_bytes / 2**20:g}: three 720p uint8 "
-                        "cameras); larger frames close the connection (code 1009)")
+                        help=f"largest frame in MiB, at most {MAX_MESSAGE_MIB} (default "
+                        f"{defaults.max_message_bytes / 2**20:g}: three 720p uint8 cameras); larger frames close the "
+                        "connection (code 1009)")
     access.add_argument("--max-prompt-chars", type=int, default=defaults.max_prompt_chars,
                         help=f"longest prompt in characters (default {defaults.max_prompt_chars})")
     access.add_argument("--max-image-pixels", type=int, default=defaults.max_image_pixels,
@@ -644,6 +843,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     access.add_argument("--max-objects", type=int, default=defaults.max_objects,
                         help=f"most objects in the lists and maps of one message, all nesting levels together "
                         f"(default {defaults.max_objects}; numpy arrays count as one)")
+
+
+def _server_limits(args: argparse.Namespace) -> ServerLimits:
+    """The limit flags as [`ServerLimits`], each checked under its flag's name (0 turns the timeouts off)."""
+    for flag in ("--max-prompt-chars", "--max-image-pixels", "--max-objects", "--max-connections"):
+        check_int(flag, getattr(args, flag[2:].replace("-", "_")), minimum=1)
+    mib = check_float("--max-message-mib", args.max_message_mib, 0.0, MAX_MESSAGE_MIB, exclusive_minimum=True)
+    return ServerLimits(
+        max_message_bytes=max(1, int(mib * 2**20)), max_prompt_chars=args.max_prompt_chars,
+        max_image_pixels=args.max_image_pixels, max_objects=args.max_objects, max_connections=args.max_connections,
+        idle_timeout_s=check_float("--idle-timeout", args.idle_timeout, minimum=0.0) or None,
+        displace_idle_s=check_float("--displace-idle-after", args.displace_idle_after, minimum=0.0) or None,
+        refused_share=check_float("--refused-share", args.refused_share, 0.0, 1.0, exclusive_minimum=True),
+    )
 
 
 def _observation_format(name_or_path: str) -> ObservationFormat:
@@ -671,11 +884,9 @@ def run(args: argparse.Namespace) -> int:
     from pi0_torch.runtime.policy import PI0Policy  # imports torch: only when the command runs
 
     try:
-        limits = ServerLimits(
-            max_message_bytes=int(args.max_message_mib * 2**20), max_prompt_chars=args.max_prompt_chars,
-            max_image_pixels=args.max_image_pixels, max_objects=args.max_objects, max_connections=args.max_connections,
-            idle_timeout_s=args.idle_timeout or None,
-        )
+        limits = _server_limits(args)
+        if args.seed is not None:
+            check_int("--seed", args.seed, 0, MAX_SEED)
         logger.info("loading %s", args.model)
         policy = PI0Policy.from_pretrained(
             policy_location(args.model), device=args.device, dtype=args.dtype, num_steps=args.num_steps, seed=args.seed,
