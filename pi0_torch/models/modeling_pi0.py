@@ -525,8 +525,8 @@ class PI0ForActionGeneration(SiglipImageEmbedding, ActionSampling, PI0PreTrained
         for (name, value), is_finite in zip(checked.items(), read[: len(checked)]):
             if not is_finite:
                 raise nonfinite_error(name, value)
-        if time is not None and not 0.0 < time_low <= time_high <= 1.0:  # (a non-finite one is named above)
-            raise ValueError(f"time: flow times must lie in (0, 1] (1 is noise, 0 the actions), got values in "
+        if time is not None and not 0.0 <= time_low <= time_high <= 1.0:  # (a non-finite one is named above)
+            raise ValueError(f"time: flow times must lie in [0, 1] (1 is noise, 0 the actions), got values in "
                              f"[{time_low:.4g}, {time_high:.4g}]")
         masks_start = len(checked)
         cameras = config.num_cameras
