@@ -477,6 +477,21 @@ def test_a_policy_samples_eagerly_when_cuda_refuses_the_capture(monkeypatch: pyt
     assert caplog.text.count("this policy samples eagerly from now on") == 1
 
 
+def one_observation_two_steps() -> dict[str, Any]:
+    """`generate_actions` arguments for `pi0_small`: one sample, three cameras, 12 prompt tokens, 2 Euler steps."""
+    return dict(pixel_values=torch.rand(1, 3, 3, 224, 224) * 2 - 1, image_masks=torch.ones(1, 3, dtype=torch.bool),
+                input_ids=torch.ones(1, 12, dtype=torch.long), attention_mask=torch.ones(1, 12, dtype=torch.bool),
+                state=torch.zeros(1, 32), noise=torch.randn(1, 50, 32), num_steps=2)
+
+
+def record_sampling_calls(model: PI0ForActionGeneration, monkeypatch: pytest.MonkeyPatch) -> list[tuple[SamplingInputs, SamplingPlan]]:
+    """The (inputs, plan) of every `_sample` call `model` makes from now on, in order."""
+    calls: list[tuple[SamplingInputs, SamplingPlan]] = []
+    sample = model._sample
+    monkeypatch.setattr(model, "_sample", lambda inputs, plan: calls.append((inputs, plan)) or sample(inputs, plan))
+    return calls
+
+
 def test_a_refused_guidance_capture_samples_eagerly_and_keeps_the_other_graphs(
     monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
 ) -> None:
@@ -485,12 +500,8 @@ def test_a_refused_guidance_capture_samples_eagerly_and_keeps_the_other_graphs(
     raises (`SamplingCaptureError`, which a policy turns into eager sampling)."""
     torch.manual_seed(0)
     model = PI0ForActionGeneration(PI0Config.from_preset("pi0_small")).eval()
-    batch = dict(pixel_values=torch.rand(1, 3, 3, 224, 224) * 2 - 1, image_masks=torch.ones(1, 3, dtype=torch.bool),
-                 input_ids=torch.ones(1, 12, dtype=torch.long), attention_mask=torch.ones(1, 12, dtype=torch.bool),
-                 state=torch.zeros(1, 32), noise=torch.randn(1, 50, 32), num_steps=2)
-    calls: list[tuple[SamplingInputs, SamplingPlan]] = []
-    sample = model._sample
-    monkeypatch.setattr(model, "_sample", lambda inputs, plan: calls.append((inputs, plan)) or sample(inputs, plan))
+    batch = one_observation_two_steps()
+    calls = record_sampling_calls(model, monkeypatch)
     guided = model.generate_actions(**batch, previous_actions=torch.randn(1, 50, 32), inference_delay=2, execution_horizon=4)
     model.generate_actions(**batch)
     (guided_inputs, guided_plan), (plain_inputs, plain_plan) = calls
@@ -526,12 +537,9 @@ def test_a_graph_whose_first_replay_differs_from_eager_is_refused_and_its_plan_s
     keeps whatever was captured."""
     torch.manual_seed(0)
     model = PI0ForActionGeneration(PI0Config.from_preset("pi0_small", rtc_max_delay=4)).eval()
-    batch = dict(pixel_values=torch.rand(1, 3, 3, 224, 224) * 2 - 1, image_masks=torch.ones(1, 3, dtype=torch.bool),
-                 input_ids=torch.ones(1, 12, dtype=torch.long), attention_mask=torch.ones(1, 12, dtype=torch.bool),
-                 state=torch.zeros(1, 32), noise=torch.randn(1, 50, 32), num_steps=2)
-    calls: list[tuple[SamplingInputs, SamplingPlan]] = []
-    sample = model._sample
-    monkeypatch.setattr(model, "_sample", lambda inputs, plan: calls.append((inputs, plan)) or sample(inputs, plan))
+    batch = one_observation_two_steps()
+    sample = model._sample  # (unrecorded: the fake capture's eager run)
+    calls = record_sampling_calls(model, monkeypatch)
     plain = model.generate_actions(**batch)
     conditioned = model.generate_actions(**batch, previous_actions=torch.randn(1, 50, 32), inference_delay=2,
                                          execution_horizon=4, rtc_method="conditioning")
