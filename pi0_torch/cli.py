@@ -61,7 +61,8 @@ def build_parser(argv: list[str]) -> argparse.ArgumentParser:
             if missing is None:
                 importlib.import_module(module_name).add_arguments(sub)
             else:  # --help still works, and says what to install
-                sub.description = f"{help_text}\n\n{missing.message(f'pi0-torch {name}')} (its options are listed once it is installed)"
+                sub.description = f"{help_text}\n\n{missing.message(f'pi0-torch {name}')}\n(its options are listed once it is installed)"
+                sub.formatter_class = argparse.RawDescriptionHelpFormatter  # the install line stays one line
                 sub.set_defaults(_missing=missing)
     return parser
 

@@ -136,7 +136,8 @@ def test_a_command_without_its_extra_says_so_in_one_line(tmp_path: Path, command
                      f"from pi0_torch.cli import main\nsys.exit(main([{command[0]!r}, '--help']))", tmp_path)
     assert helped.returncode == 0 and helped.stdout.startswith(f"usage: pi0-torch {command[0]}"), helped.stderr
     if command[0] != "eval":  # (eval needs an env's extra only for the env it runs)
-        assert f"needs {missing}: pip install 'pi0-torch[{extra}]'" in " ".join(helped.stdout.split())
+        # the install line whole, as one line of the help (one that argparse wrapped slipped past install-check)
+        assert f"pi0-torch {command[0]} needs {missing}: pip install 'pi0-torch[{extra}]'" in helped.stdout.splitlines()
 
 
 GPU_IMAGE_LACKS = ("av", "datasets", "gymnasium", "websockets", "zstandard")  # (issue 26: the device machine's image)
