@@ -16,11 +16,12 @@ from pathlib import Path
 import pytest
 
 from pi0_torch.cli import COMMANDS, main
+from pi0_torch.utils.extras import DISTRIBUTIONS as EXTRA_DISTRIBUTIONS
 from pi0_torch.utils.extras import EXTRAS, MissingExtraError, require_extra
 
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGE = ROOT / "pi0_torch"
-DISTRIBUTIONS = {"PIL": "pillow"}  # import name -> pip name, where they differ
+DISTRIBUTIONS = {"PIL": "pillow", **EXTRA_DISTRIBUTIONS}  # import name -> pip name, where they differ
 LAZY_PACKAGES = ("pi0_torch", "pi0_torch.models", "pi0_torch.processing", "pi0_torch.runtime", "pi0_torch.data",
                  "pi0_torch.training", "pi0_torch.conversion")
 
@@ -56,7 +57,7 @@ def test_every_third_party_import_is_declared_in_the_core_or_an_extra() -> None:
     assert undeclared == {}
     assert {"tokenizers", "huggingface_hub", "torch", "transformers"} <= set(imported)  # the scan sees imports
     for extra, modules in EXTRAS.items():  # utils/extras.py checks exactly what pyproject.toml installs
-        assert {m.replace("_", "-") for m in modules} == extras[extra], extra
+        assert {DISTRIBUTIONS.get(m, m).replace("_", "-") for m in modules} == extras[extra] - {"pi0-torch"}, extra
     assert extras["all"] == {"pi0-torch"} and "pi0-torch" in extras["dev"]
 
 

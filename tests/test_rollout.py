@@ -17,7 +17,17 @@ import torch
 from conftest import HANG_S, HORIZON, tiny_policy
 from pi0_torch.runtime.policy import PI0Policy
 from pi0_torch.runtime.chunking import ChunkSchedule, ChunkStitcher, RealTimeExecutor, continuation_fields
-from pi0_torch.runtime.rollout import EvalSettings, LocalPolicy, RemotePolicy, ScriptedPolicy, evaluate, wilson_interval
+from pi0_torch.runtime.rollout import (
+    EpisodeResult,
+    EvalResult,
+    EvalSettings,
+    LocalPolicy,
+    RemotePolicy,
+    ScriptedPolicy,
+    _per_task,
+    evaluate,
+    wilson_interval,
+)
 from pi0_torch.runtime.serving import PolicyServer
 
 REPO = Path(__file__).resolve().parents[1]
@@ -86,6 +96,21 @@ def test_wilson_interval() -> None:
     assert wilson_interval(0, 10)[0] == 0.0 and wilson_interval(10, 10)[1] == pytest.approx(1.0)
     low, high = wilson_interval(80, 100)
     assert low == pytest.approx(0.7112, abs=1e-4) and high == pytest.approx(0.8666, abs=1e-4)
+
+
+def test_success_per_task_of_a_suite() -> None:
+    """Episodes that name their task (benchmark suites) are summarized per task too, with their own intervals."""
+    episodes = [EpisodeResult(seed, success, 10, [], [], task) for seed, (task, success) in
+                enumerate([("open", True), ("press", False), ("open", True), ("press", True), ("open", False)])]
+    per_task = _per_task(episodes)
+    assert list(per_task) == ["open", "press"]  # in order of first appearance
+    assert per_task["open"] == {"episodes": 3, "success_rate": 2 / 3, "success_ci95": wilson_interval(2, 3)}
+    result = EvalResult(env="suite", episodes=5, seed=0, execution="sync", inference_delay=0, replan_steps=5,
+                        success_rate=0.6, success_ci95=wilson_interval(3, 5), mean_steps=10.0, latency_ms=1.0,
+                        boundary_jerk=None, interior_jerk=None, policy={}, episodes_detail=[], per_task=per_task)
+    assert result.task_lines() == ["  open: success 66.7% [20.8, 93.9] over 3 episodes",
+                                   "  press: success 50.0% [9.5, 90.5] over 2 episodes"]
+    assert _per_task([EpisodeResult(0, True, 3, [], [])]) == {}  # (envs without tasks: nothing per task)
 
 
 # -- closed loop in the tabletop envs --------------------------------------------------------------------------------------

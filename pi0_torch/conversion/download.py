@@ -100,10 +100,12 @@ class PublishedCheckpoint:
     delta_action_mask: tuple[bool, ...] | None = None
     value_conversion: str | None = None
     state_in_prompt: bool | None = None  # π0.5: openpi's discrete_state_input (None: the processor's default, True)
+    default_prompt: str | None = None  # openpi's InjectDefaultPrompt (for clients that send no prompt)
 
     def processor_options(self) -> dict[str, Any]:
         options = {"delta_action_mask": list(self.delta_action_mask) if self.delta_action_mask else None,
-                   "value_conversion": self.value_conversion, "state_in_prompt": self.state_in_prompt}
+                   "value_conversion": self.value_conversion, "state_in_prompt": self.state_in_prompt,
+                   "default_prompt": self.default_prompt}
         return {key: value for key, value in options.items() if value is not None}
 
     def config_overrides(self) -> dict[str, Any]:
@@ -126,7 +128,8 @@ PUBLISHED_CHECKPOINTS: dict[str, PublishedCheckpoint] = {
     "pi05_libero": PublishedCheckpoint(asset_id="physical-intelligence/libero", action_horizon=10, state_in_prompt=False),
     "pi0_fast_libero": PublishedCheckpoint(asset_id="physical-intelligence/libero", action_horizon=10, action_dim=7,
                                            max_token_len=180, delta_action_mask=_LIBERO_DELTAS, fast=True),
-    "pi0_aloha_sim": PublishedCheckpoint(value_conversion="aloha"),
+    # openpi's pi0_aloha_sim: its aloha_sim client sends no prompt; the config's default_prompt is "Transfer cube"
+    "pi0_aloha_sim": PublishedCheckpoint(value_conversion="aloha", default_prompt="Transfer cube"),
     "pi0_aloha_towel": PublishedCheckpoint(asset_id="trossen", delta_action_mask=_ALOHA_DELTAS, value_conversion="aloha"),
     "pi0_aloha_tupperware": PublishedCheckpoint(asset_id="trossen", delta_action_mask=_ALOHA_DELTAS, value_conversion="aloha"),
     "pi0_aloha_pen_uncap": PublishedCheckpoint(asset_id="trossen", delta_action_mask=_ALOHA_DELTAS, value_conversion="aloha"),

@@ -1,14 +1,17 @@
-"""`pi0-torch demos`: record scripted-expert demonstrations of a tabletop env as a LeRobot v3.0 dataset.
+"""`pi0-torch demos`: record scripted-expert demonstrations of a tabletop env (or a Meta-World task) as a LeRobot
+v3.0 dataset.
 
 ```
 pi0-torch demos --env pi0_torch/PickPlace-v0 --episodes 500 --output-dir data/pickplace [--storage video|image]
-                [--seed 0] [--image-size 96]
+                [--seed 0] [--image-size 96] [--max-steps N]
+pi0-torch demos --env metaworld/drawer-open-v3 --episodes 100 --output-dir data/drawer --image-size 64
 ```
 
 The expert runs with seeds S, S+1, ... until `--episodes` episodes have succeeded (failed seeds are skipped; each
-episode's seed is the `seed` column of `meta/episodes`). Features: `observation.images.base_0_rgb` and
-`observation.images.left_wrist_0_rgb` (video or PNG images; the env's cameras), `observation.state`
-`[x, y, gripper]`, `action` `[target_x, target_y, gripper]`; one task per instruction; fps = the env's control rate.
+episode's seed is the `seed` column of `meta/episodes`). Features: `observation.images.<camera>` (video or PNG
+images; the env's cameras), `observation.state` and `action` (tabletop: `[x, y, gripper]` and
+`[target_x, target_y, gripper]`; Meta-World: `pi0_torch.envs.metaworld`); one task per instruction; fps = the env's
+control rate.
 
 Nothing recorded is lost: episodes are written in files of `EPISODES_PER_FILE`, each flushed to disk with a progress
 record, into `.NAME.partial-resumable` beside the output folder, which appears whole at the end
@@ -36,9 +39,10 @@ from tqdm.auto import tqdm
 
 from pi0_torch.data.lerobot_writer import EpisodeRecord, LeRobotDatasetWriter, Storage, partial_dataset_episodes
 from pi0_torch.envs import ENV_IDS, make_expert
+from pi0_torch.envs.benchmarks import make_benchmark_env
 from pi0_torch.utils.validation import MAX_SEED, check_int, first_line
 
-STATE_NAMES = ["x", "y", "gripper"]
+STATE_NAMES = ["x", "y", "gripper"]  # (the tabletop envs')
 ACTION_NAMES = ["target_x", "target_y", "gripper"]
 MAX_ATTEMPTS_FACTOR = 2  # give up after this many times the wanted episodes (plus 10) without enough successes
 EPISODES_PER_FILE = 50  # episodes per data file, flushed together: what an interruption can cost
@@ -118,8 +122,8 @@ def record_demos(
     Every setting is checked before anything is recorded. Episodes are flushed in files of `episodes_per_file`;
     after an interruption, `resume=True` continues the partial dataset (same settings) after its last flushed file
     (see the module docstring)."""
-    if env_id not in ENV_IDS:
-        raise ValueError(f"unknown env {env_id!r}; known: {', '.join(ENV_IDS)}")
+    if env_id not in ENV_IDS and not env_id.startswith("metaworld/"):
+        raise ValueError(f"unknown env {env_id!r}; known: {', '.join(ENV_IDS)}, metaworld/<task>-v3")
     check_int("--episodes", num_episodes, 1, MAX_EPISODES)
     check_int("--seed", seed, 0, MAX_SEED - MAX_ATTEMPTS_FACTOR * num_episodes - 10)  # every seed it may try fits int64
     check_int("--image-size", image_size, 8, MAX_IMAGE_SIZE)
@@ -128,14 +132,18 @@ def record_demos(
     if env_kwargs is not None and not isinstance(env_kwargs, Mapping):
         raise ValueError(f"env_kwargs must be a dict of env settings, got {type(env_kwargs).__name__}")
     try:
-        env = gymnasium.make(env_id, image_size=image_size, **(env_kwargs or {}))
+        make = make_benchmark_env if env_id.startswith("metaworld/") else gymnasium.make
+        env = make(env_id, image_size=image_size, **(env_kwargs or {}))
     except TypeError as error:  # a setting the env does not take
         raise ValueError(f"{env_id} cannot be made with the settings {sorted(env_kwargs or {})}: {first_line(error)}") from None
     summary = DemosSummary(Path(output_dir))
     run = {"env": env_id, "seed": seed, "image_size": image_size, "env_kwargs": dict(env_kwargs or {})}
     with LeRobotDatasetWriter(
-        output_dir, fps=env.unwrapped.control_hz, vector_names={"observation.state": STATE_NAMES, "action": ACTION_NAMES},
-        storage=storage, episodes_per_file=episodes_per_file, robot_type="pi0_torch_tabletop", overwrite=overwrite,
+        output_dir, fps=env.unwrapped.control_hz,
+        vector_names={"observation.state": getattr(env.unwrapped, "state_names", STATE_NAMES),
+                      "action": getattr(env.unwrapped, "action_names", ACTION_NAMES)},
+        storage=storage, episodes_per_file=episodes_per_file,
+        robot_type=getattr(env.unwrapped, "robot_type", "pi0_torch_tabletop"), overwrite=overwrite,
         resumable=True, resume=resume, run_settings=run,
     ) as writer:
         summary.episodes = writer.episodes_written
@@ -158,12 +166,14 @@ def record_demos(
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--env", required=True, help=f"environment id, one of {', '.join(ENV_IDS)}")
+    parser.add_argument("--env", required=True, help=f"environment id, one of {', '.join(ENV_IDS)}, or "
+                        "metaworld/<task>-v3 (needs pip install 'pi0-torch[metaworld]')")
     parser.add_argument("--episodes", type=int, required=True, help="successful episodes to record")
     parser.add_argument("--output-dir", required=True, help="the dataset folder to write (absent or empty)")
     parser.add_argument("--storage", choices=["video", "image"], default="video", help="camera as mp4 video or PNG images in the parquet")
     parser.add_argument("--seed", type=int, default=0, help="seed of the first episode (then seed+1, ...)")
     parser.add_argument("--image-size", type=int, default=96, help="camera image side in pixels")
+    parser.add_argument("--max-steps", type=int, help="episode length limit (default: the env's)")
     parser.add_argument("--overwrite", action="store_true", help="replace a non-empty --output-dir that pi0-torch "
                         "wrote (never a folder with other files), or discard the partial dataset of an interrupted run")
     parser.add_argument("--resume", action="store_true", help="continue the partial dataset an interrupted run of "
@@ -175,6 +185,7 @@ def run(args: argparse.Namespace) -> int:
         summary = record_demos(
             args.env, args.episodes, args.output_dir, seed=args.seed, image_size=args.image_size, storage=args.storage,
             overwrite=args.overwrite, resume=args.resume, progress=True,
+            env_kwargs={"max_episode_steps": check_int("--max-steps", args.max_steps, 1, 1_000_000)} if args.max_steps else None,
         )
     except (ValueError, OSError, RuntimeError, KeyboardInterrupt) as error:  # settings, disk, expert: one line
         reason = "interrupted" if isinstance(error, KeyboardInterrupt) else first_line(error)

@@ -27,6 +27,7 @@ where the object will be when the effector gets there.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import gymnasium
 import numpy as np
@@ -183,6 +184,9 @@ class ScriptedExpert:
         return Plan(kind, self._waypoints(start, velocity, goal, self._bend()), step, gripper)
 
 
-def make_expert(env: gymnasium.Env) -> ScriptedExpert:
-    """The scripted expert for a pi0_torch tabletop env (wrapped or not)."""
+def make_expert(env: gymnasium.Env) -> Any:
+    """The scripted expert of an env (wrapped or not): a tabletop env's [`ScriptedExpert`], or the one an env
+    provides (`scripted_expert()`: Meta-World's). It has `reset(seed)` and `act(env) -> action`."""
+    if hasattr(env.unwrapped, "scripted_expert"):
+        return env.unwrapped.scripted_expert()
     return ScriptedExpert(env)

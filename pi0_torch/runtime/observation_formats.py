@@ -305,17 +305,20 @@ _ALOHA = ObservationFormat(
     optional_images=frozenset({"left_wrist_0_rgb", "right_wrist_0_rgb"}),
     state=("state",),
 )
-# π0-FAST's cameras (openpi's *Inputs for ModelType.PI0_FAST): a single arm's wrist is wrist_0_rgb; ALOHA's left
-# wrist is base_1_rgb and its right wrist wrist_0_rgb
-_ONE_ARM_FAST_SLOTS = {"base_0_rgb": "base_0_rgb", "left_wrist_0_rgb": "wrist_0_rgb"}
+# π0-FAST's cameras: its model embeds the images in the order of their sorted names, so what counts is the slot
+# (position) each frame lands in. openpi's *Inputs for ModelType.PI0_FAST: DROID gives [base, padding, wrist]
+# (base_0_rgb, base_1_rgb, wrist_0_rgb); LIBERO keeps π0's names (base_0_rgb, left_wrist_0_rgb, right_wrist_0_rgb):
+# [base, wrist, padding]; ALOHA's left wrist is base_1_rgb and its right wrist wrist_0_rgb.
+_DROID_FAST_SLOTS = {"base_0_rgb": "base_0_rgb", "left_wrist_0_rgb": "wrist_0_rgb"}
+_LIBERO_FAST_SLOTS = {"base_0_rgb": "base_0_rgb", "left_wrist_0_rgb": "base_1_rgb"}
 _TWO_ARM_FAST_SLOTS = {"base_0_rgb": "base_0_rgb", "left_wrist_0_rgb": "base_1_rgb", "right_wrist_0_rgb": "wrist_0_rgb"}
 PRESETS: dict[str, ObservationFormat] = {
     "default": ObservationFormat(name="default", images="images", state=("state",)),
     "libero": _LIBERO,
     "droid": _DROID,
     "aloha": _ALOHA,
-    "libero_fast": _fast_cameras(_LIBERO, _ONE_ARM_FAST_SLOTS),
-    "droid_fast": _fast_cameras(_DROID, _ONE_ARM_FAST_SLOTS),
+    "libero_fast": _fast_cameras(_LIBERO, _LIBERO_FAST_SLOTS),
+    "droid_fast": _fast_cameras(_DROID, _DROID_FAST_SLOTS),
     "aloha_fast": _fast_cameras(_ALOHA, _TWO_ARM_FAST_SLOTS),
     # Gymnasium simulators of LeRobot (`pi0-torch eval --env ...`): gym_pusht with obs_type "pixels_agent_pos", and
     # gym_aloha with obs_type "pixels_agent_pos" (one "top" camera; no prompt: the policy's default prompt is used).

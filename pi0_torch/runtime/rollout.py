@@ -244,6 +244,10 @@ def make_env(env_id: str, **kwargs: Any) -> Any:
     require_extra("envs", f"the environment {env_id}")
     import gymnasium
 
+    from pi0_torch.envs.benchmarks import benchmark_of, make_benchmark_env
+
+    if benchmark_of(env_id) is not None:  # metaworld/..., aloha/..., libero/...
+        return make_benchmark_env(env_id, **kwargs)
     namespace = env_id.split("/")[0] if "/" in env_id else None
     if namespace == "pi0_torch":
         importlib.import_module("pi0_torch.envs")
@@ -257,7 +261,8 @@ def make_env(env_id: str, **kwargs: Any) -> Any:
                              f"pip install {namespace.replace('_', '-')}") from None
     if env_id not in gymnasium.registry:
         importlib.import_module("pi0_torch.envs")
-        known = sorted(i for i in gymnasium.registry if i.startswith("pi0_torch/")) + sorted(KNOWN_ENVS)
+        known = (sorted(i for i in gymnasium.registry if i.startswith("pi0_torch/")) + sorted(KNOWN_ENVS)
+                 + ["metaworld/<task>-v3", "aloha/AlohaTransferCube-v0", "libero/<suite>"])
         raise ValueError(f"unknown environment id {env_id!r}; known: {', '.join(known)} (a third-party id needs its "
                          "package installed, e.g. pip install gym-pusht)")
     try:
@@ -295,6 +300,7 @@ class EpisodeResult:
     steps: int
     boundary_jerk: list[float]  # per chunk switch
     interior_jerk: list[float]
+    task: str = ""  # the env's `task_name` (benchmark suites of several tasks)
 
 
 @dataclass
@@ -317,6 +323,13 @@ class EvalResult:
     episodes_detail: list[dict[str, Any]]
     complete: bool = True  # False: the evaluation stopped early; these are the episodes finished before
     stopped_by: str | None = None  # why it stopped (one line)
+    per_task: dict[str, dict[str, Any]] = field(default_factory=dict)  # task -> episodes, success_rate, success_ci95
+
+    def task_lines(self) -> list[str]:
+        """One line per task, when the episodes ran more than one task."""
+        return [f"  {task}: success {100 * t['success_rate']:.1f}% [{100 * t['success_ci95'][0]:.1f}, "
+                f"{100 * t['success_ci95'][1]:.1f}] over {t['episodes']} episodes"
+                for task, t in self.per_task.items()] if len(self.per_task) > 1 else []
 
     def summary(self) -> str:
         low, high = self.success_ci95
@@ -346,9 +359,12 @@ class _GroupStopped(Exception):
         self.results, self.frames, self.cause = results, frames, cause
 
 
-def _hold_action(observation: Mapping[str, Any], action_dim: int) -> np.ndarray:
-    """Standing still before the first chunk: the robot's state as a position target (envs whose actions are
-    absolute targets of their state, as this package's envs and gym_pusht)."""
+def _hold_action(env: Any, observation: Mapping[str, Any], raw: Mapping[str, Any], action_dim: int) -> np.ndarray:
+    """Standing still while the first chunk is computed (an inference delay): what the env says holds it
+    (`hold_action(raw observation)`: the benchmark adapters), else the robot's state as a position target (envs
+    whose actions are absolute targets of their state, as this package's envs and gym_pusht)."""
+    if hasattr(env.unwrapped, "hold_action"):
+        return np.asarray(env.unwrapped.hold_action(raw), np.float32).reshape(action_dim)
     state = np.asarray(observation["state"], np.float32)
     if state.shape != (action_dim,):
         raise ValueError(f"holding still needs actions shaped like the state; the env's state has {state.shape[0]} "
@@ -381,6 +397,17 @@ def _check_match(policy: ChunkPolicy, env: Any, observation: Mapping[str, Any]) 
 
 def _noise_seed(episode_seed: int, chunk: int) -> int:
     return int(np.random.SeedSequence([episode_seed, chunk]).generate_state(2, np.uint64)[0] >> np.uint64(1))
+
+
+def default_obs_format(env_id: str, policy_metadata: Mapping[str, Any]) -> str:
+    """The observation layout of an env's observations: a benchmark's preset (π0-FAST's cameras for a π0-FAST
+    policy), a known simulator's, else `default`."""
+    from pi0_torch.envs.benchmarks import benchmark_of
+
+    benchmark = benchmark_of(env_id)
+    if benchmark is not None:
+        return benchmark.fast_obs_format if policy_metadata.get("model_type") == "pi0_fast" else benchmark.obs_format
+    return KNOWN_ENVS.get(env_id, ({}, "default"))[1]
 
 
 def check_eval_settings(settings: EvalSettings, horizon: int) -> int:
@@ -436,8 +463,7 @@ def evaluate(policy: ChunkPolicy, settings: EvalSettings) -> EvalResult:
         require_extra("envs", "recording videos", modules=("av",))  # before the episodes run, not after
         kwargs.setdefault("render_mode", "rgb_array")
     envs = [make_env(settings.env, **kwargs) for _ in range(min(settings.num_envs, settings.episodes))]
-    obs_format = ObservationFormat.from_preset(
-        settings.obs_format or KNOWN_ENVS.get(settings.env, ({}, "default"))[1])
+    obs_format = ObservationFormat.from_preset(settings.obs_format or default_obs_format(settings.env, policy.metadata))
     action_dim = int(np.prod(envs[0].action_space.shape))
 
     def observe(raw: Mapping[str, Any]) -> dict[str, Any]:
@@ -446,10 +472,11 @@ def evaluate(policy: ChunkPolicy, settings: EvalSettings) -> EvalResult:
             observation["prompt"] = settings.prompt
         return observation
 
-    first_observation = observe(envs[0].reset(seed=settings.seed)[0])
+    first_raw = envs[0].reset(seed=settings.seed)[0]
+    first_observation = observe(first_raw)
     _check_match(policy, envs[0], first_observation)
-    if mode == "sync" or delay:
-        _hold_action(first_observation, action_dim)
+    if delay:
+        _hold_action(envs[0], first_observation, first_raw, action_dim)
     progress = None
     if settings.progress:
         from tqdm.auto import tqdm
@@ -495,7 +522,9 @@ def evaluate(policy: ChunkPolicy, settings: EvalSettings) -> EvalResult:
         boundary_jerk=float(np.mean(boundary)) if boundary else None,
         interior_jerk=float(np.mean(interior)) if interior else None,
         policy={k: v for k, v in policy.metadata.items() if isinstance(v, (str, int, float, list))},
-        episodes_detail=[{"seed": r.seed, "success": r.success, "steps": r.steps} for r in results],
+        episodes_detail=[{"seed": r.seed, "success": r.success, "steps": r.steps, **({"task": r.task} if r.task else {})}
+                         for r in results],
+        per_task=_per_task(results),
         complete=stopped is None,
         stopped_by=None if stopped is None else f"{type(stopped).__name__}: {first_line(stopped)}",
     )
@@ -510,6 +539,16 @@ def evaluate(policy: ChunkPolicy, settings: EvalSettings) -> EvalResult:
         raise EvaluationStopped(f"{result.stopped_by} (stopped after {len(results)} finished episodes of "
                                 f"{settings.episodes}{written})", result) from stopped
     return result
+
+
+def _per_task(results: Sequence[EpisodeResult]) -> dict[str, dict[str, Any]]:
+    """Success per task (in order of first appearance), for episodes that name their task."""
+    tasks: dict[str, list[bool]] = {}
+    for r in results:
+        if r.task:
+            tasks.setdefault(r.task, []).append(r.success)
+    return {task: {"episodes": len(outcomes), "success_rate": sum(outcomes) / len(outcomes),
+                   "success_ci95": wilson_interval(sum(outcomes), len(outcomes))} for task, outcomes in tasks.items()}
 
 
 def _control_hz(env: Any) -> int:
@@ -543,6 +582,7 @@ def _run_group(
         at_switch = {t - 1 for t in switches[i] if 2 <= t <= len(executed[i]) - 1}  # centred on the last old action
         return EpisodeResult(
             seed=seeds[i], success=success[i], steps=len(executed[i]),
+            task=str(getattr(envs[i].unwrapped, "task_name", "") or ""),  # (the env's episode is not reset yet)
             boundary_jerk=[float(jerk[t - 1]) for t in sorted(at_switch)],
             interior_jerk=[float(j) for t, j in enumerate(jerk, start=1) if t not in at_switch],
         )
@@ -574,9 +614,10 @@ def _step_group(
     frames: list[list[np.ndarray]],
 ) -> None:
     """The closed loop of [`_run_group`], filling its per-episode lists as it goes."""
-    observations = [observe(env.reset(seed=seed)[0]) for env, seed in zip(envs, seeds)]
-    holds = [_hold_action(o, action_dim) if schedule.mode == "sync" or schedule.inference_delay else None
-             for o in observations]
+    raws = [env.reset(seed=seed)[0] for env, seed in zip(envs, seeds)]
+    observations = [observe(raw) for raw in raws]
+    holds = [_hold_action(env, o, raw, action_dim) if schedule.inference_delay else None
+             for env, o, raw in zip(envs, observations, raws)]
     stitchers = [ChunkStitcher(schedule.mode, schedule.replan_steps) for _ in envs]
     pending: list[list[tuple[int, int, np.ndarray]]] = [[] for _ in envs]  # (arrival, anchor, chunk)
     if hasattr(policy, "start_group"):
@@ -674,13 +715,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--policy", required=True, help="a model folder, demo (the policy shipped with the package), "
                         "ws://HOST:PORT of pi0-torch serve, or 'expert' / 'random' (references: the env's scripted "
                         "expert, uniform random actions)")
-    parser.add_argument("--env", required=True, help="gymnasium id, e.g. pi0_torch/PickPlace-v0 or gym_pusht/PushT-v0")
+    parser.add_argument("--env", required=True, help="gymnasium id, e.g. pi0_torch/PickPlace-v0 or gym_pusht/PushT-v0, "
+                        "or a public benchmark: metaworld/<task>-v3, aloha/AlohaTransferCube-v0, libero/libero_spatial "
+                        "(docs/benchmarks.md)")
     parser.add_argument("--episodes", type=int, default=50)
     parser.add_argument("--num-envs", type=int, default=8, help="environments stepped together (one batched call)")
     parser.add_argument("--seed", type=int, default=1_000_000, help="seed of the first episode (demos use 0, 1, ...)")
     parser.add_argument("--replan-steps", type=int, help="actions executed per chunk before the next observation "
-                        "(default: the policy's recommended setting, else the whole horizon; with an asynchronous "
-                        "execution, horizon - delay)")
+                        "(default: a benchmark's published protocol, else the policy's recommended setting, else the "
+                        "whole horizon; with an asynchronous execution, horizon - delay)")
     parser.add_argument("--execution", choices=EXECUTION_MODES, default="sync",
                         help="how chunks are stitched under inference delay (see docs/closed_loop.md)")
     parser.add_argument("--inference-delay", type=int, default=0, metavar="D",
@@ -720,13 +763,18 @@ def run(args: argparse.Namespace) -> int:
         if settings.video_episodes and not settings.output_dir:
             raise ValueError("--video needs --output-dir")
         check_eval_output(settings, policy_location(args.policy))  # before the policy loads and the episodes run
-        make_env(settings.env, **settings.env_kwargs).close()  # an unknown id or setting fails before the policy loads
+        probe = make_env(settings.env, **settings.env_kwargs)  # an unknown id or setting fails before the policy loads
+        protocol_replan_steps = getattr(probe.unwrapped, "replan_steps", None)  # a benchmark's published protocol
+        probe.close()
         policy = load_policy(args.policy, min(args.num_envs, args.episodes), args.api_key, args.device, args.num_steps,
                              args.noise_scale, args.rtc_schedule, args.timeout)
         if isinstance(policy, LocalPolicy):
             set_threads(args.threads, policy.policy.model)
         recommended = policy.recommended_replan_steps
-        if settings.replan_steps is None and recommended is not None:
+        if settings.replan_steps is None and protocol_replan_steps is not None:
+            settings = replace(settings, replan_steps=min(protocol_replan_steps, int(policy.metadata["action_horizon"])))
+            print(f"replan steps {settings.replan_steps}: the benchmark's protocol for {settings.env} (--replan-steps to change)")
+        elif settings.replan_steps is None and recommended is not None:
             settings = replace(settings, replan_steps=recommended)
             print(f"replan steps {recommended}: the policy's recommended setting ({SETTINGS_FILE}; --replan-steps to change)")
         try:
@@ -736,10 +784,10 @@ def run(args: argparse.Namespace) -> int:
                 policy.close()
     except (ValueError, OSError, EvaluationStopped) as error:  # settings, files, the server: one line
         if isinstance(error, EvaluationStopped):  # the finished episodes' result first, whatever became of the files
-            print(error.result.summary())
+            print("\n".join([error.result.summary(), *error.result.task_lines()]))
         print(f"pi0-torch eval: error: {first_line(error)}", file=sys.stderr)
         return 2
-    print(result.summary())
+    print("\n".join([result.summary(), *result.task_lines()]))
     if settings.output_dir:
         print(f"wrote {Path(settings.output_dir) / 'eval.json'}")
     return 0

@@ -9,6 +9,9 @@
 | `envs` | the tabletop envs, `pi0-torch eval` / `demo` (and their videos) | gymnasium, av |
 | `train` | `pi0-torch train`, LeRobot datasets (`demos` writes them) | datasets, pyarrow, pandas, av, peft, accelerate, matplotlib |
 | `kernels` | the fused Triton kernels of sampling on CUDA (torch's CUDA wheels already bring triton) | triton |
+| `metaworld` | `pi0-torch eval --env metaworld/...` (and `demos`): Meta-World's tasks and scripted experts | envs, metaworld (MuJoCo) |
+| `aloha` | `pi0-torch eval --env aloha/...`: ALOHA sim (transfer cube, insertion) as openpi evaluates it | envs, gym-aloha (MuJoCo) |
+| `libero` | `pi0-torch eval --env libero/...`: the LIBERO suites as openpi evaluates them | envs, hf-libero (robosuite) |
 | `all` | every feature | the three above |
 
 A module of an optional feature calls [`require_extra`] before it imports what the extra brings, so that a missing
@@ -34,7 +37,11 @@ EXTRAS: dict[str, tuple[str, ...]] = {
     "envs": ("gymnasium", "av"),
     "train": ("datasets", "pyarrow", "pandas", "av", "peft", "accelerate", "matplotlib"),
     "kernels": ("triton",),
+    "metaworld": ("metaworld", "mujoco"),  # (each benchmark's extra also brings envs)
+    "aloha": ("gym_aloha", "mujoco"),
+    "libero": ("libero", "mujoco", "yaml"),
 }
+DISTRIBUTIONS = {"libero": "hf-libero", "yaml": "pyyaml"}  # module -> pip distribution, where they differ
 
 
 class MissingExtraError(ImportError):
