@@ -15,9 +15,7 @@ if TYPE_CHECKING:
 
 # Keep the suite predictable on small CI machines.
 torch.set_num_threads(min(2, os.cpu_count() or 1))
-# Without a GPU the fused Triton kernels run in triton's interpreter (tests/test_kernels.py); set before they are imported.
-if not torch.cuda.is_available():
-    os.environ.setdefault("TRITON_INTERPRET", "1")
+# (Without a GPU the fused Triton kernels run in triton's interpreter: the conftest.py of the repository sets it.)
 
 FIXTURES = Path(__file__).parent / "fixtures" / "openpi"
 # Seconds a test waits for a subprocess, a socket or a kernel before calling it a hang. Generous on purpose: a loaded

@@ -52,8 +52,7 @@ def check_mujoco_rendering() -> str:
     backend = configure_mujoco_gl()
     if backend in _checked:
         return backend
-    if backend == "osmesa":
-        _load_triton_first()
+    _load_triton_first()
     try:
         import mujoco
 
@@ -72,9 +71,9 @@ def check_mujoco_rendering() -> str:
 
 
 def _load_triton_first() -> None:
-    """Load triton's compiler library before OSMesa: both bring their own LLVM, and triton's, loaded second (as
-    torch does when a model is first built), crashed the process (a segfault in `triton._C.libtriton`). Loaded
-    first, both work."""
+    """Load triton's compiler library before the OpenGL driver: OSMesa (and Mesa's EGL) bring their own LLVM, and
+    triton's, loaded second (as torch does when a model is first built), crashed the process (a segfault in
+    `triton._C.libtriton`). Loaded first, both work."""
     import importlib.util
 
     if importlib.util.find_spec("triton") is not None:
