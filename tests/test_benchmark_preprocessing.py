@@ -384,9 +384,11 @@ def test_quat_to_axis_angle_matches_scipy_and_openpi() -> None:
     assert quat[3] == 1.5  # the caller's array is left alone
 
 
-def test_aloha_episode_runs_through_evaluate() -> None:
-    """One short real ALOHA sim episode through `pi0-torch eval`'s loop: a random tiny π0 with the `aloha` preset's
-    cameras, the adapter's replan steps (10) and hold action, the task's name."""
+@pytest.mark.parametrize("max_steps", [12, pytest.param(None, marks=pytest.mark.slow)])  # (None: gym-aloha's 300)
+def test_aloha_episode_runs_through_evaluate(max_steps: int | None) -> None:
+    """A real ALOHA sim episode through `pi0-torch eval`'s loop: a random tiny π0 with the `aloha` preset's cameras,
+    the adapter's replan steps (10) and hold action, the task's name; 12 steps in `make test`, the whole episode of
+    300 steps in `make test-slow` (about 2 minutes of software rendering)."""
     pytest.importorskip("gym_aloha")
     from pi0_torch.envs.rendering import RenderingError, check_mujoco_rendering
 
@@ -408,9 +410,9 @@ def test_aloha_episode_runs_through_evaluate() -> None:
                                          default_prompt="Transfer cube")
     policy = LocalPolicy(PI0Policy(PI0ForActionGeneration(config), processor, num_steps=2, seed=0))
     # (`pi0-torch eval` takes the replan steps from the env when none are given; `evaluate` takes them as set)
-    settings = EvalSettings(env="aloha/AlohaTransferCube-v0", episodes=1, num_envs=1, seed=0, max_steps=12,
+    settings = EvalSettings(env="aloha/AlohaTransferCube-v0", episodes=1, num_envs=1, seed=0, max_steps=max_steps,
                             replan_steps=AlohaSimEnv.replan_steps, inference_delay=2)  # (2 steps of hold_action)
     result = evaluate(policy, settings)
     assert result.complete and result.episodes == 1 and result.replan_steps == 10
-    assert result.episodes_detail[0]["steps"] == 12  # (a random policy does not transfer the cube in 12 steps)
+    assert result.episodes_detail[0]["steps"] == (max_steps or 300)  # (a random policy does not transfer the cube)
     assert result.per_task["AlohaTransferCube-v0"]["episodes"] == 1
