@@ -235,7 +235,8 @@ def ensure_libero_config() -> Path:
 
 def check_libero_assets() -> str:
     """The folder of LIBERO's scene assets (fetched from the Hugging Face Hub on first use by hf-libero); a
-    `RuntimeError` of one line naming what is missing when they cannot be had."""
+    `FileNotFoundError` of one line naming what is missing when they cannot be had (`pi0-torch eval` prints it as
+    its one-line error)."""
     import contextlib
     import io
     import warnings
@@ -248,7 +249,7 @@ def check_libero_assets() -> str:
         folder = get_assets_path()
     missing = [name for name in ASSET_FOLDERS if not os.path.isdir(os.path.join(folder, name))]
     if missing:
-        raise RuntimeError(f"LIBERO's scene assets are missing ({', '.join(missing)} not in {folder}): hf-libero "
+        raise FileNotFoundError(f"LIBERO's scene assets are missing ({', '.join(missing)} not in {folder}): hf-libero "
                            "downloads them from the Hugging Face Hub dataset lerobot/libero-assets on first use, which "
                            "failed (offline?); run once where the Hub is reachable, or copy them to "
                            "~/.cache/libero/assets")

@@ -24,8 +24,9 @@ _HINTS = {
 _checked: set[str] = set()
 
 
-class RenderingError(RuntimeError):
-    """MuJoCo cannot render offscreen with the chosen backend; the message says what to install or set."""
+class RenderingError(OSError):
+    """MuJoCo cannot render offscreen with the chosen backend (a system library is missing or unusable); the message
+    says what to install or set. An `OSError`, so that `pi0-torch eval` and `demos` print it as their one-line error."""
 
 
 def nvidia_driver_loaded() -> bool:
