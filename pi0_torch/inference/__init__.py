@@ -3,7 +3,9 @@
 - `layout`: each pass's tokens laid out so that every query sees one contiguous range of keys (no mask matrix);
 - `attention`: attention over those key ranges, and which kernel runs it;
 - `layer_pass`: one decoder layer's sampling pass on the layer's weights (GEMMs on transposed weights, residuals
-  updated in place, or the fused kernels of `pi0_torch.kernels`);
+  updated in place);
+- `fused_pass`: the Euler steps and the prefix pass in the fused kernels of `pi0_torch.kernels` (CUDA, bf16 / fp16);
+- `vision_pass`: SigLIP's pass of fused sampling, on the tower's weights in fewer launches;
 - `sampling`: `ActionSampling`, the mixin that gives the model `generate_actions` (the prefix cached once, the Euler
   steps, real-time chunking), `compile_sampling` and `capture_sampling`;
 - `graphs`: the sampling captured as CUDA graphs by hand, each verified against eager when captured.

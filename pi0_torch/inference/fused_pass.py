@@ -1,11 +1,13 @@
 """Sampling in the fused ops of `pi0_torch.kernels`.
 
-- Each Euler step of the action expert (`FusedSteps`): per decoder layer five launches (norm + q/k/v + RoPE + cache
-  write, attention over the key range, o-projection + residual, norm + gate/up + GeGLU, down-projection + residual),
-  then the final norm, `action_out_proj` and the Euler update in one.
+- Each Euler step of the action expert (`FusedSteps`): the action tokens in one launch (π0: with the action/time MLP),
+  then per decoder layer five launches (norm + q/k/v + RoPE + cache write, attention over the key range, o-projection
+  + residual, norm + gate/up + GeGLU, down-projection + residual), then the final norm, `action_out_proj` and the
+  Euler update in one.
 - The prefix pass (`prefix_layer`): the VLM's GEMMs stay cuBLAS's (compute-bound at 800+ rows) with RoPE and the cache
   write, and the GeGLU, fused around them (nine launches per layer instead of fifteen); π0's state token, one row,
-  goes through the action expert's fused ops (five instead of fifteen).
+  goes through the action expert's fused ops (five instead of fifteen). SigLIP runs `vision_pass` (nine launches per
+  encoder layer instead of thirteen).
 
 It computes what `ActionSampling.denoise_step` followed by `x_t += dt * velocity` computes, with fewer roundings in
 bf16 (the fused epilogues round once). Used for plain sampling on CUDA in bf16 / fp16 (`ActionSampling.sampling_kernels`,
@@ -23,6 +25,7 @@ from typing import TYPE_CHECKING
 import torch
 
 from pi0_torch.inference.attention import attend
+from pi0_torch.inference.layer_pass import plain_linear
 from pi0_torch.kernels import ops, reference
 from pi0_torch.models.layers import JointDecoderLayer, NormParams, StepConditioning, StreamPass, rms_norm, rope_cos_sin
 
@@ -48,12 +51,16 @@ def structural_reason(model: PI0ForActionGeneration, weights: list[SamplingWeigh
         return "the layers are compiled (compile_sampling)"
     if not all(own.usable for own in weights):
         return "a layer's projections are not plain weights (LoRA, quantized or hooked layers, autocast)"
+    action_linears = (model.action_in_proj, model.action_out_proj) + (
+        () if config.pi05 else (model.action_time_mlp_in, model.action_time_mlp_out))
+    if not all(plain_linear(linear, bias=True) for linear in action_linears):
+        return "an action projection is not a plain linear layer (LoRA, quantized or hooked layers)"
     return None
 
 
 @functools.lru_cache(maxsize=None)
 def fused_kernels_reason(device: torch.device, dtype: torch.dtype, width: int, heads: int, head_dim: int, mlp_width: int,
-                         action_dim: int) -> str | None:
+                         action_dim: int, vision_width: int) -> str | None:
     """Why the fused kernels may not run on `device` in `dtype` (None: they may): triton is unusable there, or one of
     them, run once at these sizes on random inputs, differs from its torch reference by more than
     `SELF_CHECK_TOLERANCE` or fails. Checked once per device, dtype and sizes (which compiles the kernels too); a
@@ -63,7 +70,7 @@ def fused_kernels_reason(device: torch.device, dtype: torch.dtype, width: int, h
         from pi0_torch.kernels import triton_kernels
 
         try:
-            reason = _self_check(triton_kernels, device, dtype, width, heads, head_dim, mlp_width, action_dim)
+            reason = _self_check(triton_kernels, device, dtype, width, heads, head_dim, mlp_width, action_dim, vision_width)
         except Exception as error:  # a triton that cannot compile them, a device they do not fit
             reason = f"the fused kernels failed on {device} ({type(error).__name__}: {str(error)[:300]})"
     if reason is not None and device.type == "cuda":
@@ -71,7 +78,7 @@ def fused_kernels_reason(device: torch.device, dtype: torch.dtype, width: int, h
     return reason
 
 
-def _self_check(kernels, device, dtype, width, heads, head_dim, mlp_width, action_dim) -> str | None:
+def _self_check(kernels, device, dtype, width, heads, head_dim, mlp_width, action_dim, vision_width) -> str | None:
     generator = torch.Generator(device="cpu").manual_seed(0)
     batch, tokens, slots = 2, 5, 24
 
@@ -94,6 +101,11 @@ def _self_check(kernels, device, dtype, width, heads, head_dim, mlp_width, actio
                                     torch.full((tokens,), slots, device=device)),
         "norm_linear_euler_": lambda: (torch.randn(batch, tokens, action_dim, generator=generator).to(device), x, scale,
                                        random(action_dim), random(action_dim, width, scale=width**-0.5).t(), -0.1, 1e-6),
+        "embed_actions": lambda: (torch.randn(batch, tokens, action_dim, generator=generator).to(device),
+                                  random(width, action_dim, scale=action_dim**-0.5).t(), random(width),
+                                  random(width, width, scale=width**-0.5).t(), random(width)),
+        "add_layer_norm_": lambda: (random(batch * tokens, vision_width), random(batch * tokens, vision_width),
+                                    1 + random(vision_width, scale=0.1), random(vision_width, scale=0.1), 1e-6),
     }
     for name, make in cases.items():
         arguments = make()
@@ -112,8 +124,9 @@ def _self_check(kernels, device, dtype, width, heads, head_dim, mlp_width, actio
 @dataclass
 class FusedSteps:
     """What every fused step of one call shares: the caches as `[B, S, H]`, the action tokens' RoPE tables
-    `[B, T, H]`, their key range, the transposed weights, π0's norm scales, and the final bias of each step
-    (`action_out_proj`'s bias, plus π0.5's final adaRMS shift through it)."""
+    `[B, T, H]`, their key range, the transposed weights, π0's norm scales, the action embedding's weights and each
+    step's bias (π0: action_in_proj folded into the action half of action_time_mlp_in, the step's time half in the
+    bias), and the final bias of each step (`action_out_proj`'s bias, plus π0.5's final adaRMS shift through it)."""
 
     model: PI0ForActionGeneration
     actions: ActionPass
@@ -122,6 +135,9 @@ class FusedSteps:
     cos: torch.Tensor
     sin: torch.Tensor
     row_ends: torch.Tensor
+    in_weight: torch.Tensor  # [A, D1]
+    in_biases: torch.Tensor  # [steps or 1, D1]
+    mlp_out: tuple[torch.Tensor, torch.Tensor] | None  # π0: action_time_mlp_out's weight [D1, D1] (transposed), bias
     out_weight: torch.Tensor  # [D1, A]
     final_scales: torch.Tensor  # [steps or 1, D1]
     final_biases: torch.Tensor  # [steps or 1, A]
@@ -139,8 +155,14 @@ class FusedSteps:
         if final.shift is not None:
             final_biases = torch.addmm(final_biases, final.shift, out_weight)  # [steps, A]
         row_ends = torch.full((stream.tokens,), cache.slots, device=cache.first.device)
-        return cls(model, actions, keys, values, stream.cos[:, :, 0], stream.sin[:, :, 0], row_ends, out_weight,
-                   final.scale.view(-1, final.scale.shape[-1]), final_biases)
+        in_weight, in_biases, mlp_out = model.action_in_proj.weight.t(), model.action_in_proj.bias[None], None
+        if not config.pi05:  # (x W_in + b_in) W_a + c = x (W_in W_a) + (b_in W_a + c)
+            steps = conditioning.condition.shape[0]
+            in_biases = torch.addmm(conditioning.condition, in_biases.expand(steps, -1), actions.action_weight)  # [steps, D1]
+            in_weight = torch.mm(in_weight, actions.action_weight)
+            mlp_out = (model.action_time_mlp_out.weight.t(), model.action_time_mlp_out.bias)
+        return cls(model, actions, keys, values, stream.cos[:, :, 0], stream.sin[:, :, 0], row_ends, in_weight, in_biases,
+                   mlp_out, out_weight, final.scale.view(-1, final.scale.shape[-1]), final_biases)
 
     def step_(self, x_t: torch.Tensor, index: int, step: StepConditioning, dt: float) -> None:
         """One Euler step of the flow at `x_t` (float32 `[B, horizon, A]`, updated in place), the `index`-th of the
@@ -149,7 +171,8 @@ class FusedSteps:
         config = model.config
         eps, heads, head_dim = config.rms_norm_eps, config.num_attention_heads, config.head_dim
         batch = x_t.shape[0]
-        tokens = model.embed_actions(x_t, step.condition, actions.action_weight)  # [B * T, D1]
+        row = index if self.in_biases.shape[0] > 1 else 0  # (π0: a time half per step)
+        tokens = ops.call(ops.embed_actions, x_t, self.in_weight, self.in_biases[row], *(self.mlp_out or (None, None)))  # [B * T, D1]
         norms = step.layer_norms if config.pi05 else actions.expert_norms
         first_slot = actions.stream.first_slot
         for own, (attn, mlp), keys, values in zip(actions.expert_weights, norms, self.keys, self.values):

@@ -45,9 +45,9 @@ def expert_sampling_weights(expert: ExpertLayer) -> SamplingWeights:
     weight is not a plain parameter (a tensor subclass: quantized weights, FSDP2's DTensor shards), a hook or a
     replaced `forward` on a projection or norm (offloading, pruning, a user's hooks), or autocast."""
     projections = (expert.qkv_proj, expert.o_proj, expert.gate_up_proj, expert.down_proj)
-    if any(type(p) is not nn.Linear or p.bias is not None or type(p.weight) is not nn.Parameter for p in projections):
+    if not all(plain_linear(p, bias=False) for p in projections):
         return CALL_MODULES
-    if any(runs_extra_code(module) for module in (*projections, expert.attn_norm, expert.mlp_norm)):
+    if any(runs_extra_code(module) for module in (expert.attn_norm, expert.mlp_norm)):
         return CALL_MODULES
     device = expert.qkv_proj.weight.device.type
     if torch.amp.is_autocast_available(device) and torch.is_autocast_enabled(device):
@@ -63,6 +63,15 @@ def layer_sampling_weights(layer: JointDecoderLayer, vlm: bool, expert: bool) ->
         return CALL_MODULES, CALL_MODULES
     return (expert_sampling_weights(layer.vlm) if vlm else CALL_MODULES,
             expert_sampling_weights(layer.expert) if expert else CALL_MODULES)
+
+
+def plain_linear(module: nn.Module, bias: bool) -> bool:
+    """Whether calling `module` is `F.linear` on its own plain parameters (with a bias or without one, as `bias` says):
+    an `nn.Linear` itself (not LoRA or a quantized layer) whose parameters are not tensor subclasses (quantized weights,
+    FSDP2's DTensor shards), with no hooks and no replaced `forward`."""
+    if type(module) is not nn.Linear or type(module.weight) is not nn.Parameter or runs_extra_code(module):
+        return False
+    return type(module.bias) is nn.Parameter if bias else module.bias is None
 
 
 def runs_extra_code(module: nn.Module) -> bool:

@@ -20,7 +20,7 @@ from typing import Any
 import torch
 
 from pi0_torch.inference.attention import KERNELS, choose_kernel
-from pi0_torch.inference import fused_pass
+from pi0_torch.inference import fused_pass, vision_pass
 from pi0_torch.inference.fused_pass import FusedSteps, fused_kernels_reason, structural_reason
 from pi0_torch.inference.layer_pass import CALL_MODULES, SamplingWeights, layer_sampling_weights, sampling_layer_pass
 from pi0_torch.inference.layout import PrefixLayout, camera_inputs, compact_prefix, prefix_stream, suffix_stream
@@ -150,7 +150,8 @@ class ActionSampling:
         reason = structural_reason(self, [layer_sampling_weights(layer, vlm=False, expert=True)[1] for layer in self.layers])
         if reason is None:
             reason = fused_kernels_reason(device, dtype, config.expert_hidden_size, config.num_attention_heads,
-                                          config.head_dim, config.expert_intermediate_size, config.action_dim)
+                                          config.head_dim, config.expert_intermediate_size, config.action_dim,
+                                          config.vision_hidden_size)
         if reason is not None and self._sampling_kernels == "triton":
             raise ValueError(f"sampling_kernels='triton' cannot run: {reason}")
         return reason
@@ -289,10 +290,11 @@ class ActionSampling:
         and itself, so neither changes with the noisy actions or the flow time. The buffers have room for the action
         tokens, whose k/v each denoising step writes in place (no per-step copy of the prefix). `differentiable_steps`:
         the steps will attend through SDPA's mask (RTC guidance), so the buffers are laid out for it. `fused`: the
-        layers run `fused_pass.prefix_layer` (the fused kernels around cuBLAS's GEMMs).
+        layers run `fused_pass.prefix_layer` (the fused kernels around cuBLAS's GEMMs), SigLIP `vision_pass`.
         """
         config = self.config
-        prefix, valid = self.embed_prefix(inputs.pixel_values, inputs.image_masks, inputs.input_ids, inputs.attention_mask)
+        vision = vision_pass.tower_pass(self.vision_tower) if fused else None  # (None: the tower's modules run)
+        prefix, valid = self.embed_prefix(inputs.pixel_values, inputs.image_masks, inputs.input_ids, inputs.attention_mask, vision)
         prefix, first = compact_prefix(prefix, valid, layout)
         batch = first.shape[0]
         slots = layout.length + config.suffix_len

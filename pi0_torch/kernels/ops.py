@@ -59,6 +59,28 @@ def call(op: Any, *args: Any) -> Any:
     return _implementation(op._name.split("::")[-1], args[0].device)(*args)
 
 
+@torch.library.custom_op("pi0_torch::embed_actions", mutates_args=())
+def embed_actions(x_t: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, out_weight: Optional[torch.Tensor],
+                  out_bias: Optional[torch.Tensor]) -> torch.Tensor:
+    return _implementation("embed_actions", x_t.device)(x_t, weight, bias, out_weight, out_bias)
+
+
+@embed_actions.register_fake
+def _(x_t, weight, bias, out_weight, out_bias):
+    columns = weight.shape[1] if out_weight is None else out_weight.shape[1]
+    return x_t.new_empty(x_t.shape[0] * x_t.shape[1], columns, dtype=weight.dtype)
+
+
+@torch.library.custom_op("pi0_torch::add_layer_norm_", mutates_args=("residual",))
+def add_layer_norm_(residual: torch.Tensor, y: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, eps: float) -> torch.Tensor:
+    return _implementation("add_layer_norm_", residual.device)(residual, y, weight, bias, eps)
+
+
+@add_layer_norm_.register_fake
+def _(residual, y, weight, bias, eps):
+    return torch.empty_like(residual)
+
+
 @torch.library.custom_op("pi0_torch::norm_qkv_rope", mutates_args=("key_cache", "value_cache"))
 def norm_qkv_rope(
     x: torch.Tensor, scale: torch.Tensor, bias: Optional[torch.Tensor], weight: torch.Tensor, cos: torch.Tensor,

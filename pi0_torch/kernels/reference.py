@@ -10,8 +10,35 @@ views, as `pi0_torch.inference.layer_pass.SamplingWeights` holds them).
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 
 from pi0_torch.models.layers import ExpertLayer, apply_rope, rms_norm
+
+
+def embed_actions(
+    x_t: torch.Tensor,  # float32 [B, horizon, A]
+    weight: torch.Tensor,  # [A, D]: action_in_proj's weight transposed (π0: times the action half of action_time_mlp_in)
+    bias: torch.Tensor,  # [D]
+    out_weight: torch.Tensor | None,  # π0: action_time_mlp_out's weight transposed [D, D]; π0.5: None
+    out_bias: torch.Tensor | None,  # π0: [D]
+) -> torch.Tensor:
+    """The action tokens `[B * horizon, D]` of a sampling step: π0.5 `x_t W + b` (action_in_proj), π0
+    `silu(x_t W + b) W_out + b_out`, where `W` and `b` fold action_in_proj into the action half of action_time_mlp_in
+    and `b` holds the step's time half (two linear maps in a row are one); `x_t` is read in the weights' dtype."""
+    tokens = torch.addmm(bias, x_t.flatten(0, 1).to(weight.dtype), weight)
+    return tokens if out_weight is None else torch.addmm(out_bias, F.silu(tokens), out_weight)
+
+
+def add_layer_norm_(
+    residual: torch.Tensor,  # [M, D], updated in place
+    y: torch.Tensor,  # [M, D]
+    weight: torch.Tensor,  # [D]
+    bias: torch.Tensor,  # [D]
+    eps: float,
+) -> torch.Tensor:
+    """SigLIP's residual update and the LayerNorm after it: `residual += y`, returns `layer_norm(residual)` `[M, D]`."""
+    residual.add_(y)
+    return F.layer_norm(residual, residual.shape[-1:], weight, bias, eps)
 
 
 def norm_qkv_rope(

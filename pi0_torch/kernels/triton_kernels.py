@@ -1,4 +1,5 @@
-"""Triton kernels for one sampling step of the action expert: five launches per decoder layer instead of about twenty.
+"""Triton kernels of sampling: five launches per decoder layer of a step instead of about twenty, and fewer around the
+prefix pass's GEMMs.
 
 Each kernel computes what its namesake in `pi0_torch.kernels.reference` computes:
 
@@ -8,8 +9,11 @@ Each kernel computes what its namesake in `pi0_torch.kernels.reference` computes
 - `matmul_residual_`: the o- or down-projection with the residual (and π0.5's gate) added in its epilogue, in place;
 - `range_attention`: attention of the folded query heads over each token's key range (no mask), one kv head;
 - `norm_linear_euler_`: the final norm, `action_out_proj` and the Euler update of `x_t`, in one;
+- `embed_actions`: the action tokens of a step from `x_t` (π0: both GEMMs of the action/time MLP and the SiLU between
+  them; the hidden row block is computed per column block, cheap where it is `x_t`'s 32 action dims deep);
 - `rope_cache_write` and `geglu`: the elementwise work around the prefix pass's GEMMs (which stay cuBLAS's: at 800
-  rows and more they are compute-bound, and cuBLAS is near peak there).
+  rows and more they are compute-bound, and cuBLAS is near peak there);
+- `add_layer_norm_`: SigLIP's residual add and the LayerNorm after it, in one pass over the rows.
 
 A paired GEMM (RoPE, GeGLU) gives each program two column sets, `c` and `c + half`, so that both halves a rotation or
 a GeGLU combines are in its accumulators. Accumulation is float32; the dot's operands are `dot_dtype`, the weights'
@@ -193,6 +197,63 @@ def _norm_linear_euler_kernel(
 
 
 @triton.jit
+def _embed_actions_kernel(
+    x_ptr, w_ptr, bias_ptr, out_w_ptr, out_bias_ptr, out_ptr, M, A, D, N, stride_wa, stride_wd, stride_ok, stride_on,
+    TIME_MLP: tl.constexpr, DOT: tl.constexpr, BLOCK_M: tl.constexpr, BLOCK_N: tl.constexpr, BLOCK_K: tl.constexpr,
+    BLOCK_A: tl.constexpr,
+):
+    rows = tl.program_id(0) * BLOCK_M + tl.arange(0, BLOCK_M)
+    columns = tl.program_id(1) * BLOCK_N + tl.arange(0, BLOCK_N)
+    dims = tl.arange(0, BLOCK_A)
+    row_ok = rows < M
+    column_ok = columns < N
+    x = tl.load(x_ptr + rows[:, None] * A + dims[None, :], mask=row_ok[:, None] & (dims < A)[None, :], other=0.0)
+    x = x.to(w_ptr.dtype.element_ty).to(DOT)  # (read in the weights' dtype, as the reference casts it)
+    if TIME_MLP:  # silu(x W + b) W_out + b_out, the hidden columns in blocks of BLOCK_K
+        acc = tl.zeros((BLOCK_M, BLOCK_N), dtype=tl.float32)
+        for k0 in range(0, D, BLOCK_K):
+            ks = k0 + tl.arange(0, BLOCK_K)
+            k_ok = ks < D
+            w = tl.load(w_ptr + dims[:, None] * stride_wa + ks[None, :] * stride_wd, mask=(dims < A)[:, None] & k_ok[None, :], other=0.0)
+            hidden = tl.dot(x, w.to(DOT)) + tl.load(bias_ptr + ks, mask=k_ok, other=0.0).to(tl.float32)[None, :]
+            hidden = hidden / (1.0 + tl.exp(-hidden))  # SiLU
+            out_w = tl.load(out_w_ptr + ks[:, None] * stride_ok + columns[None, :] * stride_on, mask=k_ok[:, None] & column_ok[None, :], other=0.0)
+            acc += tl.dot(hidden.to(out_w_ptr.dtype.element_ty).to(DOT), out_w.to(DOT))
+        acc += tl.load(out_bias_ptr + columns, mask=column_ok, other=0.0).to(tl.float32)[None, :]
+    else:  # x W + b
+        w = tl.load(w_ptr + dims[:, None] * stride_wa + columns[None, :] * stride_wd, mask=(dims < A)[:, None] & column_ok[None, :], other=0.0)
+        acc = tl.dot(x, w.to(DOT)) + tl.load(bias_ptr + columns, mask=column_ok, other=0.0).to(tl.float32)[None, :]
+    ok = row_ok[:, None] & column_ok[None, :]
+    tl.store(out_ptr + rows[:, None] * N + columns[None, :], acc.to(out_ptr.dtype.element_ty), mask=ok)
+
+
+@triton.jit
+def _add_layer_norm_kernel(
+    residual_ptr, y_ptr, weight_ptr, bias_ptr, out_ptr, M, D, stride_rm, stride_ym, eps,
+    BLOCK_M: tl.constexpr, BLOCK_D: tl.constexpr,
+):
+    """Rows `[i * BLOCK_M, ...)`: `residual += y` (rounded to the residual's dtype, as it is stored), then the
+    LayerNorm of the stored sum, mean and variance in float32."""
+    rows = tl.program_id(0) * BLOCK_M + tl.arange(0, BLOCK_M)
+    columns = tl.arange(0, BLOCK_D)
+    column_ok = columns < D
+    ok = (rows < M)[:, None] & column_ok[None, :]
+    pointers = residual_ptr + rows[:, None] * stride_rm + columns[None, :]
+    total = tl.load(pointers, mask=ok, other=0.0).to(tl.float32)
+    total += tl.load(y_ptr + rows[:, None] * stride_ym + columns[None, :], mask=ok, other=0.0).to(tl.float32)
+    stored = total.to(residual_ptr.dtype.element_ty)
+    tl.store(pointers, stored, mask=ok)
+    total = stored.to(tl.float32)
+    mean = tl.sum(total, axis=1) / D
+    centered = tl.where(ok, total - mean[:, None], 0.0)
+    inverse = 1.0 / tl.sqrt(tl.sum(centered * centered, axis=1) / D + eps)
+    weight = tl.load(weight_ptr + columns, mask=column_ok, other=0.0).to(tl.float32)
+    bias = tl.load(bias_ptr + columns, mask=column_ok, other=0.0).to(tl.float32)
+    normed = centered * inverse[:, None] * weight[None, :] + bias[None, :]
+    tl.store(out_ptr + rows[:, None] * D + columns[None, :], normed.to(out_ptr.dtype.element_ty), mask=ok)
+
+
+@triton.jit
 def _range_attention_kernel(
     q_ptr, key_ptr, value_ptr, out_ptr, first_ptr, row_ends_ptr, rows_per_sample, heads, slots, scale,
     HEAD_DIM: tl.constexpr, DOT: tl.constexpr, BLOCK_M: tl.constexpr, BLOCK_N: tl.constexpr,
@@ -276,6 +337,34 @@ def _geglu_kernel(gate_up_ptr, out_ptr, M, F, stride_gm, BLOCK_M: tl.constexpr, 
 
 
 # -- launchers (same arguments and results as `pi0_torch.kernels.reference`) ------------------------------------------
+
+
+def embed_actions(x_t, weight, bias, out_weight, out_bias):
+    rows, action_dim = x_t.shape[0] * x_t.shape[1], x_t.shape[2]
+    width = weight.shape[1]
+    columns = width if out_weight is None else out_weight.shape[1]
+    out = x_t.new_empty(rows, columns, dtype=weight.dtype)
+    block_m, block_n, block_k = blocks(rows, columns)
+    x_t = x_t.contiguous()  # (the engine's is)
+    _embed_actions_kernel[(triton.cdiv(rows, block_m), triton.cdiv(columns, block_n))](
+        x_t, weight, bias, out_weight if out_weight is not None else weight, out_bias if out_bias is not None else bias, out,
+        rows, action_dim, width, columns, weight.stride(0), weight.stride(1),
+        out_weight.stride(0) if out_weight is not None else 0, out_weight.stride(1) if out_weight is not None else 0,
+        TIME_MLP=out_weight is not None, DOT=dot_dtype(weight.dtype), BLOCK_M=block_m, BLOCK_N=block_n, BLOCK_K=block_k,
+        BLOCK_A=max(16, triton.next_power_of_2(action_dim)),
+    )
+    return out
+
+
+def add_layer_norm_(residual, y, weight, bias, eps):
+    rows, width = residual.shape
+    out = torch.empty_like(residual)
+    block_d = triton.next_power_of_2(width)
+    _add_layer_norm_kernel[(rows,)](  # (a row per program: SigLIP's 1,152 columns are 9 to 18 values per thread)
+        residual, y, weight, bias, out, rows, width, residual.stride(0), y.stride(0), eps,
+        BLOCK_M=1, BLOCK_D=block_d, num_warps=4 if block_d <= 2048 else 8,
+    )
+    return out
 
 
 def norm_qkv_rope(x, scale, bias, weight, cos, sin, key_cache, value_cache, first_slot, eps):

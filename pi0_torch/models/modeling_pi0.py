@@ -16,7 +16,7 @@ import functools
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import torch
 import torch.nn.functional as F
@@ -204,17 +204,22 @@ class PI0ForActionGeneration(SiglipImageEmbedding, ActionSampling, PI0PreTrained
     # -- prefix: images and text ---------------------------------------------------------------------------------------
 
     def embed_prefix(
-        self, pixel_values: torch.Tensor, image_masks: torch.Tensor, input_ids: torch.Tensor, attention_mask: torch.Tensor
+        self,
+        pixel_values: torch.Tensor,
+        image_masks: torch.Tensor,
+        input_ids: torch.Tensor,
+        attention_mask: torch.Tensor,
+        vision_tower: Callable[[torch.Tensor], torch.Tensor] | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Prefix tokens `[B, P, D0]` (each given camera's image tokens, then the scaled text embeddings) and their
         validity `[B, P]`. Image tokens are not scaled; text embeddings are multiplied by sqrt(D0) rounded to the
-        weights' dtype (as openpi)."""
+        weights' dtype (as openpi). `vision_tower`: see `embed_images`."""
         text_tokens = self.embed_tokens(input_ids)
         text_tokens = text_tokens * _rounded_sqrt(text_tokens.shape[-1], text_tokens.dtype)
         valid = attention_mask.bool()
         if pixel_values.shape[1] == 0:  # no sample shows any camera
             return text_tokens, valid
-        image_tokens = self.embed_images(pixel_values)  # [B, C, 256, D0]
+        image_tokens = self.embed_images(pixel_values, vision_tower)  # [B, C, 256, D0]
         image_valid = image_masks[:, :, None].expand(-1, -1, image_tokens.shape[2]).flatten(1)
         return torch.cat([image_tokens.flatten(1, 2), text_tokens], dim=1), torch.cat([image_valid, valid], dim=1)
 
@@ -548,6 +553,7 @@ def _place_name(place: int | str | torch.device) -> str:
     return device.type if device.type in ("cpu", "meta") else f"{device.type}:{device.index or 0}"
 
 
+@functools.lru_cache(maxsize=None)
 @functools.lru_cache(maxsize=None)
 def _rounded_sqrt(width: int, dtype: torch.dtype) -> float:
     """sqrt(width) rounded to `dtype` (openpi scales text embeddings by `sqrt(D).astype(x.dtype)`)."""

@@ -20,14 +20,23 @@
 ...     _ = torch.ops.aten._fused_rms_norm(x, [8], None, 1e-6)
 >>> counter.ops["_fused_rms_norm"], counter.total, counter.dispatched > 1
 (1, 1, True)
+>>> q = torch.ones(1, 2, 4, 8)  # [B, heads, T, H]
+>>> with AtenOpCounter() as counter:  # the heads put back together: a view of what CUDA's attention kernels write
+...     _ = torch.nn.functional.scaled_dot_product_attention(q, q, q).transpose(1, 2).reshape(1, 4, 16)
+>>> counter.kernels
+1
 
 ```
 
 Every op counts, views and allocations included (they launch nothing on a GPU: `views` and `allocations` tell how many
-there were, `kernels` the rest).
+there were, `kernels` the rest). `_unsafe_view` (what `reshape` returns after its copy) and `lift_fresh` (a constant
+tensor entering the program) change no memory either and count as views.
 The calls in `ONE_OP_ON_CUDA` run as one kernel on CUDA (RMSNorm's `_fused_rms_norm`; `scaled_dot_product_attention`,
 one flash / efficient / cuDNN kernel there) but as several ops elsewhere (their decomposition on the CPU or `meta`, the
-math kernel on `meta`): each call counts as one op, and `dispatched` counts the ops as they ran here instead. Host
+math kernel on `meta`): each call counts as one op, and `dispatched` counts the ops as they ran here instead. An
+attention's output `[B, N, T, H]` comes back laid out as those CUDA kernels write it, `[B, T, N, H]` in memory (the
+math kernel writes `[B, N, T, H]`), so that putting the heads back together (`transpose(1, 2).reshape(B, T, N * H)`)
+counts the copy CUDA runs: none. Host
 reads are the ops that copy a device value to the host for Python to look at (`.item()`, `bool(tensor)`, `nonzero`);
 on a GPU each one waits for all queued work. Host copies are the ops that copy a host tensor (not a 0-dim scalar) to
 another device: inside a CUDA graph one would be replayed from the host memory it saw at capture, or refused when that
@@ -48,6 +57,7 @@ from torch.utils._python_dispatch import TorchDispatchMode
 HOST_READS = frozenset({"_local_scalar_dense", "nonzero", "equal"})
 ALLOCATIONS = frozenset({"empty", "empty_strided", "new_empty", "new_empty_strided"})  # memory, no kernel
 ONE_OP_ON_CUDA = frozenset({"_fused_rms_norm", "scaled_dot_product_attention"})
+UNRECORDED_VIEWS = frozenset({"_unsafe_view", "lift_fresh"})  # no memory touched, though not marked as views
 
 
 class AtenOpCounter(TorchDispatchMode):
@@ -77,7 +87,7 @@ class AtenOpCounter(TorchDispatchMode):
         else:
             name = func.overloadpacket.__name__
             self.ops[name] += 1
-            self.views += func.is_view
+            self.views += func.is_view or name in UNRECORDED_VIEWS
             self.allocations += name in ALLOCATIONS
         result = func(*args, **(kwargs or {}))
         if not self._inside_one_op:
@@ -125,6 +135,9 @@ class _OneOpCalls(TorchFunctionMode):
         self.counter.ops[name] += 1
         self.counter._inside_one_op = True
         try:
-            return func(*args, **(kwargs or {}))
+            result = func(*args, **(kwargs or {}))
+            if name == "scaled_dot_product_attention" and result.dim() == 4:  # CUDA's layout (see the module docstring)
+                result = result.transpose(1, 2).contiguous().transpose(1, 2)
+            return result
         finally:
             self.counter._inside_one_op = False
