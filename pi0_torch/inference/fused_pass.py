@@ -87,27 +87,34 @@ def _self_check(kernels, device, dtype, width, heads, head_dim, mlp_width, actio
 
     x, scale = random(batch * tokens, width), 1 + random(width, scale=0.1)
     cos, sin = rope_cos_sin(torch.arange(tokens, device=device)[None] + torch.tensor([[3], [9]], device=device), head_dim, 10_000.0)
-    cases = {
-        "norm_qkv_rope": lambda: (x, scale, random((heads + 2) * head_dim), random((heads + 2) * head_dim, width, scale=width**-0.5).t(),
-                                  cos, sin, random(batch, slots, head_dim), random(batch, slots, head_dim), 11, 1e-6),
-        "rope_cache_write": lambda: (random(batch * tokens, (heads + 2) * head_dim), cos, sin, random(batch, slots, head_dim),
-                                     random(batch, slots, head_dim), 3),
-        "norm_gate_up_geglu": lambda: (x, scale, None, random(2 * mlp_width, width, scale=width**-0.5).t(), 1e-6),
-        "geglu": lambda: (random(batch * tokens, 2 * mlp_width),),
-        "matmul_residual_": lambda: (x.clone(), random(batch * tokens, mlp_width), random(width, mlp_width, scale=mlp_width**-0.5).t(),
-                                     random(width)),
-        "range_attention": lambda: (random(batch, tokens, heads, head_dim), random(batch, slots, head_dim),
-                                    random(batch, slots, head_dim), torch.tensor([2, 7], device=device),
-                                    torch.full((tokens,), slots, device=device)),
-        "norm_linear_euler_": lambda: (torch.randn(batch, tokens, action_dim, generator=generator).to(device), x, scale,
-                                       random(action_dim), random(action_dim, width, scale=width**-0.5).t(), -0.1, 1e-6),
-        "embed_actions": lambda: (torch.randn(batch, tokens, action_dim, generator=generator).to(device),
-                                  random(width, action_dim, scale=action_dim**-0.5).t(), random(width),
-                                  random(width, width, scale=width**-0.5).t(), random(width)),
-        "add_layer_norm_": lambda: (random(batch * tokens, vision_width), random(batch * tokens, vision_width),
-                                    1 + random(vision_width, scale=0.1), random(vision_width, scale=0.1), 1e-6),
-    }
-    for name, make in cases.items():
+    qkv_weight = random((heads + 2) * head_dim, width, scale=width**-0.5).t()
+    gate_up_weight = random(2 * mlp_width, width, scale=width**-0.5).t()
+    down_weight = random(width, mlp_width, scale=mlp_width**-0.5).t()
+    in_weight = random(width, action_dim, scale=action_dim**-0.5).t()
+    x_t = torch.randn(batch, tokens, action_dim, generator=generator).to(device)
+
+    def caches() -> tuple[torch.Tensor, torch.Tensor]:
+        return random(batch, slots, head_dim), random(batch, slots, head_dim)
+
+    cases = [  # every variant sampling runs (with and without adaRMS's bias / gate; π0's and π0.5's action tokens)
+        ("norm_qkv_rope", lambda: (x, scale, None, qkv_weight, cos, sin, *caches(), 11, 1e-6)),
+        ("norm_qkv_rope", lambda: (x, scale, random((heads + 2) * head_dim), qkv_weight, cos, sin, *caches(), 11, 1e-6)),
+        ("rope_cache_write", lambda: (random(batch * tokens, (heads + 2) * head_dim), cos, sin, *caches(), 3)),
+        ("norm_gate_up_geglu", lambda: (x, scale, None, gate_up_weight, 1e-6)),
+        ("norm_gate_up_geglu", lambda: (x, scale, random(2 * mlp_width), gate_up_weight, 1e-6)),
+        ("geglu", lambda: (random(batch * tokens, 2 * mlp_width),)),
+        ("matmul_residual_", lambda: (x.clone(), random(batch * tokens, mlp_width), down_weight, None)),
+        ("matmul_residual_", lambda: (x.clone(), random(batch * tokens, mlp_width), down_weight, random(width))),
+        ("range_attention", lambda: (random(batch, tokens, heads, head_dim), *caches(), torch.tensor([2, 7], device=device),
+                                     torch.full((tokens,), slots, device=device))),
+        ("norm_linear_euler_", lambda: (x_t.clone(), x, scale, random(action_dim), random(action_dim, width, scale=width**-0.5).t(),
+                                        -0.1, 1e-6)),
+        ("embed_actions", lambda: (x_t, in_weight, random(width), None, None)),
+        ("embed_actions", lambda: (x_t, in_weight, random(width), random(width, width, scale=width**-0.5).t(), random(width))),
+        ("add_layer_norm_", lambda: (random(batch * tokens, vision_width), random(batch * tokens, vision_width),
+                                     1 + random(vision_width, scale=0.1), random(vision_width, scale=0.1), 1e-6)),
+    ]
+    for name, make in cases:
         arguments = make()
         theirs = [a.clone() if isinstance(a, torch.Tensor) else a for a in arguments]
         ours = getattr(kernels, name)(*arguments)
