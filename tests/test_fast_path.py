@@ -174,7 +174,7 @@ def test_generate_actions_reads_the_device_once_and_runs_few_ops(
     """One `generate_actions` (3 cameras, a 20-token prompt): its checks read every value they need in one
     device-to-host copy, nothing else reads the device, and the ATen op count (a proxy for GPU launches, RMSNorm and
     attention counted as the one op each is on CUDA) stays under its ceilings: 2,982 / 3,249 ops, 1,919 / 1,989 of
-    them kernels (neither views nor allocations), before this fast path; 1,197 / 1,183 and 725 / 725 now (the
+    them kernels (neither views nor allocations), before this fast path; 1,166 / 1,166 and 691 / 705 now (the
     issue's targets: 1,200 / 1,320 ops)."""
     config = PI0Config.from_preset(preset)
     model = PI0ForActionGeneration(config).eval()

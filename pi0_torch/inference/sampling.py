@@ -23,7 +23,7 @@ from pi0_torch.inference.attention import KERNELS, choose_kernel
 from pi0_torch.inference import fused_pass, vision_pass
 from pi0_torch.inference.fused_pass import FusedSteps, fused_kernels_reason, structural_reason
 from pi0_torch.inference.layer_pass import CALL_MODULES, SamplingWeights, layer_sampling_weights, sampling_layer_pass
-from pi0_torch.inference.layout import PrefixLayout, camera_inputs, compact_prefix, prefix_stream, suffix_stream
+from pi0_torch.inference.layout import PrefixLayout, camera_inputs, compact_prefix, prefix_stream, rope_tables, suffix_stream
 from pi0_torch.masks import aligned_key_count
 from pi0_torch.models.flow_matching import euler_times
 from pi0_torch.models.layers import AdaRMSNorm, NormParams, RMSNorm, StepConditioning, StreamPass
@@ -36,14 +36,15 @@ from pi0_torch.utils.validation import check_tensor as _check_tensor
 @dataclass
 class PrefixCache:
     """The prefix (π0: and the state token) run once for sampling: every layer's post-RoPE k/v in static buffers
-    `[B, K, slots, H]` whose last `action_horizon` slots each step's action tokens fill, and each sample's first
-    valid slot `[B]` (its valid prefix tokens end at `layout.length`)."""
+    `[B, K, slots, H]` whose last `action_horizon` slots each step's action tokens fill, each sample's first valid
+    slot `[B]` (its valid prefix tokens end at `layout.length`), and the RoPE tables of every slot."""
 
     keys: list[torch.Tensor]
     values: list[torch.Tensor]
     first: torch.Tensor
     layout: PrefixLayout
     slots: int  # the prefix's and the suffix's; the buffers may hold more (zeros: `cache_prefix`)
+    rope: tuple[torch.Tensor, torch.Tensor]  # `rope_tables` of every slot `[B, slots, H]`, shared by the passes
 
 
 @dataclass
@@ -308,9 +309,10 @@ class ActionSampling:
             keys, values = (list(prefix.new_zeros(len(self.layers), *shape).unbind(0)) for _ in range(2))
         else:
             keys, values = ([prefix.new_empty(shape) for _ in self.layers] for _ in range(2))
+        rope = rope_tables(config, first, 0, slots)  # (one table for every stream of the call)
         streams = (
-            prefix_stream(config, first, layout, kernel, shape[2], self.dtype),
-            None if config.pi05 else suffix_stream(config, first, layout, layout.length, (1,), kernel, shape[2], self.dtype),
+            prefix_stream(config, first, layout, kernel, shape[2], self.dtype, rope),
+            None if config.pi05 else suffix_stream(config, first, layout, layout.length, (1,), kernel, shape[2], self.dtype, rope),
         )
         x, state = prefix, None if config.pi05 else self.embed_state(inputs.state)
         norms = [norm for layer in self.layers for norm in (layer.vlm.attn_norm, layer.vlm.mlp_norm)
@@ -326,7 +328,7 @@ class ActionSampling:
                                                    weights, first, state_ends, config.rms_norm_eps, keys_only=last)
             else:
                 x, state = self._layer_pass(layer, x, state, streams, (layer_keys, layer_values), None, weights, keys_only=last)
-        return PrefixCache(keys, values, first, layout, slots)
+        return PrefixCache(keys, values, first, layout, slots, rope)
 
     def action_pass(self, cache: PrefixCache, differentiable: bool = False) -> ActionPass:
         """What every sampling step shares (see `ActionPass`), computed once per call; `differentiable` for steps that
@@ -335,7 +337,7 @@ class ActionSampling:
         first_slot = cache.slots - config.action_horizon
         kernel = self.attention_kernel_for(cache.first.device, cache.keys[0].dtype, differentiable)
         stream = suffix_stream(config, cache.first, cache.layout, first_slot, (config.action_horizon,), kernel,
-                               cache.keys[0].shape[2], self.dtype)
+                               cache.keys[0].shape[2], self.dtype, cache.rope)
         weights = [layer_sampling_weights(layer, vlm=False, expert=not differentiable)[1] for layer in self.layers]
         if config.pi05:
             return ActionPass(cache, stream, weights, None, None, None)
