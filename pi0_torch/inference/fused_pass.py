@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING
 import torch
 
 from pi0_torch.inference.attention import attend
-from pi0_torch.inference.layer_pass import plain_linear
+from pi0_torch.inference.layer_pass import plain_linear, runs_extra_code, runs_its_weights
 from pi0_torch.kernels import ops, reference
 from pi0_torch.models.layers import JointDecoderLayer, NormParams, StepConditioning, StreamPass, rms_norm, rope_cos_sin
 
@@ -39,7 +39,7 @@ logger = logging.getLogger(__name__)
 SELF_CHECK_TOLERANCE = {torch.float32: 1e-4, torch.bfloat16: 3e-2, torch.float16: 1e-2}  # max error / max |reference|
 
 
-def structural_reason(model: PI0ForActionGeneration, weights: list[SamplingWeights]) -> str | None:
+def structural_reason(model: PI0ForActionGeneration) -> str | None:
     """Why the fused step cannot run this model's layers at all (None: it can)."""
     config = model.config
     head_dim = config.head_dim
@@ -49,7 +49,7 @@ def structural_reason(model: PI0ForActionGeneration, weights: list[SamplingWeigh
         return f"the fused kernels need a head size that is a power of two >= 16, not {head_dim}"
     if model.sampling_compiled:
         return "the layers are compiled (compile_sampling)"
-    if not all(own.usable for own in weights):
+    if any(runs_extra_code(layer) or not runs_its_weights(layer.expert) for layer in model.layers):
         return "a layer's projections are not plain weights (LoRA, quantized or hooked layers, autocast)"
     action_linears = (model.action_in_proj, model.action_out_proj) + (
         () if config.pi05 else (model.action_time_mlp_in, model.action_time_mlp_out))

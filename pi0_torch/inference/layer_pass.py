@@ -41,18 +41,24 @@ CALL_MODULES = SamplingWeights(None, None, None, None)
 
 def expert_sampling_weights(expert: ExpertLayer) -> SamplingWeights:
     """The projections' weights for a sampling pass, or `CALL_MODULES` where running the GEMMs on them is not what
-    calling the modules does: a projection that is not a bias-free `nn.Linear` itself (LoRA, quantized layers) or whose
-    weight is not a plain parameter (a tensor subclass: quantized weights, FSDP2's DTensor shards), a hook or a
-    replaced `forward` on a projection or norm (offloading, pruning, a user's hooks), or autocast."""
+    calling the modules does (see `runs_its_weights`)."""
+    if not runs_its_weights(expert):
+        return CALL_MODULES
+    return SamplingWeights(*(p.weight.t() for p in (expert.qkv_proj, expert.o_proj, expert.gate_up_proj, expert.down_proj)))
+
+
+def runs_its_weights(expert: ExpertLayer) -> bool:
+    """Whether running the GEMMs on the expert's weights is what calling its modules does. Not so for a projection
+    that is not a bias-free `nn.Linear` itself (LoRA, quantized layers) or whose weight is not a plain parameter (a
+    tensor subclass: quantized weights, FSDP2's DTensor shards), a hook or a replaced `forward` on a projection or norm
+    (offloading, pruning, a user's hooks), or autocast."""
     projections = (expert.qkv_proj, expert.o_proj, expert.gate_up_proj, expert.down_proj)
     if not all(plain_linear(p, bias=False) for p in projections):
-        return CALL_MODULES
+        return False
     if any(runs_extra_code(module) for module in (expert.attn_norm, expert.mlp_norm)):
-        return CALL_MODULES
+        return False
     device = expert.qkv_proj.weight.device.type
-    if torch.amp.is_autocast_available(device) and torch.is_autocast_enabled(device):
-        return CALL_MODULES
-    return SamplingWeights(*(p.weight.t() for p in projections))
+    return not (torch.amp.is_autocast_available(device) and torch.is_autocast_enabled(device))
 
 
 def layer_sampling_weights(layer: JointDecoderLayer, vlm: bool, expert: bool) -> tuple[SamplingWeights, SamplingWeights]:

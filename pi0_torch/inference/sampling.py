@@ -148,7 +148,7 @@ class ActionSampling:
         if self._sampling_kernels == "auto" and not (device.type == "cuda" and dtype in (torch.bfloat16, torch.float16)):
             return "the fused kernels run on CUDA in bf16 / fp16 (sampling_kernels='triton' to force them)"
         config = self.config
-        reason = structural_reason(self, [layer_sampling_weights(layer, vlm=False, expert=True)[1] for layer in self.layers])
+        reason = structural_reason(self)
         if reason is None:
             reason = fused_kernels_reason(device, dtype, config.expert_hidden_size, config.num_attention_heads,
                                           config.head_dim, config.expert_intermediate_size, config.action_dim,
