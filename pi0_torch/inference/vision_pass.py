@@ -30,7 +30,12 @@ def tower_pass(tower: nn.Module) -> Callable[[torch.Tensor], torch.Tensor] | Non
     """`vision_tokens` on `tower`, or None where running its weights is not what calling it does: a projection that
     is not a plain biased `nn.Linear` (LoRA, quantized layers), a replaced module, or a hook anywhere in it."""
     layers = getattr(getattr(tower, "encoder", None), "layers", None)
-    if layers is None or not hasattr(tower, "post_layernorm") or any(runs_extra_code(module) for module in tower.modules()):
+    embeddings = getattr(tower, "embeddings", None)
+    if layers is None or embeddings is None or type(getattr(tower, "post_layernorm", None)) is not nn.LayerNorm:
+        return None
+    if type(embeddings.patch_embedding) is not nn.Conv2d or type(embeddings.position_embedding) is not nn.Embedding:
+        return None
+    if any(runs_extra_code(module) for module in tower.modules()):
         return None
     for layer in layers:
         attention, mlp = layer.self_attn, layer.mlp
