@@ -554,7 +554,6 @@ def _place_name(place: int | str | torch.device) -> str:
 
 
 @functools.lru_cache(maxsize=None)
-@functools.lru_cache(maxsize=None)
 def _rounded_sqrt(width: int, dtype: torch.dtype) -> float:
     """sqrt(width) rounded to `dtype` (openpi scales text embeddings by `sqrt(D).astype(x.dtype)`)."""
     return float(torch.tensor(math.sqrt(width), dtype=dtype))

@@ -36,8 +36,9 @@ one flash / efficient / cuDNN kernel there) but as several ops elsewhere (their 
 math kernel on `meta`): each call counts as one op, and `dispatched` counts the ops as they ran here instead. An
 attention's output `[B, N, T, H]` comes back laid out as those CUDA kernels write it, `[B, T, N, H]` in memory (the
 math kernel writes `[B, N, T, H]`), so that putting the heads back together (`transpose(1, 2).reshape(B, T, N * H)`)
-counts the copy CUDA runs: none. Host
-reads are the ops that copy a device value to the host for Python to look at (`.item()`, `bool(tensor)`, `nonzero`);
+counts the copy CUDA runs: none.
+
+Host reads are the ops that copy a device value to the host for Python to look at (`.item()`, `bool(tensor)`, `nonzero`);
 on a GPU each one waits for all queued work. Host copies are the ops that copy a host tensor (not a 0-dim scalar) to
 another device: inside a CUDA graph one would be replayed from the host memory it saw at capture, or refused when that
 memory is not pinned. (`.tolist()` / `.cpu()` of a CPU tensor dispatch nothing and are not seen, nor is work a
