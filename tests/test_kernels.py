@@ -221,7 +221,7 @@ def test_the_fused_steps_run_few_kernels_per_layer_and_step() -> None:
 def test_the_vision_pass_equals_siglip_and_runs_nine_kernels_per_layer() -> None:
     """`vision_pass.vision_tokens` computes SigLIP's last hidden state (float32 tightly, bf16 to its rounding) in nine
     ops per encoder layer (CUDA's count, on the meta device), and `tower_pass` declines a tower whose modules do more
-    than their weights (a hook, a `nn.Linear` subclass such as LoRA)."""
+    than their weights (a hook, a `nn.Linear` subclass such as LoRA) or that is not π0's (another MLP activation)."""
     config = PI0Config.from_preset("pi0_small", image_size=28, vision_hidden_size=48, vision_intermediate_size=72,
                                    vision_num_layers=3, vision_num_heads=3)
     torch.manual_seed(0)
@@ -246,6 +246,10 @@ def test_the_vision_pass_equals_siglip_and_runs_nine_kernels_per_layer() -> None
     hook = tower.encoder.layers[1].mlp.register_forward_hook(lambda *_: None)
     assert vision_pass.tower_pass(tower) is None
     hook.remove()
+    tower.config.hidden_act = "gelu"
+    assert vision_pass.tower_pass(tower) is None
+    tower.config.hidden_act = "gelu_pytorch_tanh"
+    assert vision_pass.tower_pass(tower) is not None
 
     class Adapted(torch.nn.Linear):
         pass

@@ -28,10 +28,13 @@ from pi0_torch.kernels import ops
 
 def tower_pass(tower: nn.Module) -> Callable[[torch.Tensor], torch.Tensor] | None:
     """`vision_tokens` on `tower`, or None where running its weights is not what calling it does: a projection that
-    is not a plain biased `nn.Linear` (LoRA, quantized layers), a replaced module, or a hook anywhere in it."""
+    is not a plain biased `nn.Linear` (LoRA, quantized layers), a replaced module, a hook anywhere in it, or an MLP
+    activation other than tanh GELU (π0's SigLIP: `siglip_vision_tower`)."""
     layers = getattr(getattr(tower, "encoder", None), "layers", None)
     embeddings = getattr(tower, "embeddings", None)
     if layers is None or embeddings is None or type(getattr(tower, "post_layernorm", None)) is not nn.LayerNorm:
+        return None
+    if getattr(getattr(tower, "config", None), "hidden_act", None) != "gelu_pytorch_tanh":
         return None
     if type(embeddings.patch_embedding) is not nn.Conv2d or type(embeddings.position_embedding) is not nn.Embedding:
         return None
