@@ -1,5 +1,5 @@
 """SigLIP's pass in fused sampling, on the tower's own weights: what `SiglipVisionModel(pixel_values).last_hidden_state`
-computes (transformers' pre-LN encoder, then `post_layernorm`), in nine launches per encoder layer instead of thirteen:
+computes (transformers' pre-LN encoder, then `post_layernorm`), in nine launches per encoder layer instead of twelve:
 
 - each residual add runs with the LayerNorm after it (`add_layer_norm_`: the next layer's `layer_norm1`, the MLP's
   `layer_norm2`, the last layer's into `post_layernorm`);
