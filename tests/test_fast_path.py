@@ -23,7 +23,7 @@ from pi0_torch.inference import attention
 from pi0_torch.inference.attention import KeyRanges, attend, plan_attention
 from pi0_torch.inference.graphs import CapturedSampling, SamplingCaptureError, SamplingGraphs, _signature
 from pi0_torch.inference.layer_pass import CALL_MODULES, add_projection, expert_sampling_weights, layer_sampling_weights
-from pi0_torch.inference.layout import InputFacts, camera_inputs, compact_prefix, prefix_stream, suffix_stream
+from pi0_torch.inference.layout import InputFacts, camera_inputs, compact_prefix, prefix_stream, rope_tables, suffix_stream
 from pi0_torch.inference.sampling import SamplingInputs, SamplingPlan
 from pi0_torch.models.layers import AdaRMSNorm, JointDecoderLayer, NormParams
 from pi0_torch.utils.op_count import AtenOpCounter
@@ -85,12 +85,13 @@ def test_key_ranges_equal_openpis_prefix_lm_mask(pi05: bool, seed: int) -> None:
     slots = n + suffix_len
     heads, kernel = config.num_attention_heads, "sdpa"
     dtype = model.dtype
+    rope = rope_tables(config, first, slots)
     passes = {  # as the model builds them (run_layers; cache_prefix and action_pass)
-        "training": [prefix_stream(config, first, layout, kernel, slots, dtype),
-                     suffix_stream(config, first, layout, n, (suffix_len,) if pi05 else (1, suffix_len - 1), kernel, slots, dtype)],
-        "sampling": [prefix_stream(config, first, layout, kernel, slots, dtype)]
-        + ([] if pi05 else [suffix_stream(config, first, layout, n, (1,), kernel, slots, dtype)])
-        + [suffix_stream(config, first, layout, slots - config.action_horizon, (config.action_horizon,), kernel, slots, dtype)],
+        "training": [prefix_stream(config, first, layout, kernel, slots, dtype, rope),
+                     suffix_stream(config, first, layout, n, (suffix_len,) if pi05 else (1, suffix_len - 1), kernel, slots, dtype, rope)],
+        "sampling": [prefix_stream(config, first, layout, kernel, slots, dtype, rope)]
+        + ([] if pi05 else [suffix_stream(config, first, layout, n, (1,), kernel, slots, dtype, rope)])
+        + [suffix_stream(config, first, layout, slots - config.action_horizon, (config.action_horizon,), kernel, slots, dtype, rope)],
     }
     for name, streams in passes.items():
         ours = torch.zeros_like(reference)

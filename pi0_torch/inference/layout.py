@@ -75,42 +75,39 @@ def compact_prefix(tokens: torch.Tensor, valid: torch.Tensor, layout: PrefixLayo
     return tokens.flatten(0, 1).index_select(0, rows.flatten()), first
 
 
-def rope_tables(config: PI0Config, first: torch.Tensor, first_slot: int, tokens: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """RoPE's `cos`, `sin` `[B, tokens, H]` (`rope_cos_sin`) of the slots `[first_slot, first_slot + tokens)`: slot s
-    of sample b holds position `s - first[b]` (the valid prefix tokens count from 0 at `first[b]`, and the suffix
-    continues after them). Sampling makes one table for all its slots and each stream reads its rows (`rope=`)."""
-    positions = torch.arange(first_slot, first_slot + tokens, device=first.device)[None, :] - first[:, None]
+def rope_tables(config: PI0Config, first: torch.Tensor, slots: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """RoPE's `cos`, `sin` `[B, slots, H]` (`rope_cos_sin`) of every slot of a pass: slot s of sample b holds position
+    `s - first[b]` (the valid prefix tokens count from 0 at `first[b]`, and the suffix continues after them). One
+    table per call; each stream reads its slots' rows."""
+    positions = torch.arange(slots, device=first.device)[None, :] - first[:, None]
     return rope_cos_sin(positions, config.head_dim, config.rope_theta)
 
 
 def prefix_stream(
     config: PI0Config, first: torch.Tensor, layout: PrefixLayout, kernel: str, slots: int, dtype: torch.dtype,
-    rope: tuple[torch.Tensor, torch.Tensor] | None = None,
+    rope: tuple[torch.Tensor, torch.Tensor],
 ) -> StreamPass:
     """The prefix in slots `[0, length)`: sample b's valid tokens from `first[b]` at positions 0, 1, ...; they see
-    each other (bidirectional) and nothing after. `rope`: `rope_tables` of every slot from 0, to read instead."""
+    each other (bidirectional) and nothing after. `rope`: the call's `rope_tables`."""
     return _stream(config, first, 0, (layout.length,), layout, kernel, slots, dtype, rope)
 
 
 def suffix_stream(
     config: PI0Config, first: torch.Tensor, layout: PrefixLayout, first_slot: int, group_rows: tuple[int, ...], kernel: str,
-    slots: int, dtype: torch.dtype, rope: tuple[torch.Tensor, torch.Tensor] | None = None,
+    slots: int, dtype: torch.dtype, rope: tuple[torch.Tensor, torch.Tensor],
 ) -> StreamPass:
     """Suffix tokens in slots from `first_slot` (after the prefix): positions continue after each sample's valid
-    prefix tokens; each group of rows sees the valid prefix and the suffix slots up to its own end. `rope`: as in
-    `prefix_stream`."""
+    prefix tokens; each group of rows sees the valid prefix and the suffix slots up to its own end. `rope`: the call's
+    `rope_tables`."""
     return _stream(config, first, first_slot, group_rows, layout, kernel, slots, dtype, rope)
 
 
 def _stream(
     config: PI0Config, first: torch.Tensor, first_slot: int, group_rows: tuple[int, ...], layout: PrefixLayout,
-    kernel: str, slots: int, dtype: torch.dtype, rope: tuple[torch.Tensor, torch.Tensor] | None,
+    kernel: str, slots: int, dtype: torch.dtype, rope: tuple[torch.Tensor, torch.Tensor],
 ) -> StreamPass:
     tokens = sum(group_rows)
-    if rope is None:
-        cos, sin = rope_tables(config, first, first_slot, tokens)
-    else:
-        cos, sin = (table[:, first_slot : first_slot + tokens] for table in rope)
+    cos, sin = (table[:, first_slot : first_slot + tokens] for table in rope)
     ends = tuple(first_slot + sum(group_rows[: index + 1]) for index in range(len(group_rows)))
     plan = plan_attention(
         KeyRanges(first, group_rows, ends, padded=layout.padded), config.num_attention_heads,

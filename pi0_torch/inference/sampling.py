@@ -309,7 +309,7 @@ class ActionSampling:
             keys, values = (list(prefix.new_zeros(len(self.layers), *shape).unbind(0)) for _ in range(2))
         else:
             keys, values = ([prefix.new_empty(shape) for _ in self.layers] for _ in range(2))
-        rope = rope_tables(config, first, 0, slots)  # (one table for every stream of the call)
+        rope = rope_tables(config, first, slots)  # (one table for every stream of the call)
         streams = (
             prefix_stream(config, first, layout, kernel, shape[2], self.dtype, rope),
             None if config.pi05 else suffix_stream(config, first, layout, layout.length, (1,), kernel, shape[2], self.dtype, rope),

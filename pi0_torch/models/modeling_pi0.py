@@ -25,7 +25,7 @@ from transformers import PreTrainedModel
 from transformers.utils import ModelOutput
 
 from pi0_torch.inference.attention import AttentionPlan
-from pi0_torch.inference.layout import InputFacts, PrefixLayout, camera_inputs, compact_prefix, prefix_stream, suffix_stream
+from pi0_torch.inference.layout import InputFacts, PrefixLayout, camera_inputs, compact_prefix, prefix_stream, rope_tables, suffix_stream
 from pi0_torch.inference.sampling import ActionSampling, allow_recompiles
 from pi0_torch.masks import prefix_lm_mask, to_additive_mask
 from pi0_torch.models.configuration_pi0 import PI0Config
@@ -369,9 +369,10 @@ class PI0ForActionGeneration(SiglipImageEmbedding, ActionSampling, PI0PreTrained
         slots = layout.length + config.suffix_len
         group_rows = (horizon,) if config.pi05 else (1, horizon)
         kernel = self.attention_kernel_for(prefix.device, prefix.dtype, differentiable=True)
+        rope = rope_tables(config, first, slots)
         streams = (
-            prefix_stream(config, first, layout, kernel, slots, self.dtype),
-            suffix_stream(config, first, layout, layout.length, group_rows, kernel, slots, self.dtype),
+            prefix_stream(config, first, layout, kernel, slots, self.dtype, rope),
+            suffix_stream(config, first, layout, layout.length, group_rows, kernel, slots, self.dtype, rope),
         )
         norms = conditioning.layer_norms or (None,) * len(self.layers)
         for layer, layer_norms in zip(self.layers, norms):
