@@ -12,7 +12,7 @@
 | `metaworld` | `pi0-torch eval --env metaworld/...` (and `demos`): Meta-World's tasks and scripted experts | envs, metaworld (MuJoCo) |
 | `aloha` | `pi0-torch eval --env aloha/...`: ALOHA sim (transfer cube, insertion) as openpi evaluates it | envs, gym-aloha (MuJoCo) |
 | `libero` | `pi0-torch eval --env libero/...`: the LIBERO suites as openpi evaluates them | envs, hf-libero (robosuite) |
-| `all` | every feature | the three above |
+| `all` | serving, the tabletop envs and training | `serve`, `envs` and `train` (not `kernels` or the benchmarks) |
 
 A module of an optional feature calls [`require_extra`] before it imports what the extra brings, so that a missing
 package is named with the command that installs it, not as a `ModuleNotFoundError` from deep inside:
