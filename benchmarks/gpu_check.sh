@@ -4,13 +4,15 @@
 # the last lines of each are printed too. Run from the repository root with the Python that holds torch, triton,
 # transformers and pytest (the GPU image's python3: no network, no [dev] extra):
 #
-#     OUT=/tmp/gpu benchmarks/gpu_check.sh          # about 8 minutes on an H100 or H200
+#     OUT=/tmp/gpu benchmarks/gpu_check.sh          # about 9 minutes on an H100 or H200
 #
 # 1. doctor: every sampling path at full size against its reference (the runbook's first line, docs/gpu.md);
 # 2. the GPU tests: tests/test_cuda.py and the fused kernels' tests on real kernels (tests/test_kernels.py);
 # 3. the benchmark: fused steps against the torch path, eager and graph, pi0 and pi0.5, batch 1 and 8, with each row's
 #    GPU activities and GPU time; real-time chunking rows;
-# 4. the GEMM shapes of a step: cuBLAS against the fused kernels, us and GB/s.
+# 4. the GEMM shapes of a step: cuBLAS against the fused kernels, us and GB/s;
+# 5. π0-FAST's decoding at full size: the fused decoded tokens against the modules (eager; last: the step a
+#    10-minute command cuts if the others took their whole time).
 set -u
 OUT="${OUT:-/tmp/pi0-torch-gpu-check}"
 PY="${PY:-python3}"
@@ -35,7 +37,9 @@ step() {  # step NAME SECONDS COMMAND...
 step doctor 170 "$PY" -m pi0_torch.cli doctor --full --device cuda
 step gpu-tests 150 "$PY" -m pytest -q -p no:cacheprovider -m gpu tests/test_cuda.py
 step kernel-tests 60 "$PY" -m pytest -q -p no:cacheprovider tests/test_kernels.py
-step bench 150 "$PY" -m pi0_torch.cli bench --device cuda --presets pi0,pi05 --dtypes bfloat16 --cameras 3 --batches 1,8 \
+step bench 130 "$PY" -m pi0_torch.cli bench --device cuda --presets pi0,pi05 --dtypes bfloat16 --cameras 3 --batches 1,8 \
     --kernels auto,torch --rtc guidance,conditioning --repeats 10
 step gemms 40 "$PY" -m pi0_torch.cli bench --device cuda --skip-generate --gemms --presets pi0 --batches 1,8 --repeats 10
+step fast-bench 90 "$PY" -m pi0_torch.cli bench --device cuda --skip-generate --fast --fast-presets pi0_fast --dtypes bfloat16 \
+    --batches 1 --kernels auto,torch --repeats 3
 printf '\nlogs in %s\n' "$OUT"

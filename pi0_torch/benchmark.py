@@ -26,6 +26,7 @@ from __future__ import annotations
 import argparse
 import functools
 import gc
+import itertools
 import io
 import statistics
 import sys
@@ -403,14 +404,16 @@ def bench_fast_decoding(args: argparse.Namespace, device: torch.device) -> None:
     tokens = args.fast_tokens
     print(f"\nπ0-FAST generate_tokens on {device_name(device)}, 3 cameras, {TEXT_TOKENS} prompt tokens, {tokens} decoded "
           f"tokens per chunk (prefill: up to the first token; per token: each later one)")
-    print(f"{'preset':16s} {'dtype':9s} {'mode':10s} {'batch':>5s} {'chunk ms':>9s} {'prefill ms':>10s} "
+    print(f"{'preset':16s} {'dtype':9s} {'mode':10s} {'kernels':7s} {'batch':>5s} {'chunk ms':>9s} {'prefill ms':>10s} "
           f"{'ms/token':>8s} {'tokens/s':>9s} {'peak MiB':>9s}")
     for preset in args.fast_presets:
         config = PI0FastConfig.from_preset(preset, eos_token_id=None)  # every row decodes all the tokens
         for dtype_name in args.dtypes:
             torch.manual_seed(0)
-            model = PI0FastForActionGeneration(config).to(device=device, dtype=getattr(torch, dtype_name)).eval()
-            for mode, compile_arguments in generate_modes(args.compile, device).items():
+            with device:  # (initialized where it runs: a full-size model's random init is slow on the host)
+                model = PI0FastForActionGeneration(config).to(getattr(torch, dtype_name)).eval()
+            for (mode, compile_arguments), kernels in itertools.product(generate_modes(args.compile, device).items(), args.kernels):
+                model.decoding_kernels = kernels  # (the same names as sampling_kernels: see `decoding_kernels`)
                 model.compile_decoding(**(compile_arguments if compile_arguments is not None else {"disable": True}))
                 warmup = 1 if compile_arguments is None else 3  # compiling; CUDA graphs record on a later call
                 for batch in args.batches:
@@ -419,7 +422,7 @@ def bench_fast_decoding(args: argparse.Namespace, device: torch.device) -> None:
                     prefill = time_call(lambda: model.generate_tokens(**inputs, max_new_tokens=1), device, args.repeats, warmup)
                     per_token = max(chunk.median - prefill.median, 0.0) / max(tokens - 1, 1)
                     rate = f"{batch / per_token:9.1f}" if per_token > 0 else f"{'-':>9s}"
-                    print(f"{preset:16s} {dtype_name:9s} {mode:10s} {batch:5d} {chunk.median * 1e3:9.1f} "
+                    print(f"{preset:16s} {dtype_name:9s} {mode:10s} {kernels:7s} {batch:5d} {chunk.median * 1e3:9.1f} "
                           f"{prefill.median * 1e3:10.1f} {per_token * 1e3:8.2f} {rate} {chunk.peak_bytes / 2**20:9.0f}")
             del model
             gc.collect()

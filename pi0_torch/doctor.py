@@ -216,7 +216,7 @@ class Doctor:
             bound = FLOAT32_BOUND if dtype == torch.float32 else BF16_BOUND
             for count in counts:
                 self.row(f"π0-FAST decoding, {count} new token{'s' if count > 1 else ''}", dtype,
-                         lambda count=count, bound=bound: (*fast_decoding_check(model, inputs, count), bound, ""))
+                         lambda count=count, bound=bound: fast_decoding_check(model, inputs, count, bound))
 
         def compiled() -> tuple[float, float, str]:
             eager = model.generate_tokens(**inputs, max_new_tokens=8)
@@ -332,10 +332,12 @@ def lora_check(model: PI0ForActionGeneration, inputs: dict[str, torch.Tensor], n
     return deviation, FLOAT32_BOUND, f"the step moved the actions by {relative_deviation(trained, plain):.1e}"
 
 
-def fast_decoding_check(model: PI0FastForActionGeneration, inputs: dict[str, torch.Tensor], count: int) -> tuple[float]:
-    """Cached decoding (`prepare_decoding` + `decode_step`) along the greedy tokens of decoding without a cache (the
-    training forward over the prompt and the tokens so far, plus a placeholder token whose position's logits predict
-    the next one): the largest deviation of their logits, step by step."""
+def fast_decoding_check(model: PI0FastForActionGeneration, inputs: dict[str, torch.Tensor], count: int,
+                        bound: float) -> tuple[float, float, str]:
+    """Cached decoding (`prepare_decoding` + `decode_step`, attending as `generate_tokens` does on this device) along
+    the greedy tokens of decoding without a cache (the training forward over the prompt and the tokens so far, plus a
+    placeholder token whose position's logits predict the next one): the largest deviation of their logits, step by
+    step."""
     prompt = inputs["input_ids"].shape[1]
     ids, valid, ar_mask = inputs["input_ids"], inputs["attention_mask"], inputs["token_ar_mask"]
     reference = []
@@ -349,10 +351,12 @@ def fast_decoding_check(model: PI0FastForActionGeneration, inputs: dict[str, tor
             token = reference[-1].argmax(dim=-1, keepdim=True)
             ids, valid, ar_mask = grown["input_ids"].clone(), grown["attention_mask"], grown["token_ar_mask"]
             ids[:, -1:] = token
+        fused = model.decoding_kernels_reason(inputs["pixel_values"].device, model.dtype) is None
         arguments = (inputs["pixel_values"], inputs["image_masks"], inputs["input_ids"], inputs["attention_mask"],
-                     inputs["token_ar_mask"], count)
+                     inputs["token_ar_mask"], count, fused)
         _, cached = model.decode(model.prepare_decoding, model.decode_step, arguments, 0.0, None, forced=ids[:, prompt:])
-    return (max(relative_deviation(got, want) for got, want in zip(cached, reference)),)
+    deviation = max(relative_deviation(got, want) for got, want in zip(cached, reference))
+    return deviation, bound, "decoded tokens: fused kernels" if fused else "decoded tokens: modules"
 
 
 def _cuda_usable(device: torch.device) -> bool:

@@ -6,8 +6,10 @@ import argparse
 import re
 
 import pytest
+import torch
 
 from pi0_torch import benchmark
+from pi0_torch.kernels import ops
 from pi0_torch.utils import hardware
 
 
@@ -67,12 +69,14 @@ def test_op_count_table(capsys: pytest.CaptureFixture[str]) -> None:
 
 
 def test_fast_decoding_table(capsys: pytest.CaptureFixture[str]) -> None:
+    """A row per decoding mode and `decoding_kernels` (the range_attention kernel in triton's interpreter here)."""
+    kernels = ["torch"] + (["triton"] if ops.triton_reason(torch.device("cpu")) is None else [])
     out = bench(capsys, "--skip-generate", "--fast", "--fast-presets", "pi0_fast_small", "--fast-tokens", "4", "--dtypes",
-                "float32", "--batches", "1")
-    rows = re.findall(r"^pi0_fast_small\s+float32\s+eager\s+1\s+([\d.]+)\s+([\d.]+)\s+([\d.]+)\s+(\S+)\s+\d+$", out, re.MULTILINE)
-    assert len(rows) == 1, out
-    chunk_ms, prefill_ms, _, _ = rows[0]
-    assert float(chunk_ms) > 0 and float(prefill_ms) > 0
+                "float32", "--batches", "1", "--kernels", ",".join(kernels))
+    rows = re.findall(r"^pi0_fast_small\s+float32\s+eager\s+(\w+)\s+1\s+([\d.]+)\s+([\d.]+)\s+([\d.]+)\s+(\S+)\s+\d+$", out, re.MULTILINE)
+    assert [row[0] for row in rows] == kernels, out
+    for _, chunk_ms, prefill_ms, _, _ in rows:
+        assert float(chunk_ms) > 0 and float(prefill_ms) > 0
 
 
 def test_bfloat16_is_skipped_with_a_note_where_the_device_has_no_native_bfloat16(

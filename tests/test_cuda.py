@@ -1,5 +1,5 @@
 """CUDA checks: the openpi fixtures on the GPU, the sampling as hand-captured CUDA graphs (with and without compiled
-layers), and FlashAttention's varlen kernel against SDPA.
+layers), FlashAttention's varlen kernel against SDPA, and π0-FAST's decoding with the fused kernels.
 
 Marked `gpu`: skipped without CUDA and left out of `make test`; run them with `make test-gpu` on a GPU machine.
 """
@@ -14,6 +14,7 @@ import torch
 
 from conftest import OpenpiReference, relative_error, tiny_policy
 from test_parity import BF16_TOLERANCE
+from test_pi0_fast import FastReference
 
 from pi0_torch.runtime.policy import PI0Policy
 
@@ -233,3 +234,26 @@ def test_bench_counts_the_gpu_work_of_a_call(reference: OpenpiReference) -> None
           f"graph {graph_ops} activities, {graph_seconds * 1e3:.2f} ms")
     assert eager_ops > 0 and eager_seconds > 0 and graph_seconds > 0
     assert graph_ops <= eager_ops + 16
+
+
+@torch.no_grad()
+def test_fused_fast_decoding_on_cuda() -> None:
+    """π0-FAST on CUDA: float32 greedy decoding gives openpi's tokens; in bf16 "auto" decodes with the fused kernels
+    (`pi0_torch.inference.fast_decoding`), whose logits along the same tokens are the modules' to bf16 rounding, and
+    compiled decoding replayed as CUDA graphs passes its verification against eager decoding."""
+    fast = FastReference()
+    infer = {name: value.to(CUDA) for name, value in fast.inputs("infer").items()}
+    steps = int(fast["inputs/max_decoding_steps"])
+    model = fast.model().to(CUDA)
+    np.testing.assert_array_equal(model.generate_tokens(**infer, max_new_tokens=steps).cpu().numpy(), fast["fp32/output_tokens"])
+    model = model.to(torch.bfloat16)
+    assert model.decoding_kernels_reason(CUDA, torch.bfloat16) is None
+    tokens = model.generate_tokens(**infer, max_new_tokens=steps)
+    arguments = (*infer.values(), steps)
+    _, fused = model.decode(model.prepare_decoding, model.decode_step, (*arguments, True), 0.0, None, forced=tokens)
+    _, modules = model.decode(model.prepare_decoding, model.decode_step, (*arguments, False), 0.0, None, forced=tokens)
+    assert max(relative(got.float(), want.float()) for got, want in zip(fused, modules)) <= 2e-2
+    model.compile_decoding(mode="reduce-overhead")
+    for _ in range(model.VERIFY_CALLS + 1):
+        model.generate_tokens(**infer, max_new_tokens=steps)
+    assert model.decoding_compiled

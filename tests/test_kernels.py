@@ -78,6 +78,9 @@ def test_each_kernel_equals_its_reference(dtype: torch.dtype, sizes: str, batch:
     compare("rope_cache_write", (random(generator, dtype, rows, qkv_columns), cos, sin,
                                  torch.zeros(batch, slots, head_dim, dtype=dtype, device=DEVICE),
                                  torch.zeros(batch, slots, head_dim, dtype=dtype, device=DEVICE), 2), dtype)
+    compare("rope_cache_write", (random(generator, dtype, rows, qkv_columns), cos, sin,
+                                 random(generator, dtype, batch, slots, head_dim), random(generator, dtype, batch, slots, head_dim),
+                                 0, torch.tensor([slots - tokens - 1], device=DEVICE)), dtype)  # the slot on the device (π0-FAST)
     compare("geglu", (random(generator, dtype, rows, 2 * mlp_width),), dtype)
     for bias in (None, random(generator, dtype, 2 * mlp_width)):
         compare("norm_gate_up_geglu", (x, scale, bias, random(generator, dtype, 2 * mlp_width, width, scale=width**-0.5).t(), 1e-6), dtype)

@@ -14,11 +14,14 @@ import torch
 
 from pi0_torch import PI0FastConfig, PI0FastForActionGeneration
 from pi0_torch.conversion.openpi_weights import config_from_openpi_shapes, load_openpi_params
+from pi0_torch.inference import fast_decoding
+from pi0_torch.kernels import ops
 from pi0_torch.masks import prefix_lm_mask
 from pi0_torch.models.modeling_pi0_fast import token_log_probs
 from pi0_torch.processing.fast_tokenizer import FASTActionTokenizer, dct, idct
 from pi0_torch.processing.normalization import NormStats
 from pi0_torch.processing.processing_pi0_fast import PI0FastProcessor
+from pi0_torch.utils.op_count import AtenOpCounter
 
 from conftest import FIXTURES, relative_error
 
@@ -301,3 +304,70 @@ def test_compiled_decoding_is_verified_against_eager_and_refused_when_it_differs
         tokens = model.generate_tokens(**infer, max_new_tokens=4)
     assert torch.equal(tokens, expected) and not model.decoding_compiled
     assert "compiled decoding was refused: its logits deviate from eager decoding by 2 of the largest" in caplog.text
+
+
+# ----------------------------------------------------------------------------------------------- decoding kernels
+
+TRITON_REASON = ops.triton_reason(torch.device("cuda" if torch.cuda.is_available() else "cpu"))
+
+
+@pytest.mark.skipif(TRITON_REASON is not None, reason=str(TRITON_REASON))
+def test_fused_decoding_matches_openpi_and_the_modules(fast_reference: FastReference) -> None:
+    """`decoding_kernels="triton"` (on the CPU in triton's interpreter): each decoded token's layers run the fused
+    ops around the GEMMs, attention over its one range of slots with openpi's window (row 1 has a masked camera, whose
+    tokens that window holds). Greedy decoding gives openpi's tokens; along the same (random) tokens the logits are the modules';
+    compiled decoding traces the kernels as ops."""
+    model = fast_reference.model()
+    infer = fast_reference.inputs("infer")
+    steps = int(fast_reference["inputs/max_decoding_steps"])
+    model.decoding_kernels = "triton"
+    assert model.decoding_kernels_reason(torch.device("cpu"), torch.float32) is None
+    tokens = model.generate_tokens(**infer, max_new_tokens=steps)
+    np.testing.assert_array_equal(tokens.numpy(), fast_reference["fp32/output_tokens"])
+
+    count, layers = 5, model.config.num_hidden_layers
+    arguments = (*infer.values(), count)
+    forced = torch.randint(0, model.config.vocab_size, (tokens.shape[0], count), generator=torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        with AtenOpCounter() as counter:
+            _, fused = model.decode(model.prepare_decoding, model.decode_step, (*arguments, True), 0.0, None, forced=forced)
+        _, modules = model.decode(model.prepare_decoding, model.decode_step, (*arguments, False), 0.0, None, forced=forced)
+    for op in ("rope_cache_write", "range_attention", "geglu"):
+        assert counter.ops[op] == (count - 1) * layers, counter.ops
+    assert counter.ops["addmm_"] == 2 * (count - 1) * layers and "_scaled_dot_product_attention_math" not in counter.ops
+    for got, want in zip(fused, modules):
+        assert relative_error(got, want) < 1e-5
+
+    model.compile_decoding(backend="eager", verify=False)
+    assert torch.equal(model.generate_tokens(**infer, max_new_tokens=3), tokens[:, :3])
+
+
+def test_decoding_kernels_run_only_where_they_apply(monkeypatch: pytest.MonkeyPatch) -> None:
+    """"auto" fuses only on CUDA in bf16 / fp16; "torch" never; "triton" refuses, naming why, a model it cannot run
+    (grouped kv heads, LoRA); a kernel that differs from its reference on a device keeps decoding on the modules."""
+    model = PI0FastForActionGeneration(PI0FastConfig.from_preset("pi0_fast_small")).eval()
+    cpu = torch.device("cpu")
+    assert "run on CUDA in bf16 / fp16" in model.decoding_kernels_reason(cpu, torch.float32)
+    model.decoding_kernels = "torch"
+    assert model.decoding_kernels_reason(cpu, torch.float32) == "decoding_kernels is 'torch'"
+    with pytest.raises(ValueError, match=r"decoding_kernels must be one of \('auto', 'torch', 'triton'\), got 'cuda'"):
+        model.decoding_kernels = "cuda"
+    grouped = PI0FastForActionGeneration(PI0FastConfig.from_preset("pi0_fast_small", num_key_value_heads=2)).eval()
+    grouped.decoding_kernels = "triton"
+    with pytest.raises(ValueError, match="decoding_kernels='triton' cannot run: the fused attention folds the query heads onto one kv head"):
+        grouped.decoding_kernels_reason(cpu, torch.float32)
+    hooked = PI0FastForActionGeneration(PI0FastConfig.from_preset("pi0_fast_small")).eval()
+    hooked.decoding_kernels = "triton"
+    hooked.layers[1].block.o_proj.register_forward_hook(lambda module, args, output: output)
+    with pytest.raises(ValueError, match="a layer's projections are not plain weights"):
+        hooked.decoding_kernels_reason(cpu, torch.float32)
+    if TRITON_REASON is not None:
+        return
+    from pi0_torch.kernels import triton_kernels
+
+    fast_decoding.decoding_kernels_reason.cache_clear()
+    broken = triton_kernels.range_attention
+    monkeypatch.setattr(triton_kernels, "range_attention", lambda *args: broken(*args) * 1.5)
+    reason = fast_decoding.decoding_kernels_reason(cpu, torch.float32, 2, 32, 128)
+    assert reason.startswith("the fused kernel range_attention differs from its torch reference"), reason
+    fast_decoding.decoding_kernels_reason.cache_clear()

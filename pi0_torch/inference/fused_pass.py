@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import functools
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -65,38 +66,53 @@ def fused_kernels_reason(device: torch.device, dtype: torch.dtype, width: int, h
     them, run once at these sizes on random inputs, differs from its torch reference by more than
     `SELF_CHECK_TOLERANCE` or fails. Checked once per device, dtype and sizes (which compiles the kernels too); a
     refusal is logged once, and the unfused path runs instead."""
+    cases = lambda: _sampling_cases(device, dtype, width, heads, head_dim, mlp_width, action_dim, vision_width)  # noqa: E731
+    return kernels_reason(device, dtype, cases, "sampling runs the unfused torch path")
+
+
+def kernels_reason(device: torch.device, dtype: torch.dtype, cases: Callable[[], list[tuple[str, Callable[[], tuple]]]],
+                   fallback: str) -> str | None:
+    """Why the Triton kernels of `cases()` (name, argument maker) may not run on `device` (None: each equals its torch
+    reference on them, within `SELF_CHECK_TOLERANCE`); a refusal on CUDA is logged after `fallback` (what runs
+    instead)."""
     reason = ops.triton_reason(device)
     if reason is None:
         from pi0_torch.kernels import triton_kernels
 
         try:
-            reason = _self_check(triton_kernels, device, dtype, width, heads, head_dim, mlp_width, action_dim, vision_width)
+            reason = _compare(triton_kernels, cases(), device, dtype)
         except Exception as error:  # a triton that cannot compile them, a device they do not fit
             reason = f"the fused kernels failed on {device} ({type(error).__name__}: {str(error)[:300]})"
     if reason is not None and device.type == "cuda":
-        logger.warning("sampling runs the unfused torch path: %s", reason)
+        logger.warning("%s: %s", fallback, reason)
     return reason
 
 
-def _self_check(kernels, device, dtype, width, heads, head_dim, mlp_width, action_dim, vision_width) -> str | None:
+def seeded_random(device: torch.device, dtype: torch.dtype) -> Callable[..., torch.Tensor]:
+    """`random(*shape, scale=1.0, dtype=dtype)`: seeded normal values on `device` (the same on every device)."""
     generator = torch.Generator(device="cpu").manual_seed(0)
-    batch, tokens, slots = 2, 5, 24
 
-    def random(*shape: int, scale: float = 1.0) -> torch.Tensor:
+    def random(*shape: int, scale: float = 1.0, dtype: torch.dtype = dtype) -> torch.Tensor:
         return (torch.randn(*shape, generator=generator) * scale).to(device=device, dtype=dtype)
 
+    return random
+
+
+def _sampling_cases(device, dtype, width, heads, head_dim, mlp_width, action_dim, vision_width) -> list[tuple[str, Callable[[], tuple]]]:
+    random = seeded_random(device, dtype)
+    batch, tokens, slots = 2, 5, 24
     x, scale = random(batch * tokens, width), 1 + random(width, scale=0.1)
     cos, sin = rope_cos_sin(torch.arange(tokens, device=device)[None] + torch.tensor([[3], [9]], device=device), head_dim, 10_000.0)
     qkv_weight = random((heads + 2) * head_dim, width, scale=width**-0.5).t()
     gate_up_weight = random(2 * mlp_width, width, scale=width**-0.5).t()
     down_weight = random(width, mlp_width, scale=mlp_width**-0.5).t()
     in_weight = random(width, action_dim, scale=action_dim**-0.5).t()
-    x_t = torch.randn(batch, tokens, action_dim, generator=generator).to(device)
+    x_t = random(batch, tokens, action_dim, dtype=torch.float32)
 
     def caches() -> tuple[torch.Tensor, torch.Tensor]:
         return random(batch, slots, head_dim), random(batch, slots, head_dim)
 
-    cases = [  # every variant sampling runs (with and without adaRMS's bias / gate; π0's and π0.5's action tokens)
+    return [  # every variant sampling runs (with and without adaRMS's bias / gate; π0's and π0.5's action tokens)
         ("norm_qkv_rope", lambda: (x, scale, None, qkv_weight, cos, sin, *caches(), 11, 1e-6)),
         ("norm_qkv_rope", lambda: (x, scale, random((heads + 2) * head_dim), qkv_weight, cos, sin, *caches(), 11, 1e-6)),
         ("rope_cache_write", lambda: (random(batch * tokens, (heads + 2) * head_dim), cos, sin, *caches(), 3)),
@@ -114,15 +130,21 @@ def _self_check(kernels, device, dtype, width, heads, head_dim, mlp_width, actio
         ("add_layer_norm_", lambda: (random(batch * tokens, vision_width), random(batch * tokens, vision_width),
                                      1 + random(vision_width, scale=0.1), random(vision_width, scale=0.1), 1e-6)),
     ]
+
+
+def _compare(kernels, cases: list[tuple[str, Callable[[], tuple]]], device: torch.device, dtype: torch.dtype) -> str | None:
+    """Run each case's kernel and its torch reference on the same arguments: why they differ (None: they agree)."""
     for name, make in cases:
         arguments = make()
         theirs = [a.clone() if isinstance(a, torch.Tensor) else a for a in arguments]
         ours = getattr(kernels, name)(*arguments)
         expected = getattr(reference, name)(*theirs)
         compared = [(ours, expected)] if ours is not None else []
-        compared += [(a, b) for a, b in zip(arguments, theirs) if isinstance(a, torch.Tensor) and not torch.equal(a, b)]
-        for got, want in compared:  # the result and every tensor the op wrote
-            error = float((got.float() - want.float()).abs().max() / want.float().abs().max().clamp(min=1e-12))
+        compared += [(a, b) for a, b in zip(arguments, theirs) if isinstance(a, torch.Tensor) and not torch.equal(a.nan_to_num(), b.nan_to_num())]
+        for got, want in compared:  # the result and every tensor the op wrote (NaN: cache slots not written yet)
+            got, want = got.float(), want.float()
+            difference = torch.where(got.isnan() & want.isnan(), 0.0, got - want).nan_to_num(nan=float("inf"))
+            error = float(difference.abs().max() / want.nan_to_num().abs().max().clamp(min=1e-12))
             if not error <= SELF_CHECK_TOLERANCE[dtype]:
                 return f"the fused kernel {name} differs from its torch reference on {device} in {dtype} (relative error {error:.2e})"
     return None

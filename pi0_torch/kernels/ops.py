@@ -140,12 +140,12 @@ def _(x_t, tokens, scale, bias, weight, dt, eps):
 
 @torch.library.custom_op("pi0_torch::rope_cache_write", mutates_args=("key_cache", "value_cache"))
 def rope_cache_write(qkv: torch.Tensor, cos: torch.Tensor, sin: torch.Tensor, key_cache: torch.Tensor,
-                     value_cache: torch.Tensor, first_slot: int) -> torch.Tensor:
-    return _implementation("rope_cache_write", qkv.device)(qkv, cos, sin, key_cache, value_cache, first_slot)
+                     value_cache: torch.Tensor, first_slot: int, slot: Optional[torch.Tensor] = None) -> torch.Tensor:
+    return _implementation("rope_cache_write", qkv.device)(qkv, cos, sin, key_cache, value_cache, first_slot, slot)
 
 
 @rope_cache_write.register_fake
-def _(qkv, cos, sin, key_cache, value_cache, first_slot):
+def _(qkv, cos, sin, key_cache, value_cache, first_slot, slot=None):
     return qkv.new_empty(qkv.shape[0], qkv.shape[1] - 2 * key_cache.shape[-1])
 
 

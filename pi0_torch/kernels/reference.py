@@ -66,6 +66,7 @@ def rope_cache_write(
     key_cache: torch.Tensor,  # [B, S, H]: written at slots first_slot + t
     value_cache: torch.Tensor,
     first_slot: int,
+    slot: torch.Tensor | None = None,  # long [1]: the first slot as a device value (π0-FAST's decoding), for first_slot
 ) -> torch.Tensor:
     """RoPE on q and k (one rotation for both, float32, rounded once); k and v written into the caches. Returns q
     `[M, N * H]`."""
@@ -74,7 +75,7 @@ def rope_cache_write(
     qk, v = qkv.view(batch, tokens, -1, head_dim).split((qkv.shape[-1] // head_dim - 1, 1), dim=2)
     rounded = qk.new_empty(qk.shape) if qk.dtype != torch.float32 else None  # (bf16: the rotation rounds itself)
     q, k = apply_rope(qk, cos[:, :, None], sin[:, :, None], out=rounded).split((qk.shape[2] - 1, 1), dim=2)
-    cache_rows = torch.arange(first_slot, first_slot + tokens, device=qkv.device)
+    cache_rows = torch.arange(tokens, device=qkv.device) + (first_slot if slot is None else slot)
     key_cache.index_copy_(1, cache_rows, k[:, :, 0].to(key_cache.dtype))
     value_cache.index_copy_(1, cache_rows, v[:, :, 0])
     return q.to(qkv.dtype).reshape(qkv.shape[0], -1)

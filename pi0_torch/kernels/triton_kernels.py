@@ -12,7 +12,7 @@ Each kernel computes what its namesake in `pi0_torch.kernels.reference` computes
 - `embed_actions`: the action tokens of a step from `x_t` (π0: both GEMMs of the action/time MLP and the SiLU between
   them; the hidden row block is computed per column block, cheap where it is `x_t`'s 32 action dims deep);
 - `rope_cache_write` and `geglu`: the elementwise work around the prefix pass's GEMMs (which stay cuBLAS's: at 800
-  rows and more they are compute-bound, and cuBLAS is near peak there);
+  rows and more they are compute-bound, and cuBLAS is near peak there), and around π0-FAST's decoding GEMMs;
 - `add_layer_norm_`: SigLIP's residual add and the LayerNorm after it, in one pass over the rows.
 
 A paired GEMM (RoPE, GeGLU) gives each program two column sets, `c` and `c + half`, so that both halves a rotation or
@@ -295,10 +295,12 @@ def _range_attention_kernel(
 
 @triton.jit
 def _rope_cache_write_kernel(
-    qkv_ptr, cos_ptr, sin_ptr, q_ptr, key_ptr, value_ptr, M, tokens, first_slot, slots, stride_qkv, stride_cos_b,
-    stride_cos_t, HEADS: tl.constexpr, HEAD_DIM: tl.constexpr, BLOCK_M: tl.constexpr,
+    qkv_ptr, cos_ptr, sin_ptr, q_ptr, key_ptr, value_ptr, slot_ptr, M, tokens, first_slot, slots, stride_qkv, stride_cos_b,
+    stride_cos_t, HEADS: tl.constexpr, HEAD_DIM: tl.constexpr, HAS_SLOT: tl.constexpr, BLOCK_M: tl.constexpr,
 ):
-    """The epilogue of `_norm_qkv_rope_kernel` on a q/k/v projection's output (the prefix: its GEMMs stay cuBLAS's)."""
+    """The epilogue of `_norm_qkv_rope_kernel` on a q/k/v projection's output (the prefix and π0-FAST's decoded tokens:
+    their GEMMs stay cuBLAS's). With HAS_SLOT the first cache slot is read from `slot_ptr` (a device value: one CUDA
+    graph serves every decoding step), else it is `first_slot`."""
     half: tl.constexpr = HEAD_DIM // 2
     rows = tl.program_id(0) * BLOCK_M + tl.arange(0, BLOCK_M)
     lane = tl.arange(0, half)
@@ -308,6 +310,8 @@ def _rope_cache_write_kernel(
     table = sample[:, None] * stride_cos_b + token[:, None] * stride_cos_t + lane[None, :]
     cos = tl.load(cos_ptr + table, mask=row_ok, other=1.0)
     sin = tl.load(sin_ptr + table + half, mask=row_ok, other=0.0)
+    if HAS_SLOT:
+        first_slot = tl.load(slot_ptr).to(tl.int32)
     cache_offsets = (sample * slots + first_slot + token)[:, None] * HEAD_DIM + lane[None, :]
     for head in tl.static_range(HEADS + 2):
         source = qkv_ptr + rows[:, None] * stride_qkv + head * HEAD_DIM + lane[None, :]
@@ -434,15 +438,16 @@ def range_attention(query, key_cache, value_cache, first, row_ends):
     return out
 
 
-def rope_cache_write(qkv, cos, sin, key_cache, value_cache, first_slot):
+def rope_cache_write(qkv, cos, sin, key_cache, value_cache, first_slot, slot=None):
     rows = qkv.shape[0]
     batch, slots, head_dim = key_cache.shape
     heads = qkv.shape[1] // head_dim - 2
     q = qkv.new_empty(rows, heads * head_dim)
     block_m = 16
     _rope_cache_write_kernel[(triton.cdiv(rows, block_m),)](
-        qkv, cos, sin, q, key_cache, value_cache, rows, rows // batch, first_slot, slots, qkv.stride(0),
-        cos.stride(0) if cos.shape[0] > 1 else 0, cos.stride(1), HEADS=heads, HEAD_DIM=head_dim, BLOCK_M=block_m,
+        qkv, cos, sin, q, key_cache, value_cache, slot if slot is not None else cos, rows, rows // batch, first_slot,
+        slots, qkv.stride(0), cos.stride(0) if cos.shape[0] > 1 else 0, cos.stride(1), HEADS=heads, HEAD_DIM=head_dim,
+        HAS_SLOT=slot is not None, BLOCK_M=block_m,
     )
     return q
 

@@ -25,6 +25,7 @@ from torch import nn
 from transformers.modeling_layers import GradientCheckpointingLayer
 from transformers.utils import ModelOutput
 
+from pi0_torch.inference.fast_decoding import decode_layers_, decoding_kernels_reason, norm_scales, structural_reason
 from pi0_torch.inference.graphs import VERIFY_TOLERANCE, relative_deviation
 from pi0_torch.masks import aligned_key_count, masked_attention, pad_keys, prefix_lm_mask, to_additive_mask
 from pi0_torch.models.configuration_pi0_fast import PI0FastConfig
@@ -117,6 +118,8 @@ class DecodingCache:
     cos: torch.Tensor  # [B, 1, T, H] RoPE of the decoded tokens' positions
     sin: torch.Tensor
     slots: torch.Tensor  # long [T]: slot of the token decoded at step t (P + t)
+    first: torch.Tensor  # long [B]: the first slot decoded tokens see; the token of step t sees [first, P + t]
+    norm_scales: list[torch.Tensor] | None  # the fused kernels' norm scales (`fast_decoding.norm_scales`); None: modules
 
 
 class PI0FastPreTrainedModel(PI0PreTrainedModel):
@@ -153,6 +156,7 @@ class PI0FastForActionGeneration(SiglipImageEmbedding, PI0FastPreTrainedModel):
     """
 
     VERIFY_CALLS = 3  # `generate_tokens` calls checked against eager decoding after `compile_decoding`
+    DECODING_KERNELS = ("auto", "torch", "triton")
 
     def __init__(self, config: PI0FastConfig) -> None:
         super().__init__(config)
@@ -164,6 +168,7 @@ class PI0FastForActionGeneration(SiglipImageEmbedding, PI0FastPreTrainedModel):
         self._compiled_decode_step: Any = None  # set by `compile_decoding`
         self._compiled_prefill: Any = None
         self._calls_to_verify = 0  # `generate_tokens` calls still to check against eager decoding
+        self._decoding_kernels = "auto"
         self.post_init()
 
     # -- inputs: images and prompt -------------------------------------------------------------------------------------
@@ -254,9 +259,11 @@ class PI0FastForActionGeneration(SiglipImageEmbedding, PI0FastPreTrainedModel):
         attention_mask: torch.Tensor,
         token_ar_mask: torch.Tensor,
         max_new_tokens: int,
+        fused: bool = False,
     ) -> tuple[DecodingCache, torch.Tensor]:
         """Prefill: run images and prompt once, keep every layer's k/v, and return the cache with the logits `[B, V]`
-        that pick the first token.
+        that pick the first token. `fused`: `decode_step` runs the fused kernels (see `decoding_kernels`), else the
+        modules.
 
         As openpi's `sample_actions`: each row's tokens are rotated so its last valid token is last ("left to right
         alignment"), positions are `cumsum(valid) - 1`, and the k/v buffers have `max_new_tokens` empty (zero) slots
@@ -302,6 +309,8 @@ class PI0FastForActionGeneration(SiglipImageEmbedding, PI0FastPreTrainedModel):
             cos=decode_cos,
             sin=decode_sin,
             slots=prefix_len + steps,
+            first=window_start[:, 0],
+            norm_scales=norm_scales(self.layers) if fused else None,
         )
         return cache, logits
 
@@ -311,9 +320,13 @@ class PI0FastForActionGeneration(SiglipImageEmbedding, PI0FastPreTrainedModel):
         graph serves every step."""
         x = self.embed_tokens(token[:, None])
         x = x * torch.tensor(math.sqrt(x.shape[-1]), dtype=x.dtype)  # [B, 1, D]
-        mask = cache.masks.index_select(2, step)  # [B, 1, 1, S]
         cos, sin = cache.cos.index_select(2, step), cache.sin.index_select(2, step)
         slot = cache.slots.index_select(0, step)
+        if cache.norm_scales is not None:  # the fused kernels: attention over the slots [first, slot], no mask
+            x = decode_layers_(self.layers, x[:, 0], cos[:, 0], sin[:, 0], cache.keys, cache.values, cache.norm_scales,
+                               cache.first, slot)
+            return self.lm_head(self.final_norm(x))
+        mask = cache.masks.index_select(2, step)  # [B, 1, 1, S]
         for layer, key_buffer, value_buffer in zip(self.layers, cache.keys, cache.values):
             x = layer(x, cos, sin, mask, kv_buffer=(key_buffer, value_buffer), kv_slots=slot)
         return self.lm_head(self.final_norm(x[:, -1]))
@@ -337,7 +350,7 @@ class PI0FastForActionGeneration(SiglipImageEmbedding, PI0FastPreTrainedModel):
         k/v cache; greedy (`temperature=0`, the first of equal maxima) or sampled from `softmax(logits /
         temperature)` with `generator`. Decoding stops after the first step at which every row's new token is EOS
         (`config.eos_token_id`; None: never); the steps not run stay 0. The only host synchronization per token is
-        that check.
+        that check. Decoded tokens attend as `decoding_kernels` says.
 
         Returns:
             long `[B, max_new_tokens]` token ids (`PI0FastProcessor.extract_actions` turns them into actions).
@@ -348,7 +361,8 @@ class PI0FastForActionGeneration(SiglipImageEmbedding, PI0FastPreTrainedModel):
             raise ValueError(f"max_new_tokens must be >= 1, got {max_new_tokens}")
         if temperature < 0:
             raise ValueError(f"temperature must be >= 0, got {temperature}")
-        inputs = (pixel_values, image_masks, input_ids, attention_mask, token_ar_mask, max_new_tokens)
+        fused = self.decoding_kernels_reason(pixel_values.device, self.dtype) is None
+        inputs = (pixel_values, image_masks, input_ids, attention_mask, token_ar_mask, max_new_tokens, fused)
         if self._compiled_prefill is None:
             return self.decode(self.prepare_decoding, self.decode_step, inputs, temperature, generator)[0]
         tokens, logits = self.decode(self._compiled_prefill, self._compiled_decode_step, inputs, temperature, generator)
@@ -374,10 +388,11 @@ class PI0FastForActionGeneration(SiglipImageEmbedding, PI0FastPreTrainedModel):
         forced: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, list[torch.Tensor]]:
         """The decoding loop of `generate_tokens` with the given prefill and step functions (eager or compiled): the
-        tokens `[B, max_new_tokens]` and the logits `[B, V]` each token was picked from. `forced` `[B, T]`: feed these
-        tokens instead of picking (to compare another decoding's logits along the same tokens)."""
+        tokens `[B, max_new_tokens]` and the logits `[B, V]` each token was picked from. `inputs`: `prepare`'s
+        arguments. `forced` `[B, T]`: feed these tokens instead of picking (to compare another decoding's logits along
+        the same tokens)."""
         cache, logits = prepare(*inputs)
-        batch, max_new_tokens = inputs[0].shape[0], inputs[-1]
+        batch, max_new_tokens = inputs[0].shape[0], inputs[5]
         output = torch.zeros(batch, max_new_tokens, dtype=torch.long, device=inputs[0].device)
         steps = torch.arange(max_new_tokens, device=inputs[0].device)
         seen = []
@@ -419,6 +434,37 @@ class PI0FastForActionGeneration(SiglipImageEmbedding, PI0FastPreTrainedModel):
         )
         actions = processor.extract_actions(tokens.cpu().numpy())
         return torch.from_numpy(actions).to(pixel_values.device)
+
+    @property
+    def decoding_kernels(self) -> str:
+        """What runs the decoder layers of each decoded token: "auto" (cuBLAS's GEMMs with the fused Triton kernels of
+        `pi0_torch.kernels` around them, nine launches per layer, attention over the token's one range of slots with
+        no mask, see `pi0_torch.inference.fast_decoding`; on CUDA in bf16 / fp16 where the kernels passed their check
+        against the torch references on that device; else "torch"), "torch" (the modules, SDPA with a mask; the CPU's
+        path) or "triton" (the fused kernels wherever triton runs them, `TRITON_INTERPRET=1` included, or a
+        `ValueError` naming why not). The prefill always runs the modules."""
+        return self._decoding_kernels
+
+    @decoding_kernels.setter
+    def decoding_kernels(self, kernels: str) -> None:
+        if kernels not in self.DECODING_KERNELS:
+            raise ValueError(f"decoding_kernels must be one of {self.DECODING_KERNELS}, got {kernels!r}")
+        self._decoding_kernels = kernels
+
+    def decoding_kernels_reason(self, device: torch.device, dtype: torch.dtype) -> str | None:
+        """Why decoding on `device` in `dtype` does not run the fused kernels (None: it does); see `decoding_kernels`.
+        Raises `ValueError` with the reason where "triton" was asked for and cannot be had."""
+        if self._decoding_kernels == "torch":
+            return "decoding_kernels is 'torch'"
+        if self._decoding_kernels == "auto" and not (device.type == "cuda" and dtype in (torch.bfloat16, torch.float16)):
+            return "the fused kernels run on CUDA in bf16 / fp16 (decoding_kernels='triton' to force them)"
+        config = self.config
+        reason = structural_reason(self.layers, config.num_key_value_heads, config.head_dim)
+        if reason is None:
+            reason = decoding_kernels_reason(device, dtype, config.num_attention_heads, config.head_dim, config.intermediate_size)
+        if reason is not None and self._decoding_kernels == "triton":
+            raise ValueError(f"decoding_kernels='triton' cannot run: {reason}")
+        return reason
 
     @property
     def decoding_compiled(self) -> bool:

@@ -1,0 +1,102 @@
+"""π0-FAST's decoded tokens with the fused ops of `pi0_torch.kernels` around cuBLAS's GEMMs: nine launches per decoder
+layer and token instead of about twenty-three.
+
+Per layer: RMSNorm, the q/k/v GEMM, RoPE + the k/v cache write (`rope_cache_write`), attention over the token's one
+range of slots (`range_attention`), the o-projection accumulated into the residual (`addmm_`), RMSNorm, the gate/up
+GEMM, `geglu`, the down-projection accumulated into the residual. A decoded token sees one contiguous range of the k/v
+cache, `[first[b], its own slot]` (openpi's window, see `PI0FastForActionGeneration.prepare_decoding`), so attention
+needs no mask; the token's slot is a device value, so one CUDA graph serves every step. The GEMMs stay cuBLAS's: at
+one row per sample they are matrix-vector products over Gemma 2B's weights, which cuBLAS reads near bandwidth (split-K
+included) and π0's fused GEMM kernels, tiled for the suffix's 50 rows, are not tuned for.
+
+It computes what `FastDecoderLayer` computes with a k/v buffer, with fewer roundings in bf16 (RoPE rounds once, the
+residual adds round with their GEMM). Used on CUDA in bf16 / fp16 (`PI0FastForActionGeneration.decoding_kernels`,
+"auto") after `decoding_kernels_reason` found the kernels equal to their torch references at the model's sizes on that
+device; the prefill runs the modules.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING
+
+import torch
+
+from pi0_torch.inference.fused_pass import kernels_reason, seeded_random
+from pi0_torch.inference.layer_pass import runs_extra_code, runs_its_weights
+from pi0_torch.kernels import ops
+from pi0_torch.models.layers import rms_norm, rope_cos_sin
+
+if TYPE_CHECKING:
+    from pi0_torch.models.modeling_pi0_fast import FastDecoderLayer
+
+
+def structural_reason(layers: Sequence[FastDecoderLayer], kv_heads: int, head_dim: int) -> str | None:
+    """Why the fused ops cannot run these decoder layers at all (None: they can)."""
+    if kv_heads != 1:
+        return f"the fused attention folds the query heads onto one kv head; this model has {kv_heads}"
+    if head_dim < 16 or head_dim & (head_dim - 1):
+        return f"the fused kernels need a head size that is a power of two >= 16, not {head_dim}"
+    if any(runs_extra_code(layer) or not runs_its_weights(layer.block) for layer in layers):
+        return "a layer's projections are not plain weights (LoRA, quantized or hooked layers, autocast)"
+    return None
+
+
+@functools.lru_cache(maxsize=None)
+def decoding_kernels_reason(device: torch.device, dtype: torch.dtype, heads: int, head_dim: int, mlp_width: int) -> str | None:
+    """Why the fused ops of a decoded token may not run on `device` in `dtype` (None: they may): triton is unusable
+    there, or one of them, run once at these sizes on random inputs shaped as decoding's (one row per sample, the slot
+    a device value, a key range over a long cache that ends before the cache does), differs from its torch reference.
+    Checked once per device, dtype and sizes; a refusal is logged once."""
+
+    def cases() -> list[tuple[str, Callable[[], tuple]]]:
+        random = seeded_random(device, dtype)
+        batch, slots, end = 2, 300, 257  # the token decoded into slot end - 1
+        cos, sin = rope_cos_sin(torch.tensor([[200], [90]], device=device), head_dim, 10_000.0)  # [B, 1, H]
+
+        def cache() -> torch.Tensor:  # [B, S, H]: the slots after the token's not written yet (NaN: never read)
+            nan = torch.full((batch, slots - end, head_dim), float("nan"), device=device, dtype=dtype)
+            return torch.cat([random(batch, end, head_dim), nan], dim=1)
+
+        return [
+            ("rope_cache_write", lambda: (random(batch, (heads + 2) * head_dim), cos, sin, cache(), cache(), 0,
+                                          torch.tensor([end - 1], device=device))),
+            ("range_attention", lambda: (random(batch, 1, heads, head_dim), cache(), cache(), torch.tensor([3, 140], device=device),
+                                         torch.tensor([end], device=device))),
+            ("geglu", lambda: (random(batch, 2 * mlp_width),)),
+        ]
+
+    return kernels_reason(device, dtype, cases, "π0-FAST decodes through the modules")
+
+
+def norm_scales(layers: Sequence[FastDecoderLayer]) -> list[torch.Tensor]:
+    """Each layer's attention and MLP norm scales, `1 + weight` `[D]` (interleaved), in one op for all of them."""
+    return torch._foreach_add([norm.weight for layer in layers for norm in (layer.block.attn_norm, layer.block.mlp_norm)], 1)
+
+
+def decode_layers_(
+    layers: Sequence[FastDecoderLayer],
+    x: torch.Tensor,  # [B, D]: the decoded token's embedding, updated in place
+    cos: torch.Tensor,  # [B, 1, H] RoPE of its position
+    sin: torch.Tensor,
+    keys: Sequence[torch.Tensor],  # per layer [B, 1, S, H]
+    values: Sequence[torch.Tensor],
+    scales: Sequence[torch.Tensor],  # `norm_scales(layers)`
+    first: torch.Tensor,  # long [B]: the first slot the token sees
+    slot: torch.Tensor,  # long [1]: its own slot (written here; the last it sees)
+) -> torch.Tensor:
+    """The decoder layers on one decoded token per sample: writes its k/v at `slot` of every layer's buffers and
+    returns `x` (the last layer's output)."""
+    batch, heads = x.shape[0], layers[0].block.heads[0]
+    ends = slot + 1
+    for index, (layer, key_buffer, value_buffer) in enumerate(zip(layers, keys, values)):
+        block = layer.block
+        key_cache, value_cache = key_buffer[:, 0], value_buffer[:, 0]  # [B, S, H]
+        qkv = torch.mm(rms_norm(x, block.attn_norm.eps, scales[2 * index]), block.qkv_proj.weight.t())
+        q = ops.call(ops.rope_cache_write, qkv, cos, sin, key_cache, value_cache, 0, slot)  # [B, N * H]
+        attended = ops.call(ops.range_attention, q.view(batch, 1, heads, -1), key_cache, value_cache, first, ends)
+        x.addmm_(attended, block.o_proj.weight.t())
+        gate_up = torch.mm(rms_norm(x, block.mlp_norm.eps, scales[2 * index + 1]), block.gate_up_proj.weight.t())
+        x.addmm_(ops.call(ops.geglu, gate_up), block.down_proj.weight.t())
+    return x
