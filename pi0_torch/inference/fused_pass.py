@@ -123,6 +123,8 @@ def _sampling_cases(device, dtype, width, heads, head_dim, mlp_width, action_dim
         ("matmul_residual_", lambda: (x.clone(), random(batch * tokens, mlp_width), down_weight, random(width))),
         ("range_attention", lambda: (random(batch, tokens, heads, head_dim), *caches(), torch.tensor([2, 7], device=device),
                                      torch.full((tokens,), slots, device=device))),
+        ("range_attention", lambda: (random(batch, 1, heads, head_dim), random(batch, 300, head_dim), random(batch, 300, head_dim),
+                                     torch.tensor([2, 70], device=device), torch.tensor([290], device=device))),  # (π0's state token)
         ("norm_linear_euler_", lambda: (x_t.clone(), x, scale, random(action_dim), random(action_dim, width, scale=width**-0.5).t(),
                                         -0.1, 1e-6)),
         ("embed_actions", lambda: (x_t, in_weight, random(width), None, None)),

@@ -7,7 +7,8 @@ Each kernel computes what its namesake in `pi0_torch.kernels.reference` computes
   dot product and applied to the accumulator: it is one scalar per row), RoPE and the k/v cache write in its epilogue;
 - `norm_gate_up_geglu`: RMSNorm folded into the gate/up GEMM, `gelu_tanh(gate) * up` in its epilogue;
 - `matmul_residual_`: the o- or down-projection with the residual (and π0.5's gate) added in its epilogue, in place;
-- `range_attention`: attention of the folded query heads over each token's key range (no mask), one kv head;
+- `range_attention`: attention of the folded query heads over each token's key range (no mask), one kv head; few
+  query rows over many keys (a decoded token, π0's state token) cut the keys into parts, combined by a second launch;
 - `norm_linear_euler_`: the final norm, `action_out_proj` and the Euler update of `x_t`, in one;
 - `embed_actions`: the action tokens of a step from `x_t` (π0: both GEMMs of the action/time MLP and the SiLU between
   them; the hidden row block is computed per column block, cheap where it is `x_t`'s 32 action dims deep);
@@ -255,14 +256,20 @@ def _add_layer_norm_kernel(
 
 @triton.jit
 def _range_attention_kernel(
-    q_ptr, key_ptr, value_ptr, out_ptr, first_ptr, row_ends_ptr, rows_per_sample, heads, slots, scale,
-    HEAD_DIM: tl.constexpr, DOT: tl.constexpr, BLOCK_M: tl.constexpr, BLOCK_N: tl.constexpr,
+    q_ptr, key_ptr, value_ptr, out_ptr, partial_ptr, stats_ptr, first_ptr, row_ends_ptr, batch, rows_per_sample, heads,
+    slots, scale, HEAD_DIM: tl.constexpr, DOT: tl.constexpr, BLOCK_M: tl.constexpr, BLOCK_N: tl.constexpr,
+    SPLITS: tl.constexpr,
 ):
-    """Program (i, b): folded query rows `[i * BLOCK_M, ...)` of sample b (row r is token r // heads, head r % heads)
+    """Program (i, b, s): folded query rows `[i * BLOCK_M, ...)` of sample b (row r is token r // heads, head r % heads)
     over the keys `[first[b], row_ends[token])`, online softmax in float32. Only keys before the block's last end are
     read: the slots after it may not be written yet (π0's state token runs while the action slots are empty), and a
-    masked-out NaN value would still poison the weighted sum (0 * NaN)."""
+    masked-out NaN value would still poison the weighted sum (0 * NaN).
+
+    With SPLITS > 1 the block's keys are cut into SPLITS consecutive parts, program s taking part s (few query rows
+    over many keys: a decoded token, π0's state token), and each writes its unnormalized sum, running maximum and
+    total weight for `_combine_splits_kernel`; with one, the program writes the output itself."""
     sample = tl.program_id(1)
+    split = tl.program_id(2)
     rows = tl.program_id(0) * BLOCK_M + tl.arange(0, BLOCK_M)
     row_ok = rows < rows_per_sample
     dims = tl.arange(0, HEAD_DIM)
@@ -270,14 +277,18 @@ def _range_attention_kernel(
     q = tl.load(q_ptr + base + rows[:, None] * HEAD_DIM + dims[None, :], mask=row_ok[:, None], other=0.0)
     start = tl.load(first_ptr + sample).to(tl.int32)
     ends = tl.load(row_ends_ptr + rows // heads, mask=row_ok, other=0).to(tl.int32)
-    max_end = tl.max(ends, axis=0)
+    stop = tl.max(ends, axis=0)
+    if SPLITS > 1:  # part `split` of [start, stop), in whole key blocks
+        part = tl.cdiv(tl.cdiv(tl.maximum(stop - start, 0), SPLITS), BLOCK_N) * BLOCK_N
+        start = start + split * part
+        stop = tl.minimum(start + part, stop)
     running_max = tl.full((BLOCK_M,), -1.0e30, dtype=tl.float32)
     total = tl.zeros((BLOCK_M,), dtype=tl.float32)
     acc = tl.zeros((BLOCK_M, HEAD_DIM), dtype=tl.float32)
     cache = sample * slots * HEAD_DIM
-    for k0 in range(start, max_end, BLOCK_N):
+    for k0 in range(start, stop, BLOCK_N):
         keys = k0 + tl.arange(0, BLOCK_N)
-        key_ok = keys < max_end
+        key_ok = keys < stop
         k = tl.load(key_ptr + cache + keys[:, None] * HEAD_DIM + dims[None, :], mask=key_ok[:, None], other=0.0)
         logits = tl.dot(q.to(DOT), tl.trans(k.to(DOT))) * scale  # [BLOCK_M, BLOCK_N]
         visible = (keys[None, :] < ends[:, None]) & key_ok[None, :]
@@ -289,8 +300,37 @@ def _range_attention_kernel(
         acc = acc * correction[:, None] + tl.dot(weights.to(DOT), v.to(DOT))
         total = total * correction + tl.sum(weights, axis=1)
         running_max = new_max
+    if SPLITS > 1:
+        row_index = (split * batch + sample) * rows_per_sample + rows  # partial [SPLITS, B, rows, H], stats [2, SPLITS, B, rows]
+        tl.store(partial_ptr + row_index[:, None] * HEAD_DIM + dims[None, :], acc, mask=row_ok[:, None])
+        tl.store(stats_ptr + row_index, running_max, mask=row_ok)
+        tl.store(stats_ptr + SPLITS * batch * rows_per_sample + row_index, total, mask=row_ok)
+    else:
+        out = acc / tl.where(total > 0.0, total, 1.0)[:, None]
+        tl.store(out_ptr + base + rows[:, None] * HEAD_DIM + dims[None, :], out.to(out_ptr.dtype.element_ty), mask=row_ok[:, None])
+
+
+@triton.jit
+def _combine_splits_kernel(
+    partial_ptr, stats_ptr, out_ptr, M, HEAD_DIM: tl.constexpr, SPLITS: tl.constexpr, BLOCK_M: tl.constexpr,
+):
+    """The output rows `[i * BLOCK_M, ...)` of `_range_attention_kernel`'s SPLITS parts: each part's sum rescaled from
+    its own running maximum to the largest, over the rescaled total weight."""
+    rows = tl.program_id(0) * BLOCK_M + tl.arange(0, BLOCK_M)
+    row_ok = rows < M
+    dims = tl.arange(0, HEAD_DIM)
+    largest = tl.full((BLOCK_M,), -1.0e30, dtype=tl.float32)
+    for split in tl.static_range(SPLITS):
+        largest = tl.maximum(largest, tl.load(stats_ptr + split * M + rows, mask=row_ok, other=-1.0e30))
+    acc = tl.zeros((BLOCK_M, HEAD_DIM), dtype=tl.float32)
+    total = tl.zeros((BLOCK_M,), dtype=tl.float32)
+    for split in tl.static_range(SPLITS):
+        weight = tl.exp(tl.load(stats_ptr + split * M + rows, mask=row_ok, other=-1.0e30) - largest)
+        total += weight * tl.load(stats_ptr + (SPLITS + split) * M + rows, mask=row_ok, other=0.0)
+        part = tl.load(partial_ptr + (split * M + rows)[:, None] * HEAD_DIM + dims[None, :], mask=row_ok[:, None], other=0.0)
+        acc += weight[:, None] * part
     out = acc / tl.where(total > 0.0, total, 1.0)[:, None]
-    tl.store(out_ptr + base + rows[:, None] * HEAD_DIM + dims[None, :], out.to(out_ptr.dtype.element_ty), mask=row_ok[:, None])
+    tl.store(out_ptr + rows[:, None] * HEAD_DIM + dims[None, :], out.to(out_ptr.dtype.element_ty), mask=row_ok[:, None])
 
 
 @triton.jit
@@ -430,12 +470,29 @@ def range_attention(query, key_cache, value_cache, first, row_ends):
     out = query.new_empty(batch * tokens, heads * head_dim)
     rows = tokens * heads
     block_m = 16 if batch * rows <= 64 * 16 else 64  # (few rows: more programs over them)
-    grid = (triton.cdiv(rows, block_m), batch)
+    splits = key_splits(batch * triton.cdiv(rows, block_m), key_cache.shape[1])
+    grid = (triton.cdiv(rows, block_m), batch, splits)
+    partial = stats = out  # (not read with one part)
+    if splits > 1:
+        partial = query.new_empty(splits, batch * rows, head_dim, dtype=torch.float32)
+        stats = query.new_empty(2, splits, batch * rows, dtype=torch.float32)
     _range_attention_kernel[grid](
-        query, key_cache, value_cache, out, first, row_ends, rows, heads, key_cache.shape[1], head_dim**-0.5,
-        HEAD_DIM=head_dim, DOT=dot_dtype(query.dtype), BLOCK_M=block_m, BLOCK_N=32,
+        query, key_cache, value_cache, out, partial, stats, first, row_ends, batch, rows, heads, key_cache.shape[1],
+        head_dim**-0.5, HEAD_DIM=head_dim, DOT=dot_dtype(query.dtype), BLOCK_M=block_m, BLOCK_N=32, SPLITS=splits,
     )
+    if splits > 1:
+        _combine_splits_kernel[(triton.cdiv(batch * rows, 16),)](partial, stats, out, batch * rows, HEAD_DIM=head_dim,
+                                                                   SPLITS=splits, BLOCK_M=16)
     return out
+
+
+def key_splits(programs: int, slots: int) -> int:
+    """Into how many parts `range_attention` cuts each block's keys: one where its blocks of query rows already make
+    enough programs, else one part per 128 slots of the cache, at most 16 (a decoded token, π0's state token: one
+    program would read a thousand keys alone; the parts' combination costs a second, small launch)."""
+    if programs >= 32 or slots < 256:
+        return 1
+    return min(16, slots // 128)
 
 
 def rope_cache_write(qkv, cos, sin, key_cache, value_cache, first_slot, slot=None):
