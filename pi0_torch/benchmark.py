@@ -318,6 +318,14 @@ def bench_op_counts(args: argparse.Namespace) -> None:
                 per_step = (counter.kernels - one_step.kernels) / ((config.num_inference_steps - 1) * config.num_hidden_layers)
                 print(f"{preset:12s} {'fused' if fused else 'torch':7s} {cameras:7d} {counter.total:6d} {counter.views:6d} "
                       f"{counter.kernels:7d} {counter.host_copies:11d} {per_step:14.2f}")
+    print("\nATen ops of one π0-FAST decoded token (decode_step), full size, bfloat16, batch 1, 3 cameras, "
+          f"{TEXT_TOKENS} prompt tokens (meta device; layers 'fused': decoding_kernels as on CUDA in bf16)")
+    print(f"{'preset':12s} {'layers':7s} {'ops':>6s} {'views':>6s} {'kernels':>7s} {'host copies':>11s} {'per layer':>9s}")
+    config = PI0FastConfig.from_preset("pi0_fast")
+    for fused in (False, True):
+        counter = decode_step_on_meta(config, fused)
+        print(f"{'pi0_fast':12s} {'fused' if fused else 'torch':7s} {counter.total:6d} {counter.views:6d} {counter.kernels:7d} "
+              f"{counter.host_copies:11d} {counter.kernels / config.num_hidden_layers:9.2f}")
 
 
 def bench_gemms(args: argparse.Namespace, device: torch.device) -> None:
@@ -396,6 +404,25 @@ def sample_on_meta(
     with torch.no_grad(), AtenOpCounter() as counter:
         sampled = model._sample(inputs, SamplingPlan(layout, tuple(euler_times(steps)), rtc_method, max_guidance, fused))
     return sampled, counter
+
+
+def decode_step_on_meta(config: PI0FastConfig, fused: bool, steps: int = 8) -> AtenOpCounter:
+    """The ops of one π0-FAST `decode_step` (the third of `steps` slots) for a model built on the meta device, after
+    a prefill of every camera and `TEXT_TOKENS` prompt tokens (`fused`: the fused kernels, as `decoding_kernels` runs
+    them on CUDA in bf16, each one op). No weights; any host read of a device value raises."""
+    meta = torch.device("meta")
+    with meta:
+        model = PI0FastForActionGeneration(config).eval().to(torch.bfloat16)
+    cameras, size = config.num_cameras, config.image_size
+    prompt = (torch.empty(1, TEXT_TOKENS, dtype=torch.long, device=meta), torch.empty(1, TEXT_TOKENS, dtype=torch.bool, device=meta),
+              torch.empty(1, TEXT_TOKENS, dtype=torch.bool, device=meta))
+    with torch.no_grad():
+        cache, _ = model.prepare_decoding(torch.empty(1, cameras, 3, size, size, dtype=torch.bfloat16, device=meta),
+                                          torch.empty(1, cameras, dtype=torch.bool, device=meta), *prompt, steps, fused)
+        token, step = torch.empty(1, dtype=torch.long, device=meta), torch.arange(steps, device=meta)[2:3]
+        with AtenOpCounter() as counter:
+            model.decode_step(cache, token, step)
+    return counter
 
 
 def bench_fast_decoding(args: argparse.Namespace, device: torch.device) -> None:

@@ -66,6 +66,10 @@ def test_op_count_table(capsys: pytest.CaptureFixture[str]) -> None:
     # five fused ops per layer and step, plus each step's action embedding and final norm + Euler update (pi0: 96 a step)
     assert 5.0 < per_step[("pi0", "fused")] <= 5.4 and 5.0 < per_step[("pi05", "fused")] <= 5.4, per_step
     assert per_step[("pi0", "torch")] > 15 and per_step[("pi05", "torch")] > 15, per_step
+    # a π0-FAST decoded token: 423 kernels through the modules, 171 fused (nine a layer: cuBLAS's GEMMs and norms,
+    # rope_cache_write, range_attention, geglu; then the embedding, RoPE rows, final norm and LM head)
+    fast = dict(re.findall(r"^pi0_fast\s+(torch|fused)\s+\d+\s+\d+\s+(\d+)\s+0\s+[\d.]+$", out, re.MULTILINE))
+    assert int(fast["fused"]) <= 175 < 400 <= int(fast["torch"]), out
 
 
 def test_fast_decoding_table(capsys: pytest.CaptureFixture[str]) -> None:
