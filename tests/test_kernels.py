@@ -97,7 +97,7 @@ def test_each_kernel_equals_its_reference(dtype: torch.dtype, sizes: str, batch:
     compare("range_attention", (query[:, :1], keys, values, first, ends[:1]), dtype)
     long_keys, long_values = random(generator, dtype, batch, 600, head_dim), random(generator, dtype, batch, 600, head_dim)
     long_keys[:, 450:], long_values[:, 450:] = float("nan"), float("nan")
-    assert kernels().key_splits(batch, 600) == 4  # one row of folded heads over a long cache: the keys in parts
+    assert kernels().key_splits(1, batch, 600) == 4  # one row of folded heads over a long cache: the keys in parts
     compare("range_attention", (query[:, :1], long_keys, long_values, first, torch.tensor([450], device=DEVICE)), dtype)
     compare("norm_linear_euler_", (torch.randn(batch, tokens, action_dim, generator=generator).to(DEVICE), x, scale,
                                    random(generator, dtype, action_dim), random(generator, dtype, action_dim, width).t(), -0.1, 1e-6), dtype)

@@ -470,7 +470,7 @@ def range_attention(query, key_cache, value_cache, first, row_ends):
     out = query.new_empty(batch * tokens, heads * head_dim)
     rows = tokens * heads
     block_m = 16 if batch * rows <= 64 * 16 else 64  # (few rows: more programs over them)
-    splits = key_splits(batch * triton.cdiv(rows, block_m), key_cache.shape[1])
+    splits = key_splits(triton.cdiv(rows, block_m), batch, key_cache.shape[1])
     grid = (triton.cdiv(rows, block_m), batch, splits)
     partial = stats = out  # (not read with one part)
     if splits > 1:
@@ -486,11 +486,12 @@ def range_attention(query, key_cache, value_cache, first, row_ends):
     return out
 
 
-def key_splits(programs: int, slots: int) -> int:
-    """Into how many parts `range_attention` cuts each block's keys: one where its blocks of query rows already make
-    enough programs, else one part per 128 slots of the cache, at most 16 (a decoded token, π0's state token: one
-    program would read a thousand keys alone; the parts' combination costs a second, small launch)."""
-    if programs >= 32 or slots < 256:
+def key_splits(row_blocks: int, batch: int, slots: int) -> int:
+    """Into how many parts `range_attention` cuts the keys: one part per 128 slots of the cache, at most 16, where a
+    sample's query rows are one block and the samples few (a decoded token, π0's state token: one program would read
+    a thousand keys alone; the parts' combination costs a second, small launch), else one (the action tokens' rows
+    already make several programs per sample)."""
+    if row_blocks > 1 or batch >= 32 or slots < 256:
         return 1
     return min(16, slots // 128)
 
