@@ -6,8 +6,9 @@
   Euler update in one.
 - The prefix pass (`prefix_layer`): the VLM's GEMMs stay cuBLAS's (compute-bound at 800+ rows) with RoPE and the cache
   write, and the GeGLU, fused around them (nine launches per layer instead of fifteen); π0's state token, one row,
-  goes through the action expert's fused ops (five instead of fifteen). SigLIP runs `vision_pass` (nine launches per
-  encoder layer instead of twelve).
+  goes through the action expert's fused ops (five instead of fifteen; six launches on CUDA, where its attention
+  combines its key parts in a second). SigLIP runs `vision_pass` (nine launches per encoder layer instead of
+  twelve).
 
 It computes what `ActionSampling.denoise_step` followed by `x_t += dt * velocity` computes, with fewer roundings in
 bf16 (the fused epilogues round once). Used for plain sampling on CUDA in bf16 / fp16 (`ActionSampling.sampling_kernels`,
@@ -123,8 +124,10 @@ def _sampling_cases(device, dtype, width, heads, head_dim, mlp_width, action_dim
         ("matmul_residual_", lambda: (x.clone(), random(batch * tokens, mlp_width), down_weight, random(width))),
         ("range_attention", lambda: (random(batch, tokens, heads, head_dim), *caches(), torch.tensor([2, 7], device=device),
                                      torch.full((tokens,), slots, device=device))),
-        ("range_attention", lambda: (random(batch, 1, heads, head_dim), random(batch, 300, head_dim), random(batch, 300, head_dim),
-                                     torch.tensor([2, 70], device=device), torch.tensor([290], device=device))),  # (π0's state token)
+        *(("range_attention", lambda samples=samples: (random(samples, 1, heads, head_dim), random(samples, 900, head_dim),
+                                                       random(samples, 900, head_dim), torch.tensor([2, 70], device=device)[:samples],
+                                                       torch.tensor([880], device=device)))
+          for samples in (1, 2)),  # (π0's state token: its keys in parts; triton compiles a batch of one apart)
         ("norm_linear_euler_", lambda: (x_t.clone(), x, scale, random(action_dim), random(action_dim, width, scale=width**-0.5).t(),
                                         -0.1, 1e-6)),
         ("embed_actions", lambda: (x_t, in_weight, random(width), None, None)),

@@ -78,7 +78,7 @@ def rope_cache_write(
     cache_rows = torch.arange(tokens, device=qkv.device) + (first_slot if slot is None else slot)
     key_cache.index_copy_(1, cache_rows, k[:, :, 0].to(key_cache.dtype))
     value_cache.index_copy_(1, cache_rows, v[:, :, 0])
-    return q.to(qkv.dtype).reshape(qkv.shape[0], -1)
+    return q.to(qkv.dtype).reshape(qkv.shape[0], -1).contiguous()  # (one token: the reshape alone is a strided view)
 
 
 def norm_gate_up_geglu(

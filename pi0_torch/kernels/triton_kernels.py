@@ -257,17 +257,18 @@ def _add_layer_norm_kernel(
 @triton.jit
 def _range_attention_kernel(
     q_ptr, key_ptr, value_ptr, out_ptr, partial_ptr, stats_ptr, first_ptr, row_ends_ptr, batch, rows_per_sample, heads,
-    slots, scale, HEAD_DIM: tl.constexpr, DOT: tl.constexpr, BLOCK_M: tl.constexpr, BLOCK_N: tl.constexpr,
-    SPLITS: tl.constexpr,
+    slots, scale, splits, HEAD_DIM: tl.constexpr, DOT: tl.constexpr, BLOCK_M: tl.constexpr, BLOCK_N: tl.constexpr,
+    SPLIT: tl.constexpr,
 ):
     """Program (i, b, s): folded query rows `[i * BLOCK_M, ...)` of sample b (row r is token r // heads, head r % heads)
     over the keys `[first[b], row_ends[token])`, online softmax in float32. Only keys before the block's last end are
     read: the slots after it may not be written yet (π0's state token runs while the action slots are empty), and a
     masked-out NaN value would still poison the weighted sum (0 * NaN).
 
-    With SPLITS > 1 the block's keys are cut into SPLITS consecutive parts, program s taking part s (few query rows
-    over many keys: a decoded token, π0's state token), and each writes its unnormalized sum, running maximum and
-    total weight for `_combine_splits_kernel`; with one, the program writes the output itself."""
+    With SPLIT the block's keys are cut into `splits` consecutive parts (a runtime count: one compiled kernel serves
+    every count), program s taking part s (few query rows over many keys: a decoded token, π0's state token), and
+    each writes its unnormalized sum, running maximum and total weight for `_combine_splits_kernel`; without, the
+    program writes the output itself."""
     sample = tl.program_id(1)
     split = tl.program_id(2)
     rows = tl.program_id(0) * BLOCK_M + tl.arange(0, BLOCK_M)
@@ -278,8 +279,8 @@ def _range_attention_kernel(
     start = tl.load(first_ptr + sample).to(tl.int32)
     ends = tl.load(row_ends_ptr + rows // heads, mask=row_ok, other=0).to(tl.int32)
     stop = tl.max(ends, axis=0)
-    if SPLITS > 1:  # part `split` of [start, stop), in whole key blocks
-        part = tl.cdiv(tl.cdiv(tl.maximum(stop - start, 0), SPLITS), BLOCK_N) * BLOCK_N
+    if SPLIT:  # part `split` of [start, stop), in whole key blocks
+        part = tl.cdiv(tl.cdiv(tl.maximum(stop - start, 0), splits), BLOCK_N) * BLOCK_N
         start = start + split * part
         stop = tl.minimum(start + part, stop)
     running_max = tl.full((BLOCK_M,), -1.0e30, dtype=tl.float32)
@@ -300,35 +301,35 @@ def _range_attention_kernel(
         acc = acc * correction[:, None] + tl.dot(weights.to(DOT), v.to(DOT))
         total = total * correction + tl.sum(weights, axis=1)
         running_max = new_max
-    if SPLITS > 1:
-        row_index = (split * batch + sample) * rows_per_sample + rows  # partial [SPLITS, B, rows, H], stats [2, SPLITS, B, rows]
+    if SPLIT:
+        row_index = (split * batch + sample) * rows_per_sample + rows  # partial [splits, B, rows, H], stats [2, splits, B, rows]
         tl.store(partial_ptr + row_index[:, None] * HEAD_DIM + dims[None, :], acc, mask=row_ok[:, None])
         tl.store(stats_ptr + row_index, running_max, mask=row_ok)
-        tl.store(stats_ptr + SPLITS * batch * rows_per_sample + row_index, total, mask=row_ok)
+        tl.store(stats_ptr + splits * batch * rows_per_sample + row_index, total, mask=row_ok)
     else:
         out = acc / tl.where(total > 0.0, total, 1.0)[:, None]
         tl.store(out_ptr + base + rows[:, None] * HEAD_DIM + dims[None, :], out.to(out_ptr.dtype.element_ty), mask=row_ok[:, None])
 
 
 @triton.jit
-def _combine_splits_kernel(
-    partial_ptr, stats_ptr, out_ptr, M, HEAD_DIM: tl.constexpr, SPLITS: tl.constexpr, BLOCK_M: tl.constexpr,
-):
-    """The output rows `[i * BLOCK_M, ...)` of `_range_attention_kernel`'s SPLITS parts: each part's sum rescaled from
-    its own running maximum to the largest, over the rescaled total weight."""
+def _combine_splits_kernel(partial_ptr, stats_ptr, out_ptr, M, splits, HEAD_DIM: tl.constexpr, BLOCK_M: tl.constexpr):
+    """The output rows `[i * BLOCK_M, ...)` of `_range_attention_kernel`'s `splits` parts, merged as online softmax
+    merges key blocks: each part's sum and total weight rescaled from its running maximum to the largest so far."""
     rows = tl.program_id(0) * BLOCK_M + tl.arange(0, BLOCK_M)
     row_ok = rows < M
     dims = tl.arange(0, HEAD_DIM)
     largest = tl.full((BLOCK_M,), -1.0e30, dtype=tl.float32)
-    for split in tl.static_range(SPLITS):
-        largest = tl.maximum(largest, tl.load(stats_ptr + split * M + rows, mask=row_ok, other=-1.0e30))
     acc = tl.zeros((BLOCK_M, HEAD_DIM), dtype=tl.float32)
     total = tl.zeros((BLOCK_M,), dtype=tl.float32)
-    for split in tl.static_range(SPLITS):
-        weight = tl.exp(tl.load(stats_ptr + split * M + rows, mask=row_ok, other=-1.0e30) - largest)
-        total += weight * tl.load(stats_ptr + (SPLITS + split) * M + rows, mask=row_ok, other=0.0)
+    for split in range(splits):
+        part_max = tl.load(stats_ptr + split * M + rows, mask=row_ok, other=-1.0e30)
+        new_max = tl.maximum(largest, part_max)
+        correction = tl.exp(largest - new_max)
+        weight = tl.exp(part_max - new_max)
         part = tl.load(partial_ptr + (split * M + rows)[:, None] * HEAD_DIM + dims[None, :], mask=row_ok[:, None], other=0.0)
-        acc += weight[:, None] * part
+        acc = acc * correction[:, None] + weight[:, None] * part
+        total = total * correction + weight * tl.load(stats_ptr + (splits + split) * M + rows, mask=row_ok, other=0.0)
+        largest = new_max
     out = acc / tl.where(total > 0.0, total, 1.0)[:, None]
     tl.store(out_ptr + rows[:, None] * HEAD_DIM + dims[None, :], out.to(out_ptr.dtype.element_ty), mask=row_ok[:, None])
 
@@ -478,11 +479,12 @@ def range_attention(query, key_cache, value_cache, first, row_ends):
         stats = query.new_empty(2, splits, batch * rows, dtype=torch.float32)
     _range_attention_kernel[grid](
         query, key_cache, value_cache, out, partial, stats, first, row_ends, batch, rows, heads, key_cache.shape[1],
-        head_dim**-0.5, HEAD_DIM=head_dim, DOT=dot_dtype(query.dtype), BLOCK_M=block_m, BLOCK_N=32, SPLITS=splits,
+        head_dim**-0.5, splits, HEAD_DIM=head_dim, DOT=dot_dtype(query.dtype), BLOCK_M=block_m, BLOCK_N=32,
+        SPLIT=splits > 1,
     )
     if splits > 1:
-        _combine_splits_kernel[(triton.cdiv(batch * rows, 16),)](partial, stats, out, batch * rows, HEAD_DIM=head_dim,
-                                                                   SPLITS=splits, BLOCK_M=16)
+        _combine_splits_kernel[(triton.cdiv(batch * rows, 8),)](partial, stats, out, batch * rows, splits,
+                                                                  HEAD_DIM=head_dim, BLOCK_M=8)
     return out
 
 
