@@ -438,11 +438,11 @@ class PI0FastForActionGeneration(SiglipImageEmbedding, PI0FastPreTrainedModel):
     @property
     def decoding_kernels(self) -> str:
         """What runs the decoder layers of each decoded token: "auto" (cuBLAS's GEMMs with the fused Triton kernels of
-        `pi0_torch.kernels` around them, nine launches per layer, attention over the token's one range of slots with
-        no mask, see `pi0_torch.inference.fast_decoding`; on CUDA in bf16 / fp16 where the kernels passed their check
-        against the torch references on that device; else "torch"), "torch" (the modules, SDPA with a mask; the CPU's
-        path) or "triton" (the fused kernels wherever triton runs them, `TRITON_INTERPRET=1` included, or a
-        `ValueError` naming why not). The prefill always runs the modules."""
+        `pi0_torch.kernels` around them, nine ops per layer, ten launches, attention over the token's one range of
+        slots with no mask, see `pi0_torch.inference.fast_decoding`; on CUDA in bf16 / fp16 where the kernels passed
+        their check against the torch references on that device; else "torch"), "torch" (the modules, SDPA with a
+        mask; the CPU's path) or "triton" (the fused kernels wherever triton runs them, `TRITON_INTERPRET=1` included,
+        or a `ValueError` naming why not). The prefill always runs the modules."""
         return self._decoding_kernels
 
     @decoding_kernels.setter
