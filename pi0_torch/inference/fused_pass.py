@@ -124,10 +124,16 @@ def _sampling_cases(device, dtype, width, heads, head_dim, mlp_width, action_dim
         ("matmul_residual_", lambda: (x.clone(), random(batch * tokens, mlp_width), down_weight, random(width))),
         ("range_attention", lambda: (random(batch, tokens, heads, head_dim), *caches(), torch.tensor([2, 7], device=device),
                                      torch.full((tokens,), slots, device=device))),
+        # π0's state token: one row per sample (a batch of one is a row count of one, which triton compiles apart), its
+        # attention's keys in parts
+        ("norm_qkv_rope", lambda: (x[:1], scale, None, qkv_weight, cos[:1, :1], sin[:1, :1], random(1, slots, head_dim),
+                                   random(1, slots, head_dim), 11, 1e-6)),
+        ("norm_gate_up_geglu", lambda: (x[:1], scale, None, gate_up_weight, 1e-6)),
+        ("matmul_residual_", lambda: (x[:1].clone(), random(1, mlp_width), down_weight, None)),
         *(("range_attention", lambda samples=samples: (random(samples, 1, heads, head_dim), random(samples, 900, head_dim),
                                                        random(samples, 900, head_dim), torch.tensor([2, 70], device=device)[:samples],
                                                        torch.tensor([880], device=device)))
-          for samples in (1, 2)),  # (π0's state token: its keys in parts; triton compiles a batch of one apart)
+          for samples in (1, 2)),
         ("norm_linear_euler_", lambda: (x_t.clone(), x, scale, random(action_dim), random(action_dim, width, scale=width**-0.5).t(),
                                         -0.1, 1e-6)),
         ("embed_actions", lambda: (x_t, in_weight, random(width), None, None)),
