@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING
 
 import torch
 
-from pi0_torch.inference.fused_pass import kernels_reason, seeded_random
+from pi0_torch.inference.fused_pass import attention_shape_reason, kernels_reason, seeded_random
 from pi0_torch.inference.layer_pass import runs_extra_code, runs_its_weights
 from pi0_torch.kernels import ops
 from pi0_torch.models.layers import rms_norm, rope_cos_sin
@@ -34,10 +34,8 @@ if TYPE_CHECKING:
 
 def structural_reason(layers: Sequence[FastDecoderLayer], kv_heads: int, head_dim: int) -> str | None:
     """Why the fused ops cannot run these decoder layers at all (None: they can)."""
-    if kv_heads != 1:
-        return f"the fused attention folds the query heads onto one kv head; this model has {kv_heads}"
-    if head_dim < 16 or head_dim & (head_dim - 1):
-        return f"the fused kernels need a head size that is a power of two >= 16, not {head_dim}"
+    if (reason := attention_shape_reason(kv_heads, head_dim)) is not None:
+        return reason
     if any(runs_extra_code(layer) or not runs_its_weights(layer.block) for layer in layers):
         return "a layer's projections are not plain weights (LoRA, quantized or hooked layers, autocast)"
     return None

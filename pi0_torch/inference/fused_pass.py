@@ -41,14 +41,39 @@ logger = logging.getLogger(__name__)
 SELF_CHECK_TOLERANCE = {torch.float32: 1e-4, torch.bfloat16: 3e-2, torch.float16: 1e-2}  # max error / max |reference|
 
 
+def kernels_setting_reason(setting: str, name: str, device: torch.device, dtype: torch.dtype,
+                           check: Callable[[], str | None], unsupported: str | None = None) -> str | None:
+    """Why a model's fused-kernels setting `name` (`setting`: "auto", "torch" or "triton") does not run them on
+    `device` in `dtype` (None: it does): "torch"; then `unsupported` (what the call asks for that they do not do);
+    "auto" off CUDA in bf16 / fp16; then `check()` (the model and the kernels), which "triton" turns into a
+    `ValueError`."""
+    if setting == "torch":
+        return f"{name} is 'torch'"
+    if unsupported is not None:
+        return unsupported
+    if setting == "auto" and not (device.type == "cuda" and dtype in (torch.bfloat16, torch.float16)):
+        return f"the fused kernels run on CUDA in bf16 / fp16 ({name}='triton' to force them)"
+    reason = check()
+    if reason is not None and setting == "triton":
+        raise ValueError(f"{name}='triton' cannot run: {reason}")
+    return reason
+
+
+def attention_shape_reason(kv_heads: int, head_dim: int) -> str | None:
+    """Why the fused attention cannot run a model's heads (None: it can): it folds the query heads onto one kv head,
+    and its head size is a power of two >= 16."""
+    if kv_heads != 1:
+        return f"the fused attention folds the query heads onto one kv head; this model has {kv_heads}"
+    if head_dim < 16 or head_dim & (head_dim - 1):
+        return f"the fused kernels need a head size that is a power of two >= 16, not {head_dim}"
+    return None
+
+
 def structural_reason(model: PI0ForActionGeneration) -> str | None:
     """Why the fused step cannot run this model's layers at all (None: it can)."""
     config = model.config
-    head_dim = config.head_dim
-    if config.num_key_value_heads != 1:
-        return f"the fused attention folds the query heads onto one kv head; this model has {config.num_key_value_heads}"
-    if head_dim < 16 or head_dim & (head_dim - 1):
-        return f"the fused kernels need a head size that is a power of two >= 16, not {head_dim}"
+    if (reason := attention_shape_reason(config.num_key_value_heads, config.head_dim)) is not None:
+        return reason
     if model.sampling_compiled:
         return "the layers are compiled (compile_sampling)"
     if any(runs_extra_code(layer) or not runs_its_weights(layer.expert) for layer in model.layers):

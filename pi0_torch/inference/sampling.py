@@ -21,7 +21,7 @@ import torch
 
 from pi0_torch.inference.attention import KERNELS, choose_kernel
 from pi0_torch.inference import fused_pass, vision_pass
-from pi0_torch.inference.fused_pass import FusedSteps, fused_kernels_reason, structural_reason
+from pi0_torch.inference.fused_pass import FusedSteps, fused_kernels_reason, kernels_setting_reason, structural_reason
 from pi0_torch.inference.layer_pass import CALL_MODULES, SamplingWeights, layer_sampling_weights, sampling_layer_pass
 from pi0_torch.inference.layout import PrefixLayout, camera_inputs, compact_prefix, prefix_stream, rope_tables, suffix_stream
 from pi0_torch.masks import aligned_key_count
@@ -141,21 +141,15 @@ class ActionSampling:
     def fused_steps_reason(self, device: torch.device, dtype: torch.dtype, rtc_method: str | None = None) -> str | None:
         """Why plain sampling's steps on `device` in `dtype` do not run the fused kernels (None: they do); see
         `sampling_kernels`. Raises `ValueError` with the reason where "triton" was asked for and cannot be had."""
-        if self._sampling_kernels == "torch":
-            return "sampling_kernels is 'torch'"
-        if rtc_method is not None:
-            return f"real-time chunking ({rtc_method}) steps run unfused"
-        if self._sampling_kernels == "auto" and not (device.type == "cuda" and dtype in (torch.bfloat16, torch.float16)):
-            return "the fused kernels run on CUDA in bf16 / fp16 (sampling_kernels='triton' to force them)"
         config = self.config
-        reason = structural_reason(self)
-        if reason is None:
-            reason = fused_kernels_reason(device, dtype, config.expert_hidden_size, config.num_attention_heads,
-                                          config.head_dim, config.expert_intermediate_size, config.action_dim,
-                                          config.vision_hidden_size)
-        if reason is not None and self._sampling_kernels == "triton":
-            raise ValueError(f"sampling_kernels='triton' cannot run: {reason}")
-        return reason
+
+        def check() -> str | None:
+            return structural_reason(self) or fused_kernels_reason(
+                device, dtype, config.expert_hidden_size, config.num_attention_heads, config.head_dim,
+                config.expert_intermediate_size, config.action_dim, config.vision_hidden_size)
+
+        unsupported = None if rtc_method is None else f"real-time chunking ({rtc_method}) steps run unfused"
+        return kernels_setting_reason(self._sampling_kernels, "sampling_kernels", device, dtype, check, unsupported)
 
     def attention_kernel_for(self, device: torch.device, dtype: torch.dtype, differentiable: bool) -> str:
         """The attention kernel of a pass: SDPA where gradients flow through attention (training, RTC guidance; the

@@ -26,6 +26,7 @@ from transformers.modeling_layers import GradientCheckpointingLayer
 from transformers.utils import ModelOutput
 
 from pi0_torch.inference.fast_decoding import decode_layers_, decoding_kernels_reason, norm_scales, structural_reason
+from pi0_torch.inference.fused_pass import kernels_setting_reason
 from pi0_torch.inference.graphs import VERIFY_TOLERANCE, relative_deviation
 from pi0_torch.masks import aligned_key_count, masked_attention, pad_keys, prefix_lm_mask, to_additive_mask
 from pi0_torch.models.configuration_pi0_fast import PI0FastConfig
@@ -454,17 +455,13 @@ class PI0FastForActionGeneration(SiglipImageEmbedding, PI0FastPreTrainedModel):
     def decoding_kernels_reason(self, device: torch.device, dtype: torch.dtype) -> str | None:
         """Why decoding on `device` in `dtype` does not run the fused kernels (None: it does); see `decoding_kernels`.
         Raises `ValueError` with the reason where "triton" was asked for and cannot be had."""
-        if self._decoding_kernels == "torch":
-            return "decoding_kernels is 'torch'"
-        if self._decoding_kernels == "auto" and not (device.type == "cuda" and dtype in (torch.bfloat16, torch.float16)):
-            return "the fused kernels run on CUDA in bf16 / fp16 (decoding_kernels='triton' to force them)"
         config = self.config
-        reason = structural_reason(self.layers, config.num_key_value_heads, config.head_dim)
-        if reason is None:
-            reason = decoding_kernels_reason(device, dtype, config.num_attention_heads, config.head_dim, config.intermediate_size)
-        if reason is not None and self._decoding_kernels == "triton":
-            raise ValueError(f"decoding_kernels='triton' cannot run: {reason}")
-        return reason
+
+        def check() -> str | None:
+            return structural_reason(self.layers, config.num_key_value_heads, config.head_dim) or decoding_kernels_reason(
+                device, dtype, config.num_attention_heads, config.head_dim, config.intermediate_size)
+
+        return kernels_setting_reason(self._decoding_kernels, "decoding_kernels", device, dtype, check)
 
     @property
     def decoding_compiled(self) -> bool:
