@@ -24,6 +24,7 @@ the emulation.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import functools
 import gc
 import itertools
@@ -34,7 +35,6 @@ import tempfile
 import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
-from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any
 
@@ -70,7 +70,7 @@ class Timing:
         return f"{self.median * 1e3:10.1f} {self.minimum * 1e3:10.1f} {self.maximum * 1e3:10.1f} {self.peak_bytes / 2**20:10.0f}"
 
 
-@contextmanager
+@contextlib.contextmanager
 def peak_memory(device: torch.device) -> Iterator[list[int]]:
     """Yields a one-element list that holds the peak bytes in use during the block once it ends. On CUDA: what the
     caching allocator held at most (freed blocks given back first), CUDA graphs' memory pools included, whose
@@ -277,11 +277,20 @@ def bench_generate(args: argparse.Namespace, device: torch.device) -> None:
                                 work = f" {activities:7d} {gpu_seconds * 1e3:7.1f}"
                             refused = method == "guidance" and model.sampling_captured and not model.replays_graphs(method)
                             label = "guid. eager" if refused else method or "-"  # (guided chunks replay no graph)
-                            fused = "fused" if model.fused_steps_reason(device, model.dtype, method) is None else "torch"
+                            fused = steps_path(model, device, method, batch, cameras)
                             print(f"{preset:12s} {dtype_name:9s} {mode:14s} {fused:7s} {label:12s} {cameras:4d} {batch:5d} "
                                   f"{setup:8.1f} {timing.row()} {rate}{work}")
             del model
             gc.collect()
+
+
+def steps_path(model: PI0ForActionGeneration, device: torch.device, method: str | None, batch: int, cameras: int) -> str:
+    """What ran a row's Euler steps: "fused", "torch", or "refused" (fused, but its first call's verification against
+    the unfused path refused this batch size and camera count: they ran unfused)."""
+    if model.fused_steps_reason(device, model.dtype, method) is not None:
+        return "torch"
+    images = [signature[0][0][:2] for signature in (key[1] for key, why in model._fused_refusals.items() if why is not None)]
+    return "refused" if (batch, cameras) in images else "fused"
 
 
 def bench_op_counts(args: argparse.Namespace) -> None:
@@ -375,13 +384,14 @@ def bench_gemms(args: argparse.Namespace, device: torch.device) -> None:
 
 def sample_on_meta(
     config: PI0Config, facts: InputFacts, steps: int, dtype: torch.dtype = torch.float32, rtc_method: str | None = None,
-    fused: bool = False,
-) -> tuple[torch.Tensor, AtenOpCounter]:
+    fused: bool = False, count: bool = True,
+) -> tuple[torch.Tensor, AtenOpCounter | None]:
     """Run `generate_actions`' sampling region (`_sample`: everything after the input checks, what `capture_sampling`
     records) for a model built on the meta device, with inputs laid out as `facts` says: the actions (shapes only)
-    and the ops it ran (`fused`: the steps in the fused kernels, as on CUDA in bf16, each kernel one op). No weights
-    are needed, so a full-size model costs no memory, and any read of a device value on the host (`.item()`,
-    `bool()`, `.tolist()`, `nonzero`) raises."""
+    and the ops it ran (`fused`: the steps in the fused kernels, as on CUDA in bf16, each kernel one op; `count=False`:
+    not counted, None, and the fused ops call their implementations instead of their fakes). No weights are needed,
+    so a full-size model costs no memory, and any read of a device value on the host (`.item()`, `bool()`,
+    `.tolist()`, `nonzero`) raises."""
     meta = torch.device("meta")
     with meta:
         model = PI0ForActionGeneration(config).eval().to(dtype)
@@ -401,15 +411,16 @@ def sample_on_meta(
         committed=torch.empty(actions[:2], dtype=torch.bool, device=meta) if rtc_method == "conditioning" else None,
     )
     max_guidance = DEFAULT_MAX_GUIDANCE if rtc_method == "guidance" else 0.0
-    with torch.no_grad(), AtenOpCounter() as counter:
+    with torch.no_grad(), (AtenOpCounter() if count else contextlib.nullcontext()) as counter:
         sampled = model._sample(inputs, SamplingPlan(layout, tuple(euler_times(steps)), rtc_method, max_guidance, fused))
     return sampled, counter
 
 
-def decode_step_on_meta(config: PI0FastConfig, fused: bool, steps: int = 8) -> AtenOpCounter:
+def decode_step_on_meta(config: PI0FastConfig, fused: bool, steps: int = 8, count: bool = True) -> AtenOpCounter | None:
     """The ops of one π0-FAST `decode_step` (the third of `steps` slots) for a model built on the meta device, after
     a prefill of every camera and `TEXT_TOKENS` prompt tokens (`fused`: the fused kernels, as `decoding_kernels` runs
-    them on CUDA in bf16, each one op). No weights; any host read of a device value raises."""
+    them on CUDA in bf16, each one op; `count=False`: not counted, as `sample_on_meta`). No weights; any host read of
+    a device value raises."""
     meta = torch.device("meta")
     with meta:
         model = PI0FastForActionGeneration(config).eval().to(torch.bfloat16)
@@ -420,7 +431,7 @@ def decode_step_on_meta(config: PI0FastConfig, fused: bool, steps: int = 8) -> A
         cache, _ = model.prepare_decoding(torch.empty(1, cameras, 3, size, size, dtype=torch.bfloat16, device=meta),
                                           torch.empty(1, cameras, dtype=torch.bool, device=meta), *prompt, steps, fused)
         token, step = torch.empty(1, dtype=torch.long, device=meta), torch.arange(steps, device=meta)[2:3]
-        with AtenOpCounter() as counter:
+        with (AtenOpCounter() if count else contextlib.nullcontext()) as counter:
             model.decode_step(cache, token, step)
     return counter
 

@@ -173,6 +173,7 @@ class Doctor:
                 options = {} if method is None else dict(rtc, rtc_method=method)
                 replays = [sample(model, **options) for _ in range(2)]
                 refused = list(model._graphs.refused.values())
+                unfused = [why for why in model._fused_refusals.values() if why is not None]
                 model.capture_sampling(disable=True)
                 model.sampling_kernels = "torch"
                 deviation = max(relative_deviation(replay, want) for replay in replays)
@@ -180,7 +181,7 @@ class Doctor:
                     return deviation, BF16_BOUND, f"graph refused at capture, guided chunks sample eagerly ({refused[0]})"
                 if refused:
                     return float("inf"), BF16_BOUND, f"graph refused at capture: {refused[0]}"
-                return deviation, BF16_BOUND, ""
+                return deviation, BF16_BOUND, f"fused steps refused at first call, unfused graph ({unfused[0]})" if unfused else ""
             return check
 
         self.row(f"{name} CUDA graph", torch.bfloat16, graph(None, reference), needs_cuda=True)
@@ -351,7 +352,9 @@ def fast_decoding_check(model: PI0FastForActionGeneration, inputs: dict[str, tor
             token = reference[-1].argmax(dim=-1, keepdim=True)
             ids, valid, ar_mask = grown["input_ids"].clone(), grown["attention_mask"], grown["token_ar_mask"]
             ids[:, -1:] = token
-        fused = model.decoding_kernels_reason(inputs["pixel_values"].device, model.dtype) is None
+        images = inputs["pixel_values"]
+        slots = model.decoding_slots(images.shape[1], inputs["input_ids"].shape[1], count)
+        fused = model.decoding_kernels_reason(images.device, model.dtype, images.shape[0], slots) is None
         arguments = (inputs["pixel_values"], inputs["image_masks"], inputs["input_ids"], inputs["attention_mask"],
                      inputs["token_ar_mask"], count, fused)
         _, cached = model.decode(model.prepare_decoding, model.decode_step, arguments, 0.0, None, forced=ids[:, prompt:])
@@ -379,7 +382,8 @@ def _quiet_warnings() -> Iterator[None]:
     """The rows' expected warnings (a refused guidance graph) are in the table; keep the output to the table."""
     import logging
 
-    loggers = [logging.getLogger(name) for name in ("pi0_torch.inference.graphs", "pi0_torch.inference.fused_pass")]
+    loggers = [logging.getLogger(name) for name in ("pi0_torch.inference.graphs", "pi0_torch.inference.fused_pass",
+                                                          "pi0_torch.inference.sampling")]
     levels = [logger.level for logger in loggers]
     for logger in loggers:
         logger.setLevel(logging.ERROR)

@@ -210,6 +210,33 @@ def test_varlen_kernel_matches_sdpa(reference: OpenpiReference) -> None:
     assert torch.isfinite(loss)
 
 
+@torch.no_grad()
+@pytest.mark.parametrize("preset", ["pi0", "pi05"])
+def test_fused_steps_hold_at_full_width_for_every_batch_class(preset: str) -> None:
+    """Full-size widths (two decoder layers, random weights), bf16, "auto": at batch 1 (one-row state token, key
+    parts), 3 (64-row attention blocks) and 8 (row counts divisible by 16) each call's first-use verification keeps
+    the fused steps, and they give the unfused path's actions within bf16's bound."""
+    from pi0_torch import PI0Config, PI0ForActionGeneration
+    from pi0_torch.benchmark import example_batch
+
+    torch.manual_seed(0)
+    config = PI0Config.from_preset(preset, num_hidden_layers=2, vision_num_layers=2)
+    with CUDA:
+        model = PI0ForActionGeneration(config).to(torch.bfloat16).eval()
+    for batch in (1, 3, 8):
+        inputs = example_batch(config, 3, batch, CUDA, seed=batch)
+        if config.pi05:
+            inputs.pop("state")
+        noise = torch.randn(batch, config.action_horizon, config.action_dim, device=CUDA)
+        model.sampling_kernels = "auto"
+        fused = model.generate_actions(**inputs, noise=noise)
+        assert list(model._fused_refusals.values()) == [None], model._fused_refusals
+        model.sampling_kernels = "torch"
+        unfused = model.generate_actions(**inputs, noise=noise)
+        print(f"{preset} batch {batch}: fused against unfused {relative(fused, unfused):.2e}")
+        assert relative(fused, unfused) <= 3e-2
+
+
 def test_compiled_sampling_replays_as_one_graph(reference: OpenpiReference) -> None:
     """`compile_sampling(mode="reduce-overhead")`: compiled layers inside the hand-captured graph."""
     model, inputs, noise = on_cuda(reference, torch.bfloat16)

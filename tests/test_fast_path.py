@@ -21,7 +21,7 @@ from pi0_torch.benchmark import sample_on_meta
 from pi0_torch.masks import prefix_lm_mask
 from pi0_torch.inference import attention
 from pi0_torch.inference.attention import KeyRanges, attend, plan_attention
-from pi0_torch.inference.graphs import CapturedSampling, SamplingCaptureError, SamplingGraphs, _signature
+from pi0_torch.inference.graphs import CapturedSampling, SamplingCaptureError, SamplingGraphs, input_signature
 from pi0_torch.inference.layer_pass import CALL_MODULES, add_projection, expert_sampling_weights, layer_sampling_weights
 from pi0_torch.inference.layout import InputFacts, camera_inputs, compact_prefix, prefix_stream, rope_tables, suffix_stream
 from pi0_torch.inference.sampling import SamplingInputs, SamplingPlan
@@ -573,7 +573,7 @@ def test_a_graph_whose_first_replay_differs_from_eager_is_refused_and_its_plan_s
     torch.testing.assert_close(again, plain, rtol=0, atol=0)
     torch.testing.assert_close(kept, conditioned, rtol=0, atol=0)
     assert captures == [None, "conditioning"]  # the refused plan is not captured again
-    assert list(graphs.refused) == [(plain_plan, _signature(plain_inputs))] and len(graphs.graphs) == 1
+    assert list(graphs.refused) == [(plain_plan, input_signature(plain_inputs))] and len(graphs.graphs) == 1
     assert caplog.text.count("was refused") == 1, caplog.text
     assert re.search(r"the CUDA graph of sampling \(batch 1, 2 steps, \d+ prefix slots\) was refused: its first replay "
                      r"deviates from eager sampling by 2 of the largest action \(bound 0.0001\); that plan samples "

@@ -8,6 +8,11 @@ reason, only where triton cannot be imported.
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+from pathlib import Path
+
 import pytest
 import torch
 from conftest import OpenpiReference, relative_error
@@ -156,8 +161,7 @@ def test_fused_steps_equal_the_unfused_ones_and_the_reference_loop(preset: str, 
     """`sampling_kernels="triton"`: every Euler step in the fused kernels. The actions equal the unfused engine's and
     `sample_actions_reference`'s (float32 tightly; bf16 to its rounding: the fused epilogues round less often)."""
     torch.manual_seed(0)
-    config = PI0Config.from_preset(preset, image_size=28, vision_hidden_size=32, vision_intermediate_size=64,
-                                   vision_num_layers=1, vision_num_heads=2, max_token_len=12, action_horizon=10)
+    config = tiny_config(preset)
     model = PI0ForActionGeneration(config).eval().to(DEVICE, dtype)
     inputs = {name: value.to(DEVICE) for name, value in sampling_inputs(config, batch, seed=batch).items()}
     if config.pi05:
@@ -204,6 +208,64 @@ def test_auto_runs_the_fused_steps_only_where_they_apply(monkeypatch: pytest.Mon
     fused_pass.fused_kernels_reason.cache_clear()
 
 
+def tiny_config(preset: str = "pi0_small", **overrides) -> PI0Config:
+    return PI0Config.from_preset(preset, image_size=28, vision_hidden_size=32, vision_intermediate_size=64,
+                                 vision_num_layers=1, vision_num_heads=2, max_token_len=12, action_horizon=10, **overrides)
+
+
+def test_each_fused_plan_is_verified_against_the_unfused_path_on_its_first_call(monkeypatch: pytest.MonkeyPatch,
+                                                                                caplog: pytest.LogCaptureFixture) -> None:
+    """Triton compiles each kernel anew per class of arguments (row-count blocks, integers equal to 1 or divisible
+    by 16), so a new batch size or prompt layout launches variants the self-check never ran. The first call of each
+    plan and input shapes samples fused and unfused and compares; a verified plan runs fused from then on, one that
+    deviates or fails samples unfused (a warning; "triton" raises instead), and its actions are the unfused ones.
+    Eager, the first call returns the verification's own actions."""
+    torch.manual_seed(0)
+    model = PI0ForActionGeneration(tiny_config(num_hidden_layers=1)).eval().to(DEVICE)
+    inputs = {name: value.to(DEVICE) for name, value in sampling_inputs(model.config, 2, seed=4).items()}
+    model.sampling_kernels = "torch"
+    unfused = model.generate_actions(**inputs, num_steps=2)
+    samplings: list[bool] = []  # plan.fused of each `_sample`
+    sample = model._sample
+    monkeypatch.setattr(model, "_sample", lambda inputs, plan: samplings.append(plan.fused) or sample(inputs, plan))
+
+    model.sampling_kernels = "triton"
+    first = model.generate_actions(**inputs, num_steps=2)
+    assert samplings == [False, True]  # verified: unfused, then fused (the call's actions)
+    assert model.generate_actions(**inputs, num_steps=2).equal(first) and samplings[2:] == [True]
+    assert relative(first, unfused) <= 1e-5 and list(model._fused_refusals.values()) == [None]
+    model.generate_actions(**{name: value[:1] for name, value in inputs.items()}, num_steps=2)  # batch 1: verified anew
+    assert samplings[3:] == [False, True]
+
+    broken = kernels().norm_linear_euler_  # (an Euler update off by 1.5x: wrong actions, finite)
+    monkeypatch.setattr(kernels(), "norm_linear_euler_", lambda x_t, tokens, scale, bias, weight, dt, eps:
+                        broken(x_t, tokens, scale, bias, weight, 1.5 * dt, eps))
+    model.sampling_kernels = "triton"  # (clears the verdicts)
+    with pytest.raises(ValueError, match=r"sampling_kernels='triton' cannot run sampling \(batch 2, 2 steps, .*its actions "
+                                         r"deviate from the unfused path's by .* of the largest action \(bound 0.0001\)"):
+        model.generate_actions(**inputs, num_steps=2)
+
+    model.sampling_kernels = "auto"  # (as on CUDA in bf16, where "auto" fuses)
+    monkeypatch.setattr(model, "fused_steps_reason", lambda *args: None)
+    del samplings[:]
+    with caplog.at_level("WARNING", logger="pi0_torch.inference.sampling"):
+        refused = model.generate_actions(**inputs, num_steps=2)
+        assert model.generate_actions(**inputs, num_steps=2).equal(refused)
+    assert refused.equal(unfused) and samplings == [False, True, False]
+    assert [record.getMessage().split(":")[0] for record in caplog.records] == [
+        "the fused kernels were refused for sampling (batch 2, 2 steps, 19 prefix slots, fused steps)"], caplog.text
+
+    def out_of_resources(*args):  # (what triton raises for a variant larger than the device's shared memory)
+        raise RuntimeError("out of resource: shared memory, Required: 102400, Hardware limit: 101376")
+
+    monkeypatch.setattr(kernels(), "range_attention", out_of_resources)
+    model.sampling_kernels = "auto"
+    with caplog.at_level("WARNING", logger="pi0_torch.inference.sampling"):
+        assert model.generate_actions(**inputs, num_steps=2).equal(unfused)
+    assert list(model._fused_refusals.values()) == [
+        "it failed (RuntimeError: out of resource: shared memory, Required: 102400, Hardware limit: 101376)"]
+
+
 def test_the_fused_steps_run_few_kernels_per_layer_and_step() -> None:
     """Counted on the meta device at full size (no weights), bf16, 3 cameras, 48 prompt tokens, 10 steps, batch 1:
     each fused step is the action embedding, five ops per decoder layer and the fused final norm + Euler update; the
@@ -223,6 +285,20 @@ def test_the_fused_steps_run_few_kernels_per_layer_and_step() -> None:
         assert fused.ops["rope_cache_write"] == layers and fused.ops["geglu"] == layers - 1  # (the last layer: k/v only)
         assert fused.ops["add_layer_norm_"] == 2 * config.vision_num_layers == 2 * fused.ops["_addmm_activation"]
         assert fused.kernels <= ceiling < unfused.kernels, (preset, fused.kernels, unfused.kernels)
+
+
+def test_every_kernel_variant_fits_the_shared_memory_of_an_rtx_4090() -> None:
+    """benchmarks/kernel_resources.py compiles every kernel variant of full-size π0 / π0.5 sampling (batch 1 and 8)
+    and π0-FAST decoding for sm_89 on this CPU (triton's ptxas, no GPU): none needs more shared memory than one block
+    may have there (99 KiB, also the RTX 3090's and 5090's). The 64-row attention blocks of batch 8 took 100 KiB with
+    triton's default three stages of loads and would have failed to launch ("out of resource: shared memory")."""
+    script = Path(__file__).resolve().parents[1] / "benchmarks" / "kernel_resources.py"
+    environment = {name: value for name, value in os.environ.items() if name != "TRITON_INTERPRET"}
+    result = subprocess.run([sys.executable, str(script), "--arch", "89", "--batches", "1,8", "--check"],
+                            capture_output=True, text=True, env=environment, timeout=600)
+    assert result.returncode == 0 and "TOO LARGE" not in result.stdout, result.stdout + result.stderr[-3000:]
+    rows = [line.split() for line in result.stdout.splitlines() if line.startswith("_range_attention_kernel")]
+    assert ["64,", "32"] in [row[1:3] for row in rows], result.stdout  # (batch 8's blocks were compiled)
 
 
 def test_the_vision_pass_equals_siglip_and_runs_nine_kernels_per_layer() -> None:

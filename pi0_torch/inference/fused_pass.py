@@ -14,6 +14,12 @@ It computes what `ActionSampling.denoise_step` followed by `x_t += dt * velocity
 bf16 (the fused epilogues round once). Used for plain sampling on CUDA in bf16 / fp16 (`ActionSampling.sampling_kernels`,
 "auto"), after `fused_kernels_reason` found the kernels equal to their torch references at the model's own sizes on
 that device (once per device, dtype and sizes); real-time chunking's steps run unfused.
+
+Triton compiles a kernel anew for each class of its arguments (block sizes chosen by row count, an integer equal to
+1 or divisible by 16), so the batch sizes and prompt lengths of real calls launch variants no fixed self-check runs.
+Each plan and input shapes is therefore verified once, on its first call: `verify_fused_sampling` runs the call
+unfused and fused and compares the actions (`FUSED_TOLERANCE`); a plan that fails or deviates samples unfused from
+then on.
 """
 
 from __future__ import annotations
@@ -21,24 +27,30 @@ from __future__ import annotations
 import functools
 import logging
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
 import torch
 
 from pi0_torch.inference.attention import attend
+from pi0_torch.inference.graphs import relative_deviation
 from pi0_torch.inference.layer_pass import plain_linear, runs_extra_code, runs_its_weights
 from pi0_torch.kernels import ops, reference
 from pi0_torch.models.layers import JointDecoderLayer, NormParams, StepConditioning, StreamPass, rms_norm, rope_cos_sin
 
 if TYPE_CHECKING:
     from pi0_torch.inference.layer_pass import SamplingWeights
-    from pi0_torch.inference.sampling import ActionPass
+    from pi0_torch.inference.sampling import ActionPass, SamplingInputs, SamplingPlan
     from pi0_torch.models.modeling_pi0 import PI0ForActionGeneration
 
 logger = logging.getLogger(__name__)
 
 SELF_CHECK_TOLERANCE = {torch.float32: 1e-4, torch.bfloat16: 3e-2, torch.float16: 1e-2}  # max error / max |reference|
+# A plan's fused actions against its unfused ones on the same inputs, max |difference| / max |unfused action|
+# (`verify_fused_sampling`). The openpi fixtures' bounds (tests/test_parity.py): float32 1e-4; in bf16 / fp16 both
+# paths round, differently (the fused epilogues round less often), and each differs from float32 by 3.8e-3-5.5e-3
+# there, so 3e-2 leaves room for full-size models. A wrong kernel is off by the actions' own size.
+FUSED_TOLERANCE = {torch.float32: 1e-4, torch.bfloat16: 3e-2, torch.float16: 3e-2}
 
 
 def kernels_setting_reason(setting: str, name: str, device: torch.device, dtype: torch.dtype,
@@ -94,6 +106,23 @@ def fused_kernels_reason(device: torch.device, dtype: torch.dtype, width: int, h
     refusal is logged once, and the unfused path runs instead."""
     cases = lambda: _sampling_cases(device, dtype, width, heads, head_dim, mlp_width, action_dim, vision_width)  # noqa: E731
     return kernels_reason(device, dtype, cases, "sampling runs the unfused torch path")
+
+
+def verify_fused_sampling(model: PI0ForActionGeneration, inputs: SamplingInputs, plan: SamplingPlan) -> tuple[str | None, torch.Tensor]:
+    """Sample `inputs` with `plan`'s fused steps and unfused, eagerly: why the fused sampling is refused for inputs
+    of these shapes (None: it may run), and the actions to return (the fused ones where it may, else the unfused).
+    Refused where it raises (a kernel variant that does not compile or does not fit the device) or where its actions
+    deviate from the unfused ones by more than `FUSED_TOLERANCE` (a non-finite action deviates infinitely)."""
+    unfused = model._sample(inputs, replace(plan, fused=False))
+    try:
+        fused = model._sample(inputs, plan)
+    except Exception as error:  # (the inputs were checked and the unfused path ran them: what fails is the kernels)
+        return f"it failed ({type(error).__name__}: {str(error)[:300]})", unfused
+    deviation = relative_deviation(fused, unfused)
+    bound = FUSED_TOLERANCE.get(model.dtype, FUSED_TOLERANCE[torch.float32])
+    if deviation <= bound:
+        return None, fused
+    return f"its actions deviate from the unfused path's by {deviation:.3g} of the largest action (bound {bound:g})", unfused
 
 
 def kernels_reason(device: torch.device, dtype: torch.dtype, cases: Callable[[], list[tuple[str, Callable[[], tuple]]]],

@@ -56,7 +56,7 @@ class CapturedSampling:
     output: torch.Tensor  # where its replay writes the actions
 
 
-def _signature(inputs: SamplingInputs) -> tuple[Any, ...]:
+def input_signature(inputs: SamplingInputs) -> tuple[Any, ...]:
     """Shapes, dtypes and devices of the inputs (None for the absent ones): what a graph is specialised to."""
     return tuple(None if value is None else (tuple(value.shape), value.dtype, value.device) for value in _tensors(inputs))
 
@@ -109,7 +109,7 @@ class SamplingGraphs:
         if self.batch_sizes is not None and batch not in self.batch_sizes:
             raise ValueError(f"batch size {batch}: sampling is captured for batch sizes {list(self.batch_sizes)} only "
                              "(model.capture_sampling(batch_sizes=...))")
-        key = (plan, _signature(inputs))
+        key = (plan, input_signature(inputs))
         if key in self.refused:
             return self.model._sample(inputs, plan)
         captured = self.graphs.get(key)

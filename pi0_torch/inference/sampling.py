@@ -14,14 +14,17 @@ no cache tricks): the tests compare the two at every level.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+import logging
+from dataclasses import dataclass, replace
 from typing import Any
 
 import torch
 
 from pi0_torch.inference.attention import KERNELS, choose_kernel
 from pi0_torch.inference import fused_pass, vision_pass
-from pi0_torch.inference.fused_pass import FusedSteps, fused_kernels_reason, kernels_setting_reason, structural_reason
+from pi0_torch.inference.fused_pass import (FusedSteps, fused_kernels_reason, kernels_setting_reason, structural_reason,
+                                            verify_fused_sampling)
+from pi0_torch.inference.graphs import describe_plan, input_signature
 from pi0_torch.inference.layer_pass import CALL_MODULES, SamplingWeights, layer_sampling_weights, sampling_layer_pass
 from pi0_torch.inference.layout import PrefixLayout, camera_inputs, compact_prefix, prefix_stream, rope_tables, suffix_stream
 from pi0_torch.masks import aligned_key_count
@@ -31,6 +34,7 @@ from pi0_torch.models.rtc import DEFAULT_MAX_GUIDANCE, METHODS, ChunkPrefix, che
 from pi0_torch.utils.validation import check_int
 from pi0_torch.utils.validation import check_tensor as _check_tensor
 
+logger = logging.getLogger(__name__)
 
 
 @dataclass
@@ -106,6 +110,7 @@ class ActionSampling:
     _sampling_kernels: str = "auto"
     _graphs: Any = None  # `SamplingGraphs` once `capture_sampling` is called
     _device_times: dict[tuple[tuple[float, ...], torch.device], torch.Tensor]
+    _fused_refusals: dict[tuple[Any, ...], str | None]  # (plan, input signature) -> why its fused steps were refused
 
     @property
     def attention_kernel(self) -> str:
@@ -135,6 +140,7 @@ class ActionSampling:
         if kernels not in self.SAMPLING_KERNELS:
             raise ValueError(f"sampling_kernels must be one of {self.SAMPLING_KERNELS}, got {kernels!r}")
         self._sampling_kernels = kernels
+        self._fused_refusals.clear()
         if self._graphs is not None:
             self._graphs.clear()
 
@@ -150,6 +156,23 @@ class ActionSampling:
 
         unsupported = None if rtc_method is None else f"real-time chunking ({rtc_method}) steps run unfused"
         return kernels_setting_reason(self._sampling_kernels, "sampling_kernels", device, dtype, check, unsupported)
+
+    def _verified_plan(self, inputs: SamplingInputs, plan: SamplingPlan) -> tuple[SamplingPlan, torch.Tensor | None]:
+        """The fused `plan`, or it unfused where its fused steps are refused for these input shapes; and, on the first
+        call of each plan and input shapes, that call's actions. The verdict is taken on that first call
+        (`fused_pass.verify_fused_sampling`: unfused against fused, eagerly) and kept; a refusal is logged once, or
+        raised (`ValueError`) where `sampling_kernels` is "triton"."""
+        key = (plan, input_signature(inputs))
+        sampled = None
+        if key not in self._fused_refusals:
+            refusal, sampled = verify_fused_sampling(self, inputs, plan)
+            if refusal is not None and self._sampling_kernels == "triton":
+                raise ValueError(f"sampling_kernels='triton' cannot run {describe_plan(plan, inputs.noise.shape[0])}: {refusal}")
+            if refusal is not None:
+                logger.warning("the fused kernels were refused for %s: %s; it runs the torch path from now on",
+                               describe_plan(plan, inputs.noise.shape[0]), refusal)
+            self._fused_refusals[key] = refusal
+        return (plan if self._fused_refusals[key] is None else replace(plan, fused=False)), sampled
 
     def attention_kernel_for(self, device: torch.device, dtype: torch.dtype, differentiable: bool) -> str:
         """The attention kernel of a pass: SDPA where gradients flow through attention (training, RTC guidance; the
@@ -221,6 +244,10 @@ class ActionSampling:
         )
         fused = self.fused_steps_reason(pixel_values.device, self.dtype, method) is None
         plan = SamplingPlan(layout, times, method, float(rtc_max_guidance) if method == "guidance" else 0.0, fused)
+        if plan.fused:
+            plan, sampled = self._verified_plan(inputs, plan)
+            if sampled is not None and graphs is None:
+                return sampled  # (the first call's, from its verification)
         if self.sampling_compiled:
             allow_recompiles(self.RECOMPILE_LIMIT)
         return self._sample(inputs, plan) if graphs is None else graphs.run(inputs, plan)
@@ -526,6 +553,7 @@ class ActionSampling:
         if getattr(self, "_graphs", None) is not None:
             self._graphs.clear()
         self._device_times = {}
+        self._fused_refusals = {}
         return super()._apply(fn, *args, **kwargs)
 
 

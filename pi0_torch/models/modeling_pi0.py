@@ -199,6 +199,7 @@ class PI0ForActionGeneration(SiglipImageEmbedding, ActionSampling, PI0PreTrained
         self._attention_kernel = "auto"
         self._graphs: Any = None  # `SamplingGraphs` once `capture_sampling` is called
         self._device_times: dict[tuple[tuple[float, ...], torch.device], torch.Tensor] = {}
+        self._fused_refusals: dict[tuple[Any, ...], str | None] = {}
         self.post_init()
 
     # -- prefix: images and text ---------------------------------------------------------------------------------------
