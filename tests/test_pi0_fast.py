@@ -322,7 +322,17 @@ def test_fused_decoding_matches_openpi_and_the_modules(fast_reference: FastRefer
     steps = int(fast_reference["inputs/max_decoding_steps"])
     model.decoding_kernels = "triton"
     assert model.decoding_kernels_reason(torch.device("cpu"), torch.float32) is None
+    fast_decoding.decoding_kernels_reason.cache_clear()
     tokens = model.generate_tokens(**infer, max_new_tokens=steps)
+    cameras, text = infer["pixel_values"].shape[1], infer["input_ids"].shape[1]
+    slots = model.decoding_slots(cameras, text, steps)  # (the call's own shapes were checked)
+    assert fast_decoding.decoding_kernels_reason.cache_info().currsize == 1
+    assert fast_decoding.decoding_kernels_reason(torch.device("cpu"), torch.float32, model.config.num_attention_heads,
+                                                 model.config.head_dim, model.config.intermediate_size,
+                                                 tokens.shape[0], slots) is None
+    assert fast_decoding.decoding_kernels_reason.cache_info().hits == 1
+    with torch.no_grad():
+        assert model.prepare_decoding(*infer.values(), steps)[0].keys[0].shape[2] == slots
     np.testing.assert_array_equal(tokens.numpy(), fast_reference["fp32/output_tokens"])
 
     count, layers = 5, model.config.num_hidden_layers
@@ -368,6 +378,6 @@ def test_decoding_kernels_run_only_where_they_apply(monkeypatch: pytest.MonkeyPa
     fast_decoding.decoding_kernels_reason.cache_clear()
     broken = triton_kernels.range_attention
     monkeypatch.setattr(triton_kernels, "range_attention", lambda *args: broken(*args) * 1.5)
-    reason = fast_decoding.decoding_kernels_reason(cpu, torch.float32, 2, 32, 128)
+    reason = fast_decoding.decoding_kernels_reason(cpu, torch.float32, 2, 32, 128, 3, 600)
     assert reason.startswith("the fused kernel range_attention differs from its torch reference"), reason
     fast_decoding.decoding_kernels_reason.cache_clear()

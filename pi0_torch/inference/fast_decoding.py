@@ -11,8 +11,8 @@ included) and π0's fused GEMM kernels, tiled for the suffix's 50 rows, are not 
 
 It computes what `FastDecoderLayer` computes with a k/v buffer, with fewer roundings in bf16 (RoPE rounds once, the
 residual adds round with their GEMM). Used on CUDA in bf16 / fp16 (`PI0FastForActionGeneration.decoding_kernels`,
-"auto") after `decoding_kernels_reason` found the kernels equal to their torch references at the model's sizes on that
-device; the prefill runs the modules.
+"auto") after `decoding_kernels_reason` found the kernels equal to their torch references at the model's sizes and the
+call's batch size and cache length on that device; the prefill runs the modules.
 """
 
 from __future__ import annotations
@@ -42,31 +42,33 @@ def structural_reason(layers: Sequence[FastDecoderLayer], kv_heads: int, head_di
 
 
 @functools.lru_cache(maxsize=None)
-def decoding_kernels_reason(device: torch.device, dtype: torch.dtype, heads: int, head_dim: int, mlp_width: int) -> str | None:
-    """Why the fused ops of a decoded token may not run on `device` in `dtype` (None: they may): triton is unusable
-    there, or one of them, run once at these sizes on random inputs shaped as decoding's (one row per sample, the slot
-    a device value, a key range over a long cache that ends before the cache does), differs from its torch reference.
-    Checked once per device, dtype and sizes; a refusal is logged once."""
+def decoding_kernels_reason(device: torch.device, dtype: torch.dtype, heads: int, head_dim: int, mlp_width: int,
+                            batch: int, slots: int) -> str | None:
+    """Why the fused ops of a decoded token may not run on `device` in `dtype` for `batch` rows over caches of `slots`
+    (None: they may): triton is unusable there, or one of them, run once on random inputs shaped exactly as
+    decoding's (one row per sample, the slot a device value, a key range that ends before the cache does), differs
+    from its torch reference or fails. Triton compiles a kernel anew per class of its arguments (an integer equal to
+    1 or divisible by 16, the number of key parts), so each batch size and cache length is checked once; a refusal
+    is logged once."""
 
     def cases() -> list[tuple[str, Callable[[], tuple]]]:
         random = seeded_random(device, dtype)
-        slots, end = 1_100, 1_057  # (a full-size cache: its keys in 8 parts) the token decoded into slot end - 1
-        cos, sin = rope_cos_sin(torch.tensor([[200], [90]], device=device), head_dim, 10_000.0)  # [B, 1, H]
+        end = slots - 1 - slots // 32  # the token decoded into slot end - 1; the slots after it not written yet
+        positions = torch.arange(batch, device=device)[:, None] * 7 + end // 2  # [B, 1]
+        cos, sin = rope_cos_sin(positions, head_dim, 10_000.0)  # [B, 1, H]
+        first = torch.arange(batch, device=device) * 13 % max(1, end // 2)  # [B]
 
-        def cache(batch: int) -> torch.Tensor:  # [B, S, H]: the slots after the token's not written yet (NaN: never read)
+        def cache() -> torch.Tensor:  # [B, S, H]: NaN after the token's slot (never read)
             nan = torch.full((batch, slots - end, head_dim), float("nan"), device=device, dtype=dtype)
             return torch.cat([random(batch, end, head_dim), nan], dim=1)
 
-        first = torch.tensor([3, 140], device=device)
-        cases = [("geglu", lambda: (random(2, 2 * mlp_width),))]
-        for batch in (1, 2):  # (triton compiles a batch of one apart)
-            cases += [
-                ("rope_cache_write", lambda batch=batch: (random(batch, (heads + 2) * head_dim), cos[:batch], sin[:batch],
-                                                          cache(batch), cache(batch), 0, torch.tensor([end - 1], device=device))),
-                ("range_attention", lambda batch=batch: (random(batch, 1, heads, head_dim), cache(batch), cache(batch),
-                                                         first[:batch], torch.tensor([end], device=device))),
-            ]
-        return cases
+        return [
+            ("rope_cache_write", lambda: (random(batch, (heads + 2) * head_dim), cos, sin, cache(), cache(), 0,
+                                          torch.tensor([end - 1], device=device))),
+            ("range_attention", lambda: (random(batch, 1, heads, head_dim), cache(), cache(), first,
+                                         torch.tensor([end], device=device))),
+            ("geglu", lambda: (random(batch, 2 * mlp_width),)),
+        ]
 
     return kernels_reason(device, dtype, cases, "π0-FAST decodes through the modules")
 

@@ -278,7 +278,7 @@ class PI0FastForActionGeneration(SiglipImageEmbedding, PI0FastPreTrainedModel):
         mask, _ = prefix_lm_mask(valid, flags)
         tokens, valid, mask = left_to_right_align(tokens, valid, mask)
         batch, prefix_len = valid.shape
-        slots = aligned_key_count(prefix_len + max_new_tokens)  # (SDPA's masks cover a multiple of 8 keys; the rest masked)
+        slots = self.decoding_slots(pixel_values.shape[1], input_ids.shape[1], max_new_tokens)
         device = tokens.device
 
         buffer_shape = (batch, config.num_key_value_heads, slots, config.head_dim)
@@ -314,6 +314,11 @@ class PI0FastForActionGeneration(SiglipImageEmbedding, PI0FastPreTrainedModel):
             norm_scales=norm_scales(self.layers) if fused else None,
         )
         return cache, logits
+
+    def decoding_slots(self, cameras: int, text_length: int, max_new_tokens: int) -> int:
+        """The slots of `prepare_decoding`'s k/v caches: every camera's image tokens, the prompt, the new tokens,
+        rounded up to a multiple of 8 (SDPA's masks cover a multiple of 8 keys; the rest masked)."""
+        return aligned_key_count(cameras * self.config.tokens_per_image + text_length + max_new_tokens)
 
     def decode_step(self, cache: DecodingCache, token: torch.Tensor, step: torch.Tensor) -> torch.Tensor:
         """Feed the token decoded at `step` (long `[1]`) for every row (`token` long `[B]`): writes its k/v into the
@@ -362,7 +367,8 @@ class PI0FastForActionGeneration(SiglipImageEmbedding, PI0FastPreTrainedModel):
             raise ValueError(f"max_new_tokens must be >= 1, got {max_new_tokens}")
         if temperature < 0:
             raise ValueError(f"temperature must be >= 0, got {temperature}")
-        fused = self.decoding_kernels_reason(pixel_values.device, self.dtype) is None
+        slots = self.decoding_slots(pixel_values.shape[1], input_ids.shape[1], max_new_tokens)
+        fused = self.decoding_kernels_reason(pixel_values.device, self.dtype, pixel_values.shape[0], slots) is None
         inputs = (pixel_values, image_masks, input_ids, attention_mask, token_ar_mask, max_new_tokens, fused)
         if self._compiled_prefill is None:
             return self.decode(self.prepare_decoding, self.decode_step, inputs, temperature, generator)[0]
@@ -443,7 +449,8 @@ class PI0FastForActionGeneration(SiglipImageEmbedding, PI0FastPreTrainedModel):
         slots with no mask, see `pi0_torch.inference.fast_decoding`; on CUDA in bf16 / fp16 where the kernels passed
         their check against the torch references on that device; else "torch"), "torch" (the modules, SDPA with a
         mask; the CPU's path) or "triton" (the fused kernels wherever triton runs them, `TRITON_INTERPRET=1` included,
-        or a `ValueError` naming why not). The prefill always runs the modules."""
+        or a `ValueError` naming why not). The check runs once per batch size and cache length (triton compiles the
+        kernels per class of arguments). The prefill always runs the modules."""
         return self._decoding_kernels
 
     @decoding_kernels.setter
@@ -452,14 +459,15 @@ class PI0FastForActionGeneration(SiglipImageEmbedding, PI0FastPreTrainedModel):
             raise ValueError(f"decoding_kernels must be one of {self.DECODING_KERNELS}, got {kernels!r}")
         self._decoding_kernels = kernels
 
-    def decoding_kernels_reason(self, device: torch.device, dtype: torch.dtype) -> str | None:
-        """Why decoding on `device` in `dtype` does not run the fused kernels (None: it does); see `decoding_kernels`.
-        Raises `ValueError` with the reason where "triton" was asked for and cannot be had."""
+    def decoding_kernels_reason(self, device: torch.device, dtype: torch.dtype, batch: int = 1, slots: int = 1_104) -> str | None:
+        """Why decoding `batch` rows on `device` in `dtype` with caches of `slots` (`decoding_slots`; the default is a
+        full-size cache) does not run the fused kernels (None: it does); see `decoding_kernels`. Raises `ValueError`
+        with the reason where "triton" was asked for and cannot be had."""
         config = self.config
 
         def check() -> str | None:
             return structural_reason(self.layers, config.num_key_value_heads, config.head_dim) or decoding_kernels_reason(
-                device, dtype, config.num_attention_heads, config.head_dim, config.intermediate_size)
+                device, dtype, config.num_attention_heads, config.head_dim, config.intermediate_size, batch, slots)
 
         return kernels_setting_reason(self._decoding_kernels, "decoding_kernels", device, dtype, check)
 
