@@ -471,9 +471,10 @@ def range_attention(query, key_cache, value_cache, first, row_ends):
     out = query.new_empty(batch * tokens, heads * head_dim)
     rows = tokens * heads
     block_m = 16 if batch * rows <= 64 * 16 else 64  # (few rows: more programs over them)
-    # (64 rows with triton's default 3 stages of key/value loads take 100 KiB of shared memory on sm_80/89/120, more
-    # than a block may have on an RTX 3090/4090/5090 (99 KiB); 2 stages take 68 KiB there, 96 KiB on sm_90)
-    stages = 3 if block_m == 16 else 2
+    # 64 rows: with triton's default 3 stages of key/value loads they take 100 KiB of shared memory on sm_80/86/89/120,
+    # more than a block may have on an RTX 3090/4090/5090 (99 KiB): 2 stages take 68 KiB there (96 KiB on sm_90); and
+    # 8 warps, whose threads hold half as much of the [64, 256] accumulator each (4 spilled registers on sm_80/89/120)
+    stages, warps = (3, 4) if block_m == 16 else (2, 8)
     splits = key_splits(triton.cdiv(rows, block_m), batch, key_cache.shape[1])
     grid = (triton.cdiv(rows, block_m), batch, splits)
     partial = stats = out  # (not read with one part)
@@ -483,7 +484,7 @@ def range_attention(query, key_cache, value_cache, first, row_ends):
     _range_attention_kernel[grid](
         query, key_cache, value_cache, out, partial, stats, first, row_ends, batch, rows, heads, key_cache.shape[1],
         head_dim**-0.5, splits, HEAD_DIM=head_dim, DOT=dot_dtype(query.dtype), BLOCK_M=block_m, BLOCK_N=32,
-        SPLIT=splits > 1, num_stages=stages,
+        SPLIT=splits > 1, num_stages=stages, num_warps=warps,
     )
     if splits > 1:
         _combine_splits_kernel[(triton.cdiv(batch * rows, 8),)](partial, stats, out, batch * rows, splits,
