@@ -115,7 +115,7 @@ class DecodingCache:
 
     keys: list[torch.Tensor]  # per layer [B, K, S, H], prefix k/v in slots [0, P), decoded tokens' after
     values: list[torch.Tensor]
-    masks: torch.Tensor  # additive [B, 1, T, S]: row t = the slots the token decoded at step t sees
+    masks: torch.Tensor | None  # additive [B, 1, T, S]: row t = the slots the token decoded at step t sees (None: fused)
     cos: torch.Tensor  # [B, 1, T, H] RoPE of the decoded tokens' positions
     sin: torch.Tensor
     slots: torch.Tensor  # long [T]: slot of the token decoded at step t (P + t)
@@ -296,17 +296,20 @@ class PI0FastForActionGeneration(SiglipImageEmbedding, PI0FastPreTrainedModel):
 
         valid_count = valid.sum(dim=1, keepdim=True)  # [B, 1]
         steps = torch.arange(max_new_tokens, device=device)
-        slot_index = torch.arange(prefix_len + max_new_tokens, device=device)
         window_start = prefix_len - valid_count  # [B, 1]
-        sees = (slot_index[None, None, :] >= window_start[:, :, None]) & (
-            slot_index[None, None, :] <= (prefix_len + steps)[None, :, None]
-        )  # [B, T, S]
+        masks = None  # (the fused kernels attend over [first, slot] without one)
+        if not fused:
+            slot_index = torch.arange(prefix_len + max_new_tokens, device=device)
+            sees = (slot_index[None, None, :] >= window_start[:, :, None]) & (
+                slot_index[None, None, :] <= (prefix_len + steps)[None, :, None]
+            )  # [B, T, S]
+            masks = pad_keys(to_additive_mask(sees[:, None], tokens.dtype), slots)
         decode_positions = valid_count + config.decoding_position_offset + steps[None, :]  # [B, T]
         decode_cos, decode_sin = (table[:, None] for table in rope_cos_sin(decode_positions, config.head_dim, config.rope_theta))
         cache = DecodingCache(
             keys=keys,
             values=values,
-            masks=pad_keys(to_additive_mask(sees[:, None], tokens.dtype), slots),
+            masks=masks,
             cos=decode_cos,
             sin=decode_sin,
             slots=prefix_len + steps,
