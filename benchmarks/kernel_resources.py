@@ -112,8 +112,8 @@ def ptxas_usage(ptx: str, arch: int) -> str:
     finally:
         os.unlink(file.name)
     lines = [line.split("info    :")[-1].strip() for line in report.splitlines()]
-    registers = next((line.split("Used ")[1].split(" registers")[0] for line in lines if "registers" in line), "?")
-    spills = next((line.split(", ")[1].split(" bytes")[0] for line in lines if "spill stores" in line), "?")
+    registers = next((line.split("Used ")[1].split(" registers")[0] for line in lines if line.startswith("Used ")), "?")
+    spills = next((line.split(", ")[1].split(" bytes")[0] for line in lines if "bytes spill stores" in line), "?")
     return f"{registers:>9s} {spills:>12s}"
 
 
