@@ -47,6 +47,18 @@ def dot_dtype(dtype: torch.dtype) -> tl.dtype:
     return tl.float32 if INTERPRETING else _DOT_DTYPES[dtype]
 
 
+def cdiv(a: int, b: int) -> int:
+    """`ceil(a / b)` of host integers. (`triton.cdiv` and `triton.next_power_of_2` are constexpr functions that cost
+    about 16 µs of host time per call, more than a launch's own argument handling: a grid of two took a third of a
+    launcher's host time.)"""
+    return -(-a // b)
+
+
+def next_power_of_2(n: int) -> int:
+    """The smallest power of two >= `n` (>= 1), of a host integer (see `cdiv`)."""
+    return 1 << max(n - 1, 0).bit_length()
+
+
 def blocks(rows: int, columns: int) -> tuple[int, int, int]:
     """(BLOCK_M, BLOCK_N, BLOCK_K) of a GEMM with `rows` x `columns` outputs: one row block for the suffix's few rows,
     narrow column blocks so that a skinny GEMM still spreads over many programs (its cost is reading the weights)."""
@@ -391,12 +403,12 @@ def embed_actions(x_t, weight, bias, out_weight, out_bias):
     out = x_t.new_empty(rows, columns, dtype=weight.dtype)
     block_m, block_n, block_k = blocks(rows, columns)
     x_t = x_t.contiguous()  # (the engine's is)
-    _embed_actions_kernel[(triton.cdiv(rows, block_m), triton.cdiv(columns, block_n))](
+    _embed_actions_kernel[(cdiv(rows, block_m), cdiv(columns, block_n))](
         x_t, weight, bias, out_weight if out_weight is not None else weight, out_bias if out_bias is not None else bias, out,
         rows, action_dim, width, columns, weight.stride(0), weight.stride(1),
         out_weight.stride(0) if out_weight is not None else 0, out_weight.stride(1) if out_weight is not None else 0,
         TIME_MLP=out_weight is not None, DOT=dot_dtype(weight.dtype), BLOCK_M=block_m, BLOCK_N=block_n, BLOCK_K=block_k,
-        BLOCK_A=max(16, triton.next_power_of_2(action_dim)),
+        BLOCK_A=max(16, next_power_of_2(action_dim)),
     )
     return out
 
@@ -404,7 +416,7 @@ def embed_actions(x_t, weight, bias, out_weight, out_bias):
 def add_layer_norm_(residual, y, weight, bias, eps):
     rows, width = residual.shape
     out = torch.empty_like(residual)
-    block_d = triton.next_power_of_2(width)
+    block_d = next_power_of_2(width)
     _add_layer_norm_kernel[(rows,)](  # (a row per program: SigLIP's 1,152 columns are 9 to 18 values per thread)
         residual, y, weight, bias, out, rows, width, residual.stride(0), y.stride(0), eps,
         BLOCK_M=1, BLOCK_D=block_d, num_warps=4 if block_d <= 2048 else 8,
@@ -418,7 +430,7 @@ def norm_qkv_rope(x, scale, bias, weight, cos, sin, key_cache, value_cache, firs
     heads = weight.shape[1] // head_dim - 2
     q = x.new_empty(rows, heads * head_dim)
     block_m, block_n, block_k = blocks(rows, weight.shape[1] // 2)
-    grid = (triton.cdiv(rows, block_m), triton.cdiv((heads + 2) * head_dim // 2, block_n))
+    grid = (cdiv(rows, block_m), cdiv((heads + 2) * head_dim // 2, block_n))
     _norm_qkv_rope_kernel[grid](
         x, scale, bias if bias is not None else scale, weight, cos, sin, q, key_cache, value_cache,
         rows, width, rows // batch, first_slot, slots, x.stride(0), weight.stride(0), weight.stride(1),
@@ -434,7 +446,7 @@ def norm_gate_up_geglu(x, scale, bias, weight, eps):
     mlp_width = weight.shape[1] // 2
     out = x.new_empty(rows, mlp_width)
     block_m, block_n, block_k = blocks(rows, mlp_width)
-    grid = (triton.cdiv(rows, block_m), triton.cdiv(mlp_width, block_n))
+    grid = (cdiv(rows, block_m), cdiv(mlp_width, block_n))
     _norm_gate_up_geglu_kernel[grid](
         x, scale, bias if bias is not None else scale, weight, out, rows, width, mlp_width, x.stride(0),
         weight.stride(0), weight.stride(1), eps,
@@ -446,7 +458,7 @@ def norm_gate_up_geglu(x, scale, bias, weight, eps):
 def matmul_residual_(residual, y, weight, gate):
     rows, width = residual.shape
     block_m, block_n, block_k = blocks(rows, width)
-    grid = (triton.cdiv(rows, block_m), triton.cdiv(width, block_n))
+    grid = (cdiv(rows, block_m), cdiv(width, block_n))
     _matmul_residual_kernel[grid](
         residual, y, weight, gate if gate is not None else weight, rows, y.shape[1], width, residual.stride(0), y.stride(0),
         weight.stride(0), weight.stride(1),
@@ -458,7 +470,7 @@ def norm_linear_euler_(x_t, tokens, scale, bias, weight, dt, eps):
     rows, width = tokens.shape
     actions = weight.shape[1]
     block_m, block_n, block_k = blocks(rows, actions)
-    grid = (triton.cdiv(rows, block_m), triton.cdiv(actions, block_n))
+    grid = (cdiv(rows, block_m), cdiv(actions, block_n))
     _norm_linear_euler_kernel[grid](
         x_t, tokens, scale, bias, weight, rows, width, actions, tokens.stride(0), weight.stride(0), weight.stride(1),
         dt, eps, DOT=dot_dtype(weight.dtype), BLOCK_M=block_m, BLOCK_N=block_n, BLOCK_K=block_k,
@@ -475,8 +487,8 @@ def range_attention(query, key_cache, value_cache, first, row_ends):
     # more than a block may have on an RTX 3090/4090/5090 (99 KiB): 2 stages take 68 KiB there (96 KiB on sm_90); and
     # 8 warps, whose threads hold half as much of the [64, 256] accumulator each (4 spilled registers on sm_80/89/120)
     stages, warps = (3, 4) if block_m == 16 else (2, 8)
-    splits = key_splits(triton.cdiv(rows, block_m), batch, key_cache.shape[1])
-    grid = (triton.cdiv(rows, block_m), batch, splits)
+    splits = key_splits(cdiv(rows, block_m), batch, key_cache.shape[1])
+    grid = (cdiv(rows, block_m), batch, splits)
     partial = stats = out  # (not read with one part)
     if splits > 1:
         partial = query.new_empty(splits, batch * rows, head_dim, dtype=torch.float32)
@@ -487,7 +499,7 @@ def range_attention(query, key_cache, value_cache, first, row_ends):
         SPLIT=splits > 1, num_stages=stages, num_warps=warps,
     )
     if splits > 1:
-        _combine_splits_kernel[(triton.cdiv(batch * rows, 8),)](partial, stats, out, batch * rows, splits,
+        _combine_splits_kernel[(cdiv(batch * rows, 8),)](partial, stats, out, batch * rows, splits,
                                                                   HEAD_DIM=head_dim, BLOCK_M=8)
     return out
 
@@ -508,7 +520,7 @@ def rope_cache_write(qkv, cos, sin, key_cache, value_cache, first_slot, slot=Non
     heads = qkv.shape[1] // head_dim - 2
     q = qkv.new_empty(rows, heads * head_dim)
     block_m = 16
-    _rope_cache_write_kernel[(triton.cdiv(rows, block_m),)](
+    _rope_cache_write_kernel[(cdiv(rows, block_m),)](
         qkv, cos, sin, q, key_cache, value_cache, slot if slot is not None else cos, rows, rows // batch, first_slot,
         slots, qkv.stride(0), cos.stride(0) if cos.shape[0] > 1 else 0, cos.stride(1), HEADS=heads, HEAD_DIM=head_dim,
         HAS_SLOT=slot is not None, BLOCK_M=block_m,
@@ -520,7 +532,7 @@ def geglu(gate_up):
     rows, mlp_width = gate_up.shape[0], gate_up.shape[1] // 2
     out = gate_up.new_empty(rows, mlp_width)
     block_m, block_n = 16, 128
-    _geglu_kernel[(triton.cdiv(rows, block_m), triton.cdiv(mlp_width, block_n))](
+    _geglu_kernel[(cdiv(rows, block_m), cdiv(mlp_width, block_n))](
         gate_up, out, rows, mlp_width, gate_up.stride(0), BLOCK_M=block_m, BLOCK_N=block_n,
     )
     return out
