@@ -379,11 +379,12 @@ def _free(device: torch.device) -> None:
 
 @contextlib.contextmanager
 def _quiet_warnings() -> Iterator[None]:
-    """The rows' expected warnings (a refused guidance graph) are in the table; keep the output to the table."""
+    """The rows' expected warnings (a refused guidance graph, refused fused steps) are in the table; keep the output
+    to the table."""
     import logging
 
-    loggers = [logging.getLogger(name) for name in ("pi0_torch.inference.graphs", "pi0_torch.inference.fused_pass",
-                                                          "pi0_torch.inference.sampling")]
+    names = ("pi0_torch.inference.graphs", "pi0_torch.inference.fused_pass", "pi0_torch.inference.sampling")
+    loggers = [logging.getLogger(name) for name in names]
     levels = [logger.level for logger in loggers]
     for logger in loggers:
         logger.setLevel(logging.ERROR)

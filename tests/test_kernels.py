@@ -153,6 +153,11 @@ def sampling_inputs(config: PI0Config, batch: int, seed: int) -> dict[str, torch
     )
 
 
+def tiny_config(preset: str = "pi0_small", **overrides) -> PI0Config:
+    return PI0Config.from_preset(preset, image_size=28, vision_hidden_size=32, vision_intermediate_size=64,
+                                 vision_num_layers=1, vision_num_heads=2, max_token_len=12, action_horizon=10, **overrides)
+
+
 @pytest.mark.parametrize("preset", ["pi0_small", "pi05_small"])
 @pytest.mark.parametrize("dtype, tolerance", [(torch.float32, 1e-5), (torch.bfloat16, 3e-2)])
 @pytest.mark.parametrize("batch", [1, 3])
@@ -208,16 +213,11 @@ def test_auto_runs_the_fused_steps_only_where_they_apply(monkeypatch: pytest.Mon
     fused_pass.fused_kernels_reason.cache_clear()
 
 
-def tiny_config(preset: str = "pi0_small", **overrides) -> PI0Config:
-    return PI0Config.from_preset(preset, image_size=28, vision_hidden_size=32, vision_intermediate_size=64,
-                                 vision_num_layers=1, vision_num_heads=2, max_token_len=12, action_horizon=10, **overrides)
-
-
 def test_each_fused_plan_is_verified_against_the_unfused_path_on_its_first_call(monkeypatch: pytest.MonkeyPatch,
                                                                                 caplog: pytest.LogCaptureFixture) -> None:
     """Triton compiles each kernel anew per class of arguments (row-count blocks, integers equal to 1 or divisible
     by 16), so a new batch size or prompt layout launches variants the self-check never ran. The first call of each
-    plan and input shapes samples fused and unfused and compares; a verified plan runs fused from then on, one that
+    plan and input shapes samples unfused and fused and compares; a verified plan runs fused from then on, one that
     deviates or fails samples unfused (a warning; "triton" raises instead), and its actions are the unfused ones.
     Eager, the first call returns the verification's own actions."""
     torch.manual_seed(0)

@@ -13,8 +13,8 @@ no cache tricks): the tests compare the two at every level.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
 import logging
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from typing import Any
 
