@@ -7,7 +7,8 @@
 #     OUT=/tmp/gpu benchmarks/gpu_check.sh          # about 9 minutes on an H100 or H200
 #
 # 1. doctor: every sampling path at full size against its reference (the runbook's first line, docs/gpu.md);
-# 2. the GPU tests: tests/test_cuda.py and the fused kernels' tests on real kernels (tests/test_kernels.py);
+# 2. the GPU tests: tests/test_cuda.py (the fused steps' first-call verification at batch 1, 3 and 8 among them) and
+#    the fused kernels' tests on real kernels (tests/test_kernels.py);
 # 3. the benchmark: fused steps against the torch path, eager and graph, pi0 and pi0.5, batch 1 and 8, with each row's
 #    GPU activities and GPU time; real-time chunking rows;
 # 4. the GEMM shapes of a step: cuBLAS against the fused kernels, us and GB/s;
@@ -35,8 +36,9 @@ step() {  # step NAME SECONDS COMMAND...
 } 2>&1 | tee "$OUT/versions.log"
 
 step doctor 170 "$PY" -m pi0_torch.cli doctor --full --device cuda
-step gpu-tests 150 "$PY" -m pytest -q -p no:cacheprovider -m gpu tests/test_cuda.py
-step kernel-tests 60 "$PY" -m pytest -q -p no:cacheprovider tests/test_kernels.py
+step gpu-tests 170 "$PY" -m pytest -q -p no:cacheprovider -m gpu tests/test_cuda.py
+# (the shared-memory test compiles for an RTX 4090 on the CPU, as in CI; here the real launches say it)
+step kernel-tests 60 "$PY" -m pytest -q -p no:cacheprovider tests/test_kernels.py -k "not shared_memory"
 step bench 130 "$PY" -m pi0_torch.cli bench --device cuda --presets pi0,pi05 --dtypes bfloat16 --cameras 3 --batches 1,8 \
     --kernels auto,torch --rtc guidance,conditioning --repeats 10
 step gemms 40 "$PY" -m pi0_torch.cli bench --device cuda --skip-generate --gemms --presets pi0 --batches 1,8 --repeats 10
