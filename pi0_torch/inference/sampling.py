@@ -166,11 +166,11 @@ class ActionSampling:
         sampled = None
         if key not in self._fused_refusals:
             refusal, sampled = verify_fused_sampling(self, inputs, plan)
-            if refusal is not None and self._sampling_kernels == "triton":
-                raise ValueError(f"sampling_kernels='triton' cannot run {describe_plan(plan, inputs.noise.shape[0])}: {refusal}")
             if refusal is not None:
-                logger.warning("the fused kernels were refused for %s: %s; it runs the torch path from now on",
-                               describe_plan(plan, inputs.noise.shape[0]), refusal)
+                described = describe_plan(plan, inputs.noise.shape[0])
+                if self._sampling_kernels == "triton":
+                    raise ValueError(f"sampling_kernels='triton' cannot run {described}: {refusal}")
+                logger.warning("the fused kernels were refused for %s: %s; it runs the torch path from now on", described, refusal)
             self._fused_refusals[key] = refusal
         return (plan if self._fused_refusals[key] is None else replace(plan, fused=False)), sampled
 
