@@ -28,6 +28,7 @@ that torch 2.10's CUDA wheels pin. Block sizes come from `blocks` (small M: the 
 from __future__ import annotations
 
 import os
+from typing import NamedTuple
 
 import torch
 
@@ -58,38 +59,121 @@ def next_power_of_2(n: int) -> int:
     return 1 << max(n - 1, 0).bit_length()
 
 
-def blocks(rows: int, columns: int) -> tuple[int, int, int]:
-    """(BLOCK_M, BLOCK_N, BLOCK_K) of a GEMM with `rows` x `columns` outputs: one row block for the suffix's few rows,
-    narrow column blocks so that a skinny GEMM still spreads over many programs (its cost is reading the weights)."""
-    block_m = 16 if rows <= 16 else 32 if rows <= 32 else 64
-    block_n = 16 if columns <= 2048 else 32 if columns <= 8192 else 64
-    return block_m, block_n, 64
+class Blocks(NamedTuple):
+    """A GEMM kernel's tiling: rows, columns and depth per block, triton's warps and pipeline stages, and into how
+    many consecutive parts of the reduction (K) the programs of one output tile are cut (split-K: a skinny GEMM's
+    few output tiles then still spread over every multiprocessor)."""
+
+    m: int
+    n: int
+    k: int
+    warps: int = 4
+    stages: int = 3
+    splits: int = 1
 
 
-# -- the shared main loop ---------------------------------------------------------------------------------------------
+def blocks(rows: int, columns: int, depth: int) -> Blocks:
+    """The tiling of a GEMM with `rows` x `columns` outputs, `depth` deep (measured on an H200 with
+    `benchmarks/kernel_sweep.py`, the weights read from memory as in a step, not from L2; see docs/gpu.md).
+
+    A skinny GEMM's cost is reading its weights, so what matters is how many bytes are in flight: 64-row blocks (the
+    suffix's 50 rows of a sample in one), 4 pipeline stages, 128 deep where the reduction is at least twice the
+    output width (o- and down-projections), and about 128 programs: where the output tiles are fewer, split-K cuts
+    each tile's reduction into parts (`splits`, a power of two up to 8). Few rows (π0's state token) keep the small
+    blocks. With 4 stages a tiling takes at most 96 KiB of shared memory, which every GPU from sm_80 has."""
+    if rows <= 32:
+        return Blocks(16 if rows <= 16 else 32, 16 if columns <= 2048 else 32 if columns <= 8192 else 64, 64)
+    deep = depth >= 2 * columns
+    if rows <= 64:
+        block_n, block_k, warps, stages = (32, 128, 8, 4) if deep else (64, 64, 4, 3)
+    else:
+        block_n, block_k, warps, stages = 64, 128 if deep else 64, 4, 4
+    block_n = min(block_n, max(16, next_power_of_2(columns)))  # (the actions' 32 columns of the Euler step)
+    tiles = cdiv(rows, 64) * cdiv(columns, block_n)
+    splits = 1
+    while splits < 8 and tiles * splits * 2 <= 128:
+        splits *= 2
+    return Blocks(64, block_n, block_k, warps, stages, splits)
+
+
+# -- the shared main loop and split-K -----------------------------------------------------------------------------------
 
 
 @triton.jit
-def _matmul_tile(
-    x_ptr, stride_xm, scale_ptr, w_ptr, stride_wk, stride_wn, rows, columns, M, K, N,
-    BLOCK_M: tl.constexpr, BLOCK_N: tl.constexpr, BLOCK_K: tl.constexpr, NORM: tl.constexpr, DOT: tl.constexpr,
+def _matmul_tiles(
+    x_ptr, stride_xm, scale_ptr, w_ptr, stride_wk, stride_wn, rows, columns, second, M, k_start, k_stop, N,
+    BLOCK_M: tl.constexpr, BLOCK_N: tl.constexpr, BLOCK_K: tl.constexpr, NORM: tl.constexpr, PAIRED: tl.constexpr,
+    DOT: tl.constexpr,
 ):
-    """`x[rows] @ w[:, columns]` in float32 `[BLOCK_M, BLOCK_N]`; with NORM, `x` is scaled by `scale` first and each
-    row's sum of squares of `x` comes back too (for the RMSNorm applied afterwards; zeros without NORM)."""
+    """`x[rows, k_start:k_stop] @ w[k_start:k_stop, columns]` in float32 `[BLOCK_M, BLOCK_N]`, and with PAIRED the
+    same over the columns `columns + second` (read in the same pass over `x`; zeros without). With NORM, `x` is
+    scaled by `scale` first and each row's sum of squares of `x` comes back too (for the RMSNorm applied
+    afterwards; zeros without NORM). The dot is exact float32 ("ieee", not tf32) where its operands are float32."""
     acc = tl.zeros((BLOCK_M, BLOCK_N), dtype=tl.float32)
+    acc_second = tl.zeros((BLOCK_M, BLOCK_N), dtype=tl.float32)
     squares = tl.zeros((BLOCK_M,), dtype=tl.float32)
     row_ok = rows < M
     column_ok = columns < N
-    for k0 in range(0, K, BLOCK_K):
+    for k0 in range(k_start, k_stop, BLOCK_K):
         ks = k0 + tl.arange(0, BLOCK_K)
-        k_ok = ks < K
+        k_ok = ks < k_stop
         x = tl.load(x_ptr + rows[:, None] * stride_xm + ks[None, :], mask=row_ok[:, None] & k_ok[None, :], other=0.0).to(tl.float32)
         if NORM:
             squares += tl.sum(x * x, axis=1)
             x = x * tl.load(scale_ptr + ks, mask=k_ok, other=0.0).to(tl.float32)[None, :]
-        w = tl.load(w_ptr + ks[:, None] * stride_wk + columns[None, :] * stride_wn, mask=k_ok[:, None] & column_ok[None, :], other=0.0)
-        acc += tl.dot(x.to(DOT), w.to(DOT))
-    return acc, squares
+        x = x.to(DOT)
+        w_mask = k_ok[:, None] & column_ok[None, :]
+        w = tl.load(w_ptr + ks[:, None] * stride_wk + columns[None, :] * stride_wn, mask=w_mask, other=0.0)
+        acc += tl.dot(x, w.to(DOT), input_precision="ieee")
+        if PAIRED:
+            w = tl.load(w_ptr + ks[:, None] * stride_wk + (columns + second)[None, :] * stride_wn, mask=w_mask, other=0.0)
+            acc_second += tl.dot(x, w.to(DOT), input_precision="ieee")
+    return acc, acc_second, squares
+
+
+@triton.jit
+def _k_range(K, k_split, SPLIT: tl.constexpr):
+    """This program's part `[k_start, k_stop)` of the reduction: part `program_id(2)` of `k_split` columns with
+    SPLIT, else all of it."""
+    if SPLIT:
+        k_start = tl.program_id(2) * k_split
+        return k_start, tl.minimum(k_start + k_split, K)
+    return 0, K
+
+
+@triton.jit
+def _sum_splits(acc, acc_second, squares, workspace_ptr, counter_ptr, splits,
+                BLOCK_M: tl.constexpr, BLOCK_N: tl.constexpr, PAIRED: tl.constexpr, NORM: tl.constexpr):
+    """Split-K's reduction, in the same launch. Each program of an output tile stores its partial sums in
+    `workspace` and counts itself in on the tile's counter (after a barrier, so that every thread's stores come
+    first; acquire-release at GPU scope). The program that arrives last adds the parts up in split order (the same
+    sums whichever arrives last: deterministic), reading past the L1 cache, and puts the counter back to 0 for the
+    next launch. Returns the sums and whether this program is the last (only it writes the output)."""
+    tile = tl.program_id(0) * tl.num_programs(1) + tl.program_id(1)
+    size: tl.constexpr = 2 * BLOCK_M * BLOCK_N + BLOCK_M  # per part: acc, acc_second, squares
+    part = tl.arange(0, BLOCK_M)[:, None] * BLOCK_N + tl.arange(0, BLOCK_N)[None, :]
+    rows = tl.arange(0, BLOCK_M)
+    mine = workspace_ptr + (tile * splits + tl.program_id(2)) * size
+    tl.store(mine + part, acc)
+    if PAIRED:
+        tl.store(mine + BLOCK_M * BLOCK_N + part, acc_second)
+    if NORM:
+        tl.store(mine + 2 * BLOCK_M * BLOCK_N + rows, squares)
+    tl.debug_barrier()
+    last = tl.atomic_add(counter_ptr + tile, 1, sem="acq_rel") == splits - 1
+    tl.atomic_add(counter_ptr + tile, tl.where(last, -splits, 0), sem="relaxed")  # (the last: back to 0)
+    read = part < tl.where(last, BLOCK_M * BLOCK_N, 0)  # [BLOCK_M, BLOCK_N]: only the last program reads the parts
+    acc = tl.zeros((BLOCK_M, BLOCK_N), dtype=tl.float32)
+    acc_second = tl.zeros((BLOCK_M, BLOCK_N), dtype=tl.float32)
+    squares = tl.zeros((BLOCK_M,), dtype=tl.float32)
+    for split in range(splits):
+        parts = workspace_ptr + (tile * splits + split) * size
+        acc += tl.load(parts + part, mask=read, other=0.0, cache_modifier=".cg")
+        if PAIRED:
+            acc_second += tl.load(parts + BLOCK_M * BLOCK_N + part, mask=read, other=0.0, cache_modifier=".cg")
+        if NORM:
+            squares += tl.load(parts + 2 * BLOCK_M * BLOCK_N + rows, mask=rows < tl.where(last, BLOCK_M, 0), other=0.0, cache_modifier=".cg")
+    return acc, acc_second, squares, last
 
 
 @triton.jit
@@ -105,10 +189,10 @@ def _gelu_tanh(x):
 
 @triton.jit
 def _norm_qkv_rope_kernel(
-    x_ptr, scale_ptr, bias_ptr, w_ptr, cos_ptr, sin_ptr, q_ptr, key_ptr, value_ptr,
-    M, K, tokens, first_slot, slots, stride_xm, stride_wk, stride_wn, stride_cos_b, stride_cos_t, eps,
+    x_ptr, scale_ptr, bias_ptr, w_ptr, cos_ptr, sin_ptr, q_ptr, key_ptr, value_ptr, workspace_ptr, counter_ptr,
+    M, K, tokens, first_slot, slots, stride_xm, stride_wk, stride_wn, stride_cos_b, stride_cos_t, eps, k_split, splits,
     HEADS: tl.constexpr, HEAD_DIM: tl.constexpr, HAS_BIAS: tl.constexpr, DOT: tl.constexpr,
-    BLOCK_M: tl.constexpr, BLOCK_N: tl.constexpr, BLOCK_K: tl.constexpr,
+    BLOCK_M: tl.constexpr, BLOCK_N: tl.constexpr, BLOCK_K: tl.constexpr, SPLIT: tl.constexpr,
 ):
     half: tl.constexpr = HEAD_DIM // 2
     rows = tl.program_id(0) * BLOCK_M + tl.arange(0, BLOCK_M)
@@ -117,12 +201,15 @@ def _norm_qkv_rope_kernel(
     lane = pairs % half
     first_half = head * HEAD_DIM + lane
     n = (HEADS + 2) * HEAD_DIM
-    acc1, squares = _matmul_tile(x_ptr, stride_xm, scale_ptr, w_ptr, stride_wk, stride_wn, rows, first_half, M, K, n,
-                                 BLOCK_M, BLOCK_N, BLOCK_K, True, DOT)
-    acc2, _ = _matmul_tile(x_ptr, stride_xm, scale_ptr, w_ptr, stride_wk, stride_wn, rows, first_half + half, M, K, n,
-                           BLOCK_M, BLOCK_N, BLOCK_K, True, DOT)
-    inverse = 1.0 / tl.sqrt(squares / K + eps)
+    k_start, k_stop = _k_range(K, k_split, SPLIT)
+    acc1, acc2, squares = _matmul_tiles(x_ptr, stride_xm, scale_ptr, w_ptr, stride_wk, stride_wn, rows, first_half, half,
+                                        M, k_start, k_stop, n, BLOCK_M, BLOCK_N, BLOCK_K, True, True, DOT)
     pair_ok = pairs < (HEADS + 2) * half
+    if SPLIT:
+        acc1, acc2, squares, last = _sum_splits(acc1, acc2, squares, workspace_ptr, counter_ptr, splits, BLOCK_M, BLOCK_N,
+                                                True, True)
+        pair_ok = pairs < tl.where(last, (HEADS + 2) * half, 0)  # (only the last program writes)
+    inverse = 1.0 / tl.sqrt(squares / K + eps)
     a1 = acc1 * inverse[:, None]
     a2 = acc2 * inverse[:, None]
     if HAS_BIAS:
@@ -153,17 +240,21 @@ def _norm_qkv_rope_kernel(
 
 @triton.jit
 def _norm_gate_up_geglu_kernel(
-    x_ptr, scale_ptr, bias_ptr, w_ptr, out_ptr, M, K, F, stride_xm, stride_wk, stride_wn, eps,
-    HAS_BIAS: tl.constexpr, DOT: tl.constexpr, BLOCK_M: tl.constexpr, BLOCK_N: tl.constexpr, BLOCK_K: tl.constexpr,
+    x_ptr, scale_ptr, bias_ptr, w_ptr, out_ptr, workspace_ptr, counter_ptr, M, K, F, stride_xm, stride_wk, stride_wn, eps,
+    k_split, splits, HAS_BIAS: tl.constexpr, DOT: tl.constexpr, BLOCK_M: tl.constexpr, BLOCK_N: tl.constexpr,
+    BLOCK_K: tl.constexpr, SPLIT: tl.constexpr,
 ):
     rows = tl.program_id(0) * BLOCK_M + tl.arange(0, BLOCK_M)
     columns = tl.program_id(1) * BLOCK_N + tl.arange(0, BLOCK_N)  # gate column c pairs with up column F + c
-    gate, squares = _matmul_tile(x_ptr, stride_xm, scale_ptr, w_ptr, stride_wk, stride_wn, rows, columns, M, K, F,
-                                 BLOCK_M, BLOCK_N, BLOCK_K, True, DOT)
-    up, _ = _matmul_tile(x_ptr, stride_xm, scale_ptr, w_ptr + F * stride_wn, stride_wk, stride_wn, rows, columns, M, K, F,
-                         BLOCK_M, BLOCK_N, BLOCK_K, True, DOT)
-    inverse = (1.0 / tl.sqrt(squares / K + eps))[:, None]
+    k_start, k_stop = _k_range(K, k_split, SPLIT)
+    gate, up, squares = _matmul_tiles(x_ptr, stride_xm, scale_ptr, w_ptr, stride_wk, stride_wn, rows, columns, F, M,
+                                      k_start, k_stop, F, BLOCK_M, BLOCK_N, BLOCK_K, True, True, DOT)
     column_ok = columns < F
+    if SPLIT:
+        gate, up, squares, last = _sum_splits(gate, up, squares, workspace_ptr, counter_ptr, splits, BLOCK_M, BLOCK_N,
+                                              True, True)
+        column_ok = columns < tl.where(last, F, 0)  # (only the last program writes)
+    inverse = (1.0 / tl.sqrt(squares / K + eps))[:, None]
     gate = gate * inverse
     up = up * inverse
     if HAS_BIAS:
@@ -176,14 +267,20 @@ def _norm_gate_up_geglu_kernel(
 
 @triton.jit
 def _matmul_residual_kernel(
-    residual_ptr, y_ptr, w_ptr, gate_ptr, M, K, N, stride_rm, stride_ym, stride_wk, stride_wn,
-    HAS_GATE: tl.constexpr, DOT: tl.constexpr, BLOCK_M: tl.constexpr, BLOCK_N: tl.constexpr, BLOCK_K: tl.constexpr,
+    residual_ptr, y_ptr, w_ptr, gate_ptr, workspace_ptr, counter_ptr, M, K, N, stride_rm, stride_ym, stride_wk, stride_wn,
+    k_split, splits, HAS_GATE: tl.constexpr, DOT: tl.constexpr, BLOCK_M: tl.constexpr, BLOCK_N: tl.constexpr,
+    BLOCK_K: tl.constexpr, SPLIT: tl.constexpr,
 ):
     rows = tl.program_id(0) * BLOCK_M + tl.arange(0, BLOCK_M)
     columns = tl.program_id(1) * BLOCK_N + tl.arange(0, BLOCK_N)
-    acc, _ = _matmul_tile(y_ptr, stride_ym, y_ptr, w_ptr, stride_wk, stride_wn, rows, columns, M, K, N,
-                          BLOCK_M, BLOCK_N, BLOCK_K, False, DOT)
+    k_start, k_stop = _k_range(K, k_split, SPLIT)
+    acc, unused, no_squares = _matmul_tiles(y_ptr, stride_ym, y_ptr, w_ptr, stride_wk, stride_wn, rows, columns, 0, M,
+                                            k_start, k_stop, N, BLOCK_M, BLOCK_N, BLOCK_K, False, False, DOT)
     column_ok = columns < N
+    if SPLIT:
+        acc, unused, no_squares, last = _sum_splits(acc, unused, no_squares, workspace_ptr, counter_ptr, splits, BLOCK_M,
+                                                    BLOCK_N, False, False)
+        column_ok = columns < tl.where(last, N, 0)  # (only the last program writes)
     if HAS_GATE:
         acc = acc * tl.load(gate_ptr + columns, mask=column_ok, other=0.0).to(tl.float32)[None, :]
     ok = (rows < M)[:, None] & column_ok[None, :]
@@ -199,8 +296,8 @@ def _norm_linear_euler_kernel(
 ):
     rows = tl.program_id(0) * BLOCK_M + tl.arange(0, BLOCK_M)
     columns = tl.program_id(1) * BLOCK_N + tl.arange(0, BLOCK_N)
-    acc, squares = _matmul_tile(tokens_ptr, stride_tm, scale_ptr, w_ptr, stride_wk, stride_wn, rows, columns, M, K, N,
-                                BLOCK_M, BLOCK_N, BLOCK_K, True, DOT)
+    acc, _, squares = _matmul_tiles(tokens_ptr, stride_tm, scale_ptr, w_ptr, stride_wk, stride_wn, rows, columns, 0, M, 0,
+                                    K, N, BLOCK_M, BLOCK_N, BLOCK_K, True, False, DOT)
     column_ok = columns < N
     velocity = acc / tl.sqrt(squares / K + eps)[:, None] + tl.load(bias_ptr + columns, mask=column_ok, other=0.0).to(tl.float32)[None, :]
     ok = (rows < M)[:, None] & column_ok[None, :]
@@ -227,14 +324,14 @@ def _embed_actions_kernel(
             ks = k0 + tl.arange(0, BLOCK_K)
             k_ok = ks < D
             w = tl.load(w_ptr + dims[:, None] * stride_wa + ks[None, :] * stride_wd, mask=(dims < A)[:, None] & k_ok[None, :], other=0.0)
-            hidden = tl.dot(x, w.to(DOT)) + tl.load(bias_ptr + ks, mask=k_ok, other=0.0).to(tl.float32)[None, :]
+            hidden = tl.dot(x, w.to(DOT), input_precision="ieee") + tl.load(bias_ptr + ks, mask=k_ok, other=0.0).to(tl.float32)[None, :]
             hidden = hidden / (1.0 + tl.exp(-hidden))  # SiLU
             out_w = tl.load(out_w_ptr + ks[:, None] * stride_ok + columns[None, :] * stride_on, mask=k_ok[:, None] & column_ok[None, :], other=0.0)
-            acc += tl.dot(hidden.to(out_w_ptr.dtype.element_ty).to(DOT), out_w.to(DOT))
+            acc += tl.dot(hidden.to(out_w_ptr.dtype.element_ty).to(DOT), out_w.to(DOT), input_precision="ieee")
         acc += tl.load(out_bias_ptr + columns, mask=column_ok, other=0.0).to(tl.float32)[None, :]
     else:  # x W + b
         w = tl.load(w_ptr + dims[:, None] * stride_wa + columns[None, :] * stride_wd, mask=(dims < A)[:, None] & column_ok[None, :], other=0.0)
-        acc = tl.dot(x, w.to(DOT)) + tl.load(bias_ptr + columns, mask=column_ok, other=0.0).to(tl.float32)[None, :]
+        acc = tl.dot(x, w.to(DOT), input_precision="ieee") + tl.load(bias_ptr + columns, mask=column_ok, other=0.0).to(tl.float32)[None, :]
     ok = row_ok[:, None] & column_ok[None, :]
     tl.store(out_ptr + rows[:, None] * N + columns[None, :], acc.to(out_ptr.dtype.element_ty), mask=ok)
 
@@ -302,14 +399,14 @@ def _range_attention_kernel(
         keys = k0 + tl.arange(0, BLOCK_N)
         key_ok = keys < stop
         k = tl.load(key_ptr + cache + keys[:, None] * HEAD_DIM + dims[None, :], mask=key_ok[:, None], other=0.0)
-        logits = tl.dot(q.to(DOT), tl.trans(k.to(DOT))) * scale  # [BLOCK_M, BLOCK_N]
+        logits = tl.dot(q.to(DOT), tl.trans(k.to(DOT)), input_precision="ieee") * scale  # [BLOCK_M, BLOCK_N]
         visible = (keys[None, :] < ends[:, None]) & key_ok[None, :]
         logits = tl.where(visible, logits, -1.0e30)
         new_max = tl.maximum(running_max, tl.max(logits, axis=1))
         weights = tl.where(visible, tl.exp(logits - new_max[:, None]), 0.0)
         correction = tl.exp(running_max - new_max)
         v = tl.load(value_ptr + cache + keys[:, None] * HEAD_DIM + dims[None, :], mask=key_ok[:, None], other=0.0)
-        acc = acc * correction[:, None] + tl.dot(weights.to(DOT), v.to(DOT))
+        acc = acc * correction[:, None] + tl.dot(weights.to(DOT), v.to(DOT), input_precision="ieee")
         total = total * correction + tl.sum(weights, axis=1)
         running_max = new_max
     if SPLIT:
@@ -395,19 +492,39 @@ def _geglu_kernel(gate_up_ptr, out_ptr, M, F, stride_gm, BLOCK_M: tl.constexpr, 
 # -- launchers (same arguments and results as `pi0_torch.kernels.reference`) ------------------------------------------
 
 
+COUNTER_SLOTS = 4_096  # output tiles one split-K launch may have
+_counters: dict[torch.device, torch.Tensor] = {}  # per device: split-K's arrival counters, each back at 0 after a launch
+
+
+def split_k(x: torch.Tensor, tile: Blocks, tiles: int, depth: int) -> tuple[Blocks, torch.Tensor, torch.Tensor, int]:
+    """Split-K's buffers for a launch of `tiles` output tiles over a reduction `depth` deep: (the tiling, with one
+    part where split-K cannot run; the float32 workspace of the parts' sums; the device's arrival counters; the
+    columns of `depth` per part, a whole number of `tile.k`). The counters are made once per device, zeroed, outside
+    any CUDA graph capture (the graph keeps their address): a launch captured before they exist runs in one part."""
+    if tile.splits > 1:
+        counters = _counters.get(x.device)
+        if counters is None and not (x.is_cuda and torch.cuda.is_current_stream_capturing()):
+            counters = _counters[x.device] = torch.zeros(COUNTER_SLOTS, dtype=torch.int32, device=x.device)
+        if counters is not None and tiles <= COUNTER_SLOTS:
+            workspace = x.new_empty(tiles * tile.splits * (2 * tile.m * tile.n + tile.m), dtype=torch.float32)
+            return tile, workspace, counters, cdiv(cdiv(depth, tile.splits), tile.k) * tile.k
+    return tile._replace(splits=1), x, x, depth
+
+
+
 def embed_actions(x_t, weight, bias, out_weight, out_bias):
     rows, action_dim = x_t.shape[0] * x_t.shape[1], x_t.shape[2]
     width = weight.shape[1]
     columns = width if out_weight is None else out_weight.shape[1]
     out = x_t.new_empty(rows, columns, dtype=weight.dtype)
-    block_m, block_n, block_k = blocks(rows, columns)
+    tile = blocks(rows, columns, action_dim if out_weight is None else width)
     x_t = x_t.contiguous()  # (the engine's is)
-    _embed_actions_kernel[(cdiv(rows, block_m), cdiv(columns, block_n))](
+    _embed_actions_kernel[(cdiv(rows, tile.m), cdiv(columns, tile.n))](
         x_t, weight, bias, out_weight if out_weight is not None else weight, out_bias if out_bias is not None else bias, out,
         rows, action_dim, width, columns, weight.stride(0), weight.stride(1),
         out_weight.stride(0) if out_weight is not None else 0, out_weight.stride(1) if out_weight is not None else 0,
-        TIME_MLP=out_weight is not None, DOT=dot_dtype(weight.dtype), BLOCK_M=block_m, BLOCK_N=block_n, BLOCK_K=block_k,
-        BLOCK_A=max(16, next_power_of_2(action_dim)),
+        TIME_MLP=out_weight is not None, DOT=dot_dtype(weight.dtype), BLOCK_M=tile.m, BLOCK_N=tile.n, BLOCK_K=tile.k,
+        BLOCK_A=max(16, next_power_of_2(action_dim)), num_warps=tile.warps, num_stages=tile.stages,
     )
     return out
 
@@ -428,14 +545,16 @@ def norm_qkv_rope(x, scale, bias, weight, cos, sin, key_cache, value_cache, firs
     batch, slots, head_dim = key_cache.shape
     heads = weight.shape[1] // head_dim - 2
     q = x.new_empty(rows, heads * head_dim)
-    block_m, block_n, block_k = blocks(rows, weight.shape[1] // 2)
-    grid = (cdiv(rows, block_m), cdiv((heads + 2) * head_dim // 2, block_n))
-    _norm_qkv_rope_kernel[grid](
-        x, scale, bias if bias is not None else scale, weight, cos, sin, q, key_cache, value_cache,
+    tile = blocks(rows, weight.shape[1] // 2, width)
+    grid = (cdiv(rows, tile.m), cdiv((heads + 2) * head_dim // 2, tile.n))
+    tile, workspace, counters, k_split = split_k(x, tile, grid[0] * grid[1], width)
+    _norm_qkv_rope_kernel[(*grid, tile.splits)](
+        x, scale, bias if bias is not None else scale, weight, cos, sin, q, key_cache, value_cache, workspace, counters,
         rows, width, rows // batch, first_slot, slots, x.stride(0), weight.stride(0), weight.stride(1),
-        cos.stride(0) if cos.shape[0] > 1 else 0, cos.stride(1), eps,
+        cos.stride(0) if cos.shape[0] > 1 else 0, cos.stride(1), eps, k_split, tile.splits,
         HEADS=heads, HEAD_DIM=head_dim, HAS_BIAS=bias is not None, DOT=dot_dtype(weight.dtype),
-        BLOCK_M=block_m, BLOCK_N=block_n, BLOCK_K=block_k,
+        BLOCK_M=tile.m, BLOCK_N=tile.n, BLOCK_K=tile.k, SPLIT=tile.splits > 1, num_warps=tile.warps,
+        num_stages=tile.stages,
     )
     return q
 
@@ -444,35 +563,40 @@ def norm_gate_up_geglu(x, scale, bias, weight, eps):
     rows, width = x.shape
     mlp_width = weight.shape[1] // 2
     out = x.new_empty(rows, mlp_width)
-    block_m, block_n, block_k = blocks(rows, mlp_width)
-    grid = (cdiv(rows, block_m), cdiv(mlp_width, block_n))
-    _norm_gate_up_geglu_kernel[grid](
-        x, scale, bias if bias is not None else scale, weight, out, rows, width, mlp_width, x.stride(0),
-        weight.stride(0), weight.stride(1), eps,
-        HAS_BIAS=bias is not None, DOT=dot_dtype(weight.dtype), BLOCK_M=block_m, BLOCK_N=block_n, BLOCK_K=block_k,
+    tile = blocks(rows, mlp_width, width)
+    grid = (cdiv(rows, tile.m), cdiv(mlp_width, tile.n))
+    tile, workspace, counters, k_split = split_k(x, tile, grid[0] * grid[1], width)
+    _norm_gate_up_geglu_kernel[(*grid, tile.splits)](
+        x, scale, bias if bias is not None else scale, weight, out, workspace, counters, rows, width, mlp_width,
+        x.stride(0), weight.stride(0), weight.stride(1), eps, k_split, tile.splits,
+        HAS_BIAS=bias is not None, DOT=dot_dtype(weight.dtype), BLOCK_M=tile.m, BLOCK_N=tile.n, BLOCK_K=tile.k,
+        SPLIT=tile.splits > 1, num_warps=tile.warps, num_stages=tile.stages,
     )
     return out
 
 
 def matmul_residual_(residual, y, weight, gate):
     rows, width = residual.shape
-    block_m, block_n, block_k = blocks(rows, width)
-    grid = (cdiv(rows, block_m), cdiv(width, block_n))
-    _matmul_residual_kernel[grid](
-        residual, y, weight, gate if gate is not None else weight, rows, y.shape[1], width, residual.stride(0), y.stride(0),
-        weight.stride(0), weight.stride(1),
-        HAS_GATE=gate is not None, DOT=dot_dtype(weight.dtype), BLOCK_M=block_m, BLOCK_N=block_n, BLOCK_K=block_k,
+    tile = blocks(rows, width, y.shape[1])
+    grid = (cdiv(rows, tile.m), cdiv(width, tile.n))
+    tile, workspace, counters, k_split = split_k(y, tile, grid[0] * grid[1], y.shape[1])
+    _matmul_residual_kernel[(*grid, tile.splits)](
+        residual, y, weight, gate if gate is not None else weight, workspace, counters, rows, y.shape[1], width,
+        residual.stride(0), y.stride(0), weight.stride(0), weight.stride(1), k_split, tile.splits,
+        HAS_GATE=gate is not None, DOT=dot_dtype(weight.dtype), BLOCK_M=tile.m, BLOCK_N=tile.n, BLOCK_K=tile.k,
+        SPLIT=tile.splits > 1, num_warps=tile.warps, num_stages=tile.stages,
     )
 
 
 def norm_linear_euler_(x_t, tokens, scale, bias, weight, dt, eps):
     rows, width = tokens.shape
     actions = weight.shape[1]
-    block_m, block_n, block_k = blocks(rows, actions)
-    grid = (cdiv(rows, block_m), cdiv(actions, block_n))
+    tile = blocks(rows, actions, width)
+    grid = (cdiv(rows, tile.m), cdiv(actions, tile.n))
     _norm_linear_euler_kernel[grid](
         x_t, tokens, scale, bias, weight, rows, width, actions, tokens.stride(0), weight.stride(0), weight.stride(1),
-        dt, eps, DOT=dot_dtype(weight.dtype), BLOCK_M=block_m, BLOCK_N=block_n, BLOCK_K=block_k,
+        dt, eps, DOT=dot_dtype(weight.dtype), BLOCK_M=tile.m, BLOCK_N=tile.n, BLOCK_K=tile.k, num_warps=tile.warps,
+        num_stages=tile.stages,
     )
 
 
@@ -481,21 +605,17 @@ def range_attention(query, key_cache, value_cache, first, row_ends):
     batch, tokens, heads, head_dim = query.shape
     out = query.new_empty(batch * tokens, heads * head_dim)
     rows = tokens * heads
-    block_m = 16 if batch * rows <= 64 * 16 else 64  # (few rows: more programs over them)
-    # 64 rows: with triton's default 3 stages of key/value loads they take 100 KiB of shared memory on sm_80/86/89/120,
-    # more than a block may have on an RTX 3090/4090/5090 (99 KiB): 2 stages take 68 KiB there (96 KiB on sm_90); and
-    # 8 warps, whose threads hold half as much of the [64, 256] accumulator each (4 spilled registers on sm_80/89/120)
-    stages, warps = (3, 4) if block_m == 16 else (2, 8)
-    splits = key_splits(cdiv(rows, block_m), batch, key_cache.shape[1])
-    grid = (cdiv(rows, block_m), batch, splits)
+    tile = attention_blocks(rows, batch, key_cache.shape[1])
+    splits = tile.splits
+    grid = (cdiv(rows, tile.m), batch, splits)
     partial = stats = out  # (not read with one part)
     if splits > 1:
         partial = query.new_empty(splits, batch * rows, head_dim, dtype=torch.float32)
         stats = query.new_empty(2, splits, batch * rows, dtype=torch.float32)
     _range_attention_kernel[grid](
         query, key_cache, value_cache, out, partial, stats, first, row_ends, batch, rows, heads, key_cache.shape[1],
-        head_dim**-0.5, splits, HEAD_DIM=head_dim, DOT=dot_dtype(query.dtype), BLOCK_M=block_m, BLOCK_N=32,
-        SPLIT=splits > 1, num_stages=stages, num_warps=warps,
+        head_dim**-0.5, splits, HEAD_DIM=head_dim, DOT=dot_dtype(query.dtype), BLOCK_M=tile.m, BLOCK_N=tile.n,
+        SPLIT=splits > 1, num_stages=tile.stages, num_warps=tile.warps,
     )
     if splits > 1:
         _combine_splits_kernel[(cdiv(batch * rows, 8),)](partial, stats, out, batch * rows, splits,
@@ -503,14 +623,37 @@ def range_attention(query, key_cache, value_cache, first, row_ends):
     return out
 
 
+class AttentionBlocks(NamedTuple):
+    """`range_attention`'s tiling: folded query rows and keys per block, triton's warps and stages, key parts."""
+
+    m: int
+    n: int
+    warps: int
+    stages: int
+    splits: int
+
+
+def attention_blocks(rows: int, batch: int, slots: int) -> AttentionBlocks:
+    """The tiling of `range_attention` for `rows` folded query rows per sample over a cache of `slots`.
+
+    16-row blocks where the rows are few (more programs over them), else 64, and the keys cut into parts
+    (`key_splits`). The 64-row blocks load keys and values in 2 stages: with triton's default 3 they take 100 KiB of
+    shared memory on sm_80/86/89/120, more than a block may have on an RTX 3090/4090/5090 (99 KiB); 2 take 68 KiB
+    there (96 KiB on sm_90). Warps and key blocks as measured fastest on an H200 (`benchmarks/kernel_sweep.py`)."""
+    if batch * rows <= 64 * 16:
+        return AttentionBlocks(16, 32, 4, 3, key_splits(cdiv(rows, 16), batch, slots))  # (64 keys: 138 KiB, sm_90's)
+    return AttentionBlocks(64, 32, 4, 2, key_splits(cdiv(rows, 64), batch, slots))
+
+
 def key_splits(row_blocks: int, batch: int, slots: int) -> int:
-    """Into how many parts `range_attention` cuts the keys: one part per 128 slots of the cache, at most 16, where a
-    sample's query rows are one block and the samples few (a decoded token, π0's state token: one program would read
-    a thousand keys alone; the parts' combination costs a second, small launch), else one (the action tokens' rows
-    already make several programs per sample)."""
-    if row_blocks > 1 or batch >= 32 or slots < 256:
+    """Into how many parts `range_attention` cuts each sample's keys (a second, small launch combines them), where
+    the samples are fewer than 32: one part per 128 slots of the cache, at most 8 where a sample's query rows are one
+    block (a decoded token, π0's state token), at most 4 where they are several (the action tokens). Measured on an
+    H200, full-size π0 (867 slots): the action tokens' attention took 29.5 µs in one part and 11.5 µs in four at
+    batch 1, 55 µs and 22 µs at batch 8; the state token 10.1 µs in six parts and 9.5 µs in eight."""
+    if batch >= 32 or slots < 256:
         return 1
-    return min(16, slots // 128)
+    return min(8 if row_blocks == 1 else 4, slots // 128)
 
 
 def rope_cache_write(qkv, cos, sin, key_cache, value_cache, first_slot, slot=None):
