@@ -219,7 +219,10 @@ class Doctor:
                 self.row(f"π0-FAST decoding, {count} new token{'s' if count > 1 else ''}", dtype,
                          lambda count=count, bound=bound: fast_decoding_check(model, inputs, count, bound))
 
-        def compiled() -> tuple[float, float, str]:
+        def compiled() -> tuple[float | None, float | None, str]:
+            reason = model.decoding_graphs_reason()
+            if reason is not None:
+                return None, None, f"skip: {reason}"
             eager = model.generate_tokens(**inputs, max_new_tokens=8)
             model.compile_decoding(mode="reduce-overhead")
             try:

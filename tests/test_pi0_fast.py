@@ -306,6 +306,27 @@ def test_compiled_decoding_is_verified_against_eager_and_refused_when_it_differs
     assert "compiled decoding was refused: its logits deviate from eager decoding by 2 of the largest" in caplog.text
 
 
+def test_cuda_graph_decoding_is_refused_where_it_crashed(fast_reference: FastReference,
+                                                          monkeypatch: pytest.MonkeyPatch) -> None:
+    """On CUDA with torch < 2.12, `compile_decoding(mode="reduce-overhead")` crashed the process (SIGSEGV in
+    inductor's CUDA-graph partition, torch 2.11 on an H200): it raises a `ValueError` naming that instead, compiling
+    without CUDA graphs stays allowed, and elsewhere nothing is refused."""
+    from pi0_torch.models import modeling_pi0_fast
+
+    model = fast_reference.model()
+    assert model.decoding_graphs_reason() is None  # (the CPU)
+    monkeypatch.setattr(type(model), "device", property(lambda self: torch.device("cuda")))
+    monkeypatch.setattr(modeling_pi0_fast, "torch_release", lambda: (2, 11))
+    assert "crashes the process" in model.decoding_graphs_reason()
+    with pytest.raises(ValueError, match=r"compile_decoding\(mode='reduce-overhead'\): .* crashes the process"):
+        model.compile_decoding(mode="reduce-overhead")
+    assert not model.decoding_compiled
+    model.compile_decoding(backend="eager")
+    assert model.decoding_compiled
+    monkeypatch.setattr(modeling_pi0_fast, "torch_release", lambda: (2, 12))
+    assert model.decoding_graphs_reason() is None
+
+
 # ----------------------------------------------------------------------------------------------- decoding kernels
 
 TRITON_REASON = ops.triton_reason(torch.device("cuda" if torch.cuda.is_available() else "cpu"))

@@ -33,6 +33,7 @@ from pi0_torch.models.configuration_pi0_fast import PI0FastConfig
 from pi0_torch.models.layers import ExpertLayer, RMSNorm, apply_rope, rope_cos_sin
 from pi0_torch.models.modeling_pi0 import PI0PreTrainedModel
 from pi0_torch.models.vision import SiglipImageEmbedding, siglip_vision_tower
+from pi0_torch.utils.hardware import torch_release
 from pi0_torch.utils.validation import check_tensor as _check_tensor
 from pi0_torch.utils.validation import describe as _describe
 
@@ -371,7 +372,8 @@ class PI0FastForActionGeneration(SiglipImageEmbedding, PI0FastPreTrainedModel):
         if temperature < 0:
             raise ValueError(f"temperature must be >= 0, got {temperature}")
         slots = self.decoding_slots(pixel_values.shape[1], input_ids.shape[1], max_new_tokens)
-        fused = self.decoding_kernels_reason(pixel_values.device, self.dtype, pixel_values.shape[0], slots) is None
+        fused = (self._compiled_prefill is None  # (compiled decoding traces the modules: see `compile_decoding`)
+                 and self.decoding_kernels_reason(pixel_values.device, self.dtype, pixel_values.shape[0], slots) is None)
         inputs = (pixel_values, image_masks, input_ids, attention_mask, token_ar_mask, max_new_tokens, fused)
         if self._compiled_prefill is None:
             return self.decode(self.prepare_decoding, self.decode_step, inputs, temperature, generator)[0]
@@ -486,15 +488,35 @@ class PI0FastForActionGeneration(SiglipImageEmbedding, PI0FastPreTrainedModel):
         first `VERIFY_CALLS` calls of `generate_tokens` (CUDA graphs record on the second and replay from the third)
         also decode eagerly along the same tokens; logits that deviate beyond
         `pi0_torch.inference.graphs.VERIFY_TOLERANCE` switch compiling off with a warning, and that call returns the
-        eager tokens. `compile_decoding(disable=True)` goes back to eager."""
+        eager tokens. `compile_decoding(disable=True)` goes back to eager.
+
+        Compiled decoding traces the modules whatever `decoding_kernels` says (inductor makes its own kernels; the
+        fused kernels are eager decoding's). Raises `ValueError` for `mode="reduce-overhead"` where
+        `decoding_graphs_reason` names why it cannot run."""
         if compile_kwargs.get("disable"):
             self._compiled_decode_step = self._compiled_prefill = None
             self._calls_to_verify = 0
             return
+        reason = self.decoding_graphs_reason() if compile_kwargs.get("mode") == "reduce-overhead" else None
+        if reason is not None:
+            raise ValueError(f"compile_decoding(mode='reduce-overhead'): {reason}")
         compile_kwargs.setdefault("fullgraph", True)
         self._compiled_prefill = torch.compile(self.prepare_decoding, **compile_kwargs)
         self._compiled_decode_step = torch.compile(self.decode_step, **compile_kwargs)
         self._calls_to_verify = self.VERIFY_CALLS if verify else 0
+
+    def decoding_graphs_reason(self) -> str | None:
+        """Why compiled decoding cannot replay as CUDA graphs here (`compile_decoding(mode="reduce-overhead")`; None:
+        it can, or the model is not on CUDA). On CUDA with torch before 2.12 inductor's CUDA-graph partition of the
+        decoding step crashes the process: SIGSEGV in its static triton launcher, or with that launcher off a
+        `TypeError` for a kernel argument that is no pointer (torch 2.11, triton 3.6, an H200; the modules and the
+        fused kernels alike). Newer torch is not measured on a GPU yet."""
+        if self.device.type != "cuda" or torch_release() >= (2, 12):
+            return None
+        return (f"π0-FAST's compiled decoding replayed as CUDA graphs crashes the process with torch {torch.__version__} "
+                "(SIGSEGV in inductor's CUDA-graph partition of the decoding step, seen with torch 2.11 on an H200); "
+                "decode eagerly (its decoded tokens run the fused kernels) or compile without CUDA graphs "
+                "(compile_decoding())")
 
     # -- input checks --------------------------------------------------------------------------------------------------
 

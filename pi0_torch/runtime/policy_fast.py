@@ -75,7 +75,11 @@ class PI0FastPolicy(BasePolicy):
         super().__init__(model, processor, num_steps=num_steps, seed=seed)
         self.temperature = check_float("temperature", temperature, minimum=0.0)
         if compile:
-            model.compile_decoding(**({"mode": "reduce-overhead"} if self.device.type == "cuda" else {}))
+            reason = model.decoding_graphs_reason()
+            if reason is not None:  # (a policy that cannot be sped up still acts: eager decoding, said once)
+                logger.warning("compile=True: decoding stays eager: %s", reason)
+            else:
+                model.compile_decoding(**({"mode": "reduce-overhead"} if self.device.type == "cuda" else {}))
 
     @property
     def compiled(self) -> bool:
