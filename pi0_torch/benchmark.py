@@ -44,6 +44,7 @@ import torch
 from pi0_torch.models.configuration_pi0 import PI0Config, preset_names
 from pi0_torch.models.configuration_pi0_fast import PI0FastConfig, fast_preset_names
 from pi0_torch.models.flow_matching import euler_times
+from pi0_torch.models.layers import rope_cos_sin
 from pi0_torch.inference.layout import InputFacts
 from pi0_torch.inference.sampling import SamplingInputs, SamplingPlan
 from pi0_torch.models.modeling_pi0 import PI0ForActionGeneration
@@ -122,10 +123,11 @@ def time_call(fn: Callable[[], object], device: torch.device, repeats: int, warm
     return Timing(statistics.median(durations), min(durations), max(durations), peak[0])
 
 
-def gpu_work(fn: Callable[[], object], device: torch.device) -> tuple[int, float]:
+def gpu_work(fn: Callable[[], object], device: torch.device) -> tuple[int, float, list[tuple[str, int, float]]]:
     """What one call of `fn` runs on a CUDA `device`, by the profiler (CUPTI): the number of GPU activities (kernels,
-    copies, memsets) and their summed GPU time in seconds. Against the call's wall time it tells a launch-bound call
-    (wall time far above the GPU time) from a GPU-bound one."""
+    copies, memsets), their summed GPU time in seconds, and per activity name its count and GPU seconds, longest
+    first. Against the call's wall time it tells a launch-bound call (wall time far above the GPU time) from a
+    GPU-bound one."""
     from torch.profiler import ProfilerActivity, profile
 
     torch.cuda.synchronize(device)
@@ -134,7 +136,44 @@ def gpu_work(fn: Callable[[], object], device: torch.device) -> tuple[int, float
         torch.cuda.synchronize(device)
     work = [event for event in profiler.events()  # (not the GPU copies of annotated ranges: compiled code's calls)
             if event.device_type == torch.autograd.DeviceType.CUDA and not getattr(event, "is_user_annotation", False)]
-    return len(work), sum(event.time_range.elapsed_us() for event in work) / 1e6
+    by_name: dict[str, list[float]] = {}
+    for event in work:
+        by_name.setdefault(event.name, []).append(event.time_range.elapsed_us() / 1e6)
+    table = sorted(((name, len(times), sum(times)) for name, times in by_name.items()), key=lambda row: -row[2])
+    return len(work), sum(event.time_range.elapsed_us() for event in work) / 1e6, table
+
+
+def print_kernel_table(table: list[tuple[str, int, float]], limit: int) -> None:
+    """The `limit` activities of a call that took the most GPU time: count, GPU ms, microseconds each, name."""
+    total = sum(seconds for _, _, seconds in table)
+    for name, count, seconds in table[:limit]:
+        print(f"      {count:6d} x {seconds * 1e3:7.3f} ms {seconds / count * 1e6:8.1f} us {100 * seconds / total:5.1f}%  {name[:110]}")
+
+
+def graph_time(fn: Callable[[], object], device: torch.device, calls: int = 50, repeats: int = 10) -> float:
+    """Median seconds of one call of `fn` on CUDA, `calls` of them captured in one CUDA graph and replayed `repeats`
+    times: the kernels' own time, without the host's launch cost (tens of microseconds for a triton launch, as much
+    as a skinny GEMM takes)."""
+    stream = torch.cuda.Stream(device)
+    stream.wait_stream(torch.cuda.current_stream(device))
+    with torch.cuda.stream(stream):
+        for _ in range(3):
+            fn()
+    torch.cuda.current_stream(device).wait_stream(stream)
+    graph = torch.cuda.CUDAGraph()
+    with torch.cuda.graph(graph):
+        for _ in range(calls):
+            fn()
+    graph.replay()
+    durations = []
+    for _ in range(repeats):
+        start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
+        start.record()
+        graph.replay()
+        end.record()
+        end.synchronize()
+        durations.append(start.elapsed_time(end) / 1e3 / calls)
+    return statistics.median(durations)
 
 
 def time_alternating(fns: Sequence[Callable[[], object]], device: torch.device, repeats: int) -> list[list[float]]:
@@ -272,14 +311,16 @@ def bench_generate(args: argparse.Namespace, device: torch.device) -> None:
                             achieved = generate_flops(config, cameras, batch) / timing.median
                             rate = f"{achieved / 1e9:8.0f} {100 * achieved / peaks[dtype_name]:6.0f}" if method is None else f"{'-':>8s} {'-':>6s}"
                             work = ""
+                            table = []
                             if cuda:
-                                activities, gpu_seconds = gpu_work(call, device)
+                                activities, gpu_seconds, table = gpu_work(call, device)
                                 work = f" {activities:7d} {gpu_seconds * 1e3:7.1f}"
                             refused = method == "guidance" and model.sampling_captured and not model.replays_graphs(method)
                             label = "guid. eager" if refused else method or "-"  # (guided chunks replay no graph)
                             fused = steps_path(model, device, method, batch, cameras)
                             print(f"{preset:12s} {dtype_name:9s} {mode:14s} {fused:7s} {label:12s} {cameras:4d} {batch:5d} "
                                   f"{setup:8.1f} {timing.row()} {rate}{work}")
+                            print_kernel_table(table, args.kernel_table)
             del model
             gc.collect()
 
@@ -337,49 +378,87 @@ def bench_op_counts(args: argparse.Namespace) -> None:
               f"{counter.host_copies:11d} {counter.kernels / config.num_hidden_layers:9.2f}")
 
 
+@dataclass
+class StepGemm:
+    """One GEMM of a fused sampling step: cuBLAS's `torch.mm` on the transposed weight (what the torch path runs),
+    the fused op that replaces it (its norm, RoPE, GeGLU or residual included), the bytes of one weight, and
+    `deviation()`: the fused op against its torch reference on the same operands (max |diff| / max |reference|). Each
+    call of `cublas` and `fused` takes the next of several copies of the weight, together larger than the GPU's L2
+    cache, as each layer of a step reads its own weights from memory."""
+
+    cublas: Callable[[], object]
+    fused: Callable[[], object]
+    weight_bytes: int
+    deviation: Callable[[], float]
+
+
+def step_gemms(config: PI0Config, batch: int, device: torch.device, cache_bytes: int = 256 * 2**20) -> dict[str, StepGemm]:
+    """The GEMMs of one fused sampling step of `config` (bf16, batch x action_horizon rows, random operands), by
+    name; see `StepGemm`."""
+    from pi0_torch.kernels import reference, triton_kernels
+
+    generator = torch.Generator(device).manual_seed(0)
+    width, mlp, heads, head_dim = (config.expert_hidden_size, config.expert_intermediate_size, config.num_attention_heads,
+                                   config.head_dim)
+    rows = batch * config.action_horizon
+
+    def randn(*shape: int) -> torch.Tensor:
+        return (torch.randn(*shape, generator=generator, device=device) * shape[-1] ** -0.5).to(torch.bfloat16)
+
+    def weights(columns: int, depth: int) -> Callable[[], torch.Tensor]:  # the next copy at each call, [depth, columns]
+        copies = [randn(columns, depth).t() for _ in range(max(2, -(-cache_bytes // (2 * columns * depth))))]
+        turn = itertools.cycle(copies)
+        return lambda: next(turn)
+
+    def deviation(name: str, *arguments: Any) -> Callable[[], float]:
+        def measure() -> float:
+            ours = [a.clone() if isinstance(a, torch.Tensor) else a for a in arguments]
+            theirs = [a.clone() if isinstance(a, torch.Tensor) else a for a in arguments]
+            got, want = getattr(triton_kernels, name)(*ours), getattr(reference, name)(*theirs)
+            got, want = (got, want) if got is not None else (ours[0], theirs[0])  # (in place: the residual)
+            return float((got.float() - want.float()).abs().max() / want.float().abs().max())
+        return measure
+
+    x, scale = randn(rows, width), 1 + randn(width)
+    positions = torch.arange(config.action_horizon, device=device)[None] + 900  # (a RoPE table: its halves repeat)
+    cos, sin = rope_cos_sin(positions.expand(batch, -1), head_dim, 10_000.0)
+    cache = torch.zeros(batch, 1024, head_dim, device=device, dtype=torch.bfloat16)
+    qkv_w, o_w = weights((heads + 2) * head_dim, width), weights(width, heads * head_dim)
+    gate_up_w, down_w = weights(2 * mlp, width), weights(width, mlp)
+    attended, hidden = randn(rows, heads * head_dim), randn(rows, mlp)
+    return {
+        "qkv": StepGemm(lambda: x @ qkv_w(), lambda: triton_kernels.norm_qkv_rope(x, scale, None, qkv_w(), cos, sin, cache, cache, 0, 1e-6),
+                        2 * width * (heads + 2) * head_dim,
+                        deviation("norm_qkv_rope", x, scale, None, qkv_w(), cos, sin, cache, cache.clone(), 0, 1e-6)),
+        "o": StepGemm(lambda: attended @ o_w(), lambda: triton_kernels.matmul_residual_(x, attended, o_w(), None),
+                      2 * width * heads * head_dim, deviation("matmul_residual_", x, attended, o_w(), None)),
+        "gate_up": StepGemm(lambda: x @ gate_up_w(), lambda: triton_kernels.norm_gate_up_geglu(x, scale, None, gate_up_w(), 1e-6),
+                            4 * width * mlp, deviation("norm_gate_up_geglu", x, scale, None, gate_up_w(), 1e-6)),
+        "down": StepGemm(lambda: hidden @ down_w(), lambda: triton_kernels.matmul_residual_(x.clone(), hidden, down_w(), None),
+                         2 * width * mlp, deviation("matmul_residual_", x, hidden, down_w(), None)),
+    }
+
+
 def bench_gemms(args: argparse.Namespace, device: torch.device) -> None:
-    """The GEMMs of one fused sampling step of each preset (bf16, batch x 50 rows): cuBLAS (`torch.mm` on the
-    transposed weight, what the torch path runs) against the fused op that replaces it (its norm, RoPE, GeGLU or
-    residual included), in microseconds and GB/s of weights read (the bound of a skinny GEMM: HBM bandwidth)."""
+    """The GEMMs of one fused sampling step of each preset (bf16, batch x 50 rows): cuBLAS against the fused op that
+    replaces it, in microseconds and GB/s of weights read (the bound of a skinny GEMM: HBM bandwidth), each timed as
+    50 calls in one CUDA graph (a triton launch's host cost is as long as the kernel) over weights that do not fit
+    the L2 cache together, and the fused op's deviation from its torch reference."""
     if device.type != "cuda":
         print(f"\nGEMM shapes: skipped on {device.type} (the fused kernels run on CUDA)")
         return
-    from pi0_torch.kernels import triton_kernels
-
-    print(f"\nsampling-step GEMMs on {device_name(device)}, bf16: cuBLAS against the fused kernel (median of "
-          f"{args.repeats} x 20 calls)")
-    print(f"{'preset':8s} {'GEMM':9s} {'M':>5s} {'K':>6s} {'N':>6s} {'MiB':>6s} {'cuBLAS us':>10s} {'GB/s':>7s} "
-          f"{'fused us':>9s} {'GB/s':>7s}")
-    generator = torch.Generator().manual_seed(0)
+    print(f"\nsampling-step GEMMs on {device_name(device)}, bf16: cuBLAS against the fused kernel (50 calls in a CUDA "
+          f"graph, median of {args.repeats} replays)")
+    print(f"{'preset':8s} {'GEMM':9s} {'M':>5s} {'MiB':>6s} {'cuBLAS us':>10s} {'GB/s':>7s} {'fused us':>9s} {'GB/s':>7s} "
+          f"{'deviation':>9s}")
     for preset in args.presets:
         config = PI0Config.from_preset(preset)
-        width, mlp, heads, head_dim = (config.expert_hidden_size, config.expert_intermediate_size, config.num_attention_heads,
-                                       config.head_dim)
         for batch in args.batches:
-            rows = batch * config.action_horizon
-
-            def randn(*shape: int) -> torch.Tensor:
-                return (torch.randn(*shape, generator=generator) * shape[-1] ** -0.5).to(device, torch.bfloat16)
-
-            x, scale = randn(rows, width), 1 + randn(width)
-            cos = sin = torch.ones(batch, config.action_horizon, head_dim, device=device)
-            cache = torch.zeros(batch, 1024, head_dim, device=device, dtype=torch.bfloat16)
-            qkv_w, o_w = randn((heads + 2) * head_dim, width).t(), randn(width, heads * head_dim).t()
-            gate_up_w, down_w = randn(2 * mlp, width).t(), randn(width, mlp).t()
-            attended, hidden = randn(rows, heads * head_dim), randn(rows, mlp)
-            cases = {
-                "qkv": (lambda: x @ qkv_w, lambda: triton_kernels.norm_qkv_rope(x, scale, None, qkv_w, cos, sin, cache, cache, 0, 1e-6), qkv_w),
-                "o": (lambda: attended @ o_w, lambda: triton_kernels.matmul_residual_(x, attended, o_w, None), o_w),
-                "gate_up": (lambda: x @ gate_up_w, lambda: triton_kernels.norm_gate_up_geglu(x, scale, None, gate_up_w, 1e-6), gate_up_w),
-                "down": (lambda: hidden @ down_w, lambda: triton_kernels.matmul_residual_(x, hidden, down_w, None), down_w),
-            }
-            for name, (cublas, fused, weight) in cases.items():
-                size = weight.numel() * weight.element_size()
-                times = time_alternating([lambda: [cublas() for _ in range(20)], lambda: [fused() for _ in range(20)]],
-                                         device, args.repeats)
-                cublas_us, fused_us = (statistics.median(each) / 20 * 1e6 for each in times)
-                print(f"{preset:8s} {name:9s} {rows:5d} {weight.shape[0]:6d} {weight.shape[1]:6d} {size / 2**20:6.1f} "
-                      f"{cublas_us:10.1f} {size / cublas_us / 1e3:7.0f} {fused_us:9.1f} {size / fused_us / 1e3:7.0f}")
+            for name, gemm in step_gemms(config, batch, device).items():
+                size = gemm.weight_bytes
+                cublas_us, fused_us = (graph_time(fn, device, repeats=args.repeats) * 1e6 for fn in (gemm.cublas, gemm.fused))
+                print(f"{preset:8s} {name:9s} {batch * config.action_horizon:5d} {size / 2**20:6.1f} {cublas_us:10.1f} "
+                      f"{size / cublas_us / 1e3:7.0f} {fused_us:9.1f} {size / fused_us / 1e3:7.0f} {gemm.deviation():9.1e}")
 
 
 def sample_on_meta(
@@ -451,6 +530,10 @@ def bench_fast_decoding(args: argparse.Namespace, device: torch.device) -> None:
             with device:  # (initialized where it runs: a full-size model's random init is slow on the host)
                 model = PI0FastForActionGeneration(config).to(getattr(torch, dtype_name)).eval()
             for (mode, compile_arguments), kernels in itertools.product(generate_modes(args.compile, device).items(), args.kernels):
+                reason = model.decoding_graphs_reason() if mode == "cuda-graph" else None
+                if reason is not None:
+                    print(f"{preset:16s} {dtype_name:9s} {mode:10s} skipped: {reason}")
+                    continue
                 model.decoding_kernels = kernels  # (the same names as sampling_kernels: see `decoding_kernels`)
                 model.compile_decoding(**(compile_arguments if compile_arguments is not None else {"disable": True}))
                 warmup = 1 if compile_arguments is None else 3  # compiling; CUDA graphs record on a later call
@@ -610,6 +693,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "against the fused kernels, microseconds and GB/s of weights read")
     parser.add_argument("--rtc", type=_csv(str), default="", help="also time chunks continued by real-time chunking "
                         "with these methods (comma list of guidance, conditioning)")
+    parser.add_argument("--kernel-table", type=int, default=0, metavar="N", help="on CUDA, also print under each row "
+                        "the N kinds of GPU activity that took the most GPU time in its profiled call")
     parser.add_argument("--ops", action="store_true", help="also count the ATen ops of one generate_actions per preset")
     parser.add_argument("--train", action="store_true", help="also time a training step")
     parser.add_argument("--side-by-side", action="store_true", help="also compare with transformers' PI0")

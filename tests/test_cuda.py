@@ -253,13 +253,14 @@ def test_bench_counts_the_gpu_work_of_a_call(reference: OpenpiReference) -> None
     from pi0_torch.benchmark import gpu_work
 
     model, inputs, noise = on_cuda(reference, torch.bfloat16)
-    eager_ops, eager_seconds = gpu_work(lambda: model.generate_actions(**inputs, noise=noise), CUDA)
+    eager_ops, eager_seconds, eager_table = gpu_work(lambda: model.generate_actions(**inputs, noise=noise), CUDA)
     model.capture_sampling()
     model.generate_actions(**inputs, noise=noise)  # (captured here)
-    graph_ops, graph_seconds = gpu_work(lambda: model.generate_actions(**inputs, noise=noise), CUDA)
+    graph_ops, graph_seconds, _ = gpu_work(lambda: model.generate_actions(**inputs, noise=noise), CUDA)
     print(f"GPU work of one call: eager {eager_ops} activities, {eager_seconds * 1e3:.2f} ms; "
           f"graph {graph_ops} activities, {graph_seconds * 1e3:.2f} ms")
     assert eager_ops > 0 and eager_seconds > 0 and graph_seconds > 0
+    assert sum(count for _, count, _ in eager_table) == eager_ops
     assert graph_ops <= eager_ops + 16
 
 
@@ -267,7 +268,8 @@ def test_bench_counts_the_gpu_work_of_a_call(reference: OpenpiReference) -> None
 def test_fused_fast_decoding_on_cuda() -> None:
     """π0-FAST on CUDA: float32 greedy decoding gives openpi's tokens; in bf16 "auto" decodes with the fused kernels
     (`pi0_torch.inference.fast_decoding`), whose logits along the same tokens are the modules' to bf16 rounding, and
-    compiled decoding replayed as CUDA graphs passes its verification against eager decoding."""
+    compiled decoding replayed as CUDA graphs passes its verification against eager decoding (refused, with the
+    reason, on torch < 2.12, where it crashed the process on an H200)."""
     fast = FastReference()
     infer = {name: value.to(CUDA) for name, value in fast.inputs("infer").items()}
     steps = int(fast["inputs/max_decoding_steps"])
@@ -280,6 +282,12 @@ def test_fused_fast_decoding_on_cuda() -> None:
     _, fused = model.decode(model.prepare_decoding, model.decode_step, (*arguments, True), 0.0, None, forced=tokens)
     _, modules = model.decode(model.prepare_decoding, model.decode_step, (*arguments, False), 0.0, None, forced=tokens)
     assert max(relative(got.float(), want.float()) for got, want in zip(fused, modules)) <= 2e-2
+    reason = model.decoding_graphs_reason()
+    if reason is not None:  # (torch < 2.12: inductor's CUDA-graph partition of the step crashes the process)
+        with pytest.raises(ValueError, match="crashes the process"):
+            model.compile_decoding(mode="reduce-overhead")
+        assert not model.decoding_compiled
+        return
     model.compile_decoding(mode="reduce-overhead")
     for _ in range(model.VERIFY_CALLS + 1):
         model.generate_tokens(**infer, max_new_tokens=steps)
