@@ -21,8 +21,11 @@ a GeGLU combines are in its accumulators. Accumulation is float32; the dot's ope
 dtype on a GPU. Under `TRITON_INTERPRET=1` (the CPU tests) they are float32: the interpreter's bf16 `tl.dot` is wrong
 (about 3e10 off on a 16 x 16 product with triton 3.9), its bf16 loads, stores and casts are right.
 
-Only `tl.load` / `tl.store` / `tl.dot` / `tl.where` / `tl.exp` / `tl.sqrt` / reductions are used, all in the triton
-that torch 2.10's CUDA wheels pin. Block sizes come from `blocks` (small M: the suffix's 50 rows per sample).
+Only `tl.load` / `tl.store` (with a cache modifier) / `tl.dot` (with its input precision) / `tl.where` / `tl.exp` /
+`tl.sqrt` / reductions / `tl.atomic_add` / `tl.debug_barrier` are used, all in the triton that torch 2.10's CUDA
+wheels pin (3.6; every variant also compiles with 3.2). Tilings come from `blocks`, `narrow_blocks` and
+`attention_blocks`, measured on an H200 (small M: the suffix's 50 rows per sample; split-K in the same launch where
+a GEMM's output tiles are few, see `split_k` and `_sum_splits`).
 """
 
 from __future__ import annotations
@@ -80,20 +83,27 @@ def blocks(rows: int, columns: int, depth: int) -> Blocks:
     suffix's 50 rows of a sample in one), 4 pipeline stages, 128 deep where the reduction is at least twice the
     output width (o- and down-projections), and about 128 programs: where the output tiles are fewer, split-K cuts
     each tile's reduction into parts (`splits`, a power of two up to 8). Few rows (π0's state token) keep the small
-    blocks. With 4 stages a tiling takes at most 96 KiB of shared memory, which every GPU from sm_80 has."""
+    blocks. With 4 stages a tiling takes at most 96 KiB of shared memory on sm_80/86/89/120 (128 KiB on sm_90),
+    within what a block may have on each (`benchmarks/kernel_resources.py`; `make test` checks sm_89)."""
     if rows <= 32:
-        return Blocks(16 if rows <= 16 else 32, 16 if columns <= 2048 else 32 if columns <= 8192 else 64, 64)
+        return narrow_blocks(rows, columns)
     deep = depth >= 2 * columns
     if rows <= 64:
         block_n, block_k, warps, stages = (32, 128, 8, 4) if deep else (64, 64, 4, 3)
     else:
         block_n, block_k, warps, stages = 64, 128 if deep else 64, 4, 4
-    block_n = min(block_n, max(16, next_power_of_2(columns)))  # (the actions' 32 columns of the Euler step)
     tiles = cdiv(rows, 64) * cdiv(columns, block_n)
     splits = 1
     while splits < 8 and tiles * splits * 2 <= 128:
         splits *= 2
     return Blocks(64, block_n, block_k, warps, stages, splits)
+
+
+def narrow_blocks(rows: int, columns: int) -> Blocks:
+    """The tiling of a GEMM kernel without split-K (`embed_actions`, `norm_linear_euler_`) and of few rows: narrow
+    column blocks, so that its few output tiles still make many programs (on an H200 the action embedding took
+    22 µs so and 34 µs in `blocks`' 64 columns)."""
+    return Blocks(16 if rows <= 16 else 32 if rows <= 32 else 64, 16 if columns <= 2048 else 32 if columns <= 8192 else 64, 64)
 
 
 # -- the shared main loop and split-K -----------------------------------------------------------------------------------
@@ -493,23 +503,26 @@ def _geglu_kernel(gate_up_ptr, out_ptr, M, F, stride_gm, BLOCK_M: tl.constexpr, 
 
 
 COUNTER_SLOTS = 4_096  # output tiles one split-K launch may have
-_counters: dict[torch.device, torch.Tensor] = {}  # per device: split-K's arrival counters, each back at 0 after a launch
+_counters: dict[tuple[torch.device, int], torch.Tensor] = {}  # split-K's arrival counters per (device, stream)
 
 
 def split_k(x: torch.Tensor, tile: Blocks, tiles: int, depth: int) -> tuple[Blocks, torch.Tensor, torch.Tensor, int]:
     """Split-K's buffers for a launch of `tiles` output tiles over a reduction `depth` deep: (the tiling, with one
-    part where split-K cannot run; the float32 workspace of the parts' sums; the device's arrival counters; the
-    columns of `depth` per part, a whole number of `tile.k`). The counters are made once per device, zeroed, outside
-    any CUDA graph capture (the graph keeps their address): a launch captured before they exist runs in one part."""
-    if tile.splits > 1:
-        counters = _counters.get(x.device)
-        if counters is None and not (x.is_cuda and torch.cuda.is_current_stream_capturing()):
-            counters = _counters[x.device] = torch.zeros(COUNTER_SLOTS, dtype=torch.int32, device=x.device)
-        if counters is not None and tiles <= COUNTER_SLOTS:
-            workspace = x.new_empty(tiles * tile.splits * (2 * tile.m * tile.n + tile.m), dtype=torch.float32)
-            return tile, workspace, counters, cdiv(cdiv(depth, tile.splits), tile.k) * tile.k
-    return tile._replace(splits=1), x, x, depth
+    part where the tiles are too many for the counters; the float32 workspace of the parts' sums; the arrival
+    counters; the columns of `depth` per part, a whole number of `tile.k`).
 
+    The counters are zeroed once and each launch leaves them at 0. Launches in one stream run one after another and
+    share them; each stream has its own, so that launches of two streams at once (two policies on one GPU) never
+    count into the same tile. Made during a CUDA graph's capture, they come from the graph's memory, and the graph
+    zeroes them again before each replay."""
+    if tile.splits == 1 or tiles > COUNTER_SLOTS:
+        return tile._replace(splits=1), x, x, depth
+    key = (x.device, torch.cuda.current_stream(x.device).cuda_stream if x.is_cuda else 0)
+    counters = _counters.get(key)
+    if counters is None:
+        counters = _counters[key] = torch.zeros(COUNTER_SLOTS, dtype=torch.int32, device=x.device)
+    workspace = x.new_empty(tiles * tile.splits * (2 * tile.m * tile.n + tile.m), dtype=torch.float32)
+    return tile, workspace, counters, cdiv(cdiv(depth, tile.splits), tile.k) * tile.k
 
 
 def embed_actions(x_t, weight, bias, out_weight, out_bias):
@@ -517,7 +530,7 @@ def embed_actions(x_t, weight, bias, out_weight, out_bias):
     width = weight.shape[1]
     columns = width if out_weight is None else out_weight.shape[1]
     out = x_t.new_empty(rows, columns, dtype=weight.dtype)
-    tile = blocks(rows, columns, action_dim if out_weight is None else width)
+    tile = narrow_blocks(rows, columns)
     x_t = x_t.contiguous()  # (the engine's is)
     _embed_actions_kernel[(cdiv(rows, tile.m), cdiv(columns, tile.n))](
         x_t, weight, bias, out_weight if out_weight is not None else weight, out_bias if out_bias is not None else bias, out,
@@ -591,7 +604,7 @@ def matmul_residual_(residual, y, weight, gate):
 def norm_linear_euler_(x_t, tokens, scale, bias, weight, dt, eps):
     rows, width = tokens.shape
     actions = weight.shape[1]
-    tile = blocks(rows, actions, width)
+    tile = narrow_blocks(rows, actions)
     grid = (cdiv(rows, tile.m), cdiv(actions, tile.n))
     _norm_linear_euler_kernel[grid](
         x_t, tokens, scale, bias, weight, rows, width, actions, tokens.stride(0), weight.stride(0), weight.stride(1),
