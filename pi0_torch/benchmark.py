@@ -434,7 +434,7 @@ def step_gemms(config: PI0Config, batch: int, device: torch.device, cache_bytes:
                       2 * width * heads * head_dim, deviation("matmul_residual_", x, attended, o_w(), None)),
         "gate_up": StepGemm(lambda: x @ gate_up_w(), lambda: triton_kernels.norm_gate_up_geglu(x, scale, None, gate_up_w(), 1e-6),
                             4 * width * mlp, deviation("norm_gate_up_geglu", x, scale, None, gate_up_w(), 1e-6)),
-        "down": StepGemm(lambda: hidden @ down_w(), lambda: triton_kernels.matmul_residual_(x.clone(), hidden, down_w(), None),
+        "down": StepGemm(lambda: hidden @ down_w(), lambda: triton_kernels.matmul_residual_(x, hidden, down_w(), None),
                          2 * width * mlp, deviation("matmul_residual_", x, hidden, down_w(), None)),
     }
 
