@@ -7,8 +7,8 @@ Each kernel computes what its namesake in `pi0_torch.kernels.reference` computes
   dot product and applied to the accumulator: it is one scalar per row), RoPE and the k/v cache write in its epilogue;
 - `norm_gate_up_geglu`: RMSNorm folded into the gate/up GEMM, `gelu_tanh(gate) * up` in its epilogue;
 - `matmul_residual_`: the o- or down-projection with the residual (and π0.5's gate) added in its epilogue, in place;
-- `range_attention`: attention of the folded query heads over each token's key range (no mask), one kv head; few
-  query rows over many keys (a decoded token, π0's state token) cut the keys into parts, combined by a second launch;
+- `range_attention`: attention of the folded query heads over each token's key range (no mask), one kv head; where
+  the samples are few the keys are cut into parts (more programs over them), combined by a second launch;
 - `norm_linear_euler_`: the final norm, `action_out_proj` and the Euler update of `x_t`, in one;
 - `embed_actions`: the action tokens of a step from `x_t` (π0: both GEMMs of the action/time MLP and the SiLU between
   them; the hidden row block is computed per column block, cheap where it is `x_t`'s 32 action dims deep);
@@ -384,7 +384,7 @@ def _range_attention_kernel(
     masked-out NaN value would still poison the weighted sum (0 * NaN).
 
     With SPLIT the block's keys are cut into `splits` consecutive parts (a runtime count: one compiled kernel serves
-    every count), program s taking part s (few query rows over many keys: a decoded token, π0's state token), and
+    every count), program s taking part s (see `key_splits`), and
     each writes its unnormalized sum, running maximum and total weight for `_combine_splits_kernel`; without, the
     program writes the output itself."""
     sample = tl.program_id(1)
