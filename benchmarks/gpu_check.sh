@@ -40,7 +40,7 @@ show() {  # show NAME: the end of its log
 
 { date; nvidia-smi --query-gpu=name,memory.total,driver_version,clocks.sm,clocks.max.sm --format=csv,noheader
   "$PY" -c "import torch, triton, transformers; print('torch', torch.__version__, 'triton', triton.__version__, 'transformers', transformers.__version__)"
-} 2>&1 | tee "$OUT/versions.log"
+} 2>&1 | tee "$OUT/bench.log"  # (the versions head the benchmark's log: 8 files come back, no more)
 
 # 1. alone
 step bench 130 "$PY" -m pi0_torch.cli bench --device cuda --presets pi0,pi05 --dtypes bfloat16 --cameras 3 --batches 1,8 \
@@ -51,7 +51,7 @@ step bench 130 "$PY" -m pi0_torch.cli bench --device cuda --presets pi0,pi05 --d
 step doctor 160 "$PY" -m pi0_torch.cli doctor --full --device cuda &
 step gpu-tests 160 "$PY" -m pytest -q -s -p no:cacheprovider -m gpu tests/test_cuda.py &
 # (the shared-memory test compiles for an RTX 4090 on the CPU, as in CI; here the real launches say it)
-step kernel-tests 100 "$PY" -m pytest -q -p no:cacheprovider tests/test_kernels.py -k "not shared_memory" &
+step kernel-tests 150 "$PY" -m pytest -q -p no:cacheprovider tests/test_kernels.py -k "not shared_memory" &
 for shard in 0 1 2 3 4 5 6 7; do
     step sweep-compile 150 "$PY" benchmarks/kernel_sweep.py --compile-only --shard "$shard/8" &
 done
