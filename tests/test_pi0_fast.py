@@ -311,19 +311,19 @@ def test_cuda_graph_decoding_is_refused_where_it_crashed(fast_reference: FastRef
     """On CUDA with torch < 2.12, `compile_decoding(mode="reduce-overhead")` crashed the process (SIGSEGV in
     inductor's CUDA-graph partition, torch 2.11 on an H200): it raises a `ValueError` naming that instead, compiling
     without CUDA graphs stays allowed, and elsewhere nothing is refused."""
-    from pi0_torch.models import modeling_pi0_fast
+    from torch.torch_version import TorchVersion
 
     model = fast_reference.model()
     assert model.decoding_graphs_reason() is None  # (the CPU)
     monkeypatch.setattr(type(model), "device", property(lambda self: torch.device("cuda")))
-    monkeypatch.setattr(modeling_pi0_fast, "torch_release", lambda: (2, 11))
+    monkeypatch.setattr(torch, "__version__", TorchVersion("2.11.0+cu130"))
     assert "crashes the process" in model.decoding_graphs_reason()
     with pytest.raises(ValueError, match=r"compile_decoding\(mode='reduce-overhead'\): .* crashes the process"):
         model.compile_decoding(mode="reduce-overhead")
     assert not model.decoding_compiled
     model.compile_decoding(backend="eager")
     assert model.decoding_compiled
-    monkeypatch.setattr(modeling_pi0_fast, "torch_release", lambda: (2, 12))
+    monkeypatch.setattr(torch, "__version__", TorchVersion("2.12.0+cu130"))
     assert model.decoding_graphs_reason() is None
 
 

@@ -33,7 +33,6 @@ from pi0_torch.models.configuration_pi0_fast import PI0FastConfig
 from pi0_torch.models.layers import ExpertLayer, RMSNorm, apply_rope, rope_cos_sin
 from pi0_torch.models.modeling_pi0 import PI0PreTrainedModel
 from pi0_torch.models.vision import SiglipImageEmbedding, siglip_vision_tower
-from pi0_torch.utils.hardware import torch_release
 from pi0_torch.utils.validation import check_tensor as _check_tensor
 from pi0_torch.utils.validation import describe as _describe
 
@@ -511,7 +510,7 @@ class PI0FastForActionGeneration(SiglipImageEmbedding, PI0FastPreTrainedModel):
         decoding step crashes the process: SIGSEGV in its static triton launcher, or with that launcher off a
         `TypeError` for a kernel argument that is no pointer (torch 2.11, triton 3.6, an H200; the modules and the
         fused kernels alike). Newer torch is not measured on a GPU yet."""
-        if self.device.type != "cuda" or torch_release() >= (2, 12):
+        if self.device.type != "cuda" or torch.__version__ >= (2, 12):  # (torch's TorchVersion compares with tuples)
             return None
         return (f"π0-FAST's compiled decoding replayed as CUDA graphs crashes the process with torch {torch.__version__} "
                 "(SIGSEGV in inductor's CUDA-graph partition of the decoding step, seen with torch 2.11 on an H200); "

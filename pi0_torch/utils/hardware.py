@@ -60,12 +60,6 @@ def usable_device(device: str | torch.device | None, name: str = "device") -> to
     return resolved
 
 
-def torch_release() -> tuple[int, int]:
-    """(major, minor) of the installed torch, e.g. (2, 11) for "2.11.0+cu130"."""
-    major, minor = torch.__version__.split("+")[0].split(".")[:2]
-    return int(major), int("".join(digit for digit in minor if digit.isdigit()) or 0)
-
-
 def bf16_unsupported(device: torch.device) -> str | None:
     """Why `device` has no native bfloat16 arithmetic (None when it has, or when it is neither a CPU nor CUDA)."""
     if device.type == "cuda":
