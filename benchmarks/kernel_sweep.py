@@ -23,17 +23,17 @@ from collections.abc import Callable, Iterator
 
 import torch
 
-from pi0_torch.benchmark import graph_time, step_gemms
+from pi0_torch.benchmark import TEXT_TOKENS, graph_time, step_gemms
+from pi0_torch.inference.fused_pass import FUSED_TOLERANCE
+from pi0_torch.inference.graphs import relative_deviation
 from pi0_torch.kernels import reference, triton_kernels
 from pi0_torch.kernels.triton_kernels import AttentionBlocks, Blocks
 from pi0_torch.models.configuration_pi0 import PI0Config
 
 DEVICE = torch.device("cuda")
-BF16_BOUND = 3e-2  # a tiling further from the reference is wrong, whatever its speed
 
 
-def gemm_tilings(rows: int) -> Iterator[Blocks]:
-    block_m = 16 if rows <= 16 else 32 if rows <= 32 else 64
+def gemm_tilings(block_m: int) -> Iterator[Blocks]:
     for n, k, (warps, stages), splits in itertools.product((16, 32, 64), (64, 128), ((4, 3), (4, 4), (8, 4)), (1, 2, 4, 8)):
         yield Blocks(block_m, n, k, warps, stages, splits)
 
@@ -55,8 +55,7 @@ def attention_case(batch: int, tokens: int, slots: int, end: int) -> tuple[Calla
     arguments = (query, key, value, first, row_ends)
 
     def deviation() -> float:
-        got, want = triton_kernels.range_attention(*arguments), reference.range_attention(*arguments)
-        return float((got.float() - want.float()).abs().max() / want.float().abs().max())
+        return relative_deviation(triton_kernels.range_attention(*arguments), reference.range_attention(*arguments))
 
     return (lambda: triton_kernels.range_attention(*arguments)), 2 * batch * end * 256 * 2, deviation
 
@@ -66,7 +65,7 @@ def cases(batches: list[int]) -> Iterator[tuple[str, str, Callable[[], object], 
     """(kernel, shape, call, bytes read, deviation, tiling in use, candidate tilings, the arguments its tiling is
     chosen by) of every kernel of a step."""
     config = PI0Config.from_preset("pi0")
-    prefix = 3 * 256 + 48
+    prefix = config.num_cameras * config.tokens_per_image + TEXT_TOKENS
     width, mlp, heads, head_dim = (config.expert_hidden_size, config.expert_intermediate_size, config.num_attention_heads,
                                    config.head_dim)
     shapes = {"qkv": (width, (heads + 2) * head_dim // 2), "o": (heads * head_dim, width), "gate_up": (width, mlp),
@@ -75,8 +74,9 @@ def cases(batches: list[int]) -> Iterator[tuple[str, str, Callable[[], object], 
         rows = batch * config.action_horizon
         for name, gemm in step_gemms(config, batch, DEVICE).items():
             depth, columns = shapes[name]
-            yield (name, f"M={rows} K={depth} columns={columns}", gemm.fused, gemm.weight_bytes, gemm.deviation,
-                   triton_kernels.blocks(rows, columns, depth), list(gemm_tilings(rows)), (rows, columns, depth))
+            current = triton_kernels.blocks(rows, columns, depth)
+            yield (name, f"M={rows} K={depth} columns={columns}", gemm.fused, gemm.weight_bytes, gemm.deviation, current,
+                   list(gemm_tilings(current.m)), (rows, columns, depth))
         slots = prefix + 1 + config.action_horizon
         for name, tokens, end in (("attn actions", config.action_horizon, slots), ("attn state", 1, prefix + 1)):
             call, size, deviation = attention_case(batch, tokens, slots, end)
@@ -147,7 +147,7 @@ def main() -> int:
         for tiling, (seconds, off) in timed[: args.top]:
             speedup = f"x{now[0] / seconds:5.2f}" if not isinstance(now, str) else ""
             print(f"    {seconds * 1e6:8.1f} us {size / seconds / 1e9:6.0f} GB/s {speedup}  deviation {off:.1e}  {tiling}")
-        good = [tiling for tiling, (_, off) in timed if off <= BF16_BOUND]
+        good = [tiling for tiling, (_, off) in timed if off <= FUSED_TOLERANCE[torch.bfloat16]]  # (else wrong, however fast)
         if good:
             fastest[(with_tiling(kernel, None)[0], key)] = good[0]
         worst = max((off for _, (_, off) in timed), default=0.0)

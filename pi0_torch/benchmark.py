@@ -45,6 +45,7 @@ from pi0_torch.models.configuration_pi0 import PI0Config, preset_names
 from pi0_torch.models.configuration_pi0_fast import PI0FastConfig, fast_preset_names
 from pi0_torch.models.flow_matching import euler_times
 from pi0_torch.models.layers import rope_cos_sin
+from pi0_torch.inference.graphs import relative_deviation
 from pi0_torch.inference.layout import InputFacts
 from pi0_torch.inference.sampling import SamplingInputs, SamplingPlan
 from pi0_torch.models.modeling_pi0 import PI0ForActionGeneration
@@ -415,8 +416,7 @@ def step_gemms(config: PI0Config, batch: int, device: torch.device, cache_bytes:
             ours = [a.clone() if isinstance(a, torch.Tensor) else a for a in arguments]
             theirs = [a.clone() if isinstance(a, torch.Tensor) else a for a in arguments]
             got, want = getattr(triton_kernels, name)(*ours), getattr(reference, name)(*theirs)
-            got, want = (got, want) if got is not None else (ours[0], theirs[0])  # (in place: the residual)
-            return float((got.float() - want.float()).abs().max() / want.float().abs().max())
+            return relative_deviation(got, want) if got is not None else relative_deviation(ours[0], theirs[0])  # (in place)
         return measure
 
     x, scale = randn(rows, width), 1 + randn(width)
