@@ -104,6 +104,7 @@ def test_each_kernel_equals_its_reference(dtype: torch.dtype, sizes: str, batch:
     long_keys[:, 450:], long_values[:, 450:] = float("nan"), float("nan")
     assert kernels().key_splits(1, batch, 600) == 4  # one row of folded heads over a long cache: the keys in parts
     compare("range_attention", (query[:, :1], long_keys, long_values, first, torch.tensor([450], device=DEVICE)), dtype)
+    assert not any(counters.any() for counters in kernels()._counters.values())  # (its last program put them back to 0)
     compare("norm_linear_euler_", (torch.randn(batch, tokens, action_dim, generator=generator).to(DEVICE), x, scale,
                                    random(generator, dtype, action_dim), random(generator, dtype, action_dim, width).t(), -0.1, 1e-6), dtype)
     x_t = torch.randn(batch, tokens, action_dim, generator=generator).to(DEVICE)

@@ -1,5 +1,5 @@
 """π0-FAST's decoded tokens with the fused ops of `pi0_torch.kernels` around cuBLAS's GEMMs: nine ops per decoder layer
-and token instead of about twenty-three (ten launches on CUDA, where the attention combines its key parts in a second).
+and token instead of about twenty-three.
 
 Per layer: RMSNorm, the q/k/v GEMM, RoPE + the k/v cache write (`rope_cache_write`), attention over the token's one
 range of slots (`range_attention`), the o-projection accumulated into the residual (`addmm_`), RMSNorm, the gate/up

@@ -6,9 +6,8 @@
   Euler update in one.
 - The prefix pass (`prefix_layer`): the VLM's GEMMs stay cuBLAS's (compute-bound at 800+ rows) with RoPE and the cache
   write, and the GeGLU, fused around them (nine launches per layer instead of fifteen); π0's state token, one row,
-  goes through the action expert's fused ops (five instead of fifteen; six launches on CUDA, where its attention
-  combines its key parts in a second). SigLIP runs `vision_pass` (nine launches per encoder layer instead of
-  twelve).
+  goes through the action expert's fused ops (five instead of fifteen). SigLIP runs `vision_pass` (nine launches per
+  encoder layer instead of twelve).
 
 It computes what `ActionSampling.denoise_step` followed by `x_t += dt * velocity` computes, with fewer roundings in
 bf16 (the fused epilogues round once). Used for plain sampling on CUDA in bf16 / fp16 (`ActionSampling.sampling_kernels`,

@@ -8,7 +8,7 @@ Each kernel computes what its namesake in `pi0_torch.kernels.reference` computes
 - `norm_gate_up_geglu`: RMSNorm folded into the gate/up GEMM, `gelu_tanh(gate) * up` in its epilogue;
 - `matmul_residual_`: the o- or down-projection with the residual (and π0.5's gate) added in its epilogue, in place;
 - `range_attention`: attention of the folded query heads over each token's key range (no mask), one kv head; where
-  the samples are few the keys are cut into parts (more programs over them), combined by a second launch;
+  the samples are few the keys are cut into parts (more programs over them), combined in the same launch;
 - `norm_linear_euler_`: the final norm, `action_out_proj` and the Euler update of `x_t`, in one;
 - `embed_actions`: the action tokens of a step from `x_t` (π0: both GEMMs of the action/time MLP and the SiLU between
   them; the hidden row block is computed per column block, cheap where it is `x_t`'s 32 action dims deep);
@@ -374,9 +374,9 @@ def _add_layer_norm_kernel(
 
 @triton.jit
 def _range_attention_kernel(
-    q_ptr, key_ptr, value_ptr, out_ptr, partial_ptr, stats_ptr, first_ptr, row_ends_ptr, batch, rows_per_sample, heads,
-    slots, scale, splits, HEAD_DIM: tl.constexpr, DOT: tl.constexpr, BLOCK_M: tl.constexpr, BLOCK_N: tl.constexpr,
-    SPLIT: tl.constexpr,
+    q_ptr, key_ptr, value_ptr, out_ptr, partial_ptr, stats_ptr, counter_ptr, first_ptr, row_ends_ptr, batch,
+    rows_per_sample, heads, slots, scale, splits, HEAD_DIM: tl.constexpr, DOT: tl.constexpr, BLOCK_M: tl.constexpr,
+    BLOCK_N: tl.constexpr, SPLIT: tl.constexpr,
 ):
     """Program (i, b, s): folded query rows `[i * BLOCK_M, ...)` of sample b (row r is token r // heads, head r % heads)
     over the keys `[first[b], row_ends[token])`, online softmax in float32. Only keys before the block's last end are
@@ -384,9 +384,8 @@ def _range_attention_kernel(
     masked-out NaN value would still poison the weighted sum (0 * NaN).
 
     With SPLIT the block's keys are cut into `splits` consecutive parts (a runtime count: one compiled kernel serves
-    every count), program s taking part s (see `key_splits`), and
-    each writes its unnormalized sum, running maximum and total weight for `_combine_splits_kernel`; without, the
-    program writes the output itself."""
+    every count), program s taking part s (see `key_splits`); each stores its unnormalized sum, running maximum and
+    total weight, and the block's last program to arrive combines the parts (`_combine_key_parts`, in this launch)."""
     sample = tl.program_id(1)
     split = tl.program_id(2)
     rows = tl.program_id(0) * BLOCK_M + tl.arange(0, BLOCK_M)
@@ -420,36 +419,52 @@ def _range_attention_kernel(
         total = total * correction + tl.sum(weights, axis=1)
         running_max = new_max
     if SPLIT:
-        row_index = (split * batch + sample) * rows_per_sample + rows  # partial [splits, B, rows, H], stats [2, splits, B, rows]
-        tl.store(partial_ptr + row_index[:, None] * HEAD_DIM + dims[None, :], acc, mask=row_ok[:, None])
-        tl.store(stats_ptr + row_index, running_max, mask=row_ok)
-        tl.store(stats_ptr + splits * batch * rows_per_sample + row_index, total, mask=row_ok)
-    else:
-        out = acc / tl.where(total > 0.0, total, 1.0)[:, None]
-        tl.store(out_ptr + base + rows[:, None] * HEAD_DIM + dims[None, :], out.to(out_ptr.dtype.element_ty), mask=row_ok[:, None])
+        acc, total, last = _combine_key_parts(acc, running_max, total, partial_ptr, stats_ptr, counter_ptr, batch,
+                                              rows_per_sample, splits, HEAD_DIM, BLOCK_M)
+        row_ok = rows < tl.where(last, rows_per_sample, 0)  # (only the last program writes)
+    out = acc / tl.where(total > 0.0, total, 1.0)[:, None]
+    tl.store(out_ptr + base + rows[:, None] * HEAD_DIM + dims[None, :], out.to(out_ptr.dtype.element_ty), mask=row_ok[:, None])
 
 
 @triton.jit
-def _combine_splits_kernel(partial_ptr, stats_ptr, out_ptr, M, splits, HEAD_DIM: tl.constexpr, BLOCK_M: tl.constexpr):
-    """The output rows `[i * BLOCK_M, ...)` of `_range_attention_kernel`'s `splits` parts, merged as online softmax
-    merges key blocks: each part's sum and total weight rescaled from its running maximum to the largest so far."""
+def _combine_key_parts(acc, running_max, total, partial_ptr, stats_ptr, counter_ptr, batch, rows_per_sample, splits,
+                       HEAD_DIM: tl.constexpr, BLOCK_M: tl.constexpr):
+    """The key parts of `_range_attention_kernel`'s row block, combined in its launch as `_sum_splits` adds split-K's
+    parts: each program stores its part (`partial` `[splits, B, rows, H]`, `stats` `[2, splits, B, rows]`: running
+    maximum, total weight) and counts itself in on the block's counter; the last to arrive merges the parts in split
+    order (deterministic), as online softmax merges key blocks (each part's sum and total weight rescaled from its
+    maximum to the largest so far), and puts the counter back to 0. Returns the merged sum and total weight and
+    whether this program is the last."""
+    sample = tl.program_id(1)
     rows = tl.program_id(0) * BLOCK_M + tl.arange(0, BLOCK_M)
-    row_ok = rows < M
     dims = tl.arange(0, HEAD_DIM)
+    block = sample * tl.num_programs(0) + tl.program_id(0)
+    parts = splits * batch * rows_per_sample  # (the totals follow the maxima in `stats`)
+    row_ok = rows < rows_per_sample
+    mine = (tl.program_id(2) * batch + sample) * rows_per_sample + rows
+    tl.store(partial_ptr + mine[:, None] * HEAD_DIM + dims[None, :], acc, mask=row_ok[:, None])
+    tl.store(stats_ptr + mine, running_max, mask=row_ok)
+    tl.store(stats_ptr + parts + mine, total, mask=row_ok)
+    tl.debug_barrier()
+    last = tl.atomic_add(counter_ptr + block, 1, sem="acq_rel") == splits - 1
+    tl.atomic_add(counter_ptr + block, tl.where(last, -splits, 0), sem="relaxed")  # (the last: back to 0)
+    read = rows < tl.where(last, rows_per_sample, 0)  # only the last program reads the parts
     largest = tl.full((BLOCK_M,), -1.0e30, dtype=tl.float32)
     acc = tl.zeros((BLOCK_M, HEAD_DIM), dtype=tl.float32)
     total = tl.zeros((BLOCK_M,), dtype=tl.float32)
     for split in range(splits):
-        part_max = tl.load(stats_ptr + split * M + rows, mask=row_ok, other=-1.0e30)
+        row_index = (split * batch + sample) * rows_per_sample + rows
+        part_max = tl.load(stats_ptr + row_index, mask=read, other=-1.0e30, cache_modifier=".cg")
         new_max = tl.maximum(largest, part_max)
         correction = tl.exp(largest - new_max)
         weight = tl.exp(part_max - new_max)
-        part = tl.load(partial_ptr + (split * M + rows)[:, None] * HEAD_DIM + dims[None, :], mask=row_ok[:, None], other=0.0)
+        part = tl.load(partial_ptr + row_index[:, None] * HEAD_DIM + dims[None, :], mask=read[:, None], other=0.0,
+                       cache_modifier=".cg")
         acc = acc * correction[:, None] + weight[:, None] * part
-        total = total * correction + weight * tl.load(stats_ptr + (splits + split) * M + rows, mask=row_ok, other=0.0)
+        part_total = tl.load(stats_ptr + parts + row_index, mask=read, other=0.0, cache_modifier=".cg")
+        total = total * correction + weight * part_total
         largest = new_max
-    out = acc / tl.where(total > 0.0, total, 1.0)[:, None]
-    tl.store(out_ptr + rows[:, None] * HEAD_DIM + dims[None, :], out.to(out_ptr.dtype.element_ty), mask=row_ok[:, None])
+    return acc, total, last
 
 
 @triton.jit
@@ -502,8 +517,8 @@ def _geglu_kernel(gate_up_ptr, out_ptr, M, F, stride_gm, BLOCK_M: tl.constexpr, 
 # -- launchers (same arguments and results as `pi0_torch.kernels.reference`) ------------------------------------------
 
 
-COUNTER_SLOTS = 4_096  # output tiles one split-K launch may have
-_counters: dict[tuple[torch.device, int], torch.Tensor] = {}  # split-K's arrival counters per (device, stream)
+COUNTER_SLOTS = 4_096  # output tiles (attention: row blocks) one launch in parts may have
+_counters: dict[tuple[torch.device, int], torch.Tensor] = {}  # arrival counters of split-K and key parts per (device, stream)
 
 
 def split_k(x: torch.Tensor, tile: Blocks, tiles: int, depth: int) -> tuple[Blocks, torch.Tensor, torch.Tensor, int]:
@@ -517,12 +532,18 @@ def split_k(x: torch.Tensor, tile: Blocks, tiles: int, depth: int) -> tuple[Bloc
     zeroes them again before each replay."""
     if tile.splits == 1 or tiles > COUNTER_SLOTS:
         return tile._replace(splits=1), x, x, depth
-    key = (x.device, torch.cuda.current_stream(x.device).cuda_stream if x.is_cuda else 0)
+    workspace = x.new_empty(tiles * tile.splits * (2 * tile.m * tile.n + tile.m), dtype=torch.float32)
+    return tile, workspace, arrival_counters(x.device), cdiv(cdiv(depth, tile.splits), tile.k) * tile.k
+
+
+def arrival_counters(device: torch.device) -> torch.Tensor:
+    """The int32 `[COUNTER_SLOTS]` arrival counters of the current stream on `device` (see `split_k`), made on first
+    use."""
+    key = (device, torch.cuda.current_stream(device).cuda_stream if device.type == "cuda" else 0)
     counters = _counters.get(key)
     if counters is None:
-        counters = _counters[key] = torch.zeros(COUNTER_SLOTS, dtype=torch.int32, device=x.device)
-    workspace = x.new_empty(tiles * tile.splits * (2 * tile.m * tile.n + tile.m), dtype=torch.float32)
-    return tile, workspace, counters, cdiv(cdiv(depth, tile.splits), tile.k) * tile.k
+        counters = _counters[key] = torch.zeros(COUNTER_SLOTS, dtype=torch.int32, device=device)
+    return counters
 
 
 def embed_actions(x_t, weight, bias, out_weight, out_bias):
@@ -619,20 +640,18 @@ def range_attention(query, key_cache, value_cache, first, row_ends):
     out = query.new_empty(batch * tokens, heads * head_dim)
     rows = tokens * heads
     tile = attention_blocks(rows, batch, key_cache.shape[1])
-    splits = tile.splits
-    grid = (cdiv(rows, tile.m), batch, splits)
-    partial = stats = out  # (not read with one part)
+    row_blocks = cdiv(rows, tile.m)
+    splits = tile.splits if row_blocks * batch <= COUNTER_SLOTS else 1  # (a counter per row block)
+    partial = stats = counters = out  # (not read with one part)
     if splits > 1:
         partial = query.new_empty(splits, batch * rows, head_dim, dtype=torch.float32)
         stats = query.new_empty(2, splits, batch * rows, dtype=torch.float32)
-    _range_attention_kernel[grid](
-        query, key_cache, value_cache, out, partial, stats, first, row_ends, batch, rows, heads, key_cache.shape[1],
-        head_dim**-0.5, splits, HEAD_DIM=head_dim, DOT=dot_dtype(query.dtype), BLOCK_M=tile.m, BLOCK_N=tile.n,
-        SPLIT=splits > 1, num_stages=tile.stages, num_warps=tile.warps,
+        counters = arrival_counters(query.device)
+    _range_attention_kernel[(row_blocks, batch, splits)](
+        query, key_cache, value_cache, out, partial, stats, counters, first, row_ends, batch, rows, heads,
+        key_cache.shape[1], head_dim**-0.5, splits, HEAD_DIM=head_dim, DOT=dot_dtype(query.dtype), BLOCK_M=tile.m,
+        BLOCK_N=tile.n, SPLIT=splits > 1, num_stages=tile.stages, num_warps=tile.warps,
     )
-    if splits > 1:
-        _combine_splits_kernel[(cdiv(batch * rows, 8),)](partial, stats, out, batch * rows, splits,
-                                                         HEAD_DIM=head_dim, BLOCK_M=8)
     return out
 
 
@@ -659,7 +678,7 @@ def attention_blocks(rows: int, batch: int, slots: int) -> AttentionBlocks:
 
 
 def key_splits(row_blocks: int, batch: int, slots: int) -> int:
-    """Into how many parts `range_attention` cuts each sample's keys (a second, small launch combines them), where
+    """Into how many parts `range_attention` cuts each sample's keys (its last program to finish combines them), where
     the samples are fewer than 32: one part per 128 slots of the cache, at most 8 where a sample's query rows are one
     block (a decoded token, π0's state token), at most 4 where they are several (the action tokens). Measured on an
     H200, full-size π0 (867 slots): the action tokens' attention took 29.5 µs in one part and 11.5 µs in four at
