@@ -15,7 +15,7 @@
 #    times (triton's disk cache, 8 processes);
 # 3. alone: the step GEMMs against cuBLAS (GB/s), the kernels' tilings (benchmarks/kernel_sweep.py: every candidate
 #    timed and checked against the reference, the fastest written to $OUT/tilings.json, then π0 and π0.5 sampled with
-#    them), and π0-FAST's decoding, fused against the modules.
+#    them), and π0-FAST's decoding, fused against the modules, eager and replayed as hand-captured CUDA graphs.
 set -u
 OUT="${OUT:-/tmp/pi0-torch-gpu-check}"
 PY="${PY:-python3}"
@@ -63,7 +63,7 @@ TAIL=8 show kernel-tests
 # 3. alone
 step sweep 20 "$PY" -m pi0_torch.cli bench --device cuda --skip-generate --gemms --presets pi0 --batches 1,8 --repeats 10
 step sweep 150 "$PY" benchmarks/kernel_sweep.py --write "$OUT/tilings.json" --bench
-step fast-bench 45 "$PY" -m pi0_torch.cli bench --device cuda --skip-generate --fast --fast-presets pi0_fast \
+step fast-bench 70 "$PY" -m pi0_torch.cli bench --device cuda --skip-generate --fast --fast-presets pi0_fast \
     --dtypes bfloat16 --batches 1 --kernels auto,torch --repeats 3
 TAIL=70 show sweep
 TAIL=8 show fast-bench

@@ -245,13 +245,15 @@ def random_model(config: PI0Config, dtype: torch.dtype, device: torch.device) ->
 
 
 def generate_modes(compile: bool, device: torch.device) -> dict[str, dict[str, Any] | None]:
-    """How π0-FAST's `generate_tokens` runs, by name -> `compile_decoding` arguments (None: eager). With `--compile`:
-    also compiled, and on CUDA compiled and replayed as CUDA graphs."""
-    modes: dict[str, dict[str, Any] | None] = {"eager": None}
+    """How π0-FAST's `generate_tokens` runs, by name -> `compile_decoding` arguments (None: eager; "cuda-graph": each
+    token replays a hand-captured CUDA graph, `capture_decoding`, on CUDA). With `--compile`: also compiled, and on
+    CUDA compiled and replayed as inductor's CUDA graphs ("compiled-graph")."""
+    cuda = device.type == "cuda"
+    modes: dict[str, dict[str, Any] | None] = {"eager": None, **({"cuda-graph": None} if cuda else {})}
     if compile:
         modes["compiled"] = {}
-        if device.type == "cuda":
-            modes["cuda-graph"] = {"mode": "reduce-overhead"}
+        if cuda:
+            modes["compiled-graph"] = {"mode": "reduce-overhead"}
     return modes
 
 
@@ -521,7 +523,7 @@ def bench_fast_decoding(args: argparse.Namespace, device: torch.device) -> None:
     tokens = args.fast_tokens
     print(f"\nπ0-FAST generate_tokens on {device_name(device)}, 3 cameras, {TEXT_TOKENS} prompt tokens, {tokens} decoded "
           f"tokens per chunk (prefill: up to the first token; per token: each later one)")
-    print(f"{'preset':16s} {'dtype':9s} {'mode':10s} {'kernels':7s} {'batch':>5s} {'chunk ms':>9s} {'prefill ms':>10s} "
+    print(f"{'preset':16s} {'dtype':9s} {'mode':14s} {'kernels':7s} {'batch':>5s} {'chunk ms':>9s} {'prefill ms':>10s} "
           f"{'ms/token':>8s} {'tokens/s':>9s} {'peak MiB':>9s}")
     for preset in args.fast_presets:
         config = PI0FastConfig.from_preset(preset, eos_token_id=None)  # every row decodes all the tokens
@@ -530,20 +532,21 @@ def bench_fast_decoding(args: argparse.Namespace, device: torch.device) -> None:
             with device:  # (initialized where it runs: a full-size model's random init is slow on the host)
                 model = PI0FastForActionGeneration(config).to(getattr(torch, dtype_name)).eval()
             for (mode, compile_arguments), kernels in itertools.product(generate_modes(args.compile, device).items(), args.kernels):
-                reason = model.decoding_graphs_reason() if mode == "cuda-graph" else None
+                reason = model.decoding_graphs_reason() if mode == "compiled-graph" else None
                 if reason is not None:
-                    print(f"{preset:16s} {dtype_name:9s} {mode:10s} skipped: {reason}")
+                    print(f"{preset:16s} {dtype_name:9s} {mode:14s} skipped: {reason}")
                     continue
                 model.decoding_kernels = kernels  # (the same names as sampling_kernels: see `decoding_kernels`)
                 model.compile_decoding(**(compile_arguments if compile_arguments is not None else {"disable": True}))
-                warmup = 1 if compile_arguments is None else 3  # compiling; CUDA graphs record on a later call
+                model.capture_decoding(disable=mode != "cuda-graph")
+                warmup = 1 if compile_arguments is None else 3  # compiling; inductor's graphs record on a later call
                 for batch in args.batches:
                     inputs = fast_example_batch(config, batch, device)
                     chunk = time_call(lambda: model.generate_tokens(**inputs, max_new_tokens=tokens), device, args.repeats, warmup)
                     prefill = time_call(lambda: model.generate_tokens(**inputs, max_new_tokens=1), device, args.repeats, warmup)
                     per_token = max(chunk.median - prefill.median, 0.0) / max(tokens - 1, 1)
                     rate = f"{batch / per_token:9.1f}" if per_token > 0 else f"{'-':>9s}"
-                    print(f"{preset:16s} {dtype_name:9s} {mode:10s} {kernels:7s} {batch:5d} {chunk.median * 1e3:9.1f} "
+                    print(f"{preset:16s} {dtype_name:9s} {mode:14s} {kernels:7s} {batch:5d} {chunk.median * 1e3:9.1f} "
                           f"{prefill.median * 1e3:10.1f} {per_token * 1e3:8.2f} {rate} {chunk.peak_bytes / 2**20:9.0f}")
             del model
             gc.collect()

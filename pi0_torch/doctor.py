@@ -219,6 +219,20 @@ class Doctor:
                 self.row(f"π0-FAST decoding, {count} new token{'s' if count > 1 else ''}", dtype,
                          lambda count=count, bound=bound: fast_decoding_check(model, inputs, count, bound))
 
+        def captured() -> tuple[float | None, float | None, str]:
+            eager = model.generate_tokens(**inputs, max_new_tokens=8)
+            model.capture_decoding()
+            graphs = model._decoding_graphs
+            try:
+                calls = [model.generate_tokens(**inputs, max_new_tokens=8) for _ in range(2)]  # (captured, replayed)
+            finally:
+                model.capture_decoding(disable=True)
+            if graphs.refused:
+                return float("inf"), 0.0, f"hand-captured decoding refused: {next(iter(graphs.refused.values()))}"
+            return float(max(int((tokens != eager).sum()) for tokens in calls)), 0.0, "tokens differing from eager"
+
+        self.row("π0-FAST decoding, hand-captured CUDA graphs", torch.bfloat16, captured, needs_cuda=True)
+
         def compiled() -> tuple[float | None, float | None, str]:
             reason = model.decoding_graphs_reason()
             if reason is not None:

@@ -267,9 +267,10 @@ def test_bench_counts_the_gpu_work_of_a_call(reference: OpenpiReference) -> None
 @torch.no_grad()
 def test_fused_fast_decoding_on_cuda() -> None:
     """π0-FAST on CUDA: float32 greedy decoding gives openpi's tokens; in bf16 "auto" decodes with the fused kernels
-    (`pi0_torch.inference.fast_decoding`), whose logits along the same tokens are the modules' to bf16 rounding, and
-    compiled decoding replayed as CUDA graphs passes its verification against eager decoding (refused, with the
-    reason, on torch < 2.12, where it crashed the process on an H200)."""
+    (`pi0_torch.inference.fast_decoding`), whose logits along the same tokens are the modules' to bf16 rounding;
+    `capture_decoding` replays them as one hand-captured graph per step (one capture for every call), with eager's
+    logits; compiled decoding replayed as CUDA graphs passes its verification against eager decoding (refused, with
+    the reason, on torch < 2.12, where it crashed the process on an H200)."""
     fast = FastReference()
     infer = {name: value.to(CUDA) for name, value in fast.inputs("infer").items()}
     steps = int(fast["inputs/max_decoding_steps"])
@@ -282,6 +283,15 @@ def test_fused_fast_decoding_on_cuda() -> None:
     _, fused = model.decode(model.prepare_decoding, model.decode_step, (*arguments, True), 0.0, None, forced=tokens)
     _, modules = model.decode(model.prepare_decoding, model.decode_step, (*arguments, False), 0.0, None, forced=tokens)
     assert max(relative(got.float(), want.float()) for got, want in zip(fused, modules)) <= 2e-2
+    model.capture_decoding()  # hand-captured graphs of the fused step, verified at capture
+    graphs = model._decoding_graphs
+    for _ in range(2):
+        _, replayed = model.decode(graphs.prepare, graphs.step, (*arguments, True), 0.0, None, forced=tokens)
+        assert max(relative(got.float(), want.float()) for got, want in zip(replayed, fused)) <= 1e-2
+    assert len(graphs.graphs) == 1 and not graphs.refused
+    model.generate_tokens(**infer, max_new_tokens=steps)
+    assert len(graphs.graphs) == 1 and not graphs.refused
+    model.capture_decoding(disable=True)
     reason = model.decoding_graphs_reason()
     if reason is not None:  # (torch < 2.12: inductor's CUDA-graph partition of the step crashes the process)
         with pytest.raises(ValueError, match="crashes the process"):

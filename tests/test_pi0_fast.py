@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import io
 import logging
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -15,9 +16,10 @@ import torch
 from pi0_torch import PI0FastConfig, PI0FastForActionGeneration
 from pi0_torch.conversion.openpi_weights import config_from_openpi_shapes, load_openpi_params
 from pi0_torch.inference import fast_decoding
+from pi0_torch.inference.decoding_graphs import DecodingGraphs, cache_signature
 from pi0_torch.kernels import ops
 from pi0_torch.masks import prefix_lm_mask
-from pi0_torch.models.modeling_pi0_fast import token_log_probs
+from pi0_torch.models.modeling_pi0_fast import DecodingCache, token_log_probs
 from pi0_torch.processing.fast_tokenizer import FASTActionTokenizer, dct, idct
 from pi0_torch.processing.normalization import NormStats
 from pi0_torch.processing.processing_pi0_fast import PI0FastProcessor
@@ -325,6 +327,77 @@ def test_cuda_graph_decoding_is_refused_where_it_crashed(fast_reference: FastRef
     assert model.decoding_compiled
     monkeypatch.setattr(torch, "__version__", TorchVersion("2.12.0+cu130"))
     assert model.decoding_graphs_reason() is None
+
+
+def test_hand_captured_decoding_replays_eager_steps_and_refuses_a_wrong_graph(
+    fast_reference: FastReference, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """`capture_decoding`: each call's prefill runs eagerly and its cache is copied into the static cache of the graph
+    of its signature, and every token replays that graph (simulated here, as the CPU records nothing: `_record` gives a
+    "graph" whose replay runs the eager step on the static buffers, as a recorded graph does). One capture serves two
+    different observations with eager decoding's tokens; a graph whose first replay differs from the eager step is
+    refused with a warning naming the deviation, that call decodes eagerly, and its signature is not captured again.
+    On the CPU `generate_tokens` itself stays eager; the fused kernels' caches are a signature of their own."""
+    model = fast_reference.model()
+    infer = fast_reference.inputs("infer")
+    swapped = {name: value.flip(0) for name, value in infer.items()}  # (other tokens per row)
+    steps = int(fast_reference["inputs/max_decoding_steps"])
+    expected = model.generate_tokens(**infer, max_new_tokens=steps)
+    expected_swapped = model.generate_tokens(**swapped, max_new_tokens=steps)
+    assert not torch.equal(expected, expected_swapped)
+
+    class Replay:  # a "graph" whose replay writes `run()` into the captured output
+        def __init__(self, run: Callable[[], torch.Tensor], output: torch.Tensor) -> None:
+            self.run, self.output = run, output
+
+        def replay(self) -> None:
+            self.output.copy_(self.run())
+
+    recorded: list[float] = []
+
+    def recording(scale: float) -> Callable[..., tuple[Replay, torch.Tensor, torch.Tensor]]:
+        def record(cache: DecodingCache, token: torch.Tensor, step: torch.Tensor) -> tuple[Replay, torch.Tensor, torch.Tensor]:
+            recorded.append(scale)
+            eager = model.decode_step(cache, token, step).clone()
+            output = torch.empty_like(eager)
+            return Replay(lambda: model.decode_step(cache, token, step) * scale, output), output, eager
+        return record
+
+    def decode(graphs: DecodingGraphs, inputs: dict[str, torch.Tensor]) -> torch.Tensor:
+        with torch.no_grad():
+            return model.decode(graphs.prepare, graphs.step, (*inputs.values(), steps, False), 0.0, None)[0]
+
+    graphs = DecodingGraphs(model)
+    monkeypatch.setattr(graphs, "_record", recording(1.0))
+    assert torch.equal(decode(graphs, infer), expected)
+    assert torch.equal(decode(graphs, swapped), expected_swapped)  # (the second prefill's cache copied in)
+    assert recorded == [1.0] and len(graphs.graphs) == 1 and not graphs.refused
+
+    wrong = DecodingGraphs(model)
+    monkeypatch.setattr(wrong, "_record", recording(3.0))
+    with caplog.at_level(logging.WARNING):
+        assert torch.equal(decode(wrong, infer), expected)
+        assert torch.equal(decode(wrong, swapped), expected_swapped)
+    assert recorded == [1.0, 3.0] and not wrong.graphs and len(wrong.refused) == 1
+    assert caplog.text.count("was refused") == 1
+    assert ("the CUDA graph of π0-FAST's decoding step (batch 2, 880 cache slots) was refused: its first replay "
+            "deviates from an eager step by 2 of the largest logit (bound 0.0001); it decodes eagerly") in caplog.text
+
+    with torch.no_grad():
+        fused, modules = (model.prepare_decoding(*infer.values(), steps, fused)[0] for fused in (True, False))
+    assert cache_signature(fused) != cache_signature(modules)
+    model.capture_decoding()
+    assert model.decoding_captured and torch.equal(model.generate_tokens(**infer, max_new_tokens=steps), expected)
+    assert not model._decoding_graphs.graphs and not model._decoding_graphs.refused  # (the CPU: eager)
+    model.compile_decoding(backend="eager", verify=False)  # one or the other
+    assert model.decoding_compiled and not model.decoding_captured
+    model.capture_decoding()
+    assert model.decoding_captured and not model.decoding_compiled
+    model._decoding_graphs.graphs["captured before"] = object()
+    model.to(torch.bfloat16)  # (the graphs read the old tensors)
+    assert model.decoding_captured and not model._decoding_graphs.graphs
+    model.capture_decoding(disable=True)
+    assert not model.decoding_captured
 
 
 # ----------------------------------------------------------------------------------------------- decoding kernels

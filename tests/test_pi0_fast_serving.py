@@ -86,6 +86,23 @@ def test_policy_turns_decoded_tokens_into_robot_actions(fast_model_dir: Path, sc
     np.testing.assert_allclose(scripted.policy.infer(OBSERVATION)["actions"], scripted.expected, rtol=1e-6, atol=1e-6)
 
 
+def test_cuda_graphs_of_a_fast_policy(fast_model_dir: Path, monkeypatch: pytest.MonkeyPatch,
+                                      caplog: pytest.LogCaptureFixture) -> None:
+    """`cuda_graph=True` replays each decoded token as a hand-captured CUDA graph (`capture_decoding`) and needs CUDA
+    (`serve` passes it by default on cuda); `compile=True` where inductor's graphs of the decoding step crashed
+    (torch < 2.12 on CUDA; stood in here) replays the hand-captured graphs instead, with a warning."""
+    with pytest.raises(ValueError, match="cuda_graph needs a CUDA device; this policy runs on cpu"):
+        PI0Policy.from_pretrained(fast_model_dir, device="cpu", cuda_graph=True)
+    loaded = PI0Policy.from_pretrained(fast_model_dir, device="cpu")
+    assert not loaded.captured and not loaded.compiled
+    reason = "π0-FAST's compiled decoding replayed as CUDA graphs crashes the process with torch 2.11.0"
+    monkeypatch.setattr(loaded.model, "decoding_graphs_reason", lambda: reason)
+    with caplog.at_level(logging.WARNING):
+        policy = PI0FastPolicy(loaded.model, loaded.processor, compile=True)
+    assert policy.captured and not policy.compiled
+    assert f"compile=True: decoding replays hand-captured CUDA graphs instead: {reason}" in caplog.text
+
+
 def test_a_chunk_whose_tokens_do_not_decode_is_withheld(scripted: Scripted, caplog: pytest.LogCaptureFixture) -> None:
     """Every way tokens fail to be a chunk (no "Action: ", FAST ids that are not a whole chunk, ids outside FAST's
     vocabulary) is withheld naming the cause, never returned as zeros unnormalized into a plausible row; in a batch,

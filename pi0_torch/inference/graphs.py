@@ -19,6 +19,9 @@ sample eagerly unless `capture_sampling(guidance=True)` asks to try, see `captur
 The graphs share a memory pool, guided ones one of their own: a capture CUDA refuses can leave its pool marked as
 recording in torch's allocators (there is no Python call that ends that in the pinned host allocator), so a pool that
 saw one is never captured into again, and a refused guidance capture never touches the plain graphs' pool.
+
+`record_graph` (the warm-up runs, the capture, a refused capture's clean-up) also records π0-FAST's decoding steps
+(`pi0_torch.inference.decoding_graphs`).
 """
 
 from __future__ import annotations
@@ -26,6 +29,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -45,7 +49,11 @@ WARMUP_RUNS = 2  # before a capture (cuBLAS / cuDNN pick and allocate on their f
 VERIFY_TOLERANCE = {torch.float32: 1e-4, torch.bfloat16: 1e-2, torch.float16: 1e-2}
 
 
-class SamplingCaptureError(RuntimeError):
+class GraphCaptureError(RuntimeError):
+    """CUDA refused to record a graph (the warm-up runs before it succeeded: the eager path works)."""
+
+
+class SamplingCaptureError(GraphCaptureError):
     """CUDA refused to record the sampling as a graph (the warm-up runs before it succeeded: eager sampling works)."""
 
 
@@ -157,27 +165,47 @@ class SamplingGraphs:
         with torch.cuda.device(device), _capture_mode(guided):  # (the model's GPU, whichever is current)
             static = type(inputs)(*(None if value is None else value.clone() for value in _tensors(inputs)))
             if self.stream is None:  # (torch's default capture stream is made once, on whichever GPU was current)
-                self.stream, self.warmup_stream = torch.cuda.Stream(device=device), torch.cuda.Stream(device=device)
-            self.warmup_stream.wait_stream(torch.cuda.current_stream(device))
-            with torch.cuda.stream(self.warmup_stream):
-                for _ in range(WARMUP_RUNS):
-                    eager = self.model._sample(static, plan)
-                eager = eager.clone()
-            torch.cuda.current_stream(device).wait_stream(self.warmup_stream)
+                self.stream, self.warmup_stream = capture_streams(device)
             pool = self.pools[guided] if guided in self.pools else torch.cuda.graph_pool_handle()
-            graph = torch.cuda.CUDAGraph()
             try:
-                with torch.cuda.stream(torch.cuda.current_stream(device)):  # (this stream again, should capture fail)
-                    with torch.cuda.graph(graph, pool=pool, stream=self.stream):
-                        output = self.model._sample(static, plan)
-            except Exception as error:
+                graph, output, eager = record_graph(lambda: self.model._sample(static, plan), device, self.stream,
+                                                    self.warmup_stream, pool)
+            except GraphCaptureError as error:
                 self.pools.pop(guided, None)  # (never captured into again)
-                _release_failed_capture(device, pool)
                 raise SamplingCaptureError(f"could not capture {describe_plan(plan, inputs.noise.shape[0])} as a CUDA "
                                            f"graph ({error}); call model.capture_sampling(disable=True) to sample eagerly") from error
             self.pools[guided] = pool
-            torch.cuda.synchronize(device)
         return CapturedSampling(graph, static, output), eager
+
+
+def capture_streams(device: torch.device) -> tuple[torch.cuda.Stream, torch.cuda.Stream]:
+    """A capture stream and a warm-up stream on `device`, made once per set of graphs (one warm-up stream: cuBLAS
+    keeps a workspace per stream)."""
+    return torch.cuda.Stream(device=device), torch.cuda.Stream(device=device)
+
+
+def record_graph(run: Callable[[], torch.Tensor], device: torch.device, stream: torch.cuda.Stream,
+                 warmup_stream: torch.cuda.Stream, pool: Any) -> tuple[torch.cuda.CUDAGraph, torch.Tensor, torch.Tensor]:
+    """Run `run` `WARMUP_RUNS` times on `warmup_stream`, then record one more run on `stream` into the memory pool
+    `pool`: the graph, the tensor its replays write, and a copy of the last warm-up run's output (an eager run of the
+    same inputs, to verify the graph against). Called inside `torch.cuda.device(device)`. Where CUDA refuses to
+    record, the pool is released (the caller never captures into it again) and `GraphCaptureError` raised."""
+    warmup_stream.wait_stream(torch.cuda.current_stream(device))
+    with torch.cuda.stream(warmup_stream):
+        for _ in range(WARMUP_RUNS):
+            eager = run()
+        eager = eager.clone()
+    torch.cuda.current_stream(device).wait_stream(warmup_stream)
+    graph = torch.cuda.CUDAGraph()
+    try:
+        with torch.cuda.stream(torch.cuda.current_stream(device)):  # (this stream again, should capture fail)
+            with torch.cuda.graph(graph, pool=pool, stream=stream):
+                output = run()
+    except Exception as error:
+        _release_failed_capture(device, pool)
+        raise GraphCaptureError(str(error)) from error
+    torch.cuda.synchronize(device)
+    return graph, output, eager
 
 
 @contextlib.contextmanager

@@ -169,6 +169,7 @@ class PI0FastForActionGeneration(SiglipImageEmbedding, PI0FastPreTrainedModel):
         self._compiled_decode_step: Any = None  # set by `compile_decoding`
         self._compiled_prefill: Any = None
         self._calls_to_verify = 0  # `generate_tokens` calls still to check against eager decoding
+        self._decoding_graphs: Any = None  # `DecodingGraphs` once `capture_decoding` is called
         self._decoding_kernels = "auto"
         self.post_init()
 
@@ -359,7 +360,7 @@ class PI0FastForActionGeneration(SiglipImageEmbedding, PI0FastPreTrainedModel):
         k/v cache; greedy (`temperature=0`, the first of equal maxima) or sampled from `softmax(logits /
         temperature)` with `generator`. Decoding stops after the first step at which every row's new token is EOS
         (`config.eos_token_id`; None: never); the steps not run stay 0. The only host synchronization per token is
-        that check. Decoded tokens attend as `decoding_kernels` says.
+        that check. Decoded tokens attend as `decoding_kernels` says, and replay CUDA graphs after `capture_decoding`.
 
         Returns:
             long `[B, max_new_tokens]` token ids (`PI0FastProcessor.extract_actions` turns them into actions).
@@ -375,6 +376,9 @@ class PI0FastForActionGeneration(SiglipImageEmbedding, PI0FastPreTrainedModel):
                  and self.decoding_kernels_reason(pixel_values.device, self.dtype, pixel_values.shape[0], slots) is None)
         inputs = (pixel_values, image_masks, input_ids, attention_mask, token_ar_mask, max_new_tokens, fused)
         if self._compiled_prefill is None:
+            if self._decoding_graphs is not None and pixel_values.device.type == "cuda":
+                graphs = self._decoding_graphs
+                return self.decode(graphs.prepare, graphs.step, inputs, temperature, generator)[0]
             return self.decode(self.prepare_decoding, self.decode_step, inputs, temperature, generator)[0]
         tokens, logits = self.decode(self._compiled_prefill, self._compiled_decode_step, inputs, temperature, generator)
         if self._calls_to_verify > 0:  # the compiled (CUDA graph) decoding against eager decoding of the same tokens
@@ -500,9 +504,36 @@ class PI0FastForActionGeneration(SiglipImageEmbedding, PI0FastPreTrainedModel):
         if reason is not None:
             raise ValueError(f"compile_decoding(mode='reduce-overhead'): {reason}")
         compile_kwargs.setdefault("fullgraph", True)
+        self._decoding_graphs = None  # (one or the other: see `capture_decoding`)
         self._compiled_prefill = torch.compile(self.prepare_decoding, **compile_kwargs)
         self._compiled_decode_step = torch.compile(self.decode_step, **compile_kwargs)
         self._calls_to_verify = self.VERIFY_CALLS if verify else 0
+
+    @property
+    def decoding_captured(self) -> bool:
+        """Whether `generate_tokens` on CUDA replays a CUDA graph per decoded token (see `capture_decoding`)."""
+        return self._decoding_graphs is not None
+
+    def capture_decoding(self, disable: bool = False, verify: bool = True) -> None:
+        """Opt in to CUDA graphs for the decoded tokens of `generate_tokens` on CUDA, captured by hand (no compiler,
+        so also on torch < 2.12, where `compile_decoding(mode="reduce-overhead")` is refused): the decoding step of
+        each cache signature (batch size, cache slots, dtype, `decoding_kernels`' choice) is recorded once, on the
+        first call (two warm-up steps, then the capture), and every later token of every call replays it. The prefill
+        runs eagerly and its cache is copied into the graph's. A model moved to another device or dtype captures
+        again; on the CPU decoding stays eager.
+
+        Every graph is verified when captured (`verify=True`): its first replay must give the logits of an eager step
+        of the same token within `pi0_torch.inference.graphs.VERIFY_TOLERANCE`; a graph that does not, or that CUDA
+        refuses to record, is refused with a warning and its signature decodes eagerly from then on. Switches
+        `compile_decoding` off (and `compile_decoding` switches this off). `capture_decoding(disable=True)` goes back
+        to eager. See `pi0_torch.inference.decoding_graphs`."""
+        from pi0_torch.inference.decoding_graphs import DecodingGraphs
+
+        if disable:
+            self._decoding_graphs = None
+            return
+        self.compile_decoding(disable=True)
+        self._decoding_graphs = DecodingGraphs(self, verify)
 
     def decoding_graphs_reason(self) -> str | None:
         """Why compiled decoding cannot replay as CUDA graphs here (`compile_decoding(mode="reduce-overhead")`; None:
@@ -514,8 +545,15 @@ class PI0FastForActionGeneration(SiglipImageEmbedding, PI0FastPreTrainedModel):
             return None
         return (f"π0-FAST's compiled decoding replayed as CUDA graphs crashes the process with torch {torch.__version__} "
                 "(SIGSEGV in inductor's CUDA-graph partition of the decoding step, seen with torch 2.11 on an H200); "
-                "decode eagerly (its decoded tokens run the fused kernels) or compile without CUDA graphs "
-                "(compile_decoding())")
+                "replay hand-captured CUDA graphs instead (capture_decoding(), no compiler), decode eagerly, or "
+                "compile without CUDA graphs (compile_decoding())")
+
+    def _apply(self, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
+        """`nn.Module._apply` (what `.to()`, `.cuda()`, `.half()` ... run): captured decoding graphs read the old
+        tensors, so they are dropped and captured again on the next call."""
+        if getattr(self, "_decoding_graphs", None) is not None:
+            self._decoding_graphs.clear()
+        return super()._apply(fn, *args, **kwargs)
 
     # -- input checks --------------------------------------------------------------------------------------------------
 

@@ -54,7 +54,12 @@ class PI0FastPolicy(BasePolicy):
             earlier once every chunk of the batch emits EOS at the same step).
         seed: seeds the sampling when `temperature > 0` (greedy decoding needs none).
         compile: decode through `torch.compile` ([`PI0FastForActionGeneration.compile_decoding`]; CUDA graphs on
-            CUDA); call [`warmup`] first.
+            CUDA); call [`warmup`] first. On CUDA with torch < 2.12, where inductor's graphs of the decoding step
+            crashed the process, it replays hand-captured graphs instead (`cuda_graph`), with a warning.
+        cuda_graph: on CUDA, replay each decoded token as a CUDA graph captured by hand without a compiler
+            ([`PI0FastForActionGeneration.capture_decoding`]); the first chunk of each batch size captures it and
+            verifies it against an eager step: call [`warmup`] first. With `compile` the compiled decoding's own
+            graphs replay instead, where they can.
         temperature: 0 for greedy decoding (openpi's default), else sampling at this temperature.
     """
 
@@ -71,15 +76,21 @@ class PI0FastPolicy(BasePolicy):
         seed: int | None = None,
         compile: bool = False,
         temperature: float = 0.0,
+        cuda_graph: bool = False,
     ) -> None:
         super().__init__(model, processor, num_steps=num_steps, seed=seed)
         self.temperature = check_float("temperature", temperature, minimum=0.0)
+        if cuda_graph and self.device.type != "cuda":
+            raise ValueError(f"cuda_graph needs a CUDA device; this policy runs on {self.device}")
         if compile:
             reason = model.decoding_graphs_reason()
-            if reason is not None:  # (a policy that cannot be sped up still acts: eager decoding, said once)
-                logger.warning("compile=True: decoding stays eager: %s", reason)
+            if reason is not None:  # (inductor's graphs crash here: the hand-captured ones instead, said once)
+                logger.warning("compile=True: decoding replays hand-captured CUDA graphs instead: %s", reason)
+                cuda_graph = True
             else:
                 model.compile_decoding(**({"mode": "reduce-overhead"} if self.device.type == "cuda" else {}))
+        if cuda_graph and not model.decoding_compiled:  # (compiled decoding on CUDA replays inductor's graphs)
+            model.capture_decoding()
 
     @property
     def compiled(self) -> bool:
@@ -87,7 +98,8 @@ class PI0FastPolicy(BasePolicy):
 
     @property
     def captured(self) -> bool:
-        return False  # (compile=True is what replays π0-FAST's decoding as CUDA graphs)
+        """Whether decoded tokens replay hand-captured CUDA graphs (`cuda_graph`)."""
+        return self.model.decoding_captured
 
     @property
     def model_type(self) -> str:

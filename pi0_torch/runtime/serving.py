@@ -811,8 +811,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--compile", action="store_true", help="torch.compile the model's repeated layers (on cuda the "
                         "sampling also replays as one CUDA graph); compiled during the warm-up, before the server listens")
     parser.add_argument("--cuda-graph", action=argparse.BooleanOptionalAction, default=None,
-                        help="replay each chunk's sampling as one CUDA graph, captured during the warm-up for every "
-                        "batch size up to --max-batch-size (default: on when the device is cuda; π0 / π0.5 only)")
+                        help="replay each chunk's sampling (π0-FAST: each decoded token) as a CUDA graph, captured "
+                        "during the warm-up for every batch size up to --max-batch-size (default: on when the device "
+                        "is cuda)")
     parser.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
     defaults = ServerLimits()
     access = parser.add_argument_group("access and limits (docs/serving.md, 'Limits and access')")
@@ -867,15 +868,13 @@ def _observation_format(name_or_path: str) -> ObservationFormat:
 
 
 def _cuda_graph(args: argparse.Namespace) -> bool:
-    """--cuda-graph, by default on for a π0 / π0.5 policy on cuda."""
+    """--cuda-graph, by default on where the device is cuda."""
     if args.cuda_graph is not None:
         return args.cuda_graph
     import torch
 
-    from pi0_torch.runtime.policy import PI0Policy, policy_class
-
     device = torch.device(args.device if args.device is not None else ("cuda" if torch.cuda.is_available() else "cpu"))
-    return device.type == "cuda" and policy_class(policy_location(args.model)) is PI0Policy
+    return device.type == "cuda"
 
 
 def run(args: argparse.Namespace) -> int:
