@@ -4,11 +4,11 @@
 # files: this writes 8); the last lines of each are printed too. Run from the repository root with the Python that
 # holds torch, triton, transformers and pytest (the GPU image's python3: no network, no [dev] extra):
 #
-#     OUT=/tmp/gpu benchmarks/gpu_check.sh          # at most about 8 minutes on an H100 or H200
+#     OUT=/tmp/gpu benchmarks/gpu_check.sh          # at most 9.5 minutes (the steps' limits) on an H100 or H200
 #     SKIP="bench doctor" OUT=/tmp/gpu benchmarks/gpu_check.sh   # leave steps out
 #
 # Timings run alone on the GPU; the checks run side by side (correctness does not mind sharing the GPU):
-# 1. alone: the benchmark, fused steps against the torch path, eager and graph, π0 and π0.5, batch 1 and 8, with each
+# 1. alone: the benchmark, fused steps against the torch path, eager and graph, π0 and π0.5, batch 1, 4 and 8, with each
 #    row's GPU activities, GPU time and its 30 longest kinds of kernel;
 # 2. together: doctor (every sampling path at full size against its reference), the GPU tests (tests/test_cuda.py),
 #    the fused kernels' tests on real kernels (tests/test_kernels.py), and the compiles of every tiling that step 3
@@ -43,7 +43,7 @@ show() {  # show NAME: the end of its log
 } 2>&1 | tee "$OUT/bench.log"  # (the versions head the benchmark's log: 8 files come back, no more)
 
 # 1. alone
-step bench 130 "$PY" -m pi0_torch.cli bench --device cuda --presets pi0,pi05 --dtypes bfloat16 --cameras 3 --batches 1,8 \
+step bench 170 "$PY" -m pi0_torch.cli bench --device cuda --presets pi0,pi05 --dtypes bfloat16 --cameras 3 --batches 1,4,8 \
     --kernels auto,torch --repeats 10 --kernel-table 30
 [ -f "$OUT/bench.log" ] && grep -v '^      ' "$OUT/bench.log" | tail -n 25
 

@@ -74,15 +74,20 @@ def cases(batches: list[int]) -> Iterator[tuple[str, str, Callable[[], object], 
         rows = batch * config.action_horizon
         for name, gemm in step_gemms(config, batch, DEVICE).items():
             depth, columns = shapes[name]
-            current = triton_kernels.blocks(rows, columns, depth)
+            current = triton_kernels.blocks(rows, columns, depth)  # (None: cuBLAS's GEMM, epilogue kernels around it)
             yield (name, f"M={rows} K={depth} columns={columns}", gemm.fused, gemm.weight_bytes, gemm.deviation, current,
-                   list(gemm_tilings(current.m)), (rows, columns, depth))
+                   list(gemm_tilings(64 if current is None else current.m)), (rows, columns, depth))
         slots = prefix + 1 + config.action_horizon
         for name, tokens, end in (("attn actions", config.action_horizon, slots), ("attn state", 1, prefix + 1)):
             call, size, deviation = attention_case(batch, tokens, slots, end)
             yield (name, f"B={batch} rows={tokens * heads} keys={end}", call, size, deviation,
                    triton_kernels.attention_blocks(tokens * heads, batch, slots), list(attention_tilings(tokens * heads)),
                    (tokens * heads, batch, slots))
+
+
+def describe(tiling: object) -> str:
+    """A tiling in a line; None (from `CUBLAS_ROWS` rows on) is cuBLAS's GEMM with the epilogue kernels around it."""
+    return "cuBLAS GEMM + epilogue kernels" if tiling is None else str(tiling)
 
 
 def with_tiling(kernel: str, tiling: object) -> tuple[str, object]:
@@ -142,11 +147,11 @@ def main() -> int:
             continue
         timed = sorted((result for result in results if not isinstance(result[1], str)), key=lambda result: result[1][0])
         now = results[0][1]
-        print(f"\n{kernel} {shape} ({size / 2**20:.1f} MiB): in use {current} "
+        print(f"\n{kernel} {shape} ({size / 2**20:.1f} MiB): in use {describe(current)} "
               + (f"{now[0] * 1e6:.1f} us {size / now[0] / 1e9:.0f} GB/s, deviation {now[1]:.1e}" if not isinstance(now, str) else now))
         for tiling, (seconds, off) in timed[: args.top]:
             speedup = f"x{now[0] / seconds:5.2f}" if not isinstance(now, str) else ""
-            print(f"    {seconds * 1e6:8.1f} us {size / seconds / 1e9:6.0f} GB/s {speedup}  deviation {off:.1e}  {tiling}")
+            print(f"    {seconds * 1e6:8.1f} us {size / seconds / 1e9:6.0f} GB/s {speedup}  deviation {off:.1e}  {describe(tiling)}")
         good = [tiling for tiling, (_, off) in timed if off <= FUSED_TOLERANCE[torch.bfloat16]]  # (else wrong, however fast)
         if good:
             fastest[(with_tiling(kernel, None)[0], key)] = good[0]
@@ -155,7 +160,7 @@ def main() -> int:
               + (f", {len(failed)} did not, e.g. {failed[0][0]}: {failed[0][1]}" if failed else ""))
     if args.write and not args.compile_only:
         with open(args.write, "w") as file:
-            json.dump([{"chooser": chooser, "arguments": list(key), "tiling": tiling._asdict()}
+            json.dump([{"chooser": chooser, "arguments": list(key), "tiling": None if tiling is None else tiling._asdict()}
                        for (chooser, key), tiling in fastest.items()], file, indent=1)
     if args.bench and not args.compile_only:
         bench_with(fastest)
@@ -170,7 +175,7 @@ def bench_with(fastest: dict[tuple[str, tuple[int, ...]], object]) -> None:
     for chooser in ("blocks", "attention_blocks"):
         original = getattr(triton_kernels, chooser)
         setattr(triton_kernels, chooser, lambda *key, original=original, chooser=chooser:
-                fastest.get((chooser, tuple(key))) or original(*key))
+                fastest[(chooser, key)] if (chooser, key) in fastest else original(*key))
     print("\npi0-torch bench with the fastest tilings above")
     parser = argparse.ArgumentParser()
     benchmark.add_arguments(parser)

@@ -384,7 +384,8 @@ def bench_op_counts(args: argparse.Namespace) -> None:
 @dataclass
 class StepGemm:
     """One GEMM of a fused sampling step: cuBLAS's `torch.mm` on the transposed weight (what the torch path runs),
-    the fused op that replaces it (its norm, RoPE, GeGLU or residual included), the bytes of one weight, and
+    the fused op that replaces it (its norm, RoPE, GeGLU or residual included; from `triton_kernels.CUBLAS_ROWS`
+    rows on that op is cuBLAS's GEMM with the epilogue kernels around it), the bytes of one weight, and
     `deviation()`: the fused op against its torch reference on the same operands (max |diff| / max |reference|). Each
     call of `cublas` and `fused` takes the next of several copies of the weight, together larger than the GPU's L2
     cache, as each layer of a step reads its own weights from memory."""

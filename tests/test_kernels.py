@@ -144,6 +144,30 @@ def test_split_k_gemms_equal_their_references(dtype: torch.dtype, sizes: str, sp
     assert not any(counters.any() for counters in kernels()._counters.values())
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16])
+def test_the_gemm_ops_run_cublas_from_cublas_rows_on(dtype: torch.dtype, monkeypatch: pytest.MonkeyPatch) -> None:
+    """From `CUBLAS_ROWS` rows on (here lowered to 16) the GEMM ops run the GEMM in torch (cuBLAS on CUDA) with the
+    epilogue kernels around it (`rope_cache_write`, `geglu`): the same results as the references; fewer rows keep
+    the fused kernels."""
+    monkeypatch.setattr(kernels(), "CUBLAS_ROWS", 16)
+    width, heads, head_dim, mlp_width, _ = SIZES["odd"]
+    assert kernels().blocks(15, 64, width) is not None and kernels().blocks(16, 64, width) is None
+    batch, tokens = 2, 9
+    generator = torch.Generator().manual_seed(1)
+    rows, slots = batch * tokens, tokens + 4
+    x, scale = random(generator, dtype, rows, width), 1 + random(generator, dtype, width, scale=0.1)
+    cos, sin = rope_cos_sin(torch.arange(tokens, device=DEVICE)[None] + 2, head_dim, 10_000.0)
+    for bias in (None, random(generator, dtype, (heads + 2) * head_dim)):
+        compare("norm_qkv_rope", (x, scale, bias, random(generator, dtype, (heads + 2) * head_dim, width).t(), cos, sin,
+                                  torch.zeros(batch, slots, head_dim, dtype=dtype, device=DEVICE),
+                                  torch.zeros(batch, slots, head_dim, dtype=dtype, device=DEVICE), 4, 1e-6), dtype)
+        compare("norm_gate_up_geglu", (x, scale, None if bias is None else random(generator, dtype, 2 * mlp_width),
+                                       random(generator, dtype, 2 * mlp_width, width, scale=width**-0.5).t(), 1e-6), dtype)
+    for gate in (None, random(generator, dtype, width)):
+        compare("matmul_residual_", (x.clone(), random(generator, dtype, rows, mlp_width),
+                                     random(generator, dtype, width, mlp_width, scale=mlp_width**-0.5).t(), gate), dtype)
+
+
 def test_each_op_is_one_op_on_the_meta_device_and_traces_under_compile() -> None:
     """Registered as custom ops: the op counter sees one op per call (their fake implementations give the shapes),
     and `torch.compile(fullgraph=True)` traces through one (no graph break)."""
@@ -190,9 +214,12 @@ def tiny_config(preset: str = "pi0_small", **overrides) -> PI0Config:
 @pytest.mark.parametrize("dtype, tolerance", [(torch.float32, 1e-5), (torch.bfloat16, 3e-2)])
 @pytest.mark.parametrize("batch", [1, 3])
 def test_fused_steps_equal_the_unfused_ones_and_the_reference_loop(preset: str, dtype: torch.dtype, tolerance: float,
-                                                                     batch: int) -> None:
+                                                                     batch: int, monkeypatch: pytest.MonkeyPatch) -> None:
     """`sampling_kernels="triton"`: every Euler step in the fused kernels. The actions equal the unfused engine's and
-    `sample_actions_reference`'s (float32 tightly; bf16 to its rounding: the fused epilogues round less often)."""
+    `sample_actions_reference`'s (float32 tightly; bf16 to its rounding: the fused epilogues round less often). At
+    batch 3 the step's GEMMs run as from `CUBLAS_ROWS` rows on (here lowered to 30: cuBLAS's GEMMs with the epilogue
+    kernels around them)."""
+    monkeypatch.setattr(kernels(), "CUBLAS_ROWS", 30)
     torch.manual_seed(0)
     config = tiny_config(preset)
     model = PI0ForActionGeneration(config).eval().to(DEVICE, dtype)

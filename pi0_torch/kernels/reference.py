@@ -54,9 +54,20 @@ def norm_qkv_rope(
     eps: float,
 ) -> torch.Tensor:
     """RMSNorm, the q/k/v projection, RoPE on q and k; k and v written into the caches. Returns q `[M, N * H]`."""
-    normed = rms_norm(x, eps, scale)
-    qkv = torch.mm(normed, weight) if bias is None else torch.addmm(bias, normed, weight)  # [M, (N + 2) H]
+    qkv = normed_projection(x, scale, bias, weight, eps)  # [M, (N + 2) H]
     return rope_cache_write(qkv, cos, sin, key_cache, value_cache, first_slot)
+
+
+def normed_projection(
+    x: torch.Tensor,  # [M, D]
+    scale: torch.Tensor,  # [D]
+    bias: torch.Tensor | None,  # [C]: adaRMS `shift @ W`, or None
+    weight: torch.Tensor,  # [D, C]
+    eps: float,
+) -> torch.Tensor:
+    """`rms_norm(x) * scale @ weight (+ bias)` `[M, C]`, rounded once after the norm and once after the GEMM."""
+    normed = rms_norm(x, eps, scale)
+    return torch.mm(normed, weight) if bias is None else torch.addmm(bias, normed, weight)
 
 
 def rope_cache_write(
@@ -89,8 +100,7 @@ def norm_gate_up_geglu(
     eps: float,
 ) -> torch.Tensor:
     """RMSNorm, the gate/up projection and the GeGLU between the MLP's projections: `gelu_tanh(gate) * up` `[M, F]`."""
-    normed = rms_norm(x, eps, scale)
-    return geglu(torch.mm(normed, weight) if bias is None else torch.addmm(bias, normed, weight))
+    return geglu(normed_projection(x, scale, bias, weight, eps))
 
 
 def geglu(gate_up: torch.Tensor) -> torch.Tensor:

@@ -13,7 +13,8 @@ Each kernel computes what its namesake in `pi0_torch.kernels.reference` computes
 - `embed_actions`: the action tokens of a step from `x_t` (π0: both GEMMs of the action/time MLP and the SiLU between
   them; the hidden row block is computed per column block, cheap where it is `x_t`'s 32 action dims deep);
 - `rope_cache_write` and `geglu`: the elementwise work around the prefix pass's GEMMs (which stay cuBLAS's: at 800
-  rows and more they are compute-bound, and cuBLAS is near peak there), and around π0-FAST's decoding GEMMs;
+  rows and more they are compute-bound, and cuBLAS is near peak there), around π0-FAST's decoding GEMMs, and around
+  the step's own GEMMs from `CUBLAS_ROWS` rows on (large batches, see `blocks`);
 - `add_layer_norm_`: SigLIP's residual add and the LayerNorm after it, in one pass over the rows.
 
 A paired GEMM (RoPE, GeGLU) gives each program two column sets, `c` and `c + half`, so that both halves a rotation or
@@ -35,6 +36,7 @@ from typing import NamedTuple
 
 import torch
 
+from pi0_torch.kernels import reference
 from pi0_torch.utils.extras import require_extra
 
 require_extra("kernels", "pi0_torch.kernels.triton_kernels")
@@ -75,9 +77,17 @@ class Blocks(NamedTuple):
     splits: int = 1
 
 
-def blocks(rows: int, columns: int, depth: int) -> Blocks:
+CUBLAS_ROWS = 256  # from this many rows on the GEMM ops run cuBLAS's GEMM, their epilogues in kernels of their own
+
+
+def blocks(rows: int, columns: int, depth: int) -> Blocks | None:
     """The tiling of a GEMM with `rows` x `columns` outputs, `depth` deep (measured on an H200 with
-    `benchmarks/kernel_sweep.py`, the weights read from memory as in a step, not from L2; see docs/gpu.md).
+    `benchmarks/kernel_sweep.py`, the weights read from memory as in a step, not from L2; see docs/gpu.md), or None
+    from `CUBLAS_ROWS` rows on (π0 at batch 6 and more): there the GEMM is cuBLAS's and the norm and the epilogue
+    run in kernels of their own (`rope_cache_write`, `geglu`; the residual add in cuBLAS's `addmm_`). Measured on an
+    H200 at 400 rows, weights from memory: cuBLAS's q/k/v GEMM took 6.7 µs against 24.6 fused, gate/up 12.1 against
+    46.7, o 6.6 against 8.6, down 11.0 against 15.8; at 50 rows the fused kernels are about as fast as cuBLAS with
+    kernels around it, in fewer launches. Between 50 and 400 rows it is not measured.
 
     A skinny GEMM's cost is reading its weights, so what matters is how many bytes are in flight: 64-row blocks (the
     suffix's 50 rows of a sample in one), 4 pipeline stages, 128 deep where the reduction is at least twice the
@@ -85,6 +95,8 @@ def blocks(rows: int, columns: int, depth: int) -> Blocks:
     each tile's reduction into parts (`splits`, a power of two up to 8). Few rows (π0's state token) keep the small
     blocks. With 4 stages a tiling takes at most 96 KiB of shared memory on sm_80/86/89/120 (128 KiB on sm_90),
     within what a block may have on each (`benchmarks/kernel_resources.py`; `make test` checks sm_89)."""
+    if rows >= CUBLAS_ROWS:
+        return None
     if rows <= 32:
         return narrow_blocks(rows, columns)
     deep = depth >= 2 * columns
@@ -578,8 +590,11 @@ def norm_qkv_rope(x, scale, bias, weight, cos, sin, key_cache, value_cache, firs
     rows, width = x.shape
     batch, slots, head_dim = key_cache.shape
     heads = weight.shape[1] // head_dim - 2
-    q = x.new_empty(rows, heads * head_dim)
     tile = blocks(rows, weight.shape[1] // 2, width)
+    if tile is None:  # cuBLAS's GEMM; RoPE and the cache write after it
+        qkv = reference.normed_projection(x, scale, bias, weight, eps)
+        return rope_cache_write(qkv, cos, sin, key_cache, value_cache, first_slot)
+    q = x.new_empty(rows, heads * head_dim)
     grid = (cdiv(rows, tile.m), cdiv((heads + 2) * head_dim // 2, tile.n))
     tile, workspace, counters, k_split = split_k(x, tile, grid[0] * grid[1], width)
     _norm_qkv_rope_kernel[(*grid, tile.splits)](
@@ -596,8 +611,10 @@ def norm_qkv_rope(x, scale, bias, weight, cos, sin, key_cache, value_cache, firs
 def norm_gate_up_geglu(x, scale, bias, weight, eps):
     rows, width = x.shape
     mlp_width = weight.shape[1] // 2
-    out = x.new_empty(rows, mlp_width)
     tile = blocks(rows, mlp_width, width)
+    if tile is None:  # cuBLAS's GEMM; the GeGLU after it
+        return geglu(reference.normed_projection(x, scale, bias, weight, eps))
+    out = x.new_empty(rows, mlp_width)
     grid = (cdiv(rows, tile.m), cdiv(mlp_width, tile.n))
     tile, workspace, counters, k_split = split_k(x, tile, grid[0] * grid[1], width)
     _norm_gate_up_geglu_kernel[(*grid, tile.splits)](
@@ -612,6 +629,8 @@ def norm_gate_up_geglu(x, scale, bias, weight, eps):
 def matmul_residual_(residual, y, weight, gate):
     rows, width = residual.shape
     tile = blocks(rows, width, y.shape[1])
+    if tile is None:  # cuBLAS's GEMM, the residual added by it (`addmm_`; adaRMS: gated after it)
+        return reference.matmul_residual_(residual, y, weight, gate)
     grid = (cdiv(rows, tile.m), cdiv(width, tile.n))
     tile, workspace, counters, k_split = split_k(y, tile, grid[0] * grid[1], y.shape[1])
     _matmul_residual_kernel[(*grid, tile.splits)](
