@@ -214,8 +214,9 @@ def test_varlen_kernel_matches_sdpa(reference: OpenpiReference) -> None:
 @pytest.mark.parametrize("preset", ["pi0", "pi05"])
 def test_fused_steps_hold_at_full_width_for_every_batch_class(preset: str) -> None:
     """Full-size widths (two decoder layers, random weights), bf16, "auto": at batch 1 (one-row state token, key
-    parts), 3 (64-row attention blocks) and 8 (row counts divisible by 16) each call's first-use verification keeps
-    the fused steps, and they give the unfused path's actions within bf16's bound."""
+    parts), 3 (64-row attention blocks) and 8 (row counts divisible by 16; 400 rows: the GEMM ops run cuBLAS's GEMM
+    with the epilogue kernels, `CUBLAS_ROWS`) each call's first-use verification keeps the fused steps, and they give
+    the unfused path's actions within bf16's bound."""
     from pi0_torch import PI0Config, PI0ForActionGeneration
     from pi0_torch.benchmark import example_batch
 
