@@ -245,9 +245,9 @@ def random_model(config: PI0Config, dtype: torch.dtype, device: torch.device) ->
 
 
 def generate_modes(compile: bool, device: torch.device) -> dict[str, dict[str, Any] | None]:
-    """How π0-FAST's `generate_tokens` runs, by name -> `compile_decoding` arguments (None: eager; "cuda-graph": each
-    token replays a hand-captured CUDA graph, `capture_decoding`, on CUDA). With `--compile`: also compiled, and on
-    CUDA compiled and replayed as inductor's CUDA graphs ("compiled-graph")."""
+    """How π0-FAST's `generate_tokens` runs, by name -> `compile_decoding` arguments (None: eager; "cuda-graph": the
+    prefill and each token replay hand-captured CUDA graphs, `capture_decoding`, on CUDA). With `--compile`: also
+    compiled, and on CUDA compiled and replayed as inductor's CUDA graphs ("compiled-graph")."""
     cuda = device.type == "cuda"
     modes: dict[str, dict[str, Any] | None] = {"eager": None, **({"cuda-graph": None} if cuda else {})}
     if compile:

@@ -16,10 +16,10 @@ import torch
 from pi0_torch import PI0FastConfig, PI0FastForActionGeneration
 from pi0_torch.conversion.openpi_weights import config_from_openpi_shapes, load_openpi_params
 from pi0_torch.inference import fast_decoding
-from pi0_torch.inference.decoding_graphs import DecodingGraphs, cache_signature
+from pi0_torch.inference.decoding_graphs import DecodingGraphs
 from pi0_torch.kernels import ops
 from pi0_torch.masks import prefix_lm_mask
-from pi0_torch.models.modeling_pi0_fast import DecodingCache, token_log_probs
+from pi0_torch.models.modeling_pi0_fast import token_log_probs
 from pi0_torch.processing.fast_tokenizer import FASTActionTokenizer, dct, idct
 from pi0_torch.processing.normalization import NormStats
 from pi0_torch.processing.processing_pi0_fast import PI0FastProcessor
@@ -329,38 +329,39 @@ def test_cuda_graph_decoding_is_refused_where_it_crashed(fast_reference: FastRef
     assert model.decoding_graphs_reason() is None
 
 
-def test_hand_captured_decoding_replays_eager_steps_and_refuses_a_wrong_graph(
+def test_hand_captured_decoding_replays_eager_decoding_and_refuses_wrong_graphs(
     fast_reference: FastReference, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
 ) -> None:
-    """`capture_decoding`: each call's prefill runs eagerly and its cache is copied into the static cache of the graph
-    of its signature, and every token replays that graph (simulated here, as the CPU records nothing: `_record` gives a
-    "graph" whose replay runs the eager step on the static buffers, as a recorded graph does). One capture serves two
-    different observations with eager decoding's tokens; a graph whose first replay differs from the eager step is
-    refused with a warning naming the deviation, that call decodes eagerly, and its signature is not captured again.
-    On the CPU `generate_tokens` itself stays eager; the fused kernels' caches are a signature of their own."""
+    """`capture_decoding`: the prefill and the step of each input signature are recorded once; a call copies its
+    inputs into the prefill's static inputs and replays it into the static cache, and every token replays the step
+    on that cache (simulated here, as the CPU records nothing: `_record` gives a "graph" whose replay runs the eager
+    code again into the captured output, as a recorded graph rewrites the same memory). One capture serves two
+    different observations with eager decoding's tokens; graphs whose first replays differ from the eager runs are
+    refused with a warning naming the deviation, that call decodes eagerly, and the signature is not captured again.
+    On the CPU `generate_tokens` itself stays eager."""
     model = fast_reference.model()
     infer = fast_reference.inputs("infer")
     swapped = {name: value.flip(0) for name, value in infer.items()}  # (other tokens per row)
-    steps = int(fast_reference["inputs/max_decoding_steps"])
+    steps = 5
     expected = model.generate_tokens(**infer, max_new_tokens=steps)
     expected_swapped = model.generate_tokens(**swapped, max_new_tokens=steps)
     assert not torch.equal(expected, expected_swapped)
 
-    class Replay:  # a "graph" whose replay writes `run()` into the captured output
-        def __init__(self, run: Callable[[], torch.Tensor], output: torch.Tensor) -> None:
-            self.run, self.output = run, output
+    class Replay:  # a "graph": its replay runs `run` again and writes the result where the capture run's went
+        def __init__(self, run: Callable[[], torch.Tensor], output: torch.Tensor, scale: float) -> None:
+            self.run, self.output, self.scale = run, output, scale
 
         def replay(self) -> None:
-            self.output.copy_(self.run())
+            self.output.copy_(self.run() * self.scale)
 
     recorded: list[float] = []
 
-    def recording(scale: float) -> Callable[..., tuple[Replay, torch.Tensor, torch.Tensor]]:
-        def record(cache: DecodingCache, token: torch.Tensor, step: torch.Tensor) -> tuple[Replay, torch.Tensor, torch.Tensor]:
+    def recording(scale: float) -> Callable[[Callable[[], torch.Tensor]], tuple[Replay, torch.Tensor, torch.Tensor]]:
+        def record(run: Callable[[], torch.Tensor]) -> tuple[Replay, torch.Tensor, torch.Tensor]:
             recorded.append(scale)
-            eager = model.decode_step(cache, token, step).clone()
-            output = torch.empty_like(eager)
-            return Replay(lambda: model.decode_step(cache, token, step) * scale, output), output, eager
+            eager = run().clone()
+            output = run()
+            return Replay(run, output, scale), output, eager
         return record
 
     def decode(graphs: DecodingGraphs, inputs: dict[str, torch.Tensor]) -> torch.Tensor:
@@ -370,22 +371,22 @@ def test_hand_captured_decoding_replays_eager_steps_and_refuses_a_wrong_graph(
     graphs = DecodingGraphs(model)
     monkeypatch.setattr(graphs, "_record", recording(1.0))
     assert torch.equal(decode(graphs, infer), expected)
-    assert torch.equal(decode(graphs, swapped), expected_swapped)  # (the second prefill's cache copied in)
-    assert recorded == [1.0] and len(graphs.graphs) == 1 and not graphs.refused
+    assert torch.equal(decode(graphs, swapped), expected_swapped)  # (the second call's inputs copied in)
+    assert recorded == [1.0, 1.0] and len(graphs.graphs) == 1 and not graphs.refused  # (a prefill and a step)
+    captured = next(iter(graphs.graphs.values()))
+    assert captured.cache.keys[0].shape[2] == model.decoding_slots(3, infer["input_ids"].shape[1], steps)
 
     wrong = DecodingGraphs(model)
     monkeypatch.setattr(wrong, "_record", recording(3.0))
     with caplog.at_level(logging.WARNING):
         assert torch.equal(decode(wrong, infer), expected)
         assert torch.equal(decode(wrong, swapped), expected_swapped)
-    assert recorded == [1.0, 3.0] and not wrong.graphs and len(wrong.refused) == 1
-    assert caplog.text.count("was refused") == 1
-    assert ("the CUDA graph of π0-FAST's decoding step (batch 2, 880 cache slots) was refused: its first replay "
-            "deviates from an eager step by 2 of the largest logit (bound 0.0001); it decodes eagerly") in caplog.text
+    assert recorded == [1.0, 1.0, 3.0, 3.0] and not wrong.graphs and len(wrong.refused) == 1
+    assert caplog.text.count("were refused") == 1
+    assert ("the CUDA graphs of π0-FAST's decoding (batch 2, 3 cameras, 96 prompt tokens, 5 new tokens) were refused: "
+            "the prefill's first replay deviates from an eager run by 2 of the largest logit (bound 0.0001); it "
+            "decodes eagerly from now on") in caplog.text
 
-    with torch.no_grad():
-        fused, modules = (model.prepare_decoding(*infer.values(), steps, fused)[0] for fused in (True, False))
-    assert cache_signature(fused) != cache_signature(modules)
     model.capture_decoding()
     assert model.decoding_captured and torch.equal(model.generate_tokens(**infer, max_new_tokens=steps), expected)
     assert not model._decoding_graphs.graphs and not model._decoding_graphs.refused  # (the CPU: eager)

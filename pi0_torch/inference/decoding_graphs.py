@@ -1,26 +1,29 @@
-"""π0-FAST's decoded tokens as CUDA graphs, captured by hand (no compiler): `PI0FastForActionGeneration.capture_decoding`.
+"""π0-FAST's decoding as CUDA graphs, captured by hand (no compiler): `PI0FastForActionGeneration.capture_decoding`.
 
-A decoded token runs the whole decoder on one row per sample: at full size about two hundred small launches, whose
-host time, not the GPU's, sets the pace of eager decoding. `decode_step` never reads the device from the host and its
-shapes do not change from token to token (the token's step and slot are device values), so one graph per cache
-signature (batch size, cache slots, dtype, fused kernels or modules) serves every token of every call. Unlike
-`compile_decoding(mode="reduce-overhead")` it needs no compiler: it runs on torch 2.10 and 2.11 too, where inductor's
-graphs of the decoding step crashed the process, and it replays the fused kernels (`fast_decoding`) where eager
-decoding runs them.
+Eager decoding is bound by the host's launches: the prefill (SigLIP on every camera, the prompt through the decoder) is
+about a thousand of them, and each decoded token about two hundred more. Neither reads the device from the host, and
+neither's shapes change from call to call of one input signature (batch size, cameras, prompt length, new tokens,
+dtype, kernels) or, for the step, from token to token (the token's step and slot are device values). So each signature
+gets two graphs, recorded once:
 
-Each call's prefill runs eagerly (`prepare_decoding`: it runs once per call, over a prompt whose length may change) and
-its cache is copied into the graph's static cache; each token is then copied into the graph's static token and step,
-and the graph replays `decode_step` into its static logits. The first call of a signature captures its graph (two
-warm-up steps on a side stream, then the capture, on the graphs' own capture stream, into their shared memory pool)
-and verifies it: its first replay must give the logits of the last warm-up step (eager decoding of the same token
-into the same cache) within `VERIFY_TOLERANCE`, relative to the largest logit. A graph that does not, or that CUDA
-refuses to record, is refused with a warning, and its signature decodes eagerly from then on: no graph ever picks
-other tokens than eager decoding silently.
+- the prefill: `prepare_decoding` on static copies of the inputs, its cache and the first token's logits copied into
+  static buffers (the step's cache, allocated outside the graph);
+- the step: `decode_step` on that static cache, a static token and step, into static logits.
+
+A call copies its inputs in and replays the prefill, then per token copies the token and step in and replays the step.
+Unlike `compile_decoding(mode="reduce-overhead")` this needs no compiler: it runs on torch 2.10 and 2.11 too, where
+inductor's graphs of the decoding step crashed the process, and it replays the fused kernels (`fast_decoding`) where
+eager decoding runs them.
+
+Both graphs are verified when captured (`graphs.record_graph`: warm-up runs on a side stream, then the capture): their
+first replays must give the logits of the last warm-up runs (eager prefill, eager step of the same token) within
+`VERIFY_TOLERANCE`, relative to the largest logit. Graphs that do not, or that CUDA refuses to record, are refused with
+a warning, and their signature decodes eagerly from then on: no graph ever picks other tokens than eager decoding
+silently.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
@@ -31,6 +34,8 @@ from pi0_torch.inference.graphs import (VERIFY_TOLERANCE, GraphCaptureError, cap
                                        relative_deviation)
 
 if TYPE_CHECKING:
+    from collections.abc import Callable
+
     from pi0_torch.models.modeling_pi0_fast import DecodingCache, PI0FastForActionGeneration
 
 logger = logging.getLogger(__name__)
@@ -38,11 +43,14 @@ logger = logging.getLogger(__name__)
 
 @dataclass
 class CapturedDecoding:
-    graph: Any  # torch.cuda.CUDAGraph
-    cache: DecodingCache  # the static cache the graph reads, and writes each decoded token's k/v into
-    token: torch.Tensor  # long [B]: the token a replay feeds
-    step: torch.Tensor  # long [1]: its step
-    logits: torch.Tensor  # [B, V]: where a replay writes the next token's logits
+    prefill: Any  # torch.cuda.CUDAGraph: the prefill of `inputs` into `cache` and `first_logits`
+    inputs: list[torch.Tensor]  # static pixel_values, image_masks, input_ids, attention_mask, token_ar_mask
+    first_logits: torch.Tensor  # [B, V]: the logits that pick the first token
+    step: Any  # torch.cuda.CUDAGraph: `decode_step(cache, token, step_index)` into `logits`
+    cache: DecodingCache  # the static cache (the prefill writes it, each step writes its token's k/v)
+    token: torch.Tensor  # long [B]: the token a step replay feeds
+    step_index: torch.Tensor  # long [1]: its step
+    logits: torch.Tensor  # [B, V]: where a step replay writes the next token's logits
 
 
 def cache_tensors(cache: DecodingCache) -> list[torch.Tensor]:
@@ -51,34 +59,23 @@ def cache_tensors(cache: DecodingCache) -> list[torch.Tensor]:
     return tensors + ([] if cache.masks is None else [cache.masks]) + list(cache.norm_scales or ())
 
 
-def cache_signature(cache: DecodingCache) -> tuple[Any, ...]:
-    """What a graph is specialised to: the fused kernels or the modules, and every cache tensor's shape, dtype and
-    device."""
-    fused = cache.norm_scales is not None
-    return (fused, *((tuple(tensor.shape), tensor.dtype, tensor.device) for tensor in cache_tensors(cache)))
-
-
-def clone_cache(cache: DecodingCache) -> DecodingCache:
-    """A copy of `cache` with tensors of its own (the static buffers of a graph)."""
-    def clone(value: Any) -> Any:
-        if isinstance(value, (list, tuple)):
-            return [tensor.clone() for tensor in value]
-        return None if value is None else value.clone()
-
-    return dataclasses.replace(cache, **{field.name: clone(getattr(cache, field.name)) for field in dataclasses.fields(cache)})
+def input_signature(inputs: tuple[Any, ...]) -> tuple[Any, ...]:
+    """What a call's graphs are specialised to: `prepare_decoding`'s inputs (five tensors, then the number of new
+    tokens and whether the fused kernels run), each tensor by shape, dtype and device."""
+    return (*((tuple(tensor.shape), tensor.dtype, tensor.device) for tensor in inputs[:5]), *inputs[5:])
 
 
 class DecodingGraphs:
-    """The captured decoding steps of one model, by cache signature, and the signatures refused at capture.
+    """The captured prefill and step graphs of one model, by input signature, and the signatures refused at capture.
 
     `prepare` and `step` stand in for `prepare_decoding` and `decode_step` in `PI0FastForActionGeneration.decode`."""
 
     def __init__(self, model: PI0FastForActionGeneration, verify: bool = True) -> None:
         self.model = model
-        self.verify = verify  # compare each graph's first replay with an eager step (see the module docstring)
+        self.verify = verify  # compare each graph's first replay with an eager run (see the module docstring)
         self.graphs: dict[tuple[Any, ...], CapturedDecoding] = {}
-        self.refused: dict[tuple[Any, ...], str] = {}  # signature -> why its graph was refused: it decodes eagerly
-        self.replays: dict[int, CapturedDecoding] = {}  # id(static cache) -> its graph (what `step` looks up)
+        self.refused: dict[tuple[Any, ...], str] = {}  # signature -> why its graphs were refused: it decodes eagerly
+        self.replays: dict[int, CapturedDecoding] = {}  # id(static cache) -> its graphs (what `step` looks up)
         self.pool: Any = None  # the memory pool the graphs share
         self.stream: torch.cuda.Stream | None = None  # every capture's stream
         self.warmup_stream: torch.cuda.Stream | None = None
@@ -91,76 +88,91 @@ class DecodingGraphs:
         self.pool = self.stream = self.warmup_stream = None
 
     def prepare(self, *inputs: Any) -> tuple[DecodingCache, torch.Tensor]:
-        """The prefill (`prepare_decoding(*inputs)`, eager) and the cache `step` continues from: the static cache of
-        the signature's graph (captured and verified on first use), holding this call's prefix; the prefill's own
-        cache where the signature's graph was refused (its steps then run eagerly)."""
-        cache, logits = self.model.prepare_decoding(*inputs)
-        key = cache_signature(cache)
+        """`prepare_decoding(*inputs)`: a replay of the signature's prefill graph (captured and verified on first use)
+        into its static cache, which `step` continues from, and the first token's logits (overwritten by the next
+        call's prefill); eagerly where the signature's graphs were refused."""
+        key = input_signature(inputs)
         if key in self.refused:
-            return cache, logits
+            return self.model.prepare_decoding(*inputs)
         captured = self.graphs.get(key)
         if captured is None:
             try:
-                captured, eager = self._capture(cache, logits)
+                captured, eager_first, eager_step = self._capture(inputs)
             except GraphCaptureError as error:
-                captured, refusal = None, f"CUDA could not record it ({error})"
+                captured, refusal = None, f"CUDA could not record them ({error})"
             else:
-                refusal = self._verify(captured, eager) if self.verify else None
+                refusal = self._verify(captured, eager_first, eager_step) if self.verify else None
             if refusal is not None:
                 self.refused[key] = refusal
-                logger.warning("the CUDA graph of π0-FAST's decoding step (batch %d, %d cache slots) was refused: %s; "
-                               "it decodes eagerly from now on", cache.first.shape[0], cache.keys[0].shape[2], refusal)
-                return cache, logits
+                batch, cameras = inputs[0].shape[:2]
+                logger.warning("the CUDA graphs of π0-FAST's decoding (batch %d, %d cameras, %d prompt tokens, %d new "
+                               "tokens) were refused: %s; it decodes eagerly from now on", batch, cameras,
+                               inputs[2].shape[1], inputs[5], refusal)
+                return self.model.prepare_decoding(*inputs)
             self.graphs[key] = self.replays[id(captured.cache)] = captured
-            return captured.cache, logits  # (a copy of this call's cache already)
         with torch.inference_mode():
-            torch._foreach_copy_(cache_tensors(captured.cache), cache_tensors(cache))
-        return captured.cache, logits
+            torch._foreach_copy_(captured.inputs, list(inputs[:5]))
+            captured.prefill.replay()
+        return captured.cache, captured.first_logits
 
     def step(self, cache: DecodingCache, token: torch.Tensor, step: torch.Tensor) -> torch.Tensor:
-        """`decode_step(cache, token, step)`: a replay of the graph whose static cache `cache` is (its logits are
+        """`decode_step(cache, token, step)`: a replay of the step graph whose static cache `cache` is (its logits are
         overwritten by the next replay), or the eager step for any other cache."""
         captured = self.replays.get(id(cache))
         if captured is None or captured.cache is not cache:
             return self.model.decode_step(cache, token, step)
         with torch.inference_mode():
             captured.token.copy_(token)
-            captured.step.copy_(step)
-            captured.graph.replay()
+            captured.step_index.copy_(step)
+            captured.step.replay()
         return captured.logits
 
-    def _verify(self, captured: CapturedDecoding, eager: torch.Tensor) -> str | None:
-        """Why the graph is refused (None: its first replay gives `eager`, the last warm-up step's logits, within
-        `VERIFY_TOLERANCE`)."""
-        with torch.inference_mode():
-            captured.graph.replay()
-        deviation = relative_deviation(captured.logits, eager)
+    def _verify(self, captured: CapturedDecoding, eager_first: torch.Tensor, eager_step: torch.Tensor) -> str | None:
+        """Why the graphs are refused (None: their first replays give the last warm-up runs' logits within
+        `VERIFY_TOLERANCE`: the prefill's first logits, then the step's on the replayed prefill's cache)."""
         bound = VERIFY_TOLERANCE.get(self.model.dtype, VERIFY_TOLERANCE[torch.float32])
-        if deviation <= bound:
-            return None
-        return f"its first replay deviates from an eager step by {deviation:.3g} of the largest logit (bound {bound:g})"
-
-    def _capture(self, cache: DecodingCache, logits: torch.Tensor) -> tuple[CapturedDecoding, torch.Tensor]:
-        """The graph of `decode_step` on a copy of `cache` (its static buffers), feeding the most likely first token at
-        step 0 (the call's own first step writes that slot again), and the last warm-up step's logits."""
         with torch.inference_mode():
-            static = clone_cache(cache)
-            token = logits.argmax(dim=-1)  # [B]
-            step = torch.zeros(1, dtype=torch.long, device=token.device)
-            graph, output, eager = self._record(static, token, step)
-        return CapturedDecoding(graph, static, token, step, output), eager
+            captured.prefill.replay()
+            deviations = {"prefill": relative_deviation(captured.first_logits, eager_first)}
+            captured.step.replay()
+            deviations["step"] = relative_deviation(captured.logits, eager_step)
+        for name, deviation in deviations.items():
+            if not deviation <= bound:
+                return (f"the {name}'s first replay deviates from an eager run by {deviation:.3g} of the largest logit "
+                        f"(bound {bound:g})")
+        return None
 
-    def _record(self, cache: DecodingCache, token: torch.Tensor, step: torch.Tensor) -> tuple[Any, torch.Tensor, torch.Tensor]:
-        """Warm up and record `decode_step(cache, token, step)` (`graphs.record_graph`; inference mode): the graph,
-        where its replay writes the logits, and the logits of the last warm-up step."""
-        device = token.device
+    def _capture(self, inputs: tuple[Any, ...]) -> tuple[CapturedDecoding, torch.Tensor, torch.Tensor]:
+        """Record the prefill and the step of `inputs`' signature: the graphs with their static buffers (an eager
+        prefill of `inputs` allocates them), and the last warm-up runs' logits (prefill, then the step feeding the
+        most likely first token at step 0, whose slot the call's own first step writes again)."""
+        tensors, settings = list(inputs[:5]), inputs[5:]
+        with torch.inference_mode():
+            static_inputs = [tensor.clone() for tensor in tensors]
+            cache, first_logits = self.model.prepare_decoding(*static_inputs, *settings)
+
+            def prefill() -> torch.Tensor:
+                fresh, logits = self.model.prepare_decoding(*static_inputs, *settings)
+                torch._foreach_copy_([*cache_tensors(cache), first_logits], [*cache_tensors(fresh), logits])
+                return first_logits
+
+            prefill_graph, _, eager_first = self._record(prefill)
+            token = first_logits.argmax(dim=-1)  # [B]
+            step_index = torch.zeros(1, dtype=torch.long, device=token.device)
+            step_graph, logits, eager_step = self._record(lambda: self.model.decode_step(cache, token, step_index))
+        captured = CapturedDecoding(prefill_graph, static_inputs, first_logits, step_graph, cache, token, step_index, logits)
+        return captured, eager_first, eager_step
+
+    def _record(self, run: Callable[[], torch.Tensor]) -> tuple[Any, torch.Tensor, torch.Tensor]:
+        """`graphs.record_graph` of `run` on the model's GPU, into the graphs' shared pool: the graph, where its
+        replays write `run`'s output, and the last warm-up run's output."""
+        device = self.model.device
         with torch.cuda.device(device):
             if self.stream is None:
                 self.stream, self.warmup_stream = capture_streams(device)
             pool = self.pool if self.pool is not None else torch.cuda.graph_pool_handle()
             try:
-                recorded = record_graph(lambda: self.model.decode_step(cache, token, step), device, self.stream,
-                                        self.warmup_stream, pool)
+                recorded = record_graph(run, device, self.stream, self.warmup_stream, pool)
             except GraphCaptureError:
                 self.pool = None  # (never captured into again)
                 raise

@@ -511,22 +511,23 @@ class PI0FastForActionGeneration(SiglipImageEmbedding, PI0FastPreTrainedModel):
 
     @property
     def decoding_captured(self) -> bool:
-        """Whether `generate_tokens` on CUDA replays a CUDA graph per decoded token (see `capture_decoding`)."""
+        """Whether `generate_tokens` on CUDA replays CUDA graphs of its prefill and each decoded token (see
+        `capture_decoding`)."""
         return self._decoding_graphs is not None
 
     def capture_decoding(self, disable: bool = False, verify: bool = True) -> None:
-        """Opt in to CUDA graphs for the decoded tokens of `generate_tokens` on CUDA, captured by hand (no compiler,
-        so also on torch < 2.12, where `compile_decoding(mode="reduce-overhead")` is refused): the decoding step of
-        each cache signature (batch size, cache slots, dtype, `decoding_kernels`' choice) is recorded once, on the
-        first call (two warm-up steps, then the capture), and every later token of every call replays it. The prefill
-        runs eagerly and its cache is copied into the graph's. A model moved to another device or dtype captures
-        again; on the CPU decoding stays eager.
+        """Opt in to CUDA graphs for `generate_tokens` on CUDA, captured by hand (no compiler, so also on torch < 2.12,
+        where `compile_decoding(mode="reduce-overhead")` is refused): for each input signature (batch size, cameras,
+        prompt length, new tokens, dtype, `decoding_kernels`' choice) the prefill and the per-token step are recorded
+        once, on the first call (warm-up runs, then the captures), and replayed by every later call and token. Inputs
+        are copied into the graphs' static buffers. A model moved to another device or dtype captures again; on the
+        CPU decoding stays eager.
 
-        Every graph is verified when captured (`verify=True`): its first replay must give the logits of an eager step
-        of the same token within `pi0_torch.inference.graphs.VERIFY_TOLERANCE`; a graph that does not, or that CUDA
-        refuses to record, is refused with a warning and its signature decodes eagerly from then on. Switches
-        `compile_decoding` off (and `compile_decoding` switches this off). `capture_decoding(disable=True)` goes back
-        to eager. See `pi0_torch.inference.decoding_graphs`."""
+        Every graph is verified when captured (`verify=True`): the first replays must give the logits of an eager
+        prefill and an eager step of the same token within `pi0_torch.inference.graphs.VERIFY_TOLERANCE`; graphs that
+        do not, or that CUDA refuses to record, are refused with a warning and their signature decodes eagerly from
+        then on. Switches `compile_decoding` off (and `compile_decoding` switches this off).
+        `capture_decoding(disable=True)` goes back to eager. See `pi0_torch.inference.decoding_graphs`."""
         from pi0_torch.inference.decoding_graphs import DecodingGraphs
 
         if disable:

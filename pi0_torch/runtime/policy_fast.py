@@ -56,9 +56,9 @@ class PI0FastPolicy(BasePolicy):
         compile: decode through `torch.compile` ([`PI0FastForActionGeneration.compile_decoding`]; CUDA graphs on
             CUDA); call [`warmup`] first. On CUDA with torch < 2.12, where inductor's graphs of the decoding step
             crashed the process, it replays hand-captured graphs instead (`cuda_graph`), with a warning.
-        cuda_graph: on CUDA, replay each decoded token as a CUDA graph captured by hand without a compiler
-            ([`PI0FastForActionGeneration.capture_decoding`]); the first chunk of each batch size captures it and
-            verifies it against an eager step: call [`warmup`] first. With `compile` the compiled decoding's own
+        cuda_graph: on CUDA, replay the prefill and each decoded token as CUDA graphs captured by hand without a
+            compiler ([`PI0FastForActionGeneration.capture_decoding`]); the first chunk of each batch size captures
+            them and verifies them against eager decoding: call [`warmup`] first. With `compile` the compiled decoding's own
             graphs replay instead, where they can.
         temperature: 0 for greedy decoding (openpi's default), else sampling at this temperature.
     """
@@ -98,7 +98,7 @@ class PI0FastPolicy(BasePolicy):
 
     @property
     def captured(self) -> bool:
-        """Whether decoded tokens replay hand-captured CUDA graphs (`cuda_graph`)."""
+        """Whether decoding replays hand-captured CUDA graphs (`cuda_graph`)."""
         return self.model.decoding_captured
 
     @property

@@ -811,9 +811,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--compile", action="store_true", help="torch.compile the model's repeated layers (on cuda the "
                         "sampling also replays as one CUDA graph); compiled during the warm-up, before the server listens")
     parser.add_argument("--cuda-graph", action=argparse.BooleanOptionalAction, default=None,
-                        help="replay each chunk's sampling (π0-FAST: each decoded token) as a CUDA graph, captured "
-                        "during the warm-up for every batch size up to --max-batch-size (default: on when the device "
-                        "is cuda)")
+                        help="replay each chunk's sampling (π0-FAST: its prefill and each decoded token) as CUDA "
+                        "graphs, captured during the warm-up for every batch size up to --max-batch-size (default: on "
+                        "when the device is cuda)")
     parser.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
     defaults = ServerLimits()
     access = parser.add_argument_group("access and limits (docs/serving.md, 'Limits and access')")
