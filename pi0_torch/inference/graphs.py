@@ -20,8 +20,8 @@ The graphs share a memory pool, guided ones one of their own: a capture CUDA ref
 recording in torch's allocators (there is no Python call that ends that in the pinned host allocator), so a pool that
 saw one is never captured into again, and a refused guidance capture never touches the plain graphs' pool.
 
-`record_graph` (the warm-up runs, the capture, a refused capture's clean-up) also records π0-FAST's decoding steps
-(`pi0_torch.inference.decoding_graphs`).
+`record_graph` (the warm-up runs, the capture, a refused capture's clean-up) also records π0-FAST's prefill and
+decoding step (`pi0_torch.inference.decoding_graphs`).
 """
 
 from __future__ import annotations

@@ -159,8 +159,8 @@ class PI0Policy(BasePolicy):
         `device` defaults to CUDA when available, else CPU; `dtype` ("float32" / "bfloat16" or a torch dtype)
         defaults to bfloat16 on CUDA and float32 on CPU. `default_prompt` replaces the processor's (used for
         observations without a prompt). `compile`, `cuda_graph`, `rtc_method`, `rtc_schedule` and `noise_scale` as in
-        the class (a π0-FAST folder decodes tokens: it takes no `noise_scale`, and `cuda_graph` replays each decoded
-        token as a CUDA graph, see [`PI0FastPolicy`]).
+        the class (a π0-FAST folder decodes tokens: it takes no `noise_scale`, and `cuda_graph` replays its prefill
+        and each decoded token as CUDA graphs, see [`PI0FastPolicy`]).
         `num_steps`, `noise_scale` and `rtc_method` left None take the folder's recommended values
         (`policy_settings.json`, logged; the demo policy's: noise_scale 0.1, replan_steps 4), else the class's
         defaults. On a CPU `threads` chooses torch's threads as `pi0-torch eval` does (see

@@ -58,8 +58,8 @@ class PI0FastPolicy(BasePolicy):
             crashed the process, it replays hand-captured graphs instead (`cuda_graph`), with a warning.
         cuda_graph: on CUDA, replay the prefill and each decoded token as CUDA graphs captured by hand without a
             compiler ([`PI0FastForActionGeneration.capture_decoding`]); the first chunk of each batch size captures
-            them and verifies them against eager decoding: call [`warmup`] first. With `compile` the compiled decoding's own
-            graphs replay instead, where they can.
+            them and verifies them against eager decoding: call [`warmup`] first. With `compile` the compiled
+            decoding's own graphs replay instead, where they can.
         temperature: 0 for greedy decoding (openpi's default), else sampling at this temperature.
     """
 
