@@ -1,11 +1,13 @@
 """Tilings of the fused sampling kernels, timed on a CUDA GPU: which block sizes, warps, pipeline stages and key parts
 make each full-size kernel of a sampling step fastest (the choice in `pi0_torch.kernels.triton_kernels.blocks` and
-`attention_blocks` is made for skinny GEMMs but was not measured).
+`attention_blocks` comes from this script's run on an H200).
 
 Per kernel and shape (π0's action expert, bf16, batch 1 and 8; π0.5's shapes are the same): the tiling in use, then
-every candidate, each timed as 50 calls in one CUDA graph (median of 10 replays; the GEMMs' weights rotate through
-copies larger than the L2 cache), with GB/s of weights (GEMMs) or of keys and values read (attention) and the
-deviation from the torch reference, fastest first. A tiling that does not compile or fit is counted with an error.
+every candidate (a GEMM's include None: cuBLAS's GEMM with the epilogue kernels around it, what `blocks` chooses from
+`CUBLAS_ROWS` rows on, so that each run shows where that pays), each timed as 50 calls in one CUDA graph (median of
+10 replays; the GEMMs' weights rotate through copies larger than the L2 cache), with GB/s of weights (GEMMs) or of
+keys and values read (attention) and the deviation from the torch reference, fastest first. A tiling that does not
+compile or fit is counted with an error.
 
     python benchmarks/kernel_sweep.py                         # everything, about 2 minutes after the compiles
     python benchmarks/kernel_sweep.py --compile-only --shard 0/4 &   # compile in 4 processes first (triton's disk
@@ -34,6 +36,7 @@ DEVICE = torch.device("cuda")
 
 
 def gemm_tilings(block_m: int) -> Iterator[Blocks]:
+    """The fused GEMMs' candidate tilings."""
     for n, k, (warps, stages), splits in itertools.product((16, 32, 64), (64, 128), ((4, 3), (4, 4), (8, 4)), (1, 2, 4, 8)):
         yield Blocks(block_m, n, k, warps, stages, splits)
 
@@ -76,7 +79,7 @@ def cases(batches: list[int]) -> Iterator[tuple[str, str, Callable[[], object], 
             depth, columns = shapes[name]
             current = triton_kernels.blocks(rows, columns, depth)  # (None: cuBLAS's GEMM, epilogue kernels around it)
             yield (name, f"M={rows} K={depth} columns={columns}", gemm.fused, gemm.weight_bytes, gemm.deviation, current,
-                   list(gemm_tilings(64 if current is None else current.m)), (rows, columns, depth))
+                   [None, *gemm_tilings(64 if current is None else current.m)], (rows, columns, depth))
         slots = prefix + 1 + config.action_horizon
         for name, tokens, end in (("attn actions", config.action_horizon, slots), ("attn state", 1, prefix + 1)):
             call, size, deviation = attention_case(batch, tokens, slots, end)
