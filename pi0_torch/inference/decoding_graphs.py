@@ -30,8 +30,8 @@ from typing import TYPE_CHECKING, Any
 
 import torch
 
-from pi0_torch.inference.graphs import (VERIFY_TOLERANCE, GraphCaptureError, capture_streams, record_graph,
-                                       relative_deviation)
+from pi0_torch.inference.graphs import (GraphCaptureError, capture_streams, record_graph, relative_deviation,
+                                       verify_bound)
 
 if TYPE_CHECKING:
     from collections.abc import Callable
@@ -130,7 +130,7 @@ class DecodingGraphs:
     def _verify(self, captured: CapturedDecoding, eager_first: torch.Tensor, eager_step: torch.Tensor) -> str | None:
         """Why the graphs are refused (None: their first replays give the last warm-up runs' logits within
         `VERIFY_TOLERANCE`: the prefill's first logits, then the step's on the replayed prefill's cache)."""
-        bound = VERIFY_TOLERANCE.get(self.model.dtype, VERIFY_TOLERANCE[torch.float32])
+        bound = verify_bound(self.model.dtype)
         with torch.inference_mode():
             captured.prefill.replay()
             deviations = {"prefill": relative_deviation(captured.first_logits, eager_first)}

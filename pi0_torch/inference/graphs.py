@@ -49,6 +49,11 @@ WARMUP_RUNS = 2  # before a capture (cuBLAS / cuDNN pick and allocate on their f
 VERIFY_TOLERANCE = {torch.float32: 1e-4, torch.bfloat16: 1e-2, torch.float16: 1e-2}
 
 
+def verify_bound(dtype: torch.dtype) -> float:
+    """`VERIFY_TOLERANCE` of a model in `dtype` (float32's for any other dtype)."""
+    return VERIFY_TOLERANCE.get(dtype, VERIFY_TOLERANCE[torch.float32])
+
+
 class GraphCaptureError(RuntimeError):
     """CUDA refused to record a graph (the warm-up runs before it succeeded: the eager path works)."""
 
@@ -152,7 +157,7 @@ class SamplingGraphs:
         with torch.inference_mode():
             captured.graph.replay()
         deviation = relative_deviation(captured.output, eager)
-        bound = VERIFY_TOLERANCE.get(self.model.dtype, VERIFY_TOLERANCE[torch.float32])
+        bound = verify_bound(self.model.dtype)
         if deviation <= bound:
             return None
         return f"its first replay deviates from eager sampling by {deviation:.3g} of the largest action (bound {bound:g})"

@@ -27,7 +27,7 @@ from transformers.utils import ModelOutput
 
 from pi0_torch.inference.fast_decoding import decode_layers_, decoding_kernels_reason, norm_scales, structural_reason
 from pi0_torch.inference.fused_pass import kernels_setting_reason
-from pi0_torch.inference.graphs import VERIFY_TOLERANCE, relative_deviation
+from pi0_torch.inference.graphs import relative_deviation, verify_bound
 from pi0_torch.masks import aligned_key_count, masked_attention, pad_keys, prefix_lm_mask, to_additive_mask
 from pi0_torch.models.configuration_pi0_fast import PI0FastConfig
 from pi0_torch.models.layers import ExpertLayer, RMSNorm, apply_rope, rope_cos_sin
@@ -385,7 +385,7 @@ class PI0FastForActionGeneration(SiglipImageEmbedding, PI0FastPreTrainedModel):
             self._calls_to_verify -= 1
             _, eager_logits = self.decode(self.prepare_decoding, self.decode_step, inputs, temperature, None, forced=tokens)
             deviation = max(relative_deviation(got, want) for got, want in zip(logits, eager_logits))
-            bound = VERIFY_TOLERANCE.get(self.dtype, VERIFY_TOLERANCE[torch.float32])
+            bound = verify_bound(self.dtype)
             if not deviation <= bound:
                 logger.warning("compiled decoding was refused: its logits deviate from eager decoding by %.3g of the "
                                "largest (bound %g); generate_tokens decodes eagerly from now on", deviation, bound)
