@@ -9,7 +9,7 @@
 #
 # Timings run alone on the GPU; the checks run side by side (correctness does not mind sharing the GPU):
 # 1. alone: the benchmark, fused steps against the torch path, eager and graph, π0 and π0.5, batch 1, 4 and 8, with each
-#    row's GPU activities, GPU time and its 30 longest kinds of kernel;
+#    row's GPU activities, GPU time and its 30 longest kinds of kernel; π0 batch 1 again with triton's own launches;
 # 2. together: doctor (every sampling path at full size against its reference), the GPU tests (tests/test_cuda.py),
 #    the fused kernels' tests on real kernels (tests/test_kernels.py), and the compiles of every tiling that step 3
 #    times (triton's disk cache, 8 processes);
@@ -43,15 +43,18 @@ show() {  # show NAME: the end of its log
 } 2>&1 | tee "$OUT/bench.log"  # (the versions head the benchmark's log: 8 files come back, no more)
 
 # 1. alone
-step bench 170 "$PY" -m pi0_torch.cli bench --device cuda --presets pi0,pi05 --dtypes bfloat16 --cameras 3 --batches 1,4,8 \
+step bench 150 "$PY" -m pi0_torch.cli bench --device cuda --presets pi0,pi05 --dtypes bfloat16 --cameras 3 --batches 1,4,8 \
     --kernels auto,torch --repeats 10 --kernel-table 30
+# (the same π0 row with triton's own launches instead of the direct ones: what they save eager sampling)
+step bench 40 env PI0_TORCH_TRITON_LAUNCH=triton "$PY" -m pi0_torch.cli bench --device cuda --presets pi0 \
+    --dtypes bfloat16 --cameras 3 --batches 1 --kernels auto --repeats 10
 [ -f "$OUT/bench.log" ] && grep -v '^      ' "$OUT/bench.log" | tail -n 25
 
 # 2. together
 step doctor 160 "$PY" -m pi0_torch.cli doctor --full --device cuda &
 step gpu-tests 160 "$PY" -m pytest -q -s -p no:cacheprovider -m gpu tests/test_cuda.py &
-# (the shared-memory test compiles for an RTX 4090 on the CPU, as in CI; here the real launches say it)
-step kernel-tests 150 "$PY" -m pytest -q -p no:cacheprovider tests/test_kernels.py -k "not shared_memory" &
+# (the shared-memory and direct-launch tests compile for an RTX 4090 on the CPU, as in CI; here the real launches say it)
+step kernel-tests 150 "$PY" -m pytest -q -p no:cacheprovider tests/test_kernels.py -k "not shared_memory and not direct_launches" &
 for shard in 0 1 2 3 4 5 6 7; do
     step sweep-compile 150 "$PY" benchmarks/kernel_sweep.py --compile-only --shard "$shard/8" &
 done
@@ -62,7 +65,7 @@ TAIL=8 show kernel-tests
 
 # 3. alone
 step sweep 20 "$PY" -m pi0_torch.cli bench --device cuda --skip-generate --gemms --presets pi0 --batches 1,8 --repeats 10
-step sweep 150 "$PY" benchmarks/kernel_sweep.py --write "$OUT/tilings.json" --bench
+step sweep 130 "$PY" benchmarks/kernel_sweep.py --write "$OUT/tilings.json" --bench
 step fast-bench 70 "$PY" -m pi0_torch.cli bench --device cuda --skip-generate --fast --fast-presets pi0_fast \
     --dtypes bfloat16 --batches 1 --kernels auto,torch --repeats 3
 TAIL=70 show sweep

@@ -289,6 +289,14 @@ def bench_generate(args: argparse.Namespace, device: torch.device) -> None:
     peaks = {dtype: matmul_throughput(device, getattr(torch, dtype)) for dtype in args.dtypes}
     print("measured matmul ceiling: " + ", ".join(f"{d} {v / 1e9:.0f} GFLOP/s" for d, v in peaks.items()))
     cuda = device.type == "cuda"  # (then also the GPU work of one call: activities and their time, by the profiler)
+    if cuda:
+        from pi0_torch.kernels import ops
+
+        if (reason := ops.triton_reason(device)) is None:
+            from pi0_torch.kernels.launch import DIRECT_REASON
+
+            reason = "launched directly" if DIRECT_REASON is None else f"launched by triton's run: {DIRECT_REASON}"
+        print(f"fused kernels: {reason}")
     print(f"{'preset':12s} {'dtype':9s} {'mode':14s} {'steps':7s} {'rtc':12s} {'cams':>4s} {'batch':>5s} {'set-up s':>8s} {'median ms':>10s} "
           f"{'min ms':>10s} {'max ms':>10s} {'peak MiB':>10s} {'GFLOP/s':>8s} {'% peak':>6s}"
           + (f" {'GPU ops':>7s} {'GPU ms':>7s}" if cuda else ""))

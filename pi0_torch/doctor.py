@@ -158,9 +158,12 @@ class Doctor:
         def fused() -> tuple[float, float, str]:
             if (reason := ops.triton_reason(device)) is not None:
                 return None, None, f"skip: {reason}"
+            from pi0_torch.kernels.launch import DIRECT_REASON
+
             model.sampling_kernels = "triton"
             try:
-                return against(sample(model), reference, BF16_BOUND)
+                return against(sample(model), reference, BF16_BOUND,
+                               "direct launches" if DIRECT_REASON is None else f"triton's launches ({DIRECT_REASON})")
             finally:
                 model.sampling_kernels = "torch"
 

@@ -238,6 +238,39 @@ def test_fused_steps_hold_at_full_width_for_every_batch_class(preset: str) -> No
         assert relative(fused, unfused) <= 3e-2
 
 
+@torch.no_grad()
+def test_direct_launches_sample_what_tritons_own_launches_sample() -> None:
+    """The fused kernels launched directly (`pi0_torch.kernels.launch`: every launch of a class after its first) give
+    bit for bit the actions that triton's own launches give: full width, two layers, bf16, batch 1 (key parts,
+    split-K) and 8 (64-row attention blocks, cuBLAS's GEMMs with the epilogue kernels)."""
+    from pi0_torch import PI0Config, PI0ForActionGeneration
+    from pi0_torch.benchmark import example_batch
+    from pi0_torch.kernels import launch, triton_kernels
+
+    if launch.DIRECT_REASON is not None:
+        pytest.skip(launch.DIRECT_REASON)
+    kernels = [kernel for kernel in vars(triton_kernels).values() if isinstance(kernel, launch.DirectLaunch)]
+    torch.manual_seed(0)
+    config = PI0Config.from_preset("pi0", num_hidden_layers=2, vision_num_layers=2)
+    with CUDA:
+        model = PI0ForActionGeneration(config).to(torch.bfloat16).eval()
+    model.sampling_kernels = "triton"
+    for batch in (1, 8):
+        inputs = example_batch(config, 3, batch, CUDA, seed=batch)
+        noise = torch.randn(batch, config.action_horizon, config.action_dim, device=CUDA)
+        direct = [model.generate_actions(**inputs, noise=noise) for _ in range(2)]
+        for kernel in kernels:
+            kernel.direct = False
+        try:
+            through_triton = model.generate_actions(**inputs, noise=noise)
+        finally:
+            for kernel in kernels:
+                kernel.direct = True
+        assert sum(len(kernel.launches) for kernel in kernels) >= 5, "no kernel launched directly"
+        assert torch.equal(direct[0], direct[1]), f"batch {batch}: two direct chunks differ"
+        assert torch.equal(direct[1], through_triton), f"batch {batch}: {relative(direct[1], through_triton):.2e}"
+
+
 def test_compiled_sampling_replays_as_one_graph(reference: OpenpiReference) -> None:
     """`compile_sampling(mode="reduce-overhead")`: compiled layers inside the hand-captured graph."""
     model, inputs, noise = on_cuda(reference, torch.bfloat16)

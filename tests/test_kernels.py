@@ -349,6 +349,19 @@ def test_every_kernel_variant_fits_the_shared_memory_of_an_rtx_4090() -> None:
     assert ["64,", "32"] in [row[1:3] for row in rows], result.stdout  # (batch 8's blocks were compiled)
 
 
+def test_direct_launches_equal_tritons_own() -> None:
+    """A direct launch (`pi0_torch.kernels.launch`) hands the compiled kernel's launcher what triton's `kernel[grid]`
+    hands it: tests/launch_check.py compiles kernels for sm_89 on this CPU, records each launch, and compares triton's
+    path with the direct one for tensors at and off a 16-byte boundary, integers 1, 16 and 17, split-K, key parts and
+    a launch hook (where the installed triton is one the direct launches are written for; else it checks nothing and
+    says so)."""
+    script = Path(__file__).resolve().parent / "launch_check.py"
+    environment = {name: value for name, value in os.environ.items() if name != "TRITON_INTERPRET"}
+    result = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, env=environment, timeout=600)
+    assert result.returncode == 0, result.stdout + result.stderr[-3000:]
+    assert "launches compared" in result.stdout or "triton's launch throughout" in result.stdout, result.stdout
+
+
 def test_the_vision_pass_equals_siglip_and_runs_nine_kernels_per_layer() -> None:
     """`vision_pass.vision_tokens` computes SigLIP's last hidden state (float32 tightly, bf16 to its rounding) in nine
     ops per encoder layer (CUDA's count, on the meta device), and `tower_pass` declines a tower whose modules do more

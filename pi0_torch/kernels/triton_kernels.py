@@ -26,7 +26,8 @@ Only `tl.load` / `tl.store` (with a cache modifier) / `tl.dot` (with its input p
 `tl.sqrt` / reductions / `tl.atomic_add` / `tl.debug_barrier` are used, all in the triton that torch 2.10's CUDA
 wheels pin (3.6; every variant also compiles with 3.2). Tilings come from `blocks`, `narrow_blocks` and
 `attention_blocks`, measured on an H200 (small M: the suffix's 50 rows per sample; split-K in the same launch where
-a GEMM's output tiles are few, see `split_k` and `_sum_splits`).
+a GEMM's output tiles are few, see `split_k` and `_sum_splits`). Each kernel launches through
+`pi0_torch.kernels.launch.direct_launch` (the compiled kernel called without triton's per-call binding).
 """
 
 from __future__ import annotations
@@ -42,6 +43,8 @@ from pi0_torch.utils.extras import require_extra
 require_extra("kernels", "pi0_torch.kernels.triton_kernels")
 import triton  # noqa: E402
 import triton.language as tl  # noqa: E402
+
+from pi0_torch.kernels.launch import direct_launch  # noqa: E402
 
 INTERPRETING = os.environ.get("TRITON_INTERPRET") == "1"
 
@@ -209,6 +212,7 @@ def _gelu_tanh(x):
 # -- kernels ------------------------------------------------------------------------------------------------------------
 
 
+@direct_launch
 @triton.jit
 def _norm_qkv_rope_kernel(
     x_ptr, scale_ptr, bias_ptr, w_ptr, cos_ptr, sin_ptr, q_ptr, key_ptr, value_ptr, workspace_ptr, counter_ptr,
@@ -260,6 +264,7 @@ def _norm_qkv_rope_kernel(
     tl.store(value_ptr + cache_offsets + half, out2.to(value_ptr.dtype.element_ty), mask=is_v)
 
 
+@direct_launch
 @triton.jit
 def _norm_gate_up_geglu_kernel(
     x_ptr, scale_ptr, bias_ptr, w_ptr, out_ptr, workspace_ptr, counter_ptr, M, K, F, stride_xm, stride_wk, stride_wn, eps,
@@ -287,6 +292,7 @@ def _norm_gate_up_geglu_kernel(
     tl.store(out_ptr + rows[:, None] * F + columns[None, :], hidden.to(out_ptr.dtype.element_ty), mask=ok)
 
 
+@direct_launch
 @triton.jit
 def _matmul_residual_kernel(
     residual_ptr, y_ptr, w_ptr, gate_ptr, workspace_ptr, counter_ptr, M, K, N, stride_rm, stride_ym, stride_wk, stride_wn,
@@ -311,6 +317,7 @@ def _matmul_residual_kernel(
     tl.store(pointers, (residual + acc).to(residual_ptr.dtype.element_ty), mask=ok)
 
 
+@direct_launch
 @triton.jit
 def _norm_linear_euler_kernel(
     x_t_ptr, tokens_ptr, scale_ptr, bias_ptr, w_ptr, M, K, N, stride_tm, stride_wk, stride_wn, dt, eps,
@@ -327,6 +334,7 @@ def _norm_linear_euler_kernel(
     tl.store(pointers, tl.load(pointers, mask=ok, other=0.0) + dt * velocity, mask=ok)
 
 
+@direct_launch
 @triton.jit
 def _embed_actions_kernel(
     x_ptr, w_ptr, bias_ptr, out_w_ptr, out_bias_ptr, out_ptr, M, A, D, N, stride_wa, stride_wd, stride_ok, stride_on,
@@ -358,6 +366,7 @@ def _embed_actions_kernel(
     tl.store(out_ptr + rows[:, None] * N + columns[None, :], acc.to(out_ptr.dtype.element_ty), mask=ok)
 
 
+@direct_launch
 @triton.jit
 def _add_layer_norm_kernel(
     residual_ptr, y_ptr, weight_ptr, bias_ptr, out_ptr, M, D, stride_rm, stride_ym, eps,
@@ -384,6 +393,7 @@ def _add_layer_norm_kernel(
     tl.store(out_ptr + rows[:, None] * D + columns[None, :], normed.to(out_ptr.dtype.element_ty), mask=ok)
 
 
+@direct_launch
 @triton.jit
 def _range_attention_kernel(
     q_ptr, key_ptr, value_ptr, out_ptr, partial_ptr, stats_ptr, counter_ptr, first_ptr, row_ends_ptr, batch,
@@ -486,6 +496,7 @@ def _combine_key_parts(acc, running_max, total, partial_ptr, stats_ptr, counter_
         tl.store(out_ptr + rows[:, None] * HEAD_DIM + chunk[None, :], out.to(out_ptr.dtype.element_ty), mask=read[:, None])
 
 
+@direct_launch
 @triton.jit
 def _rope_cache_write_kernel(
     qkv_ptr, cos_ptr, sin_ptr, q_ptr, key_ptr, value_ptr, slot_ptr, M, tokens, first_slot, slots, stride_qkv, stride_cos_b,
@@ -522,6 +533,7 @@ def _rope_cache_write_kernel(
         tl.store(target + half, a2.to(target.dtype.element_ty), mask=row_ok)
 
 
+@direct_launch
 @triton.jit
 def _geglu_kernel(gate_up_ptr, out_ptr, M, F, stride_gm, BLOCK_M: tl.constexpr, BLOCK_N: tl.constexpr):
     rows = tl.program_id(0) * BLOCK_M + tl.arange(0, BLOCK_M)

@@ -1,0 +1,76 @@
+"""Host time of a fused op's call, launched by triton's `kernel[grid](...)` against launched directly
+(`pi0_torch.kernels.launch`), with the launch itself stubbed out: what the host spends before the GPU sees the kernel.
+
+Eager sampling is bound by this host time (about a thousand launches per π0 chunk), so it is measured on the CPU,
+where it happens: the kernels are compiled for sm_90 by triton's ptxas (`kernel_resources.TargetDriver`, no GPU
+needed), and the compiled kernels' launcher does nothing. Shapes are full-size π0's suffix at batch 1 (50 rows),
+bf16. Each row: the best of 5 rounds of 3,000 calls, two passes side by side.
+
+    python benchmarks/launch_cost.py
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import timeit
+from pathlib import Path
+
+import torch
+
+ROUNDS, CALLS = 5, 3_000
+
+
+def main() -> int:
+    if os.environ.get("TRITON_INTERPRET") == "1":
+        print("unset TRITON_INTERPRET: the kernels are compiled here, not interpreted", file=sys.stderr)
+        return 2
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    import triton
+    from kernel_resources import TargetDriver
+    from triton.compiler.compiler import CompiledKernel
+
+    from pi0_torch.kernels import launch, triton_kernels as K
+
+    if launch.DIRECT_REASON is not None:
+        print(f"no direct launches here: {launch.DIRECT_REASON}")
+        return 0
+    triton.runtime.driver.set_active(TargetDriver(90))
+
+    def no_launch(self: CompiledKernel) -> None:
+        if self._run is None:
+            self._run = lambda *arguments: None
+        self.module = self.function = 0
+
+    CompiledKernel._init_handles = no_launch
+    bf16 = torch.bfloat16
+    x, hidden = torch.randn(50, 1024, dtype=bf16), torch.randn(50, 4096, dtype=bf16)
+    gate_up, scale = torch.randn(50, 8192, dtype=bf16), torch.randn(1024, dtype=bf16)
+    qkv_w, gate_up_w, down_w = (torch.randn(1024, 2560, dtype=bf16), torch.randn(1024, 8192, dtype=bf16),
+                                torch.randn(4096, 1024, dtype=bf16))
+    cos, cache = torch.randn(1, 50, 256, dtype=bf16), torch.zeros(1, 880, 256, dtype=bf16)
+    query, first, ends = torch.randn(1, 50, 8, 256, dtype=bf16), torch.zeros(1, dtype=torch.long), torch.full((400,), 868)
+    calls = {
+        "norm_qkv_rope": lambda: K.norm_qkv_rope(x, scale, None, qkv_w, cos, cos, cache, cache, 818, 1e-6),
+        "range_attention": lambda: K.range_attention(query, cache, cache, first, ends),
+        "matmul_residual_ (down)": lambda: K.matmul_residual_(x, hidden, down_w, None),
+        "norm_gate_up_geglu": lambda: K.norm_gate_up_geglu(x, scale, None, gate_up_w, 1e-6),
+        "geglu (the prefix's)": lambda: K.geglu(gate_up),
+    }
+    kernels = [each for each in vars(K).values() if isinstance(each, launch.DirectLaunch)]
+    print(f"host µs per call, launch stubbed, triton {triton.__version__}, torch {torch.__version__}")
+    print(f"{'op':26s} {'triton run':>11s} {'direct':>8s} {'triton run':>11s} {'direct':>8s}")
+    for name, call in calls.items():
+        times = []
+        for _ in range(2):
+            for direct in (False, True):
+                for kernel in kernels:
+                    kernel.direct = direct
+                call(), call()  # (the first call of a class compiles, or goes through triton)
+                times.append(min(timeit.repeat(call, number=CALLS, repeat=ROUNDS)) / CALLS * 1e6)
+        print(f"{name:26s} " + " ".join(f"{each:{11 if i % 2 == 0 else 8}.1f}" for i, each in enumerate(times)))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

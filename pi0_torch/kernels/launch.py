@@ -1,0 +1,114 @@
+"""`direct_launch`: the fused kernels launched without triton's per-call binding of their arguments.
+
+`kernel[grid](*args)` spends most of its host time in triton's `JITFunction.run` before the launch itself: it binds
+the arguments, specializes each one, turns that into a cache key string and reads its knobs (about 15 of a GEMM op's
+26 µs on the development CPU with the launch stubbed; 30-39 µs per op on an H200's host). Eager sampling launches
+about a thousand kernels per chunk, and a π0-FAST token about 170, so that host time is what eager waits for.
+
+A `DirectLaunch` keeps the compiled kernel that triton's `run` returned, per class of call, and launches it the way
+`run` does: `compiled.run(grid, stream, function, packed metadata, launch metadata, enter hook, exit hook, *every
+argument in the kernel's order, constexprs included)`. The first call of each class goes through triton (compiling,
+or finding triton's compiled kernel), and so does every call whose class it cannot key.
+
+A class is finer than triton's specialization of a call, so that a kernel compiled for one is never launched for
+another: the current device; each leading tensor argument's dtype and address modulo 16 (triton: its dtype, and
+whether the address is a multiple of 16); every later argument's value (triton: an integer's width, whether it is 1
+or a multiple of 16; a float's type); the keyword arguments by value (the constexprs, `num_warps`, `num_stages`).
+The kernels of `triton_kernels` take their tensors first.
+
+What triton's `run` does per call and a direct launch does not: run the kernel's pre-run hooks (a kernel with any
+takes triton's path), check that the globals a kernel reads are unchanged, and re-read the debug and instrumentation
+knobs (set while a process runs, they reach only kernels compiled after). Launch hooks (profilers such as proton) are
+passed on as triton passes them. `PI0_TORCH_TRITON_LAUNCH=triton` in the environment keeps triton's own launch
+throughout, as do triton versions outside those whose `run` launches as above (3.5 to 3.9; `DIRECT_REASON` says why).
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+from typing import Any
+
+import torch
+import triton
+
+TRITON_VERSIONS = ((3, 5), (3, 9))  # whose `JITFunction.run` launches as the module docstring says
+MAX_CLASSES = 4_096  # classes kept per kernel (integers are keyed by value: each new batch or prompt length is one)
+
+
+def _direct_reason() -> str | None:
+    if os.environ.get("PI0_TORCH_TRITON_LAUNCH") == "triton":
+        return "PI0_TORCH_TRITON_LAUNCH=triton"
+    version = tuple(int(part) for part in triton.__version__.split(".")[:2])
+    if not TRITON_VERSIONS[0] <= version <= TRITON_VERSIONS[1]:
+        first, last = (".".join(map(str, each)) for each in TRITON_VERSIONS)
+        return f"triton {triton.__version__}: direct launches are written for triton {first} to {last}"
+    return None
+
+
+DIRECT_REASON: str | None = _direct_reason()  # why kernels launch through triton's `run` (None: directly)
+
+if DIRECT_REASON is None:
+    from triton import knobs
+    from triton.compiler.compiler import CompiledKernel
+    from triton.runtime.driver import driver
+    from triton.runtime.jit import JITFunction
+
+
+class DirectLaunch:
+    """A `@triton.jit` kernel launched as `kernel[grid](*args, **kwargs)`, directly where it can (module docstring).
+    Under `TRITON_INTERPRET=1` (an interpreted kernel) or where `DIRECT_REASON` is set, triton's `kernel[grid]`."""
+
+    def __init__(self, kernel: Any) -> None:
+        self.kernel = kernel
+        self.direct = DIRECT_REASON is None and isinstance(kernel, JITFunction)
+        self.names = tuple(param.name for param in kernel.params) if self.direct else ()
+        self.tensors = 0  # how many arguments lead as tensors: set by the first call
+        self.launches: dict[tuple, tuple[Any, tuple[str, ...]]] = {}  # class -> (compiled kernel, keyword names)
+
+    def __getitem__(self, grid: tuple[int, ...]) -> Any:
+        if not self.direct or callable(grid):
+            return self.kernel[grid]
+        return functools.partial(self._launch, grid)
+
+    def _key(self, device: int, args: tuple, kwargs: dict[str, Any]) -> tuple:
+        return (device, *[(each.dtype, each.data_ptr() & 15) for each in args[: self.tensors]], *args[self.tensors :],
+                *kwargs.items())
+
+    def _launch(self, grid: tuple[int, ...], *args: Any, **kwargs: Any) -> Any:
+        device = driver.active.get_current_device()
+        try:
+            compiled, keywords = self.launches[self._key(device, args, kwargs)]
+        except (KeyError, AttributeError, TypeError):  # a new class; not a tensor where the first call had one; unhashable
+            return self._through_triton(grid, device, args, kwargs)
+        stream = driver.active.get_current_stream(device)
+        values = (*args, *[kwargs[name] for name in keywords])
+        grid_x, grid_y, grid_z = (*grid, 1, 1)[:3]
+        enter = knobs.runtime.launch_enter_hook  # (without one, `launch_metadata` is None: it reads the hook first)
+        metadata = None if enter is None else compiled.launch_metadata(grid, stream, *values)
+        compiled.run(grid_x, grid_y, grid_z, stream, compiled.function, compiled.packed_metadata, metadata, enter,
+                     knobs.runtime.launch_exit_hook, *values)
+        return compiled
+
+    def _through_triton(self, grid: tuple[int, ...], device: int, args: tuple, kwargs: dict[str, Any]) -> Any:
+        compiled = self.kernel[grid](*args, **kwargs)
+        if not self.launches:
+            self.tensors = next((i for i, each in enumerate(args) if not isinstance(each, torch.Tensor)), len(args))
+        keywords = self.names[len(args):]
+        keyable = (
+            isinstance(compiled, CompiledKernel) and not self.kernel.pre_run_hooks and len(self.launches) < MAX_CLASSES
+            and all(isinstance(each, torch.Tensor) for each in args[: self.tensors])
+            and all(each is None or type(each) in (bool, int, float) for each in args[self.tensors :])
+            and set(keywords) <= kwargs.keys()
+        )
+        if keyable:
+            try:
+                self.launches[self._key(device, args, kwargs)] = (compiled, keywords)
+            except TypeError:  # an unhashable keyword argument: this class keeps triton's path
+                pass
+        return compiled
+
+
+def direct_launch(kernel: Any) -> DirectLaunch:
+    """Decorator over `@triton.jit`: launch the kernel directly where it can (see the module docstring)."""
+    return DirectLaunch(kernel)
