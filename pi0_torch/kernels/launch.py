@@ -77,9 +77,9 @@ class DirectLaunch:
 
     def _launch(self, grid: tuple[int, ...], *args: Any, **kwargs: Any) -> Any:
         device = driver.active.get_current_device()
-        try:
+        try:  # (KeyError: a new class; the others: a call it cannot key, e.g. no tensor where the first call had one)
             compiled, keywords = self.launches[self._key(device, args, kwargs)]
-        except (KeyError, AttributeError, TypeError):  # a new class; not a tensor where the first call had one; unhashable
+        except (KeyError, AttributeError, TypeError, RuntimeError):
             return self._through_triton(grid, device, args, kwargs)
         stream = driver.active.get_current_stream(device)
         values = (*args, *[kwargs[name] for name in keywords])
@@ -104,7 +104,7 @@ class DirectLaunch:
         if keyable:
             try:
                 self.launches[self._key(device, args, kwargs)] = (compiled, keywords)
-            except TypeError:  # an unhashable keyword argument: this class keeps triton's path
+            except (TypeError, RuntimeError):  # (an unhashable keyword argument: this class keeps triton's path)
                 pass
         return compiled
 
