@@ -30,7 +30,11 @@ import os
 from typing import Any
 
 import torch
-import triton
+
+from pi0_torch.utils.extras import require_extra
+
+require_extra("kernels", "pi0_torch.kernels.launch")
+import triton  # noqa: E402
 
 TRITON_VERSIONS = ((3, 5), (3, 9))  # whose `JITFunction.run` launches as the module docstring says
 MAX_CLASSES = 4_096  # classes kept per kernel (integers are keyed by value: each new batch or prompt length is one)
