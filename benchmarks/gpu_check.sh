@@ -9,7 +9,7 @@
 #
 # Timings run alone on the GPU; the checks run side by side (correctness does not mind sharing the GPU):
 # 1. alone: the benchmark, fused steps against the torch path, eager and graph, π0 and π0.5, batch 1, 4 and 8, with each
-#    row's GPU activities, GPU time and its 30 longest kinds of kernel; π0 batch 1 again with triton's own launches;
+#    row's GPU activities, GPU time and its 30 longest kinds of kernel; eager π0's host time (benchmarks/eager_host.py);
 # 2. together: doctor (every sampling path at full size against its reference), the GPU tests (tests/test_cuda.py),
 #    the fused kernels' tests on real kernels (tests/test_kernels.py), and the compiles of every tiling that step 3
 #    times (triton's disk cache, 8 processes);
@@ -45,9 +45,8 @@ show() {  # show NAME: the end of its log
 # 1. alone
 step bench 150 "$PY" -m pi0_torch.cli bench --device cuda --presets pi0,pi05 --dtypes bfloat16 --cameras 3 --batches 1,4,8 \
     --kernels auto,torch --repeats 10 --kernel-table 30
-# (the same π0 row with triton's own launches instead of the direct ones: what they save eager sampling)
-step bench 40 env PI0_TORCH_TRITON_LAUNCH=triton "$PY" -m pi0_torch.cli bench --device cuda --presets pi0 \
-    --dtypes bfloat16 --cameras 3 --batches 1 --kernels auto --repeats 10
+# (eager π0, batch 1: direct launches against triton's own, side by side, and where one chunk's host time goes)
+step bench 40 "$PY" benchmarks/eager_host.py --top 30
 [ -f "$OUT/bench.log" ] && grep -v '^      ' "$OUT/bench.log" | tail -n 25
 
 # 2. together
