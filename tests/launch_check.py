@@ -6,6 +6,7 @@ compiled kernels' launcher is replaced by one that records its arguments. Each c
 then through the direct one (twice: the first call of a class goes through triton); each pair of recorded launches
 must be equal: the same compiled kernel (so the same specialization: aligned and unaligned tensors, an integer 1, 16
 or 17 are each their own), the same grid, stream, handles, launch metadata, hooks and arguments in the same order.
+The cases cover each of the nine kernels, in every variant sampling runs.
 The second direct pass must not enter triton's `JITFunction.run` at all. Prints the number of launches compared.
 """
 
@@ -25,7 +26,10 @@ def unaligned(tensor: torch.Tensor) -> torch.Tensor:
 
 
 def cases(K: Any) -> dict[str, Callable[[], Any]]:
-    """Calls of the fused ops (`triton_kernels` as `K`) whose launches are compared, one launch each."""
+    """Calls of the fused ops (`triton_kernels` as `K`) whose launches are compared, one launch each: the classes
+    below, and every variant of the other kernels that sampling runs (the first-call check's cases at full width)."""
+    from pi0_torch.inference.fused_pass import _sampling_cases
+
     generator = torch.Generator().manual_seed(0)
 
     def randn(*shape: int) -> torch.Tensor:
@@ -45,6 +49,9 @@ def cases(K: Any) -> dict[str, Callable[[], Any]]:
         "matmul_residual_, split-K": lambda: K.matmul_residual_(residual, y, weight, None),
         "matmul_residual_, gated": lambda: K.matmul_residual_(residual, y, weight, gate),
         "range_attention, key parts": lambda: K.range_attention(query, key_cache, value_cache, first, ends),
+        **{f"{name}, variant {index}": (lambda name=name, arguments=make(): getattr(K, name)(*arguments))
+           for index, (name, make) in enumerate(_sampling_cases(torch.device("cpu"), torch.bfloat16, 1024, 8, 256, 4096, 32, 1152))
+           if name in ("norm_qkv_rope", "norm_gate_up_geglu", "norm_linear_euler_", "embed_actions", "add_layer_norm_")},
     }
 
 

@@ -352,9 +352,9 @@ def test_every_kernel_variant_fits_the_shared_memory_of_an_rtx_4090() -> None:
 def test_direct_launches_equal_tritons_own() -> None:
     """A direct launch (`pi0_torch.kernels.launch`) hands the compiled kernel's launcher what triton's `kernel[grid]`
     hands it: tests/launch_check.py compiles kernels for sm_89 on this CPU, records each launch, and compares triton's
-    path with the direct one for tensors at and off a 16-byte boundary, integers 1, 16 and 17, split-K, key parts and
-    a launch hook (where the installed triton is one the direct launches are written for; else it checks nothing and
-    says so)."""
+    path with the direct one for each of the nine kernels (every variant sampling runs), tensors at and off a 16-byte
+    boundary, integers 1, 16 and 17, split-K, key parts, with and without a launch hook (where the installed triton is
+    one the direct launches are written for; else it checks nothing and says so)."""
     script = Path(__file__).resolve().parent / "launch_check.py"
     environment = {name: value for name, value in os.environ.items() if name != "TRITON_INTERPRET"}
     result = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, env=environment, timeout=600)
