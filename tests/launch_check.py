@@ -6,7 +6,8 @@ compiled kernels' launcher is replaced by one that records its arguments. Each c
 then through the direct one (twice: the first call of a class goes through triton); each pair of recorded launches
 must be equal: the same compiled kernel (so the same specialization: aligned and unaligned tensors, an integer 1, 16
 or 17 are each their own), the same grid, stream, handles, launch metadata, hooks and arguments in the same order.
-The cases cover each of the nine kernels, in every variant sampling runs.
+The cases cover each of the nine kernels, in every variant sampling runs. Last, a kernel given a pre-run hook after
+its classes were keyed must launch through triton's `run` again (which runs the hook).
 The second direct pass must not enter triton's `JITFunction.run` at all. Prints the number of launches compared.
 """
 
@@ -119,6 +120,11 @@ def main() -> int:
             compared += 1
         kernels = [each[0] for each in through_triton]
         assert kernels[0] != kernels[1] and len(set(kernels[2:5])) == 3, "triton compiled no variant apart"
+    geglu = triton_kernels._geglu_kernel  # a kernel with a pre-run hook takes triton's path, which runs the hook
+    geglu.kernel.add_pre_run_hook(lambda *args, **kwargs: None)
+    entered.clear()
+    calls["geglu"]()
+    assert entered == [geglu.kernel], "a kernel with a pre-run hook was launched directly"
     print(f"direct launches equal triton's: {compared} launches compared")
     return 0
 

@@ -362,6 +362,25 @@ def test_direct_launches_equal_tritons_own() -> None:
     assert "launches compared" in result.stdout or "triton's launch throughout" in result.stdout, result.stdout
 
 
+def test_direct_launches_step_aside_where_they_are_not_written_for(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Triton's own launch where asked (`PI0_TORCH_TRITON_LAUNCH=triton`), with a triton version the direct launches
+    are not written for, and for interpreted kernels (`TRITON_INTERPRET=1`, as in these tests)."""
+    import triton
+
+    from pi0_torch.kernels import launch, triton_kernels
+
+    monkeypatch.setenv("PI0_TORCH_TRITON_LAUNCH", "triton")
+    assert launch._direct_reason() == "PI0_TORCH_TRITON_LAUNCH=triton"
+    monkeypatch.delenv("PI0_TORCH_TRITON_LAUNCH")
+    monkeypatch.setattr(triton, "__version__", "3.10.0")
+    assert launch._direct_reason() == "triton 3.10.0: direct launches are written for triton 3.5 to 3.9"
+    monkeypatch.setattr(triton, "__version__", "3.4.1")
+    assert launch._direct_reason() is not None
+    if os.environ.get("TRITON_INTERPRET") == "1":
+        assert not triton_kernels._geglu_kernel.direct
+        assert triton_kernels._geglu_kernel[(1,)] is not None  # (the interpreter's own launcher)
+
+
 def test_the_vision_pass_equals_siglip_and_runs_nine_kernels_per_layer() -> None:
     """`vision_pass.vision_tokens` computes SigLIP's last hidden state (float32 tightly, bf16 to its rounding) in nine
     ops per encoder layer (CUDA's count, on the meta device), and `tower_pass` declines a tower whose modules do more

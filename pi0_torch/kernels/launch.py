@@ -17,7 +17,7 @@ or a multiple of 16; a float's type); the keyword arguments by value (the conste
 The kernels of `triton_kernels` take their tensors first.
 
 What triton's `run` does per call and a direct launch does not: run the kernel's pre-run hooks (a kernel with any
-takes triton's path), check that the globals a kernel reads are unchanged, and re-read the debug and instrumentation
+launches through triton's `run`), check that the globals a kernel reads are unchanged, and re-read the debug and instrumentation
 knobs (set while a process runs, they reach only kernels compiled after). Launch hooks (profilers such as proton) are
 passed on as triton passes them. `PI0_TORCH_TRITON_LAUNCH=triton` in the environment keeps triton's own launch
 throughout, as do triton versions outside those whose `run` launches as above (3.5 to 3.9; `DIRECT_REASON` says why).
@@ -85,6 +85,8 @@ class DirectLaunch:
             compiled, keywords = self.launches[self._key(device, args, kwargs)]
         except (KeyError, AttributeError, TypeError, RuntimeError):
             return self._through_triton(grid, device, args, kwargs)
+        if self.kernel.pre_run_hooks:  # (added since this class was keyed: triton runs them)
+            return self._through_triton(grid, device, args, kwargs)
         stream = driver.active.get_current_stream(device)
         values = (*args, *[kwargs[name] for name in keywords])
         grid_x, grid_y, grid_z = (*grid, 1, 1)[:3]
@@ -100,7 +102,7 @@ class DirectLaunch:
             self.tensors = next((i for i, each in enumerate(args) if not isinstance(each, torch.Tensor)), len(args))
         keywords = self.names[len(args):]
         keyable = (
-            isinstance(compiled, CompiledKernel) and not self.kernel.pre_run_hooks and len(self.launches) < MAX_CLASSES
+            isinstance(compiled, CompiledKernel) and len(self.launches) < MAX_CLASSES
             and all(isinstance(each, torch.Tensor) for each in args[: self.tensors])
             and all(each is None or type(each) in (bool, int, float) for each in args[self.tensors :])
             and set(keywords) <= kwargs.keys()
