@@ -12,6 +12,7 @@ Eager sampling on a GPU is bound by the host: the H200 run of 2026-11-27 measure
 from __future__ import annotations
 
 import argparse
+import contextlib
 import cProfile
 import io
 import pstats
@@ -46,15 +47,14 @@ def main(argv: list[str] | None = None) -> int:
     def chunk() -> torch.Tensor:
         return model.generate_actions(**inputs, noise=noise)
 
-    kernels = []
     reason = ops.triton_reason(device)
     if reason is None:
-        from pi0_torch.kernels import launch, triton_kernels
+        from pi0_torch.kernels import launch
 
-        kernels = [each for each in vars(triton_kernels).values() if isinstance(each, launch.DirectLaunch)]
         reason = launch.DIRECT_REASON
-    direct = bool(kernels) and reason is None
-    modes = {"direct launches": True, "triton's launches": False} if direct else {"as installed": None}
+    direct = reason is None
+    modes = {"direct launches": contextlib.nullcontext, "triton's launches": launch.through_triton} if direct else {
+        "as installed": contextlib.nullcontext}
     print(f"eager generate_actions, {args.preset}, {str(dtype).removeprefix('torch.')}, batch {args.batch}, 3 cameras, "
           f"on {torch.cuda.get_device_name(device) if device.type == 'cuda' else 'CPU'}"
           + (f" (fused kernels: {reason})" if reason else ""))
@@ -62,12 +62,9 @@ def main(argv: list[str] | None = None) -> int:
         chunk()  # (the kernels' JIT, the first call's verification of the fused steps)
     times: dict[str, list[float]] = {mode: [] for mode in modes}
     for _ in range(args.repeats):  # (the modes interleaved: the host's drift hits both alike)
-        for mode, directly in modes.items():
-            for kernel in kernels if directly is not None else ():
-                kernel.direct = directly
-            times[mode].append(seconds(chunk, device))
-    for kernel in kernels if direct else ():
-        kernel.direct = True
+        for mode, launches in modes.items():
+            with launches():
+                times[mode].append(seconds(chunk, device))
     for mode, durations in times.items():
         print(f"{mode:20s} median {statistics.median(durations) * 1e3:8.1f} ms  min {min(durations) * 1e3:8.1f}  "
               f"max {max(durations) * 1e3:8.1f}")

@@ -23,6 +23,7 @@ import os
 import subprocess
 import sys
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -62,6 +63,23 @@ class TargetDriver:
 
     def is_active(self) -> bool:
         return True
+
+
+def replace_launches(arch: int, launch: Callable[[Any, tuple], None]) -> None:
+    """For good: kernels compile for `arch` (`TargetDriver`), and each compiled kernel's launcher is replaced by
+    `launch(compiled kernel, the launcher's arguments)`, so that nothing runs (`tests/launch_check.py` records the
+    launches, `benchmarks/launch_cost.py` times what comes before them)."""
+    import triton
+    from triton.compiler.compiler import CompiledKernel
+
+    triton.runtime.driver.set_active(TargetDriver(arch))
+
+    def handles(self: CompiledKernel) -> None:
+        if self._run is None:
+            self._run = lambda *arguments: launch(self, arguments)
+        self.module = self.function = 0
+
+    CompiledKernel._init_handles = handles
 
 
 def compile_launches(arch: int, batches: list[int]) -> dict[str, tuple[str, Any]]:

@@ -11,6 +11,7 @@ bf16. Each row: the best of 5 rounds of 3,000 calls, two passes side by side.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import sys
 import timeit
@@ -27,22 +28,14 @@ def main() -> int:
         return 2
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     import triton
-    from kernel_resources import TargetDriver
-    from triton.compiler.compiler import CompiledKernel
+    from kernel_resources import replace_launches
 
     from pi0_torch.kernels import launch, triton_kernels as K
 
     if launch.DIRECT_REASON is not None:
         print(f"no direct launches here: {launch.DIRECT_REASON}")
         return 0
-    triton.runtime.driver.set_active(TargetDriver(90))
-
-    def no_launch(self: CompiledKernel) -> None:
-        if self._run is None:
-            self._run = lambda *arguments: None
-        self.module = self.function = 0
-
-    CompiledKernel._init_handles = no_launch
+    replace_launches(90, lambda compiled, arguments: None)
     bf16 = torch.bfloat16
     x, hidden = torch.randn(50, 1024, dtype=bf16), torch.randn(50, 4096, dtype=bf16)
     gate_up, scale = torch.randn(50, 8192, dtype=bf16), torch.randn(1024, dtype=bf16)
@@ -57,17 +50,15 @@ def main() -> int:
         "norm_gate_up_geglu": lambda: K.norm_gate_up_geglu(x, scale, None, gate_up_w, 1e-6),
         "geglu (the prefix's)": lambda: K.geglu(gate_up),
     }
-    kernels = [each for each in vars(K).values() if isinstance(each, launch.DirectLaunch)]
     print(f"host µs per call, launch stubbed, triton {triton.__version__}, torch {torch.__version__}")
     print(f"{'op':26s} {'triton run':>11s} {'direct':>8s} {'triton run':>11s} {'direct':>8s}")
     for name, call in calls.items():
         times = []
         for _ in range(2):
             for direct in (False, True):
-                for kernel in kernels:
-                    kernel.direct = direct
-                call(), call()  # (the first call of a class compiles, or goes through triton)
-                times.append(min(timeit.repeat(call, number=CALLS, repeat=ROUNDS)) / CALLS * 1e6)
+                with contextlib.nullcontext() if direct else launch.through_triton():
+                    call(), call()  # (the first call of a class compiles, or goes through triton)
+                    times.append(min(timeit.repeat(call, number=CALLS, repeat=ROUNDS)) / CALLS * 1e6)
         print(f"{name:26s} " + " ".join(f"{each:{11 if i % 2 == 0 else 8}.1f}" for i, each in enumerate(times)))
     return 0
 

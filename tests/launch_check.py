@@ -13,6 +13,7 @@ The second direct pass must not enter triton's `JITFunction.run` at all. Prints 
 
 from __future__ import annotations
 
+import contextlib
 import sys
 from pathlib import Path
 from typing import Any, Callable
@@ -67,8 +68,7 @@ def normalized(record: tuple) -> tuple:
 
 def main() -> int:
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-    import triton
-    from kernel_resources import TargetDriver
+    from kernel_resources import replace_launches
 
     from pi0_torch.kernels import launch
 
@@ -76,18 +76,10 @@ def main() -> int:
         print(f"triton's launch throughout: {launch.DIRECT_REASON}")
         return 0
     from triton import knobs
-    from triton.compiler.compiler import CompiledKernel
     from triton.runtime.jit import JITFunction
 
-    triton.runtime.driver.set_active(TargetDriver(89))
     recorded: list[tuple] = []
-
-    def recording_handles(self: CompiledKernel) -> None:
-        if self._run is None:
-            self._run = lambda *arguments: recorded.append((self, arguments))
-        self.module = self.function = 0
-
-    CompiledKernel._init_handles = recording_handles
+    replace_launches(89, lambda compiled, arguments: recorded.append((compiled, arguments)))
     entered = []
     triton_run = JITFunction.run
     JITFunction.run = lambda self, *args, **kwargs: entered.append(self) or triton_run(self, *args, **kwargs)
@@ -97,12 +89,12 @@ def main() -> int:
     calls = cases(triton_kernels)
 
     def launches(direct: bool) -> list[tuple]:
-        for kernel in vars(triton_kernels).values():
-            if isinstance(kernel, launch.DirectLaunch):
-                kernel.direct = direct
         recorded.clear()
-        for call in calls.values():
-            call()
+        entered.clear()
+        with contextlib.nullcontext() if direct else launch.through_triton():
+            for call in calls.values():
+                call()
+        assert direct or len(entered) == len(calls), "a launch inside through_triton() did not go through triton's run"
         return [normalized(each) for each in recorded]
 
     compared = 0
@@ -110,7 +102,6 @@ def main() -> int:
         knobs.runtime.launch_enter_hook = (lambda metadata: None) if hooked else None
         through_triton = launches(direct=False)
         first_direct = launches(direct=True)
-        entered.clear()
         second_direct = launches(direct=True)
         assert not entered, f"the second direct pass entered triton's run for {[each.fn.__name__ for each in entered]}"
         assert len(through_triton) == len(calls)

@@ -245,11 +245,10 @@ def test_direct_launches_sample_what_tritons_own_launches_sample() -> None:
     split-K) and 8 (64-row attention blocks, cuBLAS's GEMMs with the epilogue kernels)."""
     from pi0_torch import PI0Config, PI0ForActionGeneration
     from pi0_torch.benchmark import example_batch
-    from pi0_torch.kernels import launch, triton_kernels
+    from pi0_torch.kernels import launch, triton_kernels  # noqa: F401  (the kernels, decorated)
 
     if launch.DIRECT_REASON is not None:
         pytest.skip(launch.DIRECT_REASON)
-    kernels = [kernel for kernel in vars(triton_kernels).values() if isinstance(kernel, launch.DirectLaunch)]
     torch.manual_seed(0)
     config = PI0Config.from_preset("pi0", num_hidden_layers=2, vision_num_layers=2)
     with CUDA:
@@ -259,14 +258,9 @@ def test_direct_launches_sample_what_tritons_own_launches_sample() -> None:
         inputs = example_batch(config, 3, batch, CUDA, seed=batch)
         noise = torch.randn(batch, config.action_horizon, config.action_dim, device=CUDA)
         direct = [model.generate_actions(**inputs, noise=noise) for _ in range(2)]
-        for kernel in kernels:
-            kernel.direct = False
-        try:
+        with launch.through_triton():
             through_triton = model.generate_actions(**inputs, noise=noise)
-        finally:
-            for kernel in kernels:
-                kernel.direct = True
-        assert sum(len(kernel.launches) for kernel in kernels) >= 5, "no kernel launched directly"
+        assert sum(len(launcher.launches) for launcher in launch.LAUNCHERS) >= 5, "no kernel launched directly"
         assert torch.equal(direct[0], direct[1]), f"batch {batch}: two direct chunks differ"
         assert torch.equal(direct[1], through_triton), f"batch {batch}: {relative(direct[1], through_triton):.2e}"
 

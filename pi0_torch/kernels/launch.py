@@ -25,8 +25,10 @@ throughout, as do triton versions outside those whose `run` launches as above (3
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import os
+from collections.abc import Iterator
 from typing import Any
 
 import torch
@@ -115,6 +117,28 @@ class DirectLaunch:
         return compiled
 
 
+LAUNCHERS: list[DirectLaunch] = []  # every kernel `direct_launch` decorated
+
+
 def direct_launch(kernel: Any) -> DirectLaunch:
     """Decorator over `@triton.jit`: launch the kernel directly where it can (see the module docstring)."""
-    return DirectLaunch(kernel)
+    LAUNCHERS.append(DirectLaunch(kernel))
+    return LAUNCHERS[-1]
+
+
+@contextlib.contextmanager
+def through_triton() -> Iterator[None]:
+    """Every kernel launched by triton's own `kernel[grid](...)` while inside (to compare with direct launches)."""
+    saved = [(launcher, launcher.direct) for launcher in LAUNCHERS]
+    for launcher, _ in saved:
+        launcher.direct = False
+    try:
+        yield
+    finally:
+        for launcher, direct in saved:
+            launcher.direct = direct
+
+
+def launch_mode() -> str:
+    """How the kernels launch, for a report line: "direct launches", or triton's and why."""
+    return "direct launches" if DIRECT_REASON is None else f"triton's launches ({DIRECT_REASON})"
