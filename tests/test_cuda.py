@@ -265,6 +265,32 @@ def test_direct_launches_sample_what_tritons_own_launches_sample() -> None:
         assert torch.equal(direct[1], through_triton), f"batch {batch}: {relative(direct[1], through_triton):.2e}"
 
 
+@torch.no_grad()
+@pytest.mark.skipif(torch.cuda.device_count() < 2, reason="needs two GPUs")
+def test_fused_kernels_run_on_the_models_gpu_whichever_is_current() -> None:
+    """Triton launches on the current GPU: eager fused sampling (its first-use verification and self-check included)
+    of a model on cuda:1 while cuda:0 is current gives, bit for bit, the actions the same model gives with cuda:1
+    current."""
+    from pi0_torch import PI0Config, PI0ForActionGeneration
+    from pi0_torch.benchmark import example_batch
+
+    torch.manual_seed(0)
+    second = torch.device("cuda:1")
+    config = PI0Config.from_preset("pi0", num_hidden_layers=2, vision_num_layers=2)
+    model = PI0ForActionGeneration(config).to(torch.bfloat16).eval()
+    twin = copy.deepcopy(model).to(second)
+    model.to(second)
+    inputs = example_batch(config, 3, 1, second, seed=1)
+    noise = torch.randn(1, config.action_horizon, config.action_dim, device=second)
+    with torch.cuda.device(0):
+        elsewhere = [model.generate_actions(**inputs, noise=noise) for _ in range(2)]  # (verified, then fused alone)
+    with torch.cuda.device(1):
+        own = [twin.generate_actions(**inputs, noise=noise) for _ in range(2)]
+    assert list(model._fused_refusals.values()) == [None], model._fused_refusals
+    assert all(each.device == second for each in elsewhere)
+    assert all(torch.equal(got, want) for got, want in zip(elsewhere, own))
+
+
 def test_compiled_sampling_replays_as_one_graph(reference: OpenpiReference) -> None:
     """`compile_sampling(mode="reduce-overhead")`: compiled layers inside the hand-captured graph."""
     model, inputs, noise = on_cuda(reference, torch.bfloat16)

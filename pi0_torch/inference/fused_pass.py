@@ -23,6 +23,7 @@ then on.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import logging
 from collections.abc import Callable
@@ -134,7 +135,8 @@ def kernels_reason(device: torch.device, dtype: torch.dtype, cases: Callable[[],
         from pi0_torch.kernels import triton_kernels
 
         try:
-            reason = _compare(triton_kernels, cases(), device, dtype)
+            with torch.cuda.device(device) if device.type == "cuda" else contextlib.nullcontext():  # (launches: current GPU)
+                reason = _compare(triton_kernels, cases(), device, dtype)
         except Exception as error:  # a triton that cannot compile them, a device they do not fit
             reason = f"the fused kernels failed on {device} ({type(error).__name__}: {str(error)[:300]})"
     if reason is not None and device.type == "cuda":

@@ -51,18 +51,30 @@ def _implementation(name: str, device: torch.device) -> Callable[..., Any]:
     return getattr(reference, name)
 
 
+def _run(name: str, *args: Any) -> Any:
+    """The op `name`'s implementation on `args`, on the GPU of its first tensor: triton launches on the current GPU,
+    so a model on cuda:1 while cuda:0 is current makes its GPU current for the launch (its kernels would otherwise
+    run on cuda:0, on cuda:0's stream, against cuda:1's memory)."""
+    device = args[0].device
+    implementation = _implementation(name, device)
+    if device.type == "cuda" and device.index != torch.cuda.current_device():
+        with torch.cuda.device(device):
+            return implementation(*args)
+    return implementation(*args)
+
+
 def call(op: Any, *args: Any) -> Any:
     """Run the custom op `op` (e.g. `norm_qkv_rope`): straight into its implementation, or through the dispatcher
     where a dispatch mode or the compiler has to see it (see the module docstring)."""
     if torch.compiler.is_compiling() or _get_current_dispatch_mode() is not None:
         return op(*args)
-    return _implementation(op._name.split("::")[-1], args[0].device)(*args)
+    return _run(op._name.split("::")[-1], *args)
 
 
 @torch.library.custom_op("pi0_torch::embed_actions", mutates_args=())
 def embed_actions(x_t: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, out_weight: Optional[torch.Tensor],
                   out_bias: Optional[torch.Tensor]) -> torch.Tensor:
-    return _implementation("embed_actions", x_t.device)(x_t, weight, bias, out_weight, out_bias)
+    return _run("embed_actions", x_t, weight, bias, out_weight, out_bias)
 
 
 @embed_actions.register_fake
@@ -73,7 +85,7 @@ def _(x_t, weight, bias, out_weight, out_bias):
 
 @torch.library.custom_op("pi0_torch::add_layer_norm_", mutates_args=("residual",))
 def add_layer_norm_(residual: torch.Tensor, y: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, eps: float) -> torch.Tensor:
-    return _implementation("add_layer_norm_", residual.device)(residual, y, weight, bias, eps)
+    return _run("add_layer_norm_", residual, y, weight, bias, eps)
 
 
 @add_layer_norm_.register_fake
@@ -86,7 +98,7 @@ def norm_qkv_rope(
     x: torch.Tensor, scale: torch.Tensor, bias: Optional[torch.Tensor], weight: torch.Tensor, cos: torch.Tensor,
     sin: torch.Tensor, key_cache: torch.Tensor, value_cache: torch.Tensor, first_slot: int, eps: float,
 ) -> torch.Tensor:
-    return _implementation("norm_qkv_rope", x.device)(x, scale, bias, weight, cos, sin, key_cache, value_cache, first_slot, eps)
+    return _run("norm_qkv_rope", x, scale, bias, weight, cos, sin, key_cache, value_cache, first_slot, eps)
 
 
 @norm_qkv_rope.register_fake
@@ -97,7 +109,7 @@ def _(x, scale, bias, weight, cos, sin, key_cache, value_cache, first_slot, eps)
 
 @torch.library.custom_op("pi0_torch::norm_gate_up_geglu", mutates_args=())
 def norm_gate_up_geglu(x: torch.Tensor, scale: torch.Tensor, bias: Optional[torch.Tensor], weight: torch.Tensor, eps: float) -> torch.Tensor:
-    return _implementation("norm_gate_up_geglu", x.device)(x, scale, bias, weight, eps)
+    return _run("norm_gate_up_geglu", x, scale, bias, weight, eps)
 
 
 @norm_gate_up_geglu.register_fake
@@ -107,7 +119,7 @@ def _(x, scale, bias, weight, eps):
 
 @torch.library.custom_op("pi0_torch::matmul_residual_", mutates_args=("residual",))
 def matmul_residual_(residual: torch.Tensor, y: torch.Tensor, weight: torch.Tensor, gate: Optional[torch.Tensor]) -> None:
-    _implementation("matmul_residual_", residual.device)(residual, y, weight, gate)
+    _run("matmul_residual_", residual, y, weight, gate)
 
 
 @matmul_residual_.register_fake
@@ -118,7 +130,7 @@ def _(residual, y, weight, gate):
 @torch.library.custom_op("pi0_torch::range_attention", mutates_args=())
 def range_attention(query: torch.Tensor, key_cache: torch.Tensor, value_cache: torch.Tensor, first: torch.Tensor,
                     row_ends: torch.Tensor) -> torch.Tensor:
-    return _implementation("range_attention", query.device)(query, key_cache, value_cache, first, row_ends)
+    return _run("range_attention", query, key_cache, value_cache, first, row_ends)
 
 
 @range_attention.register_fake
@@ -130,7 +142,7 @@ def _(query, key_cache, value_cache, first, row_ends):
 @torch.library.custom_op("pi0_torch::norm_linear_euler_", mutates_args=("x_t",))
 def norm_linear_euler_(x_t: torch.Tensor, tokens: torch.Tensor, scale: torch.Tensor, bias: torch.Tensor,
                        weight: torch.Tensor, dt: float, eps: float) -> None:
-    _implementation("norm_linear_euler_", x_t.device)(x_t, tokens, scale, bias, weight, dt, eps)
+    _run("norm_linear_euler_", x_t, tokens, scale, bias, weight, dt, eps)
 
 
 @norm_linear_euler_.register_fake
@@ -141,7 +153,7 @@ def _(x_t, tokens, scale, bias, weight, dt, eps):
 @torch.library.custom_op("pi0_torch::rope_cache_write", mutates_args=("key_cache", "value_cache"))
 def rope_cache_write(qkv: torch.Tensor, cos: torch.Tensor, sin: torch.Tensor, key_cache: torch.Tensor,
                      value_cache: torch.Tensor, first_slot: int, slot: Optional[torch.Tensor] = None) -> torch.Tensor:
-    return _implementation("rope_cache_write", qkv.device)(qkv, cos, sin, key_cache, value_cache, first_slot, slot)
+    return _run("rope_cache_write", qkv, cos, sin, key_cache, value_cache, first_slot, slot)
 
 
 @rope_cache_write.register_fake
@@ -151,7 +163,7 @@ def _(qkv, cos, sin, key_cache, value_cache, first_slot, slot=None):
 
 @torch.library.custom_op("pi0_torch::geglu", mutates_args=())
 def geglu(gate_up: torch.Tensor) -> torch.Tensor:
-    return _implementation("geglu", gate_up.device)(gate_up)
+    return _run("geglu", gate_up)
 
 
 @geglu.register_fake
