@@ -170,7 +170,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.pdl:
         if min(int(each) for each in args.arch.split(",")) < 90:
             parser.error("--pdl: programmatic dependent launches need sm_90 or later")
-        triton_kernels._pdl = lambda device: True  # (the meta tensors here are on no GPU to ask)
+        triton_kernels._pdl = lambda tensor: True  # (the meta tensors here are on no GPU to ask)
 
     os.environ["TRITON_INTERPRET"] = "1"  # (only so that the ops take their Triton implementation for meta tensors)
     too_large = touching = 0

@@ -627,14 +627,17 @@ def pdl_reason(device: torch.device) -> str | None:
     return None
 
 
-def _pdl(device: torch.device) -> bool:
-    """Whether the kernels on `device` launch as programmatic dependents (`pdl_reason`; a refusal asked for is logged
-    once per device)."""
+def _pdl(tensor: torch.Tensor) -> bool:
+    """Whether the kernels on `tensor`'s device launch as programmatic dependents (`pdl_reason`; a refusal asked for
+    is logged once per device)."""
+    if not PDL_REQUESTED:  # (the default: nothing to look up)
+        return False
+    device = tensor.device
     on = _pdl_on.get(device)
     if on is None:
         reason = pdl_reason(device)
         on = _pdl_on[device] = reason is None
-        if PDL_REQUESTED and reason is not None:
+        if reason is not None:
             logger.warning("PI0_TORCH_PDL=1 is set, but the kernels launch in plain stream order: %s", reason)
     return on
 
@@ -642,7 +645,7 @@ def _pdl(device: torch.device) -> bool:
 def launch_description(device: torch.device) -> str:
     """How the kernels launch on `device`, for a report line (`launch.launch_mode`, and whether as programmatic
     dependents)."""
-    return launch_mode() + (", programmatic dependent launches" if _pdl(device) else "")
+    return launch_mode() + (", programmatic dependent launches" if PDL_REQUESTED and pdl_reason(device) is None else "")
 
 
 COUNTER_SLOTS = 4_096  # output tiles (attention: row blocks) one launch in parts may have
@@ -681,7 +684,7 @@ def embed_actions(x_t, weight, bias, out_weight, out_bias):
     out = x_t.new_empty(rows, columns, dtype=weight.dtype)
     tile = narrow_blocks(rows, columns)
     x_t = x_t.contiguous()  # (the engine's is)
-    pdl = _pdl(x_t.device)
+    pdl = _pdl(x_t)
     _embed_actions_kernel[(cdiv(rows, tile.m), cdiv(columns, tile.n))](
         x_t, weight, bias, out_weight if out_weight is not None else weight, out_bias if out_bias is not None else bias, out,
         rows, action_dim, width, columns, weight.stride(0), weight.stride(1),
@@ -697,7 +700,7 @@ def add_layer_norm_(residual, y, weight, bias, eps):
     rows, width = residual.shape
     out = torch.empty_like(residual)
     block_d = next_power_of_2(width)
-    pdl = _pdl(residual.device)
+    pdl = _pdl(residual)
     _add_layer_norm_kernel[(rows,)](  # (a row per program: SigLIP's 1,152 columns are 9 to 18 values per thread)
         residual, y, weight, bias, out, rows, width, residual.stride(0), y.stride(0), eps,
         BLOCK_M=1, BLOCK_D=block_d, PDL=pdl, num_warps=4 if block_d <= 2048 else 8, **_PDL_OPTIONS[pdl],
@@ -716,7 +719,7 @@ def norm_qkv_rope(x, scale, bias, weight, cos, sin, key_cache, value_cache, firs
     q = x.new_empty(rows, heads * head_dim)
     grid = (cdiv(rows, tile.m), cdiv((heads + 2) * head_dim // 2, tile.n))
     tile, workspace, counters, k_split = split_k(x, tile, grid[0] * grid[1], width)
-    pdl = _pdl(x.device)
+    pdl = _pdl(x)
     _norm_qkv_rope_kernel[(*grid, tile.splits)](
         x, scale, bias if bias is not None else scale, weight, cos, sin, q, key_cache, value_cache, workspace, counters,
         rows, width, rows // batch, first_slot, slots, x.stride(0), weight.stride(0), weight.stride(1),
@@ -737,7 +740,7 @@ def norm_gate_up_geglu(x, scale, bias, weight, eps):
     out = x.new_empty(rows, mlp_width)
     grid = (cdiv(rows, tile.m), cdiv(mlp_width, tile.n))
     tile, workspace, counters, k_split = split_k(x, tile, grid[0] * grid[1], width)
-    pdl = _pdl(x.device)
+    pdl = _pdl(x)
     _norm_gate_up_geglu_kernel[(*grid, tile.splits)](
         x, scale, bias if bias is not None else scale, weight, out, workspace, counters, rows, width, mlp_width,
         x.stride(0), weight.stride(0), weight.stride(1), eps, k_split, tile.splits,
@@ -754,7 +757,7 @@ def matmul_residual_(residual, y, weight, gate):
         return reference.matmul_residual_(residual, y, weight, gate)
     grid = (cdiv(rows, tile.m), cdiv(width, tile.n))
     tile, workspace, counters, k_split = split_k(y, tile, grid[0] * grid[1], y.shape[1])
-    pdl = _pdl(y.device)
+    pdl = _pdl(y)
     _matmul_residual_kernel[(*grid, tile.splits)](
         residual, y, weight, gate if gate is not None else weight, workspace, counters, rows, y.shape[1], width,
         residual.stride(0), y.stride(0), weight.stride(0), weight.stride(1), k_split, tile.splits,
@@ -768,7 +771,7 @@ def norm_linear_euler_(x_t, tokens, scale, bias, weight, dt, eps):
     actions = weight.shape[1]
     tile = narrow_blocks(rows, actions)
     grid = (cdiv(rows, tile.m), cdiv(actions, tile.n))
-    pdl = _pdl(x_t.device)
+    pdl = _pdl(x_t)
     _norm_linear_euler_kernel[grid](
         x_t, tokens, scale, bias, weight, rows, width, actions, tokens.stride(0), weight.stride(0), weight.stride(1),
         dt, eps, DOT=dot_dtype(weight.dtype), BLOCK_M=tile.m, BLOCK_N=tile.n, BLOCK_K=tile.k, PDL=pdl,
@@ -789,7 +792,7 @@ def range_attention(query, key_cache, value_cache, first, row_ends):
         partial = query.new_empty(splits, batch * rows, head_dim, dtype=torch.float32)
         stats = query.new_empty(2, splits, batch * rows, dtype=torch.float32)
         counters = arrival_counters(query.device)
-    pdl = _pdl(query.device)
+    pdl = _pdl(query)
     _range_attention_kernel[(row_blocks, batch, splits)](
         query, key_cache, value_cache, out, partial, stats, counters, first, row_ends, batch, rows, heads,
         key_cache.shape[1], head_dim**-0.5, splits, HEAD_DIM=head_dim, DOT=dot_dtype(query.dtype), BLOCK_M=tile.m,
@@ -838,7 +841,7 @@ def rope_cache_write(qkv, cos, sin, key_cache, value_cache, first_slot, slot=Non
     heads = qkv.shape[1] // head_dim - 2
     q = qkv.new_empty(rows, heads * head_dim)
     block_m = 16
-    pdl = _pdl(qkv.device)
+    pdl = _pdl(qkv)
     _rope_cache_write_kernel[(cdiv(rows, block_m),)](
         qkv, cos, sin, q, key_cache, value_cache, slot if slot is not None else cos, rows, rows // batch, first_slot,
         slots, qkv.stride(0), cos.stride(0) if cos.shape[0] > 1 else 0, cos.stride(1), HEADS=heads, HEAD_DIM=head_dim,
@@ -851,7 +854,7 @@ def geglu(gate_up):
     rows, mlp_width = gate_up.shape[0], gate_up.shape[1] // 2
     out = gate_up.new_empty(rows, mlp_width)
     block_m, block_n = 16, 128
-    pdl = _pdl(gate_up.device)
+    pdl = _pdl(gate_up)
     _geglu_kernel[(cdiv(rows, block_m), cdiv(mlp_width, block_n))](
         gate_up, out, rows, mlp_width, gate_up.stride(0), BLOCK_M=block_m, BLOCK_N=block_n, PDL=pdl,
         **_PDL_OPTIONS[pdl],
