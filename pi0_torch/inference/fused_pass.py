@@ -23,7 +23,6 @@ then on.
 
 from __future__ import annotations
 
-import contextlib
 import functools
 import logging
 from collections.abc import Callable
@@ -132,11 +131,8 @@ def kernels_reason(device: torch.device, dtype: torch.dtype, cases: Callable[[],
     instead)."""
     reason = ops.triton_reason(device)
     if reason is None:
-        from pi0_torch.kernels import triton_kernels
-
         try:
-            with torch.cuda.device(device) if device.type == "cuda" else contextlib.nullcontext():  # (launches: current GPU)
-                reason = _compare(triton_kernels, cases(), device, dtype)
+            reason = _compare(cases(), device, dtype)
         except Exception as error:  # a triton that cannot compile them, a device they do not fit
             reason = f"the fused kernels failed on {device} ({type(error).__name__}: {str(error)[:300]})"
     if reason is not None and device.type == "cuda":
@@ -198,12 +194,13 @@ def _sampling_cases(device, dtype, width, heads, head_dim, mlp_width, action_dim
     ]
 
 
-def _compare(kernels, cases: list[tuple[str, Callable[[], tuple]]], device: torch.device, dtype: torch.dtype) -> str | None:
-    """Run each case's kernel and its torch reference on the same arguments: why they differ (None: they agree)."""
+def _compare(cases: list[tuple[str, Callable[[], tuple]]], device: torch.device, dtype: torch.dtype) -> str | None:
+    """Run each case's op (its Triton kernel, on the arguments' GPU: `ops.call`) and its torch reference on the same
+    arguments: why they differ (None: they agree)."""
     for name, make in cases:
         arguments = make()
         theirs = [a.clone() if isinstance(a, torch.Tensor) else a for a in arguments]
-        ours = getattr(kernels, name)(*arguments)
+        ours = ops.call(getattr(ops, name), *arguments)
         expected = getattr(reference, name)(*theirs)
         compared = [(ours, expected)] if ours is not None else []
         compared += [(a, b) for a, b in zip(arguments, theirs) if isinstance(a, torch.Tensor) and not torch.equal(a.nan_to_num(), b.nan_to_num())]
