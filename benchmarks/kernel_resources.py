@@ -9,14 +9,8 @@ with triton, and gets one row: its shared memory against the most one block may 
 spills (`ptxas -v`). A variant with more shared memory than the GPU has fails at launch ("out of resource: shared
 memory"); `--check` exits 1 where one does.
 
-`--pdl` compiles the variants launched as programmatic dependents (`PI0_TORCH_PDL=1`, sm_90 and later) and counts,
-per variant, the loads, stores and atomics its machine code has before its `griddepcontrol.wait`: such a kernel may
-start while the one before it still runs, so it must touch no memory before that wait (L2 prefetches aside);
-`--check` then also exits 1 where one does or has no wait.
-
     python benchmarks/kernel_resources.py                       # sm_89 (RTX 4090, L40S) and sm_90 (H100, H200)
     python benchmarks/kernel_resources.py --arch 80,86,87,89,90,120 --batches 1,3,8 --check
-    python benchmarks/kernel_resources.py --arch 90 --batches 1 --pdl --check
 
 Needs triton (with its ptxas) and no GPU; runs on the CPU in about half a minute per target.
 """
@@ -122,20 +116,6 @@ def compile_launches(arch: int, batches: list[int]) -> dict[str, tuple[str, Any]
     return compiled
 
 
-def accesses_before_wait(ptx: str) -> int | None:
-    """How many instructions that read or write global memory (loads, stores, atomics, async copies; not
-    `prefetch`, not parameter, shared or local memory) come before the first `griddepcontrol.wait` of `ptx`; None
-    where it has none. (Textual order: the kernels wait before any branch.)"""
-    instructions = [line.strip().split(" ", 1)[-1] if line.strip().startswith("@") else line.strip()  # (a predicate)
-                    for line in ptx.splitlines()]
-    if not any(line.startswith("griddepcontrol.wait") for line in instructions):
-        return None
-    before = instructions[: next(i for i, line in enumerate(instructions) if line.startswith("griddepcontrol.wait"))]
-    memory = ("ld.", "st.", "atom.", "red.", "cp.async", "cp.reduce", "multimem.")
-    return sum(line.startswith(memory) and not line.startswith(("ld.param", "ld.shared", "st.shared", "ld.local", "st.local"))
-               for line in before)
-
-
 def ptxas_usage(ptx: str, arch: int) -> str:
     """Registers and spills of `ptx` for `arch`, as triton's ptxas reports them."""
     import triton
@@ -160,25 +140,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--arch", default="89,90", help="comma list of compute capabilities, e.g. 80,86,89,90,120")
     parser.add_argument("--batches", default="1,8", help="comma list of sampling batch sizes")
     parser.add_argument("--check", action="store_true", help="exit 1 where a variant needs more shared memory than the GPU has")
-    parser.add_argument("--pdl", action="store_true", help="the variants launched as programmatic dependents (sm_90+, "
-                        "PI0_TORCH_PDL=1 on a GPU)")
     args = parser.parse_args(argv)
     if os.environ.get("TRITON_INTERPRET") == "1":
         parser.error("unset TRITON_INTERPRET: the kernels are compiled here, not interpreted")
-    from pi0_torch.kernels import triton_kernels  # (imported as compiled kernels, before the next line)
-
-    if args.pdl:
-        if min(int(each) for each in args.arch.split(",")) < 90:
-            parser.error("--pdl: programmatic dependent launches need sm_90 or later")
-        triton_kernels._pdl = lambda tensor: True  # (the meta tensors here are on no GPU to ask)
+    from pi0_torch.kernels import triton_kernels  # noqa: F401  (imported as compiled kernels, before the next line)
 
     os.environ["TRITON_INTERPRET"] = "1"  # (only so that the ops take their Triton implementation for meta tensors)
-    too_large = touching = 0
+    too_large = 0
     for arch in (int(each) for each in args.arch.split(",")):
         limit = SHARED_PER_BLOCK.get(arch)
         print(f"\nsm_{arch}: {'shared memory per block ' + format(limit, ',') + ' bytes' if limit else 'limit unknown'}")
-        print(f"{'kernel':28s} {'block (M, N, K)':>16s} {'warps':>5s} {'stages':>6s} {'shared B':>9s} {'registers':>9s} {'spill stores':>12s}"
-              + (f" {'before wait':>11s}" if args.pdl else ""))
+        print(f"{'kernel':28s} {'block (M, N, K)':>16s} {'warps':>5s} {'stages':>6s} {'shared B':>9s} {'registers':>9s} {'spill stores':>12s}")
         variants = compile_launches(arch, [int(each) for each in args.batches.split(",")])
         for name, variant in sorted(variants.values(), key=lambda each: (each[0], each[1].metadata.shared)):
             names = variant.src.fn.arg_names  # (constants are keyed by their argument's index path)
@@ -187,12 +159,9 @@ def main(argv: list[str] | None = None) -> int:
             shared = variant.metadata.shared
             fits = limit is None or shared <= limit
             too_large += not fits
-            before = accesses_before_wait(variant.asm["ptx"]) if args.pdl else 0
-            touching += before != 0
             print(f"{name:28s} {block:>16s} {variant.metadata.num_warps:5d} {variant.metadata.num_stages:6d} {shared:9,d} "
-                  f"{ptxas_usage(variant.asm['ptx'], arch)}" + (f" {'no wait' if before is None else before:>11}" if args.pdl else "")
-                  + ("" if fits else "  TOO LARGE") + ("  TOUCHES MEMORY BEFORE ITS WAIT" if before != 0 else ""), flush=True)
-    return 1 if args.check and (too_large or touching) else 0
+                  f"{ptxas_usage(variant.asm['ptx'], arch)}{'' if fits else '  TOO LARGE'}", flush=True)
+    return 1 if args.check and too_large else 0
 
 
 if __name__ == "__main__":

@@ -293,9 +293,9 @@ def bench_generate(args: argparse.Namespace, device: torch.device) -> None:
         from pi0_torch.kernels import ops
 
         if (reason := ops.triton_reason(device)) is None:
-            from pi0_torch.kernels.triton_kernels import launch_description
+            from pi0_torch.kernels.launch import launch_mode
 
-            reason = launch_description(device)
+            reason = launch_mode()
         print(f"fused kernels: {reason}")
     print(f"{'preset':12s} {'dtype':9s} {'mode':14s} {'steps':7s} {'rtc':12s} {'cams':>4s} {'batch':>5s} {'set-up s':>8s} {'median ms':>10s} "
           f"{'min ms':>10s} {'max ms':>10s} {'peak MiB':>10s} {'GFLOP/s':>8s} {'% peak':>6s}"

@@ -158,11 +158,11 @@ class Doctor:
         def fused() -> tuple[float, float, str]:
             if (reason := ops.triton_reason(device)) is not None:
                 return None, None, f"skip: {reason}"
-            from pi0_torch.kernels.triton_kernels import launch_description
+            from pi0_torch.kernels.launch import launch_mode
 
             model.sampling_kernels = "triton"
             try:
-                return against(sample(model), reference, BF16_BOUND, launch_description(device))
+                return against(sample(model), reference, BF16_BOUND, launch_mode())
             finally:
                 model.sampling_kernels = "torch"
 

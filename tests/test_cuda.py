@@ -266,39 +266,6 @@ def test_direct_launches_sample_what_tritons_own_launches_sample() -> None:
 
 
 @torch.no_grad()
-def test_programmatic_dependent_launches_sample_what_plain_launches_sample(monkeypatch: pytest.MonkeyPatch) -> None:
-    """`PI0_TORCH_PDL=1` on sm_90+ (each kernel may start while the one before it runs, asks its weights into L2,
-    then waits for it): bit for bit the actions of kernels launched in plain stream order, eager and replayed as a
-    CUDA graph; full width, two layers, bf16, batch 1 and 8."""
-    from pi0_torch import PI0Config, PI0ForActionGeneration
-    from pi0_torch.benchmark import example_batch
-    from pi0_torch.kernels import triton_kernels
-
-    monkeypatch.setattr(triton_kernels, "PDL_REQUESTED", True)
-    if (reason := triton_kernels.pdl_reason(CUDA)) is not None:
-        pytest.skip(reason)
-    torch.manual_seed(0)
-    config = PI0Config.from_preset("pi0", num_hidden_layers=2, vision_num_layers=2)
-    with CUDA:
-        plain = PI0ForActionGeneration(config).to(torch.bfloat16).eval()
-    plain.sampling_kernels = "triton"
-    dependent = copy.deepcopy(plain)
-    device = torch.device("cuda", torch.cuda.current_device())
-    for batch in (1, 8):
-        inputs = example_batch(config, 3, batch, CUDA, seed=batch)
-        noise = torch.randn(batch, config.action_horizon, config.action_dim, device=CUDA)
-        chunks = {}
-        for name, model, on in (("plain", plain, False), ("dependent", dependent, True)):
-            monkeypatch.setattr(triton_kernels, "_pdl_on", {device: on})
-            chunks[name] = [model.generate_actions(**inputs, noise=noise) for _ in range(2)]
-            model.capture_sampling()
-            chunks[name] += [model.generate_actions(**inputs, noise=noise) for _ in range(2)]  # (captured, replayed)
-            model.capture_sampling(disable=True)
-        for got, want in zip(chunks["dependent"], chunks["plain"]):
-            assert torch.equal(got, want), f"batch {batch}: {relative(got, want):.2e}"
-
-
-@torch.no_grad()
 @pytest.mark.skipif(torch.cuda.device_count() < 2, reason="needs two GPUs")
 def test_fused_kernels_run_on_the_models_gpu_whichever_is_current() -> None:
     """Triton launches on the current GPU: eager fused sampling (its first-use verification and self-check included)

@@ -349,44 +349,6 @@ def test_every_kernel_variant_fits_the_shared_memory_of_an_rtx_4090() -> None:
     assert ["64,", "32"] in [row[1:3] for row in rows], result.stdout  # (batch 8's blocks were compiled)
 
 
-def test_kernels_launched_as_programmatic_dependents_touch_no_memory_before_they_wait() -> None:
-    """With `PI0_TORCH_PDL=1` on sm_90+ a kernel may start while the one before it still runs, so it must read and
-    write nothing before its `griddepcontrol.wait`: benchmarks/kernel_resources.py compiles every variant of batch-1
-    sampling (π0, π0.5) and π0-FAST decoding so for sm_90 on this CPU and counts the loads, stores and atomics its
-    machine code has before that wait (L2 prefetches of the weights aside): none, and each has its wait."""
-    script = Path(__file__).resolve().parents[1] / "benchmarks" / "kernel_resources.py"
-    environment = {name: value for name, value in os.environ.items() if name != "TRITON_INTERPRET"}
-    result = subprocess.run([sys.executable, str(script), "--arch", "90", "--batches", "1", "--pdl", "--check"],
-                            capture_output=True, text=True, env=environment, timeout=600)
-    assert result.returncode == 0 and "TOUCHES" not in result.stdout, result.stdout + result.stderr[-3000:]
-    kernels_compiled = {line.split()[0] for line in result.stdout.splitlines() if line.startswith("_")}
-    assert len(kernels_compiled) == 9, result.stdout  # (every kernel)
-
-
-def test_programmatic_dependent_launches_are_asked_for_and_need_sm_90(monkeypatch: pytest.MonkeyPatch) -> None:
-    """`PI0_TORCH_PDL=1` asks for them (read at import); they need CUDA (not the interpreter), a triton with grid
-    dependency control and sm_90 or later, and each refusal says which. Without them the kernels compile without
-    a wait (`PDL=False`), as the interpreted tests here run them."""
-    from pi0_torch.kernels import triton_kernels
-
-    cuda = torch.device("cuda", 0)
-    monkeypatch.setattr(triton_kernels, "PDL_REQUESTED", False)
-    assert triton_kernels.pdl_reason(cuda) == "not asked for (PI0_TORCH_PDL=1)"
-    monkeypatch.setattr(triton_kernels, "PDL_REQUESTED", True)
-    monkeypatch.setattr(triton_kernels, "INTERPRETING", True)
-    assert "not the interpreter" in triton_kernels.pdl_reason(cuda)
-    monkeypatch.setattr(triton_kernels, "INTERPRETING", False)
-    assert "not cpu" in triton_kernels.pdl_reason(torch.device("cpu"))
-    monkeypatch.setattr(torch.cuda, "get_device_name", lambda device=None: "NVIDIA L40S")
-    monkeypatch.setattr(torch.cuda, "get_device_capability", lambda device=None: (8, 9))
-    if triton_kernels.gdc_wait is not None:
-        assert triton_kernels.pdl_reason(cuda) == "NVIDIA L40S is older than sm_90 (Hopper), which programmatic dependent launches need"
-        monkeypatch.setattr(torch.cuda, "get_device_capability", lambda device=None: (9, 0))
-        assert triton_kernels.pdl_reason(cuda) is None
-    monkeypatch.setattr(triton_kernels, "gdc_wait", None)
-    assert "has no grid dependency control" in triton_kernels.pdl_reason(cuda)
-
-
 def test_direct_launches_equal_tritons_own() -> None:
     """A direct launch (`pi0_torch.kernels.launch`) hands the compiled kernel's launcher what triton's `kernel[grid]`
     hands it: tests/launch_check.py compiles kernels for sm_89 on this CPU, records each launch, and compares triton's

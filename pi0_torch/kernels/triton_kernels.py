@@ -24,10 +24,7 @@ dtype on a GPU. Under `TRITON_INTERPRET=1` (the CPU tests) they are float32: the
 
 Only `tl.load` / `tl.store` (with a cache modifier) / `tl.dot` (with its input precision) / `tl.where` / `tl.exp` /
 `tl.sqrt` / reductions / `tl.atomic_add` / `tl.debug_barrier` are used, all in the triton that torch 2.10's CUDA
-wheels pin (3.6; every variant also compiles with 3.2). Asked for with `PI0_TORCH_PDL=1` (sm_90 and later, triton
-3.5 and later; `pdl_reason`), the kernels launch as programmatic dependents: each may start while the kernel before
-it runs, asks its weights into the L2 cache (an inline `prefetch.global.L2`), and waits for that kernel
-(`gdc_wait`) before it touches memory. Tilings come from `blocks`, `narrow_blocks` and
+wheels pin (3.6; every variant also compiles with 3.2). Tilings come from `blocks`, `narrow_blocks` and
 `attention_blocks`, measured on an H200 (small M: the suffix's 50 rows per sample; split-K in the same launch where
 a GEMM's output tiles are few, see `split_k` and `_sum_splits`). Each kernel launches through
 `pi0_torch.kernels.launch.direct_launch` (the compiled kernel called without triton's per-call binding).
@@ -35,7 +32,6 @@ a GEMM's output tiles are few, see `split_k` and `_sum_splits`). Each kernel lau
 
 from __future__ import annotations
 
-import logging
 import os
 from typing import NamedTuple
 
@@ -48,17 +44,9 @@ require_extra("kernels", "pi0_torch.kernels.triton_kernels")
 import triton  # noqa: E402
 import triton.language as tl  # noqa: E402
 
-from pi0_torch.kernels.launch import direct_launch, launch_mode  # noqa: E402
-
-try:
-    from triton.language.extra.cuda import gdc_launch_dependents, gdc_wait  # noqa: E402
-except ImportError:  # (triton before 3.5: no grid dependency control)
-    gdc_launch_dependents = gdc_wait = None
-
-logger = logging.getLogger(__name__)
+from pi0_torch.kernels.launch import direct_launch  # noqa: E402
 
 INTERPRETING = os.environ.get("TRITON_INTERPRET") == "1"
-PDL_REQUESTED = os.environ.get("PI0_TORCH_PDL") == "1"  # programmatic dependent launches: asked for, until measured
 
 _DOT_DTYPES = {torch.bfloat16: tl.bfloat16, torch.float16: tl.float16, torch.float32: tl.float32}
 
@@ -221,43 +209,6 @@ def _gelu_tanh(x):
     return 0.5 * x * (1.0 + tanh)
 
 
-@triton.jit
-def _after_earlier_kernels(PDL: tl.constexpr):
-    """With PDL (launched as a programmatic dependent, sm_90 and later: the GPU may start this kernel while the one
-    before it still runs): wait until the kernels before this one have finished and their writes are visible, then
-    let the next kernel start (it waits here in turn, so it touches no memory before this one has finished). Every
-    kernel calls this before its first load or store. Without PDL the stream's order does this and it is nothing."""
-    if PDL:
-        gdc_wait()
-        gdc_launch_dependents()
-
-
-@triton.jit
-def _prefetch_l2(pointers):
-    """Ask the memory lines of `pointers` into the L2 cache: a hint (nothing comes into registers, nothing waits)."""
-    tl.inline_asm_elementwise("prefetch.global.L2 [$1]; mov.u32 $0, 0;", "=r,l", [pointers], dtype=tl.int32,
-                              is_pure=False, pack=1)
-
-
-@triton.jit
-def _prefetch_then_wait(w_ptr, stride_wk, stride_wn, columns, second, k_start, k_stop, N, BLOCK_K: tl.constexpr,
-                        PAIRED: tl.constexpr, PDL: tl.constexpr):
-    """`_after_earlier_kernels`, with PDL after asking this program's weights `w[k_start:k_stop, columns]` (and
-    `columns + second` where PAIRED) into the L2 cache: the weights are no kernel's output, so reading them from
-    memory may overlap the kernel before. One address per 32 rows of `w`: 64 bytes of a column of a bf16 `[in, out]`
-    view of an `nn.Linear` weight (the engine's layout: `in` has unit stride)."""
-    if PDL:
-        column_ok = columns < N
-        for k0 in range(k_start, k_stop, BLOCK_K):
-            ks = k0 + tl.arange(0, BLOCK_K // 32) * 32
-            ok = (ks < k_stop)[:, None] & column_ok[None, :]
-            offsets = tl.where(ok, ks[:, None] * stride_wk + columns[None, :] * stride_wn, 0)  # (0: the first weight)
-            _prefetch_l2(w_ptr + offsets)
-            if PAIRED:
-                _prefetch_l2(w_ptr + tl.where(ok, offsets + second * stride_wn, 0))
-    _after_earlier_kernels(PDL)
-
-
 # -- kernels ------------------------------------------------------------------------------------------------------------
 
 
@@ -267,7 +218,7 @@ def _norm_qkv_rope_kernel(
     x_ptr, scale_ptr, bias_ptr, w_ptr, cos_ptr, sin_ptr, q_ptr, key_ptr, value_ptr, workspace_ptr, counter_ptr,
     M, K, tokens, first_slot, slots, stride_xm, stride_wk, stride_wn, stride_cos_b, stride_cos_t, eps, k_split, splits,
     HEADS: tl.constexpr, HEAD_DIM: tl.constexpr, HAS_BIAS: tl.constexpr, DOT: tl.constexpr,
-    BLOCK_M: tl.constexpr, BLOCK_N: tl.constexpr, BLOCK_K: tl.constexpr, SPLIT: tl.constexpr, PDL: tl.constexpr,
+    BLOCK_M: tl.constexpr, BLOCK_N: tl.constexpr, BLOCK_K: tl.constexpr, SPLIT: tl.constexpr,
 ):
     half: tl.constexpr = HEAD_DIM // 2
     rows = tl.program_id(0) * BLOCK_M + tl.arange(0, BLOCK_M)
@@ -277,7 +228,6 @@ def _norm_qkv_rope_kernel(
     first_half = head * HEAD_DIM + lane
     n = (HEADS + 2) * HEAD_DIM
     k_start, k_stop = _k_range(K, k_split, SPLIT)
-    _prefetch_then_wait(w_ptr, stride_wk, stride_wn, first_half, half, k_start, k_stop, n, BLOCK_K, True, PDL)
     acc1, acc2, squares = _matmul_tiles(x_ptr, stride_xm, scale_ptr, w_ptr, stride_wk, stride_wn, rows, first_half, half,
                                         M, k_start, k_stop, n, BLOCK_M, BLOCK_N, BLOCK_K, True, True, DOT)
     pair_ok = pairs < (HEADS + 2) * half
@@ -319,12 +269,11 @@ def _norm_qkv_rope_kernel(
 def _norm_gate_up_geglu_kernel(
     x_ptr, scale_ptr, bias_ptr, w_ptr, out_ptr, workspace_ptr, counter_ptr, M, K, F, stride_xm, stride_wk, stride_wn, eps,
     k_split, splits, HAS_BIAS: tl.constexpr, DOT: tl.constexpr, BLOCK_M: tl.constexpr, BLOCK_N: tl.constexpr,
-    BLOCK_K: tl.constexpr, SPLIT: tl.constexpr, PDL: tl.constexpr,
+    BLOCK_K: tl.constexpr, SPLIT: tl.constexpr,
 ):
     rows = tl.program_id(0) * BLOCK_M + tl.arange(0, BLOCK_M)
     columns = tl.program_id(1) * BLOCK_N + tl.arange(0, BLOCK_N)  # gate column c pairs with up column F + c
     k_start, k_stop = _k_range(K, k_split, SPLIT)
-    _prefetch_then_wait(w_ptr, stride_wk, stride_wn, columns, F, k_start, k_stop, F, BLOCK_K, True, PDL)
     gate, up, squares = _matmul_tiles(x_ptr, stride_xm, scale_ptr, w_ptr, stride_wk, stride_wn, rows, columns, F, M,
                                       k_start, k_stop, F, BLOCK_M, BLOCK_N, BLOCK_K, True, True, DOT)
     column_ok = columns < F
@@ -348,12 +297,11 @@ def _norm_gate_up_geglu_kernel(
 def _matmul_residual_kernel(
     residual_ptr, y_ptr, w_ptr, gate_ptr, workspace_ptr, counter_ptr, M, K, N, stride_rm, stride_ym, stride_wk, stride_wn,
     k_split, splits, HAS_GATE: tl.constexpr, DOT: tl.constexpr, BLOCK_M: tl.constexpr, BLOCK_N: tl.constexpr,
-    BLOCK_K: tl.constexpr, SPLIT: tl.constexpr, PDL: tl.constexpr,
+    BLOCK_K: tl.constexpr, SPLIT: tl.constexpr,
 ):
     rows = tl.program_id(0) * BLOCK_M + tl.arange(0, BLOCK_M)
     columns = tl.program_id(1) * BLOCK_N + tl.arange(0, BLOCK_N)
     k_start, k_stop = _k_range(K, k_split, SPLIT)
-    _prefetch_then_wait(w_ptr, stride_wk, stride_wn, columns, 0, k_start, k_stop, N, BLOCK_K, False, PDL)
     acc, unused, no_squares = _matmul_tiles(y_ptr, stride_ym, y_ptr, w_ptr, stride_wk, stride_wn, rows, columns, 0, M,
                                             k_start, k_stop, N, BLOCK_M, BLOCK_N, BLOCK_K, False, False, DOT)
     column_ok = columns < N
@@ -373,11 +321,10 @@ def _matmul_residual_kernel(
 @triton.jit
 def _norm_linear_euler_kernel(
     x_t_ptr, tokens_ptr, scale_ptr, bias_ptr, w_ptr, M, K, N, stride_tm, stride_wk, stride_wn, dt, eps,
-    DOT: tl.constexpr, BLOCK_M: tl.constexpr, BLOCK_N: tl.constexpr, BLOCK_K: tl.constexpr, PDL: tl.constexpr,
+    DOT: tl.constexpr, BLOCK_M: tl.constexpr, BLOCK_N: tl.constexpr, BLOCK_K: tl.constexpr,
 ):
     rows = tl.program_id(0) * BLOCK_M + tl.arange(0, BLOCK_M)
     columns = tl.program_id(1) * BLOCK_N + tl.arange(0, BLOCK_N)
-    _prefetch_then_wait(w_ptr, stride_wk, stride_wn, columns, 0, 0, K, N, BLOCK_K, False, PDL)
     acc, _, squares = _matmul_tiles(tokens_ptr, stride_tm, scale_ptr, w_ptr, stride_wk, stride_wn, rows, columns, 0, M, 0,
                                     K, N, BLOCK_M, BLOCK_N, BLOCK_K, True, False, DOT)
     column_ok = columns < N
@@ -392,9 +339,8 @@ def _norm_linear_euler_kernel(
 def _embed_actions_kernel(
     x_ptr, w_ptr, bias_ptr, out_w_ptr, out_bias_ptr, out_ptr, M, A, D, N, stride_wa, stride_wd, stride_ok, stride_on,
     TIME_MLP: tl.constexpr, DOT: tl.constexpr, BLOCK_M: tl.constexpr, BLOCK_N: tl.constexpr, BLOCK_K: tl.constexpr,
-    BLOCK_A: tl.constexpr, PDL: tl.constexpr,
+    BLOCK_A: tl.constexpr,
 ):
-    _after_earlier_kernels(PDL)
     rows = tl.program_id(0) * BLOCK_M + tl.arange(0, BLOCK_M)
     columns = tl.program_id(1) * BLOCK_N + tl.arange(0, BLOCK_N)
     dims = tl.arange(0, BLOCK_A)
@@ -424,11 +370,10 @@ def _embed_actions_kernel(
 @triton.jit
 def _add_layer_norm_kernel(
     residual_ptr, y_ptr, weight_ptr, bias_ptr, out_ptr, M, D, stride_rm, stride_ym, eps,
-    BLOCK_M: tl.constexpr, BLOCK_D: tl.constexpr, PDL: tl.constexpr,
+    BLOCK_M: tl.constexpr, BLOCK_D: tl.constexpr,
 ):
     """Rows `[i * BLOCK_M, ...)`: `residual += y` (rounded to the residual's dtype, as it is stored), then the
     LayerNorm of the stored sum, mean and variance in float32."""
-    _after_earlier_kernels(PDL)
     rows = tl.program_id(0) * BLOCK_M + tl.arange(0, BLOCK_M)
     columns = tl.arange(0, BLOCK_D)
     column_ok = columns < D
@@ -453,7 +398,7 @@ def _add_layer_norm_kernel(
 def _range_attention_kernel(
     q_ptr, key_ptr, value_ptr, out_ptr, partial_ptr, stats_ptr, counter_ptr, first_ptr, row_ends_ptr, batch,
     rows_per_sample, heads, slots, scale, splits, HEAD_DIM: tl.constexpr, DOT: tl.constexpr, BLOCK_M: tl.constexpr,
-    BLOCK_N: tl.constexpr, SPLIT: tl.constexpr, DIM_CHUNK: tl.constexpr, PDL: tl.constexpr,
+    BLOCK_N: tl.constexpr, SPLIT: tl.constexpr, DIM_CHUNK: tl.constexpr,
 ):
     """Program (i, b, s): folded query rows `[i * BLOCK_M, ...)` of sample b (row r is token r // heads, head r % heads)
     over the keys `[first[b], row_ends[token])`, online softmax in float32. Only keys before the block's last end are
@@ -464,7 +409,6 @@ def _range_attention_kernel(
     every count), program s taking part s (see `key_splits`); each stores its unnormalized sum, running maximum and
     total weight, and the block's last program to arrive combines the parts and writes the output
     (`_combine_key_parts`, in this launch)."""
-    _after_earlier_kernels(PDL)
     sample = tl.program_id(1)
     split = tl.program_id(2)
     rows = tl.program_id(0) * BLOCK_M + tl.arange(0, BLOCK_M)
@@ -557,12 +501,10 @@ def _combine_key_parts(acc, running_max, total, partial_ptr, stats_ptr, counter_
 def _rope_cache_write_kernel(
     qkv_ptr, cos_ptr, sin_ptr, q_ptr, key_ptr, value_ptr, slot_ptr, M, tokens, first_slot, slots, stride_qkv, stride_cos_b,
     stride_cos_t, HEADS: tl.constexpr, HEAD_DIM: tl.constexpr, HAS_SLOT: tl.constexpr, BLOCK_M: tl.constexpr,
-    PDL: tl.constexpr,
 ):
     """The epilogue of `_norm_qkv_rope_kernel` on a q/k/v projection's output (the prefix and π0-FAST's decoded tokens:
     their GEMMs stay cuBLAS's). With HAS_SLOT the first cache slot is read from `slot_ptr` (a device value: one CUDA
     graph serves every decoding step), else it is `first_slot`."""
-    _after_earlier_kernels(PDL)
     half: tl.constexpr = HEAD_DIM // 2
     rows = tl.program_id(0) * BLOCK_M + tl.arange(0, BLOCK_M)
     lane = tl.arange(0, half)
@@ -593,8 +535,7 @@ def _rope_cache_write_kernel(
 
 @direct_launch
 @triton.jit
-def _geglu_kernel(gate_up_ptr, out_ptr, M, F, stride_gm, BLOCK_M: tl.constexpr, BLOCK_N: tl.constexpr, PDL: tl.constexpr):
-    _after_earlier_kernels(PDL)
+def _geglu_kernel(gate_up_ptr, out_ptr, M, F, stride_gm, BLOCK_M: tl.constexpr, BLOCK_N: tl.constexpr):
     rows = tl.program_id(0) * BLOCK_M + tl.arange(0, BLOCK_M)
     columns = tl.program_id(1) * BLOCK_N + tl.arange(0, BLOCK_N)
     ok = (rows < M)[:, None] & (columns < F)[None, :]
@@ -605,47 +546,6 @@ def _geglu_kernel(gate_up_ptr, out_ptr, M, F, stride_gm, BLOCK_M: tl.constexpr, 
 
 
 # -- launchers (same arguments and results as `pi0_torch.kernels.reference`) ------------------------------------------
-
-
-_PDL_OPTIONS = ({}, {"launch_pdl": True})  # triton's launch options without and with PDL (indexed by it)
-_pdl_on: dict[torch.device, bool] = {}  # whether the kernels launch as programmatic dependents, per device
-
-
-def pdl_reason(device: torch.device) -> str | None:
-    """Why the kernels on `device` launch in plain stream order rather than as programmatic dependent launches (PDL:
-    each may start while the kernel before it runs, asks its weights into the L2 cache, then waits for it in
-    `_after_earlier_kernels`); None: they launch so. Asked for with `PI0_TORCH_PDL=1` (off until measured on a GPU);
-    it needs sm_90 or later and a triton with grid dependency control (3.5 and later)."""
-    if not PDL_REQUESTED:
-        return "not asked for (PI0_TORCH_PDL=1)"
-    if device.type != "cuda" or INTERPRETING:
-        return f"programmatic dependent launches are CUDA's (not {'the interpreter' if INTERPRETING else device.type})"
-    if gdc_wait is None:
-        return f"triton {triton.__version__} has no grid dependency control (3.5 and later have)"
-    if torch.cuda.get_device_capability(device) < (9, 0):
-        return f"{torch.cuda.get_device_name(device)} is older than sm_90 (Hopper), which programmatic dependent launches need"
-    return None
-
-
-def _pdl(tensor: torch.Tensor) -> bool:
-    """Whether the kernels on `tensor`'s device launch as programmatic dependents (`pdl_reason`; a refusal asked for
-    is logged once per device)."""
-    if not PDL_REQUESTED:  # (the default: nothing to look up)
-        return False
-    device = tensor.device
-    on = _pdl_on.get(device)
-    if on is None:
-        reason = pdl_reason(device)
-        on = _pdl_on[device] = reason is None
-        if reason is not None:
-            logger.warning("PI0_TORCH_PDL=1 is set, but the kernels launch in plain stream order: %s", reason)
-    return on
-
-
-def launch_description(device: torch.device) -> str:
-    """How the kernels launch on `device`, for a report line (`launch.launch_mode`, and whether as programmatic
-    dependents)."""
-    return launch_mode() + (", programmatic dependent launches" if PDL_REQUESTED and pdl_reason(device) is None else "")
 
 
 COUNTER_SLOTS = 4_096  # output tiles (attention: row blocks) one launch in parts may have
@@ -684,14 +584,12 @@ def embed_actions(x_t, weight, bias, out_weight, out_bias):
     out = x_t.new_empty(rows, columns, dtype=weight.dtype)
     tile = narrow_blocks(rows, columns)
     x_t = x_t.contiguous()  # (the engine's is)
-    pdl = _pdl(x_t)
     _embed_actions_kernel[(cdiv(rows, tile.m), cdiv(columns, tile.n))](
         x_t, weight, bias, out_weight if out_weight is not None else weight, out_bias if out_bias is not None else bias, out,
         rows, action_dim, width, columns, weight.stride(0), weight.stride(1),
         out_weight.stride(0) if out_weight is not None else 0, out_weight.stride(1) if out_weight is not None else 0,
         TIME_MLP=out_weight is not None, DOT=dot_dtype(weight.dtype), BLOCK_M=tile.m, BLOCK_N=tile.n, BLOCK_K=tile.k,
-        BLOCK_A=max(16, next_power_of_2(action_dim)), PDL=pdl, num_warps=tile.warps, num_stages=tile.stages,
-        **_PDL_OPTIONS[pdl],
+        BLOCK_A=max(16, next_power_of_2(action_dim)), num_warps=tile.warps, num_stages=tile.stages,
     )
     return out
 
@@ -700,10 +598,9 @@ def add_layer_norm_(residual, y, weight, bias, eps):
     rows, width = residual.shape
     out = torch.empty_like(residual)
     block_d = next_power_of_2(width)
-    pdl = _pdl(residual)
     _add_layer_norm_kernel[(rows,)](  # (a row per program: SigLIP's 1,152 columns are 9 to 18 values per thread)
         residual, y, weight, bias, out, rows, width, residual.stride(0), y.stride(0), eps,
-        BLOCK_M=1, BLOCK_D=block_d, PDL=pdl, num_warps=4 if block_d <= 2048 else 8, **_PDL_OPTIONS[pdl],
+        BLOCK_M=1, BLOCK_D=block_d, num_warps=4 if block_d <= 2048 else 8,
     )
     return out
 
@@ -719,14 +616,13 @@ def norm_qkv_rope(x, scale, bias, weight, cos, sin, key_cache, value_cache, firs
     q = x.new_empty(rows, heads * head_dim)
     grid = (cdiv(rows, tile.m), cdiv((heads + 2) * head_dim // 2, tile.n))
     tile, workspace, counters, k_split = split_k(x, tile, grid[0] * grid[1], width)
-    pdl = _pdl(x)
     _norm_qkv_rope_kernel[(*grid, tile.splits)](
         x, scale, bias if bias is not None else scale, weight, cos, sin, q, key_cache, value_cache, workspace, counters,
         rows, width, rows // batch, first_slot, slots, x.stride(0), weight.stride(0), weight.stride(1),
         cos.stride(0) if cos.shape[0] > 1 else 0, cos.stride(1), eps, k_split, tile.splits,
         HEADS=heads, HEAD_DIM=head_dim, HAS_BIAS=bias is not None, DOT=dot_dtype(weight.dtype),
-        BLOCK_M=tile.m, BLOCK_N=tile.n, BLOCK_K=tile.k, SPLIT=tile.splits > 1, PDL=pdl, num_warps=tile.warps,
-        num_stages=tile.stages, **_PDL_OPTIONS[pdl],
+        BLOCK_M=tile.m, BLOCK_N=tile.n, BLOCK_K=tile.k, SPLIT=tile.splits > 1, num_warps=tile.warps,
+        num_stages=tile.stages,
     )
     return q
 
@@ -740,12 +636,11 @@ def norm_gate_up_geglu(x, scale, bias, weight, eps):
     out = x.new_empty(rows, mlp_width)
     grid = (cdiv(rows, tile.m), cdiv(mlp_width, tile.n))
     tile, workspace, counters, k_split = split_k(x, tile, grid[0] * grid[1], width)
-    pdl = _pdl(x)
     _norm_gate_up_geglu_kernel[(*grid, tile.splits)](
         x, scale, bias if bias is not None else scale, weight, out, workspace, counters, rows, width, mlp_width,
         x.stride(0), weight.stride(0), weight.stride(1), eps, k_split, tile.splits,
         HAS_BIAS=bias is not None, DOT=dot_dtype(weight.dtype), BLOCK_M=tile.m, BLOCK_N=tile.n, BLOCK_K=tile.k,
-        SPLIT=tile.splits > 1, PDL=pdl, num_warps=tile.warps, num_stages=tile.stages, **_PDL_OPTIONS[pdl],
+        SPLIT=tile.splits > 1, num_warps=tile.warps, num_stages=tile.stages,
     )
     return out
 
@@ -757,12 +652,11 @@ def matmul_residual_(residual, y, weight, gate):
         return reference.matmul_residual_(residual, y, weight, gate)
     grid = (cdiv(rows, tile.m), cdiv(width, tile.n))
     tile, workspace, counters, k_split = split_k(y, tile, grid[0] * grid[1], y.shape[1])
-    pdl = _pdl(y)
     _matmul_residual_kernel[(*grid, tile.splits)](
         residual, y, weight, gate if gate is not None else weight, workspace, counters, rows, y.shape[1], width,
         residual.stride(0), y.stride(0), weight.stride(0), weight.stride(1), k_split, tile.splits,
         HAS_GATE=gate is not None, DOT=dot_dtype(weight.dtype), BLOCK_M=tile.m, BLOCK_N=tile.n, BLOCK_K=tile.k,
-        SPLIT=tile.splits > 1, PDL=pdl, num_warps=tile.warps, num_stages=tile.stages, **_PDL_OPTIONS[pdl],
+        SPLIT=tile.splits > 1, num_warps=tile.warps, num_stages=tile.stages,
     )
 
 
@@ -771,11 +665,10 @@ def norm_linear_euler_(x_t, tokens, scale, bias, weight, dt, eps):
     actions = weight.shape[1]
     tile = narrow_blocks(rows, actions)
     grid = (cdiv(rows, tile.m), cdiv(actions, tile.n))
-    pdl = _pdl(x_t)
     _norm_linear_euler_kernel[grid](
         x_t, tokens, scale, bias, weight, rows, width, actions, tokens.stride(0), weight.stride(0), weight.stride(1),
-        dt, eps, DOT=dot_dtype(weight.dtype), BLOCK_M=tile.m, BLOCK_N=tile.n, BLOCK_K=tile.k, PDL=pdl,
-        num_warps=tile.warps, num_stages=tile.stages, **_PDL_OPTIONS[pdl],
+        dt, eps, DOT=dot_dtype(weight.dtype), BLOCK_M=tile.m, BLOCK_N=tile.n, BLOCK_K=tile.k, num_warps=tile.warps,
+        num_stages=tile.stages,
     )
 
 
@@ -792,12 +685,11 @@ def range_attention(query, key_cache, value_cache, first, row_ends):
         partial = query.new_empty(splits, batch * rows, head_dim, dtype=torch.float32)
         stats = query.new_empty(2, splits, batch * rows, dtype=torch.float32)
         counters = arrival_counters(query.device)
-    pdl = _pdl(query)
     _range_attention_kernel[(row_blocks, batch, splits)](
         query, key_cache, value_cache, out, partial, stats, counters, first, row_ends, batch, rows, heads,
         key_cache.shape[1], head_dim**-0.5, splits, HEAD_DIM=head_dim, DOT=dot_dtype(query.dtype), BLOCK_M=tile.m,
         BLOCK_N=tile.n, SPLIT=splits > 1, DIM_CHUNK=min(head_dim, 4096 // tile.m),  # (4,096 values merged at a time)
-        PDL=pdl, num_stages=tile.stages, num_warps=tile.warps, **_PDL_OPTIONS[pdl],
+        num_stages=tile.stages, num_warps=tile.warps,
     )
     return out
 
@@ -841,11 +733,10 @@ def rope_cache_write(qkv, cos, sin, key_cache, value_cache, first_slot, slot=Non
     heads = qkv.shape[1] // head_dim - 2
     q = qkv.new_empty(rows, heads * head_dim)
     block_m = 16
-    pdl = _pdl(qkv)
     _rope_cache_write_kernel[(cdiv(rows, block_m),)](
         qkv, cos, sin, q, key_cache, value_cache, slot if slot is not None else cos, rows, rows // batch, first_slot,
         slots, qkv.stride(0), cos.stride(0) if cos.shape[0] > 1 else 0, cos.stride(1), HEADS=heads, HEAD_DIM=head_dim,
-        HAS_SLOT=slot is not None, BLOCK_M=block_m, PDL=pdl, **_PDL_OPTIONS[pdl],
+        HAS_SLOT=slot is not None, BLOCK_M=block_m,
     )
     return q
 
@@ -854,9 +745,7 @@ def geglu(gate_up):
     rows, mlp_width = gate_up.shape[0], gate_up.shape[1] // 2
     out = gate_up.new_empty(rows, mlp_width)
     block_m, block_n = 16, 128
-    pdl = _pdl(gate_up)
     _geglu_kernel[(cdiv(rows, block_m), cdiv(mlp_width, block_n))](
-        gate_up, out, rows, mlp_width, gate_up.stride(0), BLOCK_M=block_m, BLOCK_N=block_n, PDL=pdl,
-        **_PDL_OPTIONS[pdl],
+        gate_up, out, rows, mlp_width, gate_up.stride(0), BLOCK_M=block_m, BLOCK_N=block_n,
     )
     return out
