@@ -389,13 +389,13 @@ def test_aloha_episode_runs_through_evaluate(max_steps: int | None) -> None:
     """A real ALOHA sim episode through `pi0-torch eval`'s loop: a random tiny π0 with the `aloha` preset's cameras,
     the adapter's replan steps (10) and hold action, the task's name; 12 steps in `make test`, the whole episode of
     300 steps in `make test-slow` (about 2 minutes of software rendering)."""
-    pytest.importorskip("gym_aloha")
     from pi0_torch.envs.rendering import RenderingError, check_mujoco_rendering
 
-    try:
+    try:  # (before gym_aloha is imported: it imports MuJoCo, which fails to import where its GL library is missing)
         check_mujoco_rendering()
     except RenderingError as error:
         pytest.skip(f"MuJoCo cannot render here: {error}")
+    pytest.importorskip("gym_aloha")
     import torch
 
     from pi0_torch import PI0ForActionGeneration

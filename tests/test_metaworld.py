@@ -4,16 +4,18 @@ the headless rendering choice (`pi0_torch.envs.rendering`). Skipped where MuJoCo
 
 from __future__ import annotations
 
+import importlib.util
 import json
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-pytest.importorskip("metaworld")
+if importlib.util.find_spec("metaworld") is None:
+    pytest.skip("metaworld is not installed (the [envs] extra)", allow_module_level=True)
 from pi0_torch.envs import rendering  # noqa: E402
 
-try:
+try:  # (before metaworld is imported: it imports MuJoCo, which fails to import where its GL library is missing)
     rendering.check_mujoco_rendering()
 except rendering.RenderingError as error:
     pytest.skip(f"MuJoCo cannot render here: {error}", allow_module_level=True)
