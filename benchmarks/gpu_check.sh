@@ -43,7 +43,7 @@ show() {  # show NAME: the end of its log
 } 2>&1 | tee "$OUT/bench.log"  # (the versions head the benchmark's log: 8 files come back, no more)
 
 # 1. alone
-step bench 140 "$PY" -m pi0_torch.cli bench --device cuda --presets pi0,pi05 --dtypes bfloat16 --cameras 3 --batches 1,4,8 \
+step bench 150 "$PY" -m pi0_torch.cli bench --device cuda --presets pi0,pi05 --dtypes bfloat16 --cameras 3 --batches 1,4,8 \
     --kernels auto,torch --repeats 10 --kernel-table 30
 # (eager π0, batch 1: direct launches against triton's own, side by side, and where one chunk's host time goes)
 step bench 40 "$PY" benchmarks/eager_host.py --top 30
@@ -64,8 +64,8 @@ TAIL=8 show kernel-tests
 
 # 3. alone
 step sweep 20 "$PY" -m pi0_torch.cli bench --device cuda --skip-generate --gemms --presets pi0 --batches 1,8 --repeats 10
-step sweep 110 "$PY" benchmarks/kernel_sweep.py --write "$OUT/tilings.json" --bench
-step fast-bench 50 "$PY" -m pi0_torch.cli bench --device cuda --skip-generate --fast --fast-presets pi0_fast \
+step sweep 100 "$PY" benchmarks/kernel_sweep.py --write "$OUT/tilings.json" --bench
+step fast-bench 45 "$PY" -m pi0_torch.cli bench --device cuda --skip-generate --fast --fast-presets pi0_fast \
     --dtypes bfloat16 --batches 1 --kernels auto,torch --repeats 3
 TAIL=70 show sweep
 TAIL=8 show fast-bench

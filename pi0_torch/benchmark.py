@@ -34,6 +34,7 @@ import sys
 import tempfile
 import threading
 import time
+import warnings
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -132,9 +133,11 @@ def gpu_work(fn: Callable[[], object], device: torch.device) -> tuple[int, float
     from torch.profiler import ProfilerActivity, profile
 
     torch.cuda.synchronize(device)
-    with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as profiler:
-        fn()
-        torch.cuda.synchronize(device)
+    with warnings.catch_warnings():  # (torch 2.11 warns, once, that a profile keeps only its own events: it is one call)
+        warnings.filterwarnings("ignore", message=".*Profiler clears events")
+        with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as profiler:
+            fn()
+            torch.cuda.synchronize(device)
     work = [event for event in profiler.events()  # (not the GPU copies of annotated ranges: compiled code's calls)
             if event.device_type == torch.autograd.DeviceType.CUDA and not getattr(event, "is_user_annotation", False)]
     by_name: dict[str, list[float]] = {}
