@@ -9,13 +9,15 @@
 #
 # Timings run alone on the GPU; the checks run side by side (correctness does not mind sharing the GPU):
 # 1. alone: the benchmark, fused steps against the torch path, eager and graph, π0 and π0.5, batch 1, 4 and 8, with each
-#    row's GPU activities, GPU time and its 30 longest kinds of kernel; eager π0's host time (benchmarks/eager_host.py);
+#    row's GPU activities, GPU time and its 30 longest kinds of kernel;
 # 2. together: doctor (every sampling path at full size against its reference), the GPU tests (tests/test_cuda.py),
-#    the fused kernels' tests on real kernels (tests/test_kernels.py), and the compiles of every tiling that step 3
-#    times (triton's disk cache, 8 processes);
-# 3. alone: the step GEMMs against cuBLAS (GB/s), the kernels' tilings (benchmarks/kernel_sweep.py: every candidate
-#    timed and checked against the reference, the fastest written to $OUT/tilings.json, then π0 and π0.5 sampled with
-#    them), and π0-FAST's decoding, fused against the modules, eager and replayed as hand-captured CUDA graphs.
+#    the fused kernels' tests on real kernels (tests/test_kernels.py), and the compiles of everything step 3 times
+#    (triton's disk cache: every tiling, 8 processes; the persistent MLP experiment's check against its reference);
+# 3. alone: the step GEMMs against cuBLAS (GB/s), the MLP half of a layer-step as one persistent launch against
+#    today's three (benchmarks/persistent_mlp.py, issue 37's experiment), the kernels' tilings
+#    (benchmarks/kernel_sweep.py: every candidate timed and checked against the reference, the fastest written to
+#    $OUT/tilings.json, then π0 and π0.5 sampled with them), and π0-FAST's decoding, fused against the modules,
+#    eager and replayed as hand-captured CUDA graphs. (benchmarks/eager_host.py, eager's host time, is left out.)
 set -u
 OUT="${OUT:-/tmp/pi0-torch-gpu-check}"
 PY="${PY:-python3}"
@@ -45,25 +47,28 @@ show() {  # show NAME: the end of its log
 # 1. alone
 step bench 150 "$PY" -m pi0_torch.cli bench --device cuda --presets pi0,pi05 --dtypes bfloat16 --cameras 3 --batches 1,4,8 \
     --kernels auto,torch --repeats 10 --kernel-table 30
-# (eager π0, batch 1: direct launches against triton's own, side by side, and where one chunk's host time goes)
-step bench 40 "$PY" benchmarks/eager_host.py --top 30
 [ -f "$OUT/bench.log" ] && grep -v '^      ' "$OUT/bench.log" | tail -n 25
 
 # 2. together
 step doctor 200 "$PY" -m pi0_torch.cli doctor --full --device cuda &
 step gpu-tests 200 "$PY" -m pytest -q -s -p no:cacheprovider -m gpu tests/test_cuda.py &
-# (the shared-memory and direct-launch tests compile for an RTX 4090 on the CPU, as in CI; here the real launches say it)
-step kernel-tests 200 "$PY" -m pytest -q -p no:cacheprovider tests/test_kernels.py -k "not shared_memory and not direct_launches" &
+# (the shared-memory and direct-launch tests compile for an RTX 4090 on the CPU, as in CI; here the real launches say it;
+#  the persistent MLP experiment's test is its --check below)
+step kernel-tests 200 "$PY" -m pytest -q -p no:cacheprovider tests/test_kernels.py \
+    -k "not shared_memory and not direct_launches and not persistent" &
 for shard in 0 1 2 3 4 5 6 7; do
     step sweep-compile 190 "$PY" benchmarks/kernel_sweep.py --compile-only --shard "$shard/8" &
 done
+step sweep-compile 190 "$PY" benchmarks/persistent_mlp.py --check &
 wait
 show doctor
 show gpu-tests
 TAIL=8 show kernel-tests
+grep -h "against the reference" "$OUT/sweep-compile.log"
 
 # 3. alone
 step sweep 20 "$PY" -m pi0_torch.cli bench --device cuda --skip-generate --gemms --presets pi0 --batches 1,8 --repeats 10
+step sweep 45 "$PY" benchmarks/persistent_mlp.py --bench
 step sweep 100 "$PY" benchmarks/kernel_sweep.py --write "$OUT/tilings.json" --bench
 step fast-bench 45 "$PY" -m pi0_torch.cli bench --device cuda --skip-generate --fast --fast-presets pi0_fast \
     --dtypes bfloat16 --batches 1 --kernels auto,torch --repeats 3

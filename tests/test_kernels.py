@@ -349,6 +349,16 @@ def test_every_kernel_variant_fits_the_shared_memory_of_an_rtx_4090() -> None:
     assert ["64,", "32"] in [row[1:3] for row in rows], result.stdout  # (batch 8's blocks were compiled)
 
 
+def test_the_persistent_mlp_experiment_equals_the_reference() -> None:
+    """benchmarks/persistent_mlp.py (issue 37's experiment, timed where a GPU is lent: the MLP half of a layer-step as
+    one launch whose programs take tiles in ticket order and wait on each other's counters) computes what the
+    reference ops compute: in triton's interpreter here (one and three row blocks, partial tiles), at full size on a
+    GPU."""
+    script = Path(__file__).resolve().parents[1] / "benchmarks" / "persistent_mlp.py"
+    result = subprocess.run([sys.executable, str(script), "--check"], capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0 and "against the reference" in result.stdout, result.stdout + result.stderr[-3000:]
+
+
 def test_direct_launches_equal_tritons_own() -> None:
     """A direct launch (`pi0_torch.kernels.launch`) hands the compiled kernel's launcher what triton's `kernel[grid]`
     hands it: tests/launch_check.py compiles kernels for sm_89 on this CPU, records each launch, and compares triton's

@@ -1,0 +1,384 @@
+"""An experiment for issue 37: the MLP half of an action-expert layer and Euler step as one persistent launch, against
+the three fused kernels that run it today.
+
+docs/gpu.md ("Where the next milliseconds are") finds the suffix's 54 µs per layer and step to be the kernels' fixed
+latency rather than their bytes. This measures the cure it proposes on the half of a layer that has three launches
+today (`matmul_residual_`: o-projection + residual; `norm_gate_up_geglu`; `matmul_residual_`: down-projection +
+residual):
+
+- one launch of as many programs as the GPU has multiprocessors; each takes tiles in ticket order from an atomic
+  counter: every output tile of the o-projection (all row blocks), then gate/up's, then the down-projection's;
+- a tile that reads another phase's output waits until every tile of that phase in its row block has counted itself
+  in (spinning on an acquire load of the row block's counter; the producers count themselves in with a release after
+  their stores), and reads that output past the L1 cache;
+- a tile waits only on tiles handed out before it, whose programs are already running: no deadlock on a GPU, and
+  triton's interpreter (which runs the programs one after another) runs it too, though there nothing ever waits:
+  it checks the tiles' arithmetic, a GPU (`--check` there) the waiting as well;
+- before it waits, a program asks its tile's weights into L2 (`prefetch.global.L2`; not in the interpreter).
+
+The numbers are those of `pi0_torch.kernels.reference` (float32 sums, bf16 outputs), not bit for bit: no split-K here.
+π0's layer (no adaRMS gate). Not used by sampling: this measures whether it would pay.
+
+    python benchmarks/persistent_mlp.py --check              # CPU: triton's interpreter, small float32 shapes
+    python benchmarks/persistent_mlp.py --compile 90         # CPU: compile the variants for sm_90 (ptxas), print their use
+    python benchmarks/persistent_mlp.py --bench              # CUDA: full size, bf16, batch 1 and 8, against today's
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import itertools
+import os
+import sys
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import torch
+
+if "--check" in sys.argv and not torch.cuda.is_available():
+    os.environ.setdefault("TRITON_INTERPRET", "1")  # (before triton is imported)
+
+import triton
+import triton.language as tl
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from pi0_torch.inference.fused_pass import FUSED_TOLERANCE
+from pi0_torch.kernels import reference
+from pi0_torch.kernels.triton_kernels import _gelu_tanh, cdiv, dot_dtype
+
+INTERPRETING = os.environ.get("TRITON_INTERPRET") == "1"
+
+
+class Tiling(NamedTuple):
+    """Output columns per tile of each phase (o-projection, gate/up, down-projection), the reduction block of each,
+    rows per tile, warps, pipeline stages."""
+
+    o: int = 16
+    gate_up: int = 32
+    down: int = 16
+    k: int = 64
+    m: int = 64
+    warps: int = 4
+    stages: int = 3
+
+
+# -- the kernel -----------------------------------------------------------------------------------------------------
+
+
+@triton.jit
+def _wait_for(counter_ptr, need):
+    """Spin until the int32 counter reaches `need` (acquire: what its producers stored before counting is visible)."""
+    count = tl.atomic_add(counter_ptr, 0, sem="acquire")
+    while count < need:
+        count = tl.atomic_add(counter_ptr, 0, sem="acquire")
+
+
+@triton.jit
+def _count_in(counter_ptr):
+    """One more tile of this phase done: after every thread's stores (the barrier), a release add."""
+    tl.debug_barrier()
+    tl.atomic_add(counter_ptr, 1, sem="release")
+
+
+@triton.jit
+def _prefetch_weights(w_ptr, stride_wk, stride_wn, columns, K, N, BLOCK_K: tl.constexpr, PREFETCH: tl.constexpr):
+    """Ask `w[:, columns]` into the L2 cache (a hint: nothing comes into registers): one address per 32 bytes of a
+    column of a bf16 `[in, out]` view of an `nn.Linear` weight (`in` has unit stride)."""
+    if PREFETCH:
+        for k0 in range(0, K, BLOCK_K):
+            ks = k0 + tl.arange(0, BLOCK_K // 16) * 16
+            ok = (ks < K)[:, None] & (columns < N)[None, :]
+            offsets = tl.where(ok, ks[:, None] * stride_wk + columns[None, :] * stride_wn, 0)
+            tl.inline_asm_elementwise("prefetch.global.L2 [$1]; mov.u32 $0, 0;", "=r,l", [w_ptr + offsets],
+                                      dtype=tl.int32, is_pure=False, pack=1)
+
+
+@triton.jit
+def _dot_tile(a_ptr, stride_am, scale_ptr, w_ptr, stride_wk, stride_wn, rows, columns, second, M, K, N,
+              NORM: tl.constexpr, PAIRED: tl.constexpr, BLOCK_M: tl.constexpr, BLOCK_N: tl.constexpr,
+              BLOCK_K: tl.constexpr, DOT: tl.constexpr):
+    """`a[rows] @ w[:, columns]` in float32 (and `@ w[:, columns + second]` where PAIRED), `a` read past L1 (it may
+    have been written in this launch); with NORM, `a` scaled by `scale` and each row's sum of squares returned too."""
+    acc = tl.zeros((BLOCK_M, BLOCK_N), dtype=tl.float32)
+    acc_second = tl.zeros((BLOCK_M, BLOCK_N), dtype=tl.float32)
+    squares = tl.zeros((BLOCK_M,), dtype=tl.float32)
+    row_ok = rows < M
+    column_ok = columns < N
+    for k0 in range(0, K, BLOCK_K):
+        ks = k0 + tl.arange(0, BLOCK_K)
+        k_ok = ks < K
+        a = tl.load(a_ptr + rows[:, None] * stride_am + ks[None, :], mask=row_ok[:, None] & k_ok[None, :], other=0.0,
+                    cache_modifier=".cg").to(tl.float32)
+        if NORM:
+            squares += tl.sum(a * a, axis=1)
+            a = a * tl.load(scale_ptr + ks, mask=k_ok, other=0.0).to(tl.float32)[None, :]
+        a = a.to(DOT)
+        w_mask = k_ok[:, None] & column_ok[None, :]
+        w = tl.load(w_ptr + ks[:, None] * stride_wk + columns[None, :] * stride_wn, mask=w_mask, other=0.0)
+        acc += tl.dot(a, w.to(DOT), input_precision="ieee")
+        if PAIRED:
+            w = tl.load(w_ptr + ks[:, None] * stride_wk + (columns + second)[None, :] * stride_wn, mask=w_mask, other=0.0)
+            acc_second += tl.dot(a, w.to(DOT), input_precision="ieee")
+    return acc, acc_second, squares
+
+
+@triton.jit
+def _add_to_residual(x_ptr, stride_xm, rows, columns, M, N, acc):
+    """`x[rows, columns] += acc` (float32 sum, rounded once), read past L1."""
+    ok = (rows < M)[:, None] & (columns < N)[None, :]
+    pointers = x_ptr + rows[:, None] * stride_xm + columns[None, :]
+    residual = tl.load(pointers, mask=ok, other=0.0, cache_modifier=".cg").to(tl.float32)
+    tl.store(pointers, (residual + acc).to(x_ptr.dtype.element_ty), mask=ok)
+
+
+@triton.jit
+def _o_tile(tile, x_ptr, attended_ptr, o_ptr, counters_ptr, M, D, NH, stride_xm, stride_am, stride_ok, stride_on,
+            BLOCK_M: tl.constexpr, N_O: tl.constexpr, BLOCK_K: tl.constexpr, DOT: tl.constexpr):
+    """`x[r, n] += attended[r] @ o[:, n]`; then counted in for row block r (`counters[r]`)."""
+    o_tiles = tl.cdiv(D, N_O)
+    block = tile // o_tiles
+    rows = block * BLOCK_M + tl.arange(0, BLOCK_M)
+    columns = (tile % o_tiles) * N_O + tl.arange(0, N_O)
+    acc, _, _ = _dot_tile(attended_ptr, stride_am, attended_ptr, o_ptr, stride_ok, stride_on, rows, columns, 0, M, NH, D,
+                          False, False, BLOCK_M, N_O, BLOCK_K, DOT)
+    _add_to_residual(x_ptr, stride_xm, rows, columns, M, D, acc)
+    _count_in(counters_ptr + block)
+
+
+@triton.jit
+def _gate_up_tile(tile, x_ptr, scale_ptr, gate_up_ptr, hidden_ptr, o_counters_ptr, counters_ptr, M, D, F, stride_xm,
+                  stride_gk, stride_gn, eps, BLOCK_M: tl.constexpr, N_O: tl.constexpr, N_GATE_UP: tl.constexpr,
+                  BLOCK_K: tl.constexpr, DOT: tl.constexpr, PREFETCH: tl.constexpr):
+    """`hidden[r, f] = gelu_tanh(norm(x[r]) @ gate[:, f]) * (norm(x[r]) @ up[:, f])`, once every o-projection tile of
+    row block r is in (`o_counters[r]`); then counted in for r (`counters[r]`)."""
+    gate_up_tiles = tl.cdiv(F, N_GATE_UP)
+    block = tile // gate_up_tiles
+    rows = block * BLOCK_M + tl.arange(0, BLOCK_M)
+    columns = (tile % gate_up_tiles) * N_GATE_UP + tl.arange(0, N_GATE_UP)
+    _prefetch_weights(gate_up_ptr, stride_gk, stride_gn, columns, D, F, BLOCK_K, PREFETCH)
+    _prefetch_weights(gate_up_ptr + F * stride_gn, stride_gk, stride_gn, columns, D, F, BLOCK_K, PREFETCH)
+    _wait_for(o_counters_ptr + block, tl.cdiv(D, N_O))
+    gate, up, squares = _dot_tile(x_ptr, stride_xm, scale_ptr, gate_up_ptr, stride_gk, stride_gn, rows, columns, F, M, D,
+                                  F, True, True, BLOCK_M, N_GATE_UP, BLOCK_K, DOT)
+    inverse = (1.0 / tl.sqrt(squares / D + eps))[:, None]
+    hidden = _gelu_tanh(gate * inverse) * (up * inverse)
+    ok = (rows < M)[:, None] & (columns < F)[None, :]
+    tl.store(hidden_ptr + rows[:, None] * F + columns[None, :], hidden.to(hidden_ptr.dtype.element_ty), mask=ok)
+    _count_in(counters_ptr + block)
+
+
+@triton.jit
+def _down_tile(tile, x_ptr, hidden_ptr, down_ptr, gate_up_counters_ptr, M, D, F, stride_xm, stride_dk, stride_dn,
+               BLOCK_M: tl.constexpr, N_GATE_UP: tl.constexpr, N_DOWN: tl.constexpr, BLOCK_K: tl.constexpr,
+               DOT: tl.constexpr, PREFETCH: tl.constexpr):
+    """`x[r, n] += hidden[r] @ down[:, n]`, once every gate/up tile of row block r is in (so every read of `x[r]` for
+    the norm is done too)."""
+    down_tiles = tl.cdiv(D, N_DOWN)
+    block = tile // down_tiles
+    rows = block * BLOCK_M + tl.arange(0, BLOCK_M)
+    columns = (tile % down_tiles) * N_DOWN + tl.arange(0, N_DOWN)
+    _prefetch_weights(down_ptr, stride_dk, stride_dn, columns, F, D, BLOCK_K, PREFETCH)
+    _wait_for(gate_up_counters_ptr + block, tl.cdiv(F, N_GATE_UP))
+    acc, _, _ = _dot_tile(hidden_ptr, F, hidden_ptr, down_ptr, stride_dk, stride_dn, rows, columns, 0, M, F, D, False,
+                          False, BLOCK_M, N_DOWN, BLOCK_K, DOT)
+    _add_to_residual(x_ptr, stride_xm, rows, columns, M, D, acc)
+
+
+@triton.jit
+def _persistent_mlp_kernel(
+    x_ptr, attended_ptr, o_ptr, scale_ptr, gate_up_ptr, down_ptr, hidden_ptr, state_ptr,
+    M, D, NH, F, stride_xm, stride_am, stride_ok, stride_on, stride_gk, stride_gn, stride_dk, stride_dn, eps,
+    BLOCK_M: tl.constexpr, N_O: tl.constexpr, N_GATE_UP: tl.constexpr, N_DOWN: tl.constexpr, BLOCK_K: tl.constexpr,
+    DOT: tl.constexpr, PREFETCH: tl.constexpr,
+):
+    # state: [0] the next ticket, [1 + r] row block r's o-projection tiles done, [1 + R + r] its gate/up tiles done
+    row_blocks = tl.cdiv(M, BLOCK_M)
+    o_end = row_blocks * tl.cdiv(D, N_O)
+    gate_up_end = o_end + row_blocks * tl.cdiv(F, N_GATE_UP)
+    total = gate_up_end + row_blocks * tl.cdiv(D, N_DOWN)
+    o_counters = state_ptr + 1
+    gate_up_counters = o_counters + row_blocks
+    ticket = tl.atomic_add(state_ptr, 1)
+    while ticket < total:
+        if ticket < o_end:
+            _o_tile(ticket, x_ptr, attended_ptr, o_ptr, o_counters, M, D, NH, stride_xm, stride_am, stride_ok, stride_on,
+                    BLOCK_M, N_O, BLOCK_K, DOT)
+        elif ticket < gate_up_end:
+            _gate_up_tile(ticket - o_end, x_ptr, scale_ptr, gate_up_ptr, hidden_ptr, o_counters, gate_up_counters, M, D,
+                          F, stride_xm, stride_gk, stride_gn, eps, BLOCK_M, N_O, N_GATE_UP, BLOCK_K, DOT, PREFETCH)
+        else:
+            _down_tile(ticket - gate_up_end, x_ptr, hidden_ptr, down_ptr, gate_up_counters, M, D, F, stride_xm, stride_dk,
+                       stride_dn, BLOCK_M, N_GATE_UP, N_DOWN, BLOCK_K, DOT, PREFETCH)
+        ticket = tl.atomic_add(state_ptr, 1)
+
+
+def persistent_mlp_(x: torch.Tensor, attended: torch.Tensor, o: torch.Tensor, scale: torch.Tensor,
+                    gate_up: torch.Tensor, down: torch.Tensor, eps: float, tiling: Tiling | None = None,
+                    programs: int | None = None, launch: Callable[..., Any] | None = None) -> torch.Tensor:
+    """`x += attended @ o; x += geglu(norm(x) @ gate_up) @ down` in place, in one launch (module docstring).
+
+    x [M, D], attended [M, N H], o [N H, D], scale [D] (the norm's `1 + weight`), gate_up [D, 2 F], down [F, D]: the
+    weights as `[in, out]` views of `nn.Linear` weights. `programs`: the grid (the GPU's multiprocessors by default).
+    `launch`: stands in for the kernel's launch (`--compile`)."""
+    tiling = tiling or Tiling()
+    rows, width = x.shape
+    mlp_width = down.shape[0]
+    row_blocks = cdiv(rows, tiling.m)
+    hidden = x.new_empty(rows, mlp_width)
+    state = torch.zeros(1 + 2 * row_blocks, dtype=torch.int32, device=x.device)
+    if programs is None:
+        programs = torch.cuda.get_device_properties(x.device).multi_processor_count if x.is_cuda else 4
+    arguments = (
+        x, attended, o, scale, gate_up, down, hidden, state, rows, width, attended.shape[1], mlp_width, x.stride(0),
+        attended.stride(0), o.stride(0), o.stride(1), gate_up.stride(0), gate_up.stride(1), down.stride(0),
+        down.stride(1), eps,
+    )
+    options = {"BLOCK_M": tiling.m, "N_O": tiling.o, "N_GATE_UP": tiling.gate_up, "N_DOWN": tiling.down,
+               "BLOCK_K": tiling.k, "DOT": dot_dtype(o.dtype), "PREFETCH": not INTERPRETING, "num_warps": tiling.warps,
+               "num_stages": tiling.stages}
+    if launch is not None:
+        return launch(_persistent_mlp_kernel, (programs,), arguments, options)
+    _persistent_mlp_kernel[(programs,)](*arguments, **options)
+    return x
+
+
+def fused_mlp_(x: torch.Tensor, attended: torch.Tensor, o: torch.Tensor, scale: torch.Tensor, gate_up: torch.Tensor,
+               down: torch.Tensor, eps: float) -> torch.Tensor:
+    """The same through today's ops (three launches on CUDA, cuBLAS from `CUBLAS_ROWS` rows; the reference elsewhere)."""
+    from pi0_torch.kernels import ops
+
+    ops.call(ops.matmul_residual_, x, attended, o, None)
+    ops.call(ops.matmul_residual_, x, ops.call(ops.norm_gate_up_geglu, x, scale, None, gate_up, eps), down, None)
+    return x
+
+
+def reference_mlp_(x: torch.Tensor, attended: torch.Tensor, o: torch.Tensor, scale: torch.Tensor,
+                   gate_up: torch.Tensor, down: torch.Tensor, eps: float) -> torch.Tensor:
+    """The torch reference of the same (`pi0_torch.kernels.reference`)."""
+    reference.matmul_residual_(x, attended, o, None)
+    reference.matmul_residual_(x, reference.norm_gate_up_geglu(x, scale, None, gate_up, eps), down, None)
+    return x
+
+
+# -- check, compile, bench ------------------------------------------------------------------------------------------
+
+
+def operands(rows: int, width: int, attended_width: int, mlp_width: int, dtype: torch.dtype, device: torch.device,
+             seed: int = 0) -> tuple[torch.Tensor, ...]:
+    """x, attended, o, scale, gate_up, down: random, the weights as transposed `[out, in]` tensors (the engine's views)."""
+    generator = torch.Generator(device).manual_seed(seed)
+
+    def randn(*shape: int) -> torch.Tensor:
+        return (torch.randn(*shape, generator=generator, device=device) * shape[-1] ** -0.5).to(dtype)
+
+    return (randn(rows, width) * width ** 0.5, randn(rows, attended_width) * attended_width ** 0.5,
+            randn(width, attended_width).t(), 1 + randn(width), randn(2 * mlp_width, width).t(), randn(width, mlp_width).t())
+
+
+def deviation(got: torch.Tensor, want: torch.Tensor) -> float:
+    return ((got.float() - want.float()).abs().max() / want.float().abs().max()).item()
+
+
+def check(device: torch.device, dtype: torch.dtype, shapes: Iterator[tuple[int, int, int, int]], tolerance: float,
+          tilings: list[Tiling]) -> int:
+    """The persistent launch against the reference (and, on CUDA, against today's ops) for each shape and tiling."""
+    failures = 0
+    for (rows, width, attended_width, mlp_width), tiling in itertools.product(shapes, tilings):
+        x, *weights = operands(rows, width, attended_width, mlp_width, dtype, device)
+        want = reference_mlp_(x.clone(), *weights, 1e-6)
+        got = persistent_mlp_(x.clone(), *weights, 1e-6, tiling)
+        error = deviation(got, want)
+        line = f"rows {rows:4d} width {width:5d} mlp {mlp_width:5d} {tiling}: {error:.2e} against the reference"
+        if device.type == "cuda":
+            line += f", today's ops {deviation(fused_mlp_(x.clone(), *weights, 1e-6), want):.2e}"
+        failures += not error <= tolerance
+        print(line + ("" if error <= tolerance else f"  FAILED (bound {tolerance:g})"), flush=True)
+    return failures
+
+
+def compile_for(arch: int, tilings: list[Tiling]) -> int:
+    """Compile the full-size variants (batch 1 and 8) for `arch` with triton's ptxas, on meta tensors (no GPU)."""
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from kernel_resources import SHARED_PER_BLOCK, TargetDriver, ptxas_usage
+
+    triton.runtime.driver.set_active(TargetDriver(arch))
+    limit = SHARED_PER_BLOCK.get(arch)
+    too_large = 0
+    for batch, tiling in itertools.product((1, 8), tilings):
+        meta = [tensor.to("meta") for tensor in operands(50 * batch, 1024, 2048, 4096, torch.bfloat16, torch.device("cpu"))]
+        variant = persistent_mlp_(*meta, 1e-6, tiling, programs=132, launch=lambda kernel, grid, arguments, options:
+                                  kernel.run(*arguments, grid=grid, warmup=True, **options))
+        shared = variant.metadata.shared
+        too_large += limit is not None and shared > limit
+        print(f"sm_{arch} batch {batch} {tiling}: shared {shared:,d} B, registers / spill stores "
+              f"{ptxas_usage(variant.asm['ptx'], arch).split()}", flush=True)
+    return too_large
+
+
+def bench(tilings: list[Tiling]) -> None:
+    """Full size (π0's action expert), bf16, batch 1 and 8: today's three ops against the persistent launch, each as 50
+    calls in a CUDA graph with the weights rotating through copies larger than the L2 cache."""
+    device = torch.device("cuda")
+    print(f"{torch.cuda.get_device_name(device)}, torch {torch.__version__}, triton {triton.__version__}; µs per call "
+          "(o-projection + residual, norm + gate/up + GeGLU, down-projection + residual), 50 calls in a CUDA graph")
+    for batch in (1, 8):
+        bench_batch(50 * batch, tilings, device)
+
+
+def bench_batch(rows: int, tilings: list[Tiling], device: torch.device) -> None:
+    from pi0_torch.benchmark import graph_time
+
+    copies = [operands(rows, 1024, 2048, 4096, torch.bfloat16, device, seed) for seed in range(10)]  # 10 x 28 MiB
+    turn = itertools.cycle(copies)
+    x = copies[0][0].clone()  # (the residual stream: accumulates call after call, as a layer's does)
+    want = reference_mlp_(copies[0][0].clone(), *copies[0][1:], 1e-6)
+
+    def run(tiling: Tiling | None) -> None:  # (None: today's ops)
+        if tiling is None:
+            fused_mlp_(x, *next(turn)[1:], 1e-6)
+        else:
+            persistent_mlp_(x, *next(turn)[1:], 1e-6, tiling)
+
+    def error(tiling: Tiling | None) -> float:
+        first = (copies[0][0].clone(), *copies[0][1:], 1e-6)
+        return deviation(fused_mlp_(*first) if tiling is None else persistent_mlp_(*first, tiling), want)
+
+    times = {tiling: (graph_time(functools.partial(run, tiling), device), error(tiling)) for tiling in [None, *tilings]}
+    base = times[None][0]
+    weights_bytes = 2 * (1024 * 2048 + 1024 * 2 * 4096 + 4096 * 1024)
+    print(f"\n{rows} rows, {weights_bytes / 2**20:.0f} MiB of weights")
+    for tiling, (seconds, deviation_) in sorted(times.items(), key=lambda item: item[1][0]):
+        name = "today's three launches" if tiling is None else f"persistent {tiling}"
+        print(f"  {seconds * 1e6:7.1f} us {weights_bytes / seconds / 1e9:6.0f} GB/s x{base / seconds:5.2f}  deviation "
+              f"{deviation_:.1e}  {name}", flush=True)
+
+
+TILINGS = [Tiling(16, 32, 16, 64), Tiling(16, 32, 16, 128), Tiling(32, 64, 32, 64), Tiling(16, 64, 16, 128, warps=8, stages=4)]
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--check", action="store_true", help="against the reference: small float32 shapes in triton's "
+                        "interpreter without a GPU; full size, bf16, every tiling on one")
+    parser.add_argument("--compile", type=int, metavar="ARCH", help="compile every tiling for this compute capability")
+    parser.add_argument("--bench", action="store_true", help="time it against today's ops (CUDA)")
+    args = parser.parse_args()
+    failures = 0
+    if args.check:
+        if torch.cuda.is_available():
+            shapes = iter([(50, 1024, 2048, 4096), (400, 1024, 2048, 4096)])
+            failures += check(torch.device("cuda"), torch.bfloat16, shapes, FUSED_TOLERANCE[torch.bfloat16], TILINGS)
+        else:  # (the interpreter: small, float32; rows of one and of three row blocks, the last partial)
+            shapes = iter([(50, 64, 128, 96), (150, 48, 64, 80), (1, 32, 64, 32)])
+            failures += check(torch.device("cpu"), torch.float32, shapes, 1e-5, [Tiling(16, 16, 16, 32)])
+    if args.compile:
+        failures += compile_for(args.compile, TILINGS)
+    if args.bench:
+        bench(TILINGS)
+    return 1 if failures else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
