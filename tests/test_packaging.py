@@ -146,8 +146,8 @@ GPU_IMAGE_LACKS = ("av", "datasets", "gymnasium", "websockets", "zstandard")  # 
 
 def test_the_gpu_tests_and_the_benchmark_need_none_of_the_extras_a_gpu_image_lacks(tmp_path: Path) -> None:
     """docs/gpu.md's commands (benchmarks/gpu_check.sh) run where only torch, triton, transformers and the core packages
-    are installed: the GPU and kernel tests are collected, and the benchmark, the doctor and the policy are imported,
-    with those extras' modules hidden."""
+    are installed: the GPU and kernel tests are collected, and the benchmark, the doctor, the policy and the scripts
+    gpu_check.sh runs are imported, with those extras' modules hidden."""
     tests = [str(ROOT / "tests" / name) for name in ("test_cuda.py", "test_kernels.py")]
     done = _python(
         "import sys\n"
@@ -155,6 +155,8 @@ def test_the_gpu_tests_and_the_benchmark_need_none_of_the_extras_a_gpu_image_lac
         "import pytest\n"
         f"code = pytest.main(['-q', '--collect-only', '-p', 'no:cacheprovider', *{tests!r}])\n"
         "import pi0_torch.benchmark, pi0_torch.doctor, pi0_torch.runtime.policy\n"
+        f"sys.path.insert(0, {str(ROOT / 'benchmarks')!r})\n"
+        "import kernel_sweep, persistent_mlp\n"
         "sys.exit(int(code))",
         tmp_path,
     )
