@@ -45,8 +45,9 @@ import triton.language as tl
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from pi0_torch.inference.fused_pass import FUSED_TOLERANCE
+from pi0_torch.inference.graphs import relative_deviation
 from pi0_torch.kernels import reference
-from pi0_torch.kernels.triton_kernels import _gelu_tanh, cdiv, dot_dtype
+from pi0_torch.kernels.triton_kernels import _gelu_tanh, _matmul_tiles, cdiv, dot_dtype
 
 INTERPRETING = os.environ.get("TRITON_INTERPRET") == "1"
 
@@ -98,35 +99,6 @@ def _prefetch_weights(w_ptr, stride_wk, stride_wn, columns, K, N, BLOCK_K: tl.co
 
 
 @triton.jit
-def _dot_tile(a_ptr, stride_am, scale_ptr, w_ptr, stride_wk, stride_wn, rows, columns, second, M, K, N,
-              NORM: tl.constexpr, PAIRED: tl.constexpr, BLOCK_M: tl.constexpr, BLOCK_N: tl.constexpr,
-              BLOCK_K: tl.constexpr, DOT: tl.constexpr):
-    """`a[rows] @ w[:, columns]` in float32 (and `@ w[:, columns + second]` where PAIRED), `a` read past L1 (it may
-    have been written in this launch); with NORM, `a` scaled by `scale` and each row's sum of squares returned too."""
-    acc = tl.zeros((BLOCK_M, BLOCK_N), dtype=tl.float32)
-    acc_second = tl.zeros((BLOCK_M, BLOCK_N), dtype=tl.float32)
-    squares = tl.zeros((BLOCK_M,), dtype=tl.float32)
-    row_ok = rows < M
-    column_ok = columns < N
-    for k0 in range(0, K, BLOCK_K):
-        ks = k0 + tl.arange(0, BLOCK_K)
-        k_ok = ks < K
-        a = tl.load(a_ptr + rows[:, None] * stride_am + ks[None, :], mask=row_ok[:, None] & k_ok[None, :], other=0.0,
-                    cache_modifier=".cg").to(tl.float32)
-        if NORM:
-            squares += tl.sum(a * a, axis=1)
-            a = a * tl.load(scale_ptr + ks, mask=k_ok, other=0.0).to(tl.float32)[None, :]
-        a = a.to(DOT)
-        w_mask = k_ok[:, None] & column_ok[None, :]
-        w = tl.load(w_ptr + ks[:, None] * stride_wk + columns[None, :] * stride_wn, mask=w_mask, other=0.0)
-        acc += tl.dot(a, w.to(DOT), input_precision="ieee")
-        if PAIRED:
-            w = tl.load(w_ptr + ks[:, None] * stride_wk + (columns + second)[None, :] * stride_wn, mask=w_mask, other=0.0)
-            acc_second += tl.dot(a, w.to(DOT), input_precision="ieee")
-    return acc, acc_second, squares
-
-
-@triton.jit
 def _add_to_residual(x_ptr, stride_xm, rows, columns, M, N, acc):
     """`x[rows, columns] += acc` (float32 sum, rounded once), read past L1."""
     ok = (rows < M)[:, None] & (columns < N)[None, :]
@@ -143,8 +115,8 @@ def _o_tile(tile, x_ptr, attended_ptr, o_ptr, counters_ptr, M, D, NH, stride_xm,
     block = tile // o_tiles
     rows = block * BLOCK_M + tl.arange(0, BLOCK_M)
     columns = (tile % o_tiles) * N_O + tl.arange(0, N_O)
-    acc, _, _ = _dot_tile(attended_ptr, stride_am, attended_ptr, o_ptr, stride_ok, stride_on, rows, columns, 0, M, NH, D,
-                          False, False, BLOCK_M, N_O, BLOCK_K, DOT)
+    acc, _, _ = _matmul_tiles(attended_ptr, stride_am, attended_ptr, o_ptr, stride_ok, stride_on, rows, columns, 0, M,
+                              0, NH, D, BLOCK_M, N_O, BLOCK_K, False, False, DOT, ".cg")
     _add_to_residual(x_ptr, stride_xm, rows, columns, M, D, acc)
     _count_in(counters_ptr + block)
 
@@ -162,8 +134,8 @@ def _gate_up_tile(tile, x_ptr, scale_ptr, gate_up_ptr, hidden_ptr, o_counters_pt
     _prefetch_weights(gate_up_ptr, stride_gk, stride_gn, columns, D, F, BLOCK_K, PREFETCH)
     _prefetch_weights(gate_up_ptr + F * stride_gn, stride_gk, stride_gn, columns, D, F, BLOCK_K, PREFETCH)
     _wait_for(o_counters_ptr + block, tl.cdiv(D, N_O))
-    gate, up, squares = _dot_tile(x_ptr, stride_xm, scale_ptr, gate_up_ptr, stride_gk, stride_gn, rows, columns, F, M, D,
-                                  F, True, True, BLOCK_M, N_GATE_UP, BLOCK_K, DOT)
+    gate, up, squares = _matmul_tiles(x_ptr, stride_xm, scale_ptr, gate_up_ptr, stride_gk, stride_gn, rows, columns, F,
+                                      M, 0, D, F, BLOCK_M, N_GATE_UP, BLOCK_K, True, True, DOT, ".cg")
     inverse = (1.0 / tl.sqrt(squares / D + eps))[:, None]
     hidden = _gelu_tanh(gate * inverse) * (up * inverse)
     ok = (rows < M)[:, None] & (columns < F)[None, :]
@@ -183,8 +155,8 @@ def _down_tile(tile, x_ptr, hidden_ptr, down_ptr, gate_up_counters_ptr, M, D, F,
     columns = (tile % down_tiles) * N_DOWN + tl.arange(0, N_DOWN)
     _prefetch_weights(down_ptr, stride_dk, stride_dn, columns, F, D, BLOCK_K, PREFETCH)
     _wait_for(gate_up_counters_ptr + block, tl.cdiv(F, N_GATE_UP))
-    acc, _, _ = _dot_tile(hidden_ptr, F, hidden_ptr, down_ptr, stride_dk, stride_dn, rows, columns, 0, M, F, D, False,
-                          False, BLOCK_M, N_DOWN, BLOCK_K, DOT)
+    acc, _, _ = _matmul_tiles(hidden_ptr, F, hidden_ptr, down_ptr, stride_dk, stride_dn, rows, columns, 0, M, 0, F, D,
+                              BLOCK_M, N_DOWN, BLOCK_K, False, False, DOT, ".cg")
     _add_to_residual(x_ptr, stride_xm, rows, columns, M, D, acc)
 
 
@@ -279,10 +251,6 @@ def operands(rows: int, width: int, attended_width: int, mlp_width: int, dtype: 
             randn(width, attended_width).t(), 1 + randn(width), randn(2 * mlp_width, width).t(), randn(width, mlp_width).t())
 
 
-def deviation(got: torch.Tensor, want: torch.Tensor) -> float:
-    return ((got.float() - want.float()).abs().max() / want.float().abs().max()).item()
-
-
 def check(device: torch.device, dtype: torch.dtype, shapes: Iterator[tuple[int, int, int, int]], tolerance: float,
           tilings: list[Tiling]) -> int:
     """The persistent launch against the reference (and, on CUDA, against today's ops) for each shape and tiling."""
@@ -291,10 +259,10 @@ def check(device: torch.device, dtype: torch.dtype, shapes: Iterator[tuple[int, 
         x, *weights = operands(rows, width, attended_width, mlp_width, dtype, device)
         want = reference_mlp_(x.clone(), *weights, 1e-6)
         got = persistent_mlp_(x.clone(), *weights, 1e-6, tiling)
-        error = deviation(got, want)
+        error = relative_deviation(got, want)
         line = f"rows {rows:4d} width {width:5d} mlp {mlp_width:5d} {tiling}: {error:.2e} against the reference"
         if device.type == "cuda":
-            line += f", today's ops {deviation(fused_mlp_(x.clone(), *weights, 1e-6), want):.2e}"
+            line += f", today's ops {relative_deviation(fused_mlp_(x.clone(), *weights, 1e-6), want):.2e}"
         failures += not error <= tolerance
         print(line + ("" if error <= tolerance else f"  FAILED (bound {tolerance:g})"), flush=True)
     return failures
@@ -345,7 +313,7 @@ def bench_batch(rows: int, tilings: list[Tiling], device: torch.device) -> None:
 
     def error(tiling: Tiling | None) -> float:
         first = (copies[0][0].clone(), *copies[0][1:], 1e-6)
-        return deviation(fused_mlp_(*first) if tiling is None else persistent_mlp_(*first, tiling), want)
+        return relative_deviation(fused_mlp_(*first) if tiling is None else persistent_mlp_(*first, tiling), want)
 
     times = {tiling: (graph_time(functools.partial(run, tiling), device), error(tiling)) for tiling in [None, *tilings]}
     base = times[None][0]

@@ -128,12 +128,14 @@ def narrow_blocks(rows: int, columns: int) -> Blocks:
 def _matmul_tiles(
     x_ptr, stride_xm, scale_ptr, w_ptr, stride_wk, stride_wn, rows, columns, second, M, k_start, k_stop, N,
     BLOCK_M: tl.constexpr, BLOCK_N: tl.constexpr, BLOCK_K: tl.constexpr, NORM: tl.constexpr, PAIRED: tl.constexpr,
-    DOT: tl.constexpr,
+    DOT: tl.constexpr, X_CACHE: tl.constexpr,
 ):
     """`x[rows, k_start:k_stop] @ w[k_start:k_stop, columns]` in float32 `[BLOCK_M, BLOCK_N]`, and with PAIRED the
     same over the columns `columns + second` (read in the same pass over `x`; zeros without). With NORM, `x` is
     scaled by `scale` first and each row's sum of squares of `x` comes back too (for the RMSNorm applied
-    afterwards; zeros without NORM). The dot is exact float32 ("ieee", not tf32) where its operands are float32."""
+    afterwards; zeros without NORM). The dot is exact float32 ("ieee", not tf32) where its operands are float32.
+    X_CACHE is the cache modifier of `x`'s loads: "" (the default), or ".cg" (past L1) where `x` was written by
+    another program of the same launch."""
     acc = tl.zeros((BLOCK_M, BLOCK_N), dtype=tl.float32)
     acc_second = tl.zeros((BLOCK_M, BLOCK_N), dtype=tl.float32)
     squares = tl.zeros((BLOCK_M,), dtype=tl.float32)
@@ -142,7 +144,8 @@ def _matmul_tiles(
     for k0 in range(k_start, k_stop, BLOCK_K):
         ks = k0 + tl.arange(0, BLOCK_K)
         k_ok = ks < k_stop
-        x = tl.load(x_ptr + rows[:, None] * stride_xm + ks[None, :], mask=row_ok[:, None] & k_ok[None, :], other=0.0).to(tl.float32)
+        x = tl.load(x_ptr + rows[:, None] * stride_xm + ks[None, :], mask=row_ok[:, None] & k_ok[None, :], other=0.0,
+                    cache_modifier=X_CACHE).to(tl.float32)
         if NORM:
             squares += tl.sum(x * x, axis=1)
             x = x * tl.load(scale_ptr + ks, mask=k_ok, other=0.0).to(tl.float32)[None, :]
@@ -229,7 +232,7 @@ def _norm_qkv_rope_kernel(
     n = (HEADS + 2) * HEAD_DIM
     k_start, k_stop = _k_range(K, k_split, SPLIT)
     acc1, acc2, squares = _matmul_tiles(x_ptr, stride_xm, scale_ptr, w_ptr, stride_wk, stride_wn, rows, first_half, half,
-                                        M, k_start, k_stop, n, BLOCK_M, BLOCK_N, BLOCK_K, True, True, DOT)
+                                        M, k_start, k_stop, n, BLOCK_M, BLOCK_N, BLOCK_K, True, True, DOT, "")
     pair_ok = pairs < (HEADS + 2) * half
     if SPLIT:
         acc1, acc2, squares, last = _sum_splits(acc1, acc2, squares, workspace_ptr, counter_ptr, splits, BLOCK_M, BLOCK_N,
@@ -275,7 +278,7 @@ def _norm_gate_up_geglu_kernel(
     columns = tl.program_id(1) * BLOCK_N + tl.arange(0, BLOCK_N)  # gate column c pairs with up column F + c
     k_start, k_stop = _k_range(K, k_split, SPLIT)
     gate, up, squares = _matmul_tiles(x_ptr, stride_xm, scale_ptr, w_ptr, stride_wk, stride_wn, rows, columns, F, M,
-                                      k_start, k_stop, F, BLOCK_M, BLOCK_N, BLOCK_K, True, True, DOT)
+                                      k_start, k_stop, F, BLOCK_M, BLOCK_N, BLOCK_K, True, True, DOT, "")
     column_ok = columns < F
     if SPLIT:
         gate, up, squares, last = _sum_splits(gate, up, squares, workspace_ptr, counter_ptr, splits, BLOCK_M, BLOCK_N,
@@ -303,7 +306,7 @@ def _matmul_residual_kernel(
     columns = tl.program_id(1) * BLOCK_N + tl.arange(0, BLOCK_N)
     k_start, k_stop = _k_range(K, k_split, SPLIT)
     acc, unused, no_squares = _matmul_tiles(y_ptr, stride_ym, y_ptr, w_ptr, stride_wk, stride_wn, rows, columns, 0, M,
-                                            k_start, k_stop, N, BLOCK_M, BLOCK_N, BLOCK_K, False, False, DOT)
+                                            k_start, k_stop, N, BLOCK_M, BLOCK_N, BLOCK_K, False, False, DOT, "")
     column_ok = columns < N
     if SPLIT:
         acc, unused, no_squares, last = _sum_splits(acc, unused, no_squares, workspace_ptr, counter_ptr, splits, BLOCK_M,
@@ -326,7 +329,7 @@ def _norm_linear_euler_kernel(
     rows = tl.program_id(0) * BLOCK_M + tl.arange(0, BLOCK_M)
     columns = tl.program_id(1) * BLOCK_N + tl.arange(0, BLOCK_N)
     acc, _, squares = _matmul_tiles(tokens_ptr, stride_tm, scale_ptr, w_ptr, stride_wk, stride_wn, rows, columns, 0, M, 0,
-                                    K, N, BLOCK_M, BLOCK_N, BLOCK_K, True, False, DOT)
+                                    K, N, BLOCK_M, BLOCK_N, BLOCK_K, True, False, DOT, "")
     column_ok = columns < N
     velocity = acc / tl.sqrt(squares / K + eps)[:, None] + tl.load(bias_ptr + columns, mask=column_ok, other=0.0).to(tl.float32)[None, :]
     ok = (rows < M)[:, None] & column_ok[None, :]
