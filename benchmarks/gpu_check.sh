@@ -4,19 +4,21 @@
 # files: this writes 8); the last lines of each are printed too. Run from the repository root with the Python that
 # holds torch, triton, transformers and pytest (the GPU image's python3: no network, no [dev] extra):
 #
-#     OUT=/tmp/gpu benchmarks/gpu_check.sh          # at most 9.3 minutes (the steps' limits) on an H100 or H200
-#     SKIP="bench doctor" OUT=/tmp/gpu benchmarks/gpu_check.sh   # leave steps out
+#     OUT=/tmp/gpu benchmarks/gpu_check.sh          # at most 9.0 minutes (the steps' limits) on an H100 or H200
+#     SKIP="bench doctor" OUT=/tmp/gpu benchmarks/gpu_check.sh   # leave steps out (default: SKIP=tilings)
+#     SKIP= OUT=/tmp/gpu benchmarks/gpu_check.sh    # everything, the kernels' tilings too (about 10.5 minutes)
 #
 # Timings run alone on the GPU; the checks run side by side (correctness does not mind sharing the GPU):
 # 1. alone: the benchmark, fused steps against the torch path, eager and graph, π0 and π0.5, batch 1, 4 and 8, with each
 #    row's GPU activities, GPU time and its 30 longest kinds of kernel;
 # 2. together: doctor (every sampling path at full size against its reference), the GPU tests (tests/test_cuda.py),
-#    the fused kernels' tests on real kernels (tests/test_kernels.py), and the compiles of everything step 3 times
-#    (triton's disk cache: every tiling, 8 processes; the persistent MLP experiment's check against its reference);
-# 3. alone: the step GEMMs against cuBLAS (GB/s), the MLP half of a layer-step as one persistent launch against
-#    today's three (benchmarks/persistent_mlp.py, issue 37's experiment), the kernels' tilings
-#    (benchmarks/kernel_sweep.py: every candidate timed and checked against the reference, the fastest written to
-#    $OUT/tilings.json, then π0 and π0.5 sampled with them), and π0-FAST's decoding, fused against the modules,
+#    the fused kernels' tests on real kernels (tests/test_kernels.py), and issue 37's persistent experiments against
+#    their references (which compiles what step 3 times into triton's disk cache; with tilings, every tiling too);
+# 3. alone: the step GEMMs against cuBLAS (GB/s); the MLP half of a layer-step as one persistent launch against
+#    today's three (benchmarks/persistent_mlp.py) and an Euler step's 18 layers as one against today's 90
+#    (benchmarks/persistent_layers.py); with tilings, the kernels' tilings (benchmarks/kernel_sweep.py: every
+#    candidate timed and checked against the reference, the fastest written to $OUT/tilings.json, then π0 and π0.5
+#    sampled with them; measured on an H200 on 2026-11-27); and π0-FAST's decoding, fused against the modules,
 #    eager and replayed as hand-captured CUDA graphs. (benchmarks/eager_host.py, eager's host time, is left out.)
 set -u
 OUT="${OUT:-/tmp/pi0-torch-gpu-check}"
@@ -27,7 +29,7 @@ export PYTHONUNBUFFERED=1 PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}"  # (bench
 step() {  # step NAME SECONDS COMMAND...: appends to $OUT/NAME.log (nothing where $SKIP names it)
     local name="$1" limit="$2"
     shift 2
-    case " ${SKIP:-} " in *" $name "*) return ;; esac
+    case " ${SKIP-tilings} " in *" $name "*) return ;; esac
     local start=$SECONDS
     printf '\n== %s (at most %s s): %s\n' "$name" "$limit" "$*" >> "$OUT/$name.log"
     timeout --signal=INT --kill-after=10 "$limit" "$@" >> "$OUT/$name.log" 2>&1
@@ -57,21 +59,24 @@ step gpu-tests 200 "$PY" -m pytest -q -s -p no:cacheprovider -m gpu tests/test_c
 step kernel-tests 200 "$PY" -m pytest -q -p no:cacheprovider tests/test_kernels.py \
     -k "not shared_memory and not direct_launches and not persistent" &
 for shard in 0 1 2 3 4 5 6 7; do
-    step sweep-compile 190 "$PY" benchmarks/kernel_sweep.py --compile-only --shard "$shard/8" &
+    step tilings 190 "$PY" benchmarks/kernel_sweep.py --compile-only --shard "$shard/8" &
 done
-step sweep-compile 190 "$PY" benchmarks/persistent_mlp.py --check &
+step persistent-check 190 "$PY" benchmarks/persistent_mlp.py --check &
+step persistent-check 190 "$PY" benchmarks/persistent_layers.py --check &
 wait
 show doctor
 show gpu-tests
 TAIL=8 show kernel-tests
-grep -h "against the reference" "$OUT/sweep-compile.log"
+grep -h "against the reference\|^exit" "$OUT/persistent-check.log"
 
 # 3. alone
 step sweep 20 "$PY" -m pi0_torch.cli bench --device cuda --skip-generate --gemms --presets pi0 --batches 1,8 --repeats 10
 step sweep 45 "$PY" benchmarks/persistent_mlp.py --bench
-step sweep 100 "$PY" benchmarks/kernel_sweep.py --write "$OUT/tilings.json" --bench
+step sweep 60 "$PY" benchmarks/persistent_layers.py --bench
+step tilings 100 "$PY" benchmarks/kernel_sweep.py --write "$OUT/tilings.json" --bench
 step fast-bench 45 "$PY" -m pi0_torch.cli bench --device cuda --skip-generate --fast --fast-presets pi0_fast \
     --dtypes bfloat16 --batches 1 --kernels auto,torch --repeats 3
 TAIL=70 show sweep
+TAIL=40 show tilings
 TAIL=8 show fast-bench
 printf '\nlogs in %s\n' "$OUT"

@@ -108,13 +108,17 @@ def _add_to_residual(x_ptr, stride_xm, rows, columns, M, N, acc):
 
 
 @triton.jit
-def _o_tile(tile, x_ptr, attended_ptr, o_ptr, counters_ptr, M, D, NH, stride_xm, stride_am, stride_ok, stride_on,
-            BLOCK_M: tl.constexpr, N_O: tl.constexpr, BLOCK_K: tl.constexpr, DOT: tl.constexpr):
-    """`x[r, n] += attended[r] @ o[:, n]`; then counted in for row block r (`counters[r]`)."""
+def _o_tile(tile, x_ptr, attended_ptr, o_ptr, wait_ptr, need, counters_ptr, M, D, NH, stride_xm, stride_am, stride_ok,
+            stride_on, BLOCK_M: tl.constexpr, N_O: tl.constexpr, BLOCK_K: tl.constexpr, DOT: tl.constexpr,
+            PREFETCH: tl.constexpr):
+    """`x[r, n] += attended[r] @ o[:, n]`, once `wait` reaches `need` (the attention's tiles: 0 where `attended` was
+    written before the launch); then counted in for row block r (`counters[r]`)."""
     o_tiles = tl.cdiv(D, N_O)
     block = tile // o_tiles
     rows = block * BLOCK_M + tl.arange(0, BLOCK_M)
     columns = (tile % o_tiles) * N_O + tl.arange(0, N_O)
+    _prefetch_weights(o_ptr, stride_ok, stride_on, columns, NH, D, BLOCK_K, PREFETCH)
+    _wait_for(wait_ptr, need)
     acc, _, _ = _matmul_tiles(attended_ptr, stride_am, attended_ptr, o_ptr, stride_ok, stride_on, rows, columns, 0, M,
                               0, NH, D, BLOCK_M, N_O, BLOCK_K, False, False, DOT, ".cg")
     _add_to_residual(x_ptr, stride_xm, rows, columns, M, D, acc)
@@ -144,11 +148,12 @@ def _gate_up_tile(tile, x_ptr, scale_ptr, gate_up_ptr, hidden_ptr, o_counters_pt
 
 
 @triton.jit
-def _down_tile(tile, x_ptr, hidden_ptr, down_ptr, gate_up_counters_ptr, M, D, F, stride_xm, stride_dk, stride_dn,
-               BLOCK_M: tl.constexpr, N_GATE_UP: tl.constexpr, N_DOWN: tl.constexpr, BLOCK_K: tl.constexpr,
-               DOT: tl.constexpr, PREFETCH: tl.constexpr):
+def _down_tile(tile, x_ptr, hidden_ptr, down_ptr, gate_up_counters_ptr, counters_ptr, M, D, F, stride_xm, stride_dk,
+               stride_dn, BLOCK_M: tl.constexpr, N_GATE_UP: tl.constexpr, N_DOWN: tl.constexpr, BLOCK_K: tl.constexpr,
+               DOT: tl.constexpr, PREFETCH: tl.constexpr, COUNT: tl.constexpr):
     """`x[r, n] += hidden[r] @ down[:, n]`, once every gate/up tile of row block r is in (so every read of `x[r]` for
-    the norm is done too)."""
+    the norm is done too); with COUNT then counted in for r (`counters[r]`: a next layer's q/k/v of r wait for them.
+    Not here: its barrier takes 80 KiB more shared memory with 4 stages of 128-deep blocks, more than sm_90 has)."""
     down_tiles = tl.cdiv(D, N_DOWN)
     block = tile // down_tiles
     rows = block * BLOCK_M + tl.arange(0, BLOCK_M)
@@ -158,6 +163,8 @@ def _down_tile(tile, x_ptr, hidden_ptr, down_ptr, gate_up_counters_ptr, M, D, F,
     acc, _, _ = _matmul_tiles(hidden_ptr, F, hidden_ptr, down_ptr, stride_dk, stride_dn, rows, columns, 0, M, 0, F, D,
                               BLOCK_M, N_DOWN, BLOCK_K, False, False, DOT, ".cg")
     _add_to_residual(x_ptr, stride_xm, rows, columns, M, D, acc)
+    if COUNT:
+        _count_in(counters_ptr + block)
 
 
 @triton.jit
@@ -177,14 +184,14 @@ def _persistent_mlp_kernel(
     ticket = tl.atomic_add(state_ptr, 1)
     while ticket < total:
         if ticket < o_end:
-            _o_tile(ticket, x_ptr, attended_ptr, o_ptr, o_counters, M, D, NH, stride_xm, stride_am, stride_ok, stride_on,
-                    BLOCK_M, N_O, BLOCK_K, DOT)
+            _o_tile(ticket, x_ptr, attended_ptr, o_ptr, gate_up_counters, 0, o_counters, M, D, NH, stride_xm, stride_am,
+                    stride_ok, stride_on, BLOCK_M, N_O, BLOCK_K, DOT, False)  # (the first phase: waits for nothing, need 0)
         elif ticket < gate_up_end:
             _gate_up_tile(ticket - o_end, x_ptr, scale_ptr, gate_up_ptr, hidden_ptr, o_counters, gate_up_counters, M, D,
                           F, stride_xm, stride_gk, stride_gn, eps, BLOCK_M, N_O, N_GATE_UP, BLOCK_K, DOT, PREFETCH)
         else:
-            _down_tile(ticket - gate_up_end, x_ptr, hidden_ptr, down_ptr, gate_up_counters, M, D, F, stride_xm, stride_dk,
-                       stride_dn, BLOCK_M, N_GATE_UP, N_DOWN, BLOCK_K, DOT, PREFETCH)
+            _down_tile(ticket - gate_up_end, x_ptr, hidden_ptr, down_ptr, gate_up_counters, gate_up_counters, M, D, F,
+                       stride_xm, stride_dk, stride_dn, BLOCK_M, N_GATE_UP, N_DOWN, BLOCK_K, DOT, PREFETCH, False)
         ticket = tl.atomic_add(state_ptr, 1)
 
 

@@ -156,7 +156,7 @@ def test_the_gpu_tests_and_the_benchmark_need_none_of_the_extras_a_gpu_image_lac
         f"code = pytest.main(['-q', '--collect-only', '-p', 'no:cacheprovider', *{tests!r}])\n"
         "import pi0_torch.benchmark, pi0_torch.doctor, pi0_torch.runtime.policy\n"
         f"sys.path.insert(0, {str(ROOT / 'benchmarks')!r})\n"
-        "import kernel_sweep, persistent_mlp\n"
+        "import kernel_sweep, persistent_layers, persistent_mlp\n"
         "sys.exit(int(code))",
         tmp_path,
     )

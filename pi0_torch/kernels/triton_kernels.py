@@ -226,9 +226,7 @@ def _norm_qkv_rope_kernel(
     half: tl.constexpr = HEAD_DIM // 2
     rows = tl.program_id(0) * BLOCK_M + tl.arange(0, BLOCK_M)
     pairs = tl.program_id(1) * BLOCK_N + tl.arange(0, BLOCK_N)  # column pairs (c, c + H/2) of every head: q..., k, v
-    head = pairs // half
-    lane = pairs % half
-    first_half = head * HEAD_DIM + lane
+    first_half = pairs // half * HEAD_DIM + pairs % half  # (c)
     n = (HEADS + 2) * HEAD_DIM
     k_start, k_stop = _k_range(K, k_split, SPLIT)
     acc1, acc2, squares = _matmul_tiles(x_ptr, stride_xm, scale_ptr, w_ptr, stride_wk, stride_wn, rows, first_half, half,
@@ -238,6 +236,21 @@ def _norm_qkv_rope_kernel(
         acc1, acc2, squares, last = _sum_splits(acc1, acc2, squares, workspace_ptr, counter_ptr, splits, BLOCK_M, BLOCK_N,
                                                 True, True)
         pair_ok = pairs < tl.where(last, (HEADS + 2) * half, 0)  # (only the last program writes)
+    _rope_store(acc1, acc2, squares, rows, pairs, pair_ok, bias_ptr, cos_ptr, sin_ptr, q_ptr, key_ptr, value_ptr, M, K,
+                tokens, first_slot, slots, stride_cos_b, stride_cos_t, eps, HEADS, HEAD_DIM, HAS_BIAS)
+
+
+@triton.jit
+def _rope_store(acc1, acc2, squares, rows, pairs, pair_ok, bias_ptr, cos_ptr, sin_ptr, q_ptr, key_ptr, value_ptr, M, K,
+                tokens, first_slot, slots, stride_cos_b, stride_cos_t, eps,
+                HEADS: tl.constexpr, HEAD_DIM: tl.constexpr, HAS_BIAS: tl.constexpr):
+    """The epilogue of a q/k/v tile: the RMSNorm's `1 / rms` (from the rows' sums of squares over K), adaRMS's bias,
+    RoPE on q and k, then q into `q` `[M, N H]` and k and v into the caches at slots `first_slot + t` (`pairs`: the
+    tile's column pairs (c, c + H/2) of every head, as `_norm_qkv_rope_kernel` numbers them; only `pair_ok` written)."""
+    half: tl.constexpr = HEAD_DIM // 2
+    head = pairs // half
+    lane = pairs % half
+    first_half = head * HEAD_DIM + lane
     inverse = 1.0 / tl.sqrt(squares / K + eps)
     a1 = acc1 * inverse[:, None]
     a2 = acc2 * inverse[:, None]
@@ -404,21 +417,43 @@ def _range_attention_kernel(
     BLOCK_N: tl.constexpr, SPLIT: tl.constexpr, DIM_CHUNK: tl.constexpr,
 ):
     """Program (i, b, s): folded query rows `[i * BLOCK_M, ...)` of sample b (row r is token r // heads, head r % heads)
-    over the keys `[first[b], row_ends[token])`, online softmax in float32. Only keys before the block's last end are
-    read: the slots after it may not be written yet (π0's state token runs while the action slots are empty), and a
-    masked-out NaN value would still poison the weighted sum (0 * NaN).
+    over the keys `[first[b], row_ends[token])`, online softmax in float32 (`_attention_part`).
 
     With SPLIT the block's keys are cut into `splits` consecutive parts (a runtime count: one compiled kernel serves
     every count), program s taking part s (see `key_splits`); each stores its unnormalized sum, running maximum and
     total weight, and the block's last program to arrive combines the parts and writes the output
     (`_combine_key_parts`, in this launch)."""
     sample = tl.program_id(1)
-    split = tl.program_id(2)
     rows = tl.program_id(0) * BLOCK_M + tl.arange(0, BLOCK_M)
+    acc, running_max, total = _attention_part(q_ptr, key_ptr, value_ptr, first_ptr, row_ends_ptr, sample, rows,
+                                              rows_per_sample, heads, slots, scale, tl.program_id(2), splits, HEAD_DIM,
+                                              DOT, BLOCK_M, BLOCK_N, SPLIT, "")
+    base = sample * rows_per_sample * HEAD_DIM
+    if SPLIT:
+        _combine_key_parts(acc, running_max, total, partial_ptr, stats_ptr, counter_ptr, out_ptr + base, sample,
+                           tl.program_id(0), tl.num_programs(0), tl.program_id(2), batch, rows_per_sample, splits,
+                           HEAD_DIM, BLOCK_M, DIM_CHUNK)
+    else:
+        out = acc / tl.where(total > 0.0, total, 1.0)[:, None]
+        dims = tl.arange(0, HEAD_DIM)
+        tl.store(out_ptr + base + rows[:, None] * HEAD_DIM + dims[None, :], out.to(out_ptr.dtype.element_ty),
+                 mask=(rows < rows_per_sample)[:, None])
+
+
+@triton.jit
+def _attention_part(q_ptr, key_ptr, value_ptr, first_ptr, row_ends_ptr, sample, rows, rows_per_sample, heads, slots,
+                    scale, split, splits, HEAD_DIM: tl.constexpr, DOT: tl.constexpr, BLOCK_M: tl.constexpr,
+                    BLOCK_N: tl.constexpr, SPLIT: tl.constexpr, CACHE: tl.constexpr):
+    """Folded query rows `rows` of sample `sample` (q `[B, rows_per_sample, H]`) over part `split` of their keys (all of
+    them without SPLIT): the unnormalized weighted sum of values `[BLOCK_M, H]`, the running maximum of the logits and
+    the total weight (float32). Only keys before the block's last end are read: the slots after it may not be written
+    yet (π0's state token runs while the action slots are empty), and a masked-out NaN value would still poison the
+    weighted sum (0 * NaN). CACHE is the cache modifier of the q, key and value loads ("", or ".cg" where this launch
+    wrote them)."""
     row_ok = rows < rows_per_sample
     dims = tl.arange(0, HEAD_DIM)
-    base = sample * rows_per_sample * HEAD_DIM
-    q = tl.load(q_ptr + base + rows[:, None] * HEAD_DIM + dims[None, :], mask=row_ok[:, None], other=0.0)
+    q = tl.load(q_ptr + sample * rows_per_sample * HEAD_DIM + rows[:, None] * HEAD_DIM + dims[None, :],
+                mask=row_ok[:, None], other=0.0, cache_modifier=CACHE)
     start = tl.load(first_ptr + sample).to(tl.int32)
     ends = tl.load(row_ends_ptr + rows // heads, mask=row_ok, other=0).to(tl.int32)
     stop = tl.max(ends, axis=0)
@@ -433,70 +468,69 @@ def _range_attention_kernel(
     for k0 in range(start, stop, BLOCK_N):
         keys = k0 + tl.arange(0, BLOCK_N)
         key_ok = keys < stop
-        k = tl.load(key_ptr + cache + keys[:, None] * HEAD_DIM + dims[None, :], mask=key_ok[:, None], other=0.0)
+        k = tl.load(key_ptr + cache + keys[:, None] * HEAD_DIM + dims[None, :], mask=key_ok[:, None], other=0.0,
+                    cache_modifier=CACHE)
         logits = tl.dot(q.to(DOT), tl.trans(k.to(DOT)), input_precision="ieee") * scale  # [BLOCK_M, BLOCK_N]
         visible = (keys[None, :] < ends[:, None]) & key_ok[None, :]
         logits = tl.where(visible, logits, -1.0e30)
         new_max = tl.maximum(running_max, tl.max(logits, axis=1))
         weights = tl.where(visible, tl.exp(logits - new_max[:, None]), 0.0)
         correction = tl.exp(running_max - new_max)
-        v = tl.load(value_ptr + cache + keys[:, None] * HEAD_DIM + dims[None, :], mask=key_ok[:, None], other=0.0)
+        v = tl.load(value_ptr + cache + keys[:, None] * HEAD_DIM + dims[None, :], mask=key_ok[:, None], other=0.0,
+                    cache_modifier=CACHE)
         acc = acc * correction[:, None] + tl.dot(weights.to(DOT), v.to(DOT), input_precision="ieee")
         total = total * correction + tl.sum(weights, axis=1)
         running_max = new_max
-    if SPLIT:
-        _combine_key_parts(acc, running_max, total, partial_ptr, stats_ptr, counter_ptr, out_ptr + base, batch,
-                           rows_per_sample, splits, HEAD_DIM, BLOCK_M, DIM_CHUNK)
-    else:
-        out = acc / tl.where(total > 0.0, total, 1.0)[:, None]
-        tl.store(out_ptr + base + rows[:, None] * HEAD_DIM + dims[None, :], out.to(out_ptr.dtype.element_ty), mask=row_ok[:, None])
+    return acc, running_max, total
 
 
 @triton.jit
-def _combine_key_parts(acc, running_max, total, partial_ptr, stats_ptr, counter_ptr, out_ptr, batch, rows_per_sample,
-                       splits, HEAD_DIM: tl.constexpr, BLOCK_M: tl.constexpr, DIM_CHUNK: tl.constexpr):
-    """The key parts of `_range_attention_kernel`'s row block, combined in its launch as `_sum_splits` adds split-K's
-    parts: each program stores its part (`partial` `[splits, B, rows, H]`, `stats` `[2, splits, B, rows]`: running
-    maximum, total weight) and counts itself in on the block's counter; the last to arrive merges the parts and writes
-    the block's output rows (at `out_ptr`, the sample's first row), then puts the counter back to 0. The merge: the
-    largest of the parts' maxima, each part's sum and total weight rescaled to it, summed in split order
-    (deterministic), `DIM_CHUNK` columns of the head at a time (a 64-row block's whole head twice over would not fit
-    the registers: 24-48 bytes spilled on sm_80/86/89/120, none in quarters)."""
-    sample = tl.program_id(1)
-    rows = tl.program_id(0) * BLOCK_M + tl.arange(0, BLOCK_M)
+def _combine_key_parts(acc, running_max, total, partial_ptr, stats_ptr, counter_ptr, out_ptr, sample, block, blocks,
+                       split, batch, rows_per_sample, splits, HEAD_DIM: tl.constexpr, BLOCK_M: tl.constexpr,
+                       DIM_CHUNK: tl.constexpr):
+    """The key parts of row block `block` (of `blocks` per sample) of sample `sample`, combined in their launch as
+    `_sum_splits` adds split-K's parts: each program stores its part `split` (`partial` `[splits, B, rows, H]`,
+    `stats` `[2, splits, B, rows]`: running maximum, total weight) and counts itself in on the block's counter; the
+    last to arrive merges the parts and writes the block's output rows (at `out_ptr`, the sample's first row), then
+    puts the counter back to 0. The merge: the largest of the parts' maxima, each part's sum and total weight rescaled
+    to it, summed in split order (deterministic), `DIM_CHUNK` columns of the head at a time (a 64-row block's whole
+    head twice over would not fit the registers: 24-48 bytes spilled on sm_80/86/89/120, none in quarters). Returns
+    whether this program was the last (it wrote the rows)."""
+    rows = block * BLOCK_M + tl.arange(0, BLOCK_M)
     dims = tl.arange(0, HEAD_DIM)
-    block = sample * tl.num_programs(0) + tl.program_id(0)
     parts = splits * batch * rows_per_sample  # (the totals follow the maxima in `stats`)
     row_ok = rows < rows_per_sample
-    mine = (tl.program_id(2) * batch + sample) * rows_per_sample + rows
+    mine = (split * batch + sample) * rows_per_sample + rows
     tl.store(partial_ptr + mine[:, None] * HEAD_DIM + dims[None, :], acc, mask=row_ok[:, None])
     tl.store(stats_ptr + mine, running_max, mask=row_ok)
     tl.store(stats_ptr + parts + mine, total, mask=row_ok)
     tl.debug_barrier()
-    last = tl.atomic_add(counter_ptr + block, 1, sem="acq_rel") == splits - 1
-    tl.atomic_add(counter_ptr + block, tl.where(last, -splits, 0), sem="relaxed")  # (the last: back to 0)
+    counter_ptr += sample * blocks + block
+    last = tl.atomic_add(counter_ptr, 1, sem="acq_rel") == splits - 1
+    tl.atomic_add(counter_ptr, tl.where(last, -splits, 0), sem="relaxed")  # (the last: back to 0)
     read = rows < tl.where(last, rows_per_sample, 0)  # only the last program reads the parts and writes
     largest = tl.full((BLOCK_M,), -1.0e30, dtype=tl.float32)
-    for split in range(splits):
-        row_index = (split * batch + sample) * rows_per_sample + rows
+    for key_part in range(splits):
+        row_index = (key_part * batch + sample) * rows_per_sample + rows
         largest = tl.maximum(largest, tl.load(stats_ptr + row_index, mask=read, other=-1.0e30, cache_modifier=".cg"))
     total = tl.zeros((BLOCK_M,), dtype=tl.float32)
-    for split in range(splits):
-        row_index = (split * batch + sample) * rows_per_sample + rows
+    for key_part in range(splits):
+        row_index = (key_part * batch + sample) * rows_per_sample + rows
         weight = tl.exp(tl.load(stats_ptr + row_index, mask=read, other=-1.0e30, cache_modifier=".cg") - largest)
         total += weight * tl.load(stats_ptr + parts + row_index, mask=read, other=0.0, cache_modifier=".cg")
     inverse = 1.0 / tl.where(total > 0.0, total, 1.0)
     for first_dim in tl.static_range(0, HEAD_DIM, DIM_CHUNK):
         chunk = first_dim + tl.arange(0, DIM_CHUNK)
         out = tl.zeros((BLOCK_M, DIM_CHUNK), dtype=tl.float32)
-        for split in range(splits):
-            row_index = (split * batch + sample) * rows_per_sample + rows
+        for key_part in range(splits):
+            row_index = (key_part * batch + sample) * rows_per_sample + rows
             weight = tl.exp(tl.load(stats_ptr + row_index, mask=read, other=-1.0e30, cache_modifier=".cg") - largest)
             part = tl.load(partial_ptr + row_index[:, None] * HEAD_DIM + chunk[None, :], mask=read[:, None], other=0.0,
                            cache_modifier=".cg")
             out += weight[:, None] * part
         out = out * inverse[:, None]
         tl.store(out_ptr + rows[:, None] * HEAD_DIM + chunk[None, :], out.to(out_ptr.dtype.element_ty), mask=read[:, None])
+    return last
 
 
 @direct_launch

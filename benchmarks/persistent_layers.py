@@ -1,0 +1,490 @@
+"""An experiment for issue 37: every decoder layer of the action expert in one Euler step as one persistent launch,
+against the five fused kernels per layer that run it today (90 launches for π0's 18 layers).
+
+`benchmarks/persistent_mlp.py` does this for the MLP half of one layer; this takes the same scheme to the whole step
+of the suffix (docs/gpu.md, "Where the next milliseconds are"):
+
+- one launch of as many programs as the GPU has multiprocessors; each takes tiles in ticket order from an atomic
+  counter, layer after layer: the q/k/v projection's tiles (RMSNorm, RoPE, k and v into the layer's cache), the
+  attention's (folded query rows of a sample and one part of their keys; the last part to finish combines them),
+  then the o-projection's, gate/up's and the down-projection's (`persistent_mlp`'s tiles);
+- a tile waits on counters for what it reads: q/k/v of row block r for the previous layer's down-projection of r,
+  the attention for every q/k/v tile of its layer, the o-projection for every attention block, gate/up for the
+  o-projection of its row block, the down-projection for gate/up's. The buffers between phases (q, the attention's
+  output, the MLP's hidden activations, the key parts) are one per launch, reused by every layer: each is written
+  again only after every reader of the layer before has counted in (the chain of waits above);
+- a tile waits only on tiles handed out before it, whose programs are already running: no deadlock, and triton's
+  interpreter (programs one after another) runs it too (nothing ever waits there: it checks the arithmetic);
+- a waiting tile first asks its weights into L2; the last program to finish puts the counters back to 0, so the
+  next launch needs no memset (one launch per step, nothing else).
+
+The numbers are those of `pi0_torch.kernels.reference` (float32 sums, bf16 outputs), not bit for bit (no split-K).
+π0's layers (no adaRMS), one kv head, every action token seeing the whole cache up to the step's last slot. Not used
+by sampling: this measures whether it would pay.
+
+    python benchmarks/persistent_layers.py --check              # CPU: triton's interpreter, small float32 shapes
+    python benchmarks/persistent_layers.py --compile 90         # CPU: compile for sm_90 (ptxas), print its use
+    python benchmarks/persistent_layers.py --bench              # CUDA: 18 full-size layers, bf16, batch 1 and 8
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import itertools
+import os
+import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import torch
+
+if "--check" in sys.argv and not torch.cuda.is_available():
+    os.environ.setdefault("TRITON_INTERPRET", "1")  # (before triton is imported)
+
+import triton
+import triton.language as tl
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from persistent_mlp import (
+    _count_in,
+    _down_tile,
+    _gate_up_tile,
+    _o_tile,
+    _prefetch_weights,
+    _wait_for,
+)
+
+from pi0_torch.inference.fused_pass import FUSED_TOLERANCE
+from pi0_torch.inference.graphs import relative_deviation
+from pi0_torch.kernels import reference
+from pi0_torch.kernels.triton_kernels import (
+    _attention_part,
+    _combine_key_parts,
+    _matmul_tiles,
+    _rope_store,
+    cdiv,
+    dot_dtype,
+)
+from pi0_torch.models.layers import rope_cos_sin
+
+INTERPRETING = os.environ.get("TRITON_INTERPRET") == "1"
+
+
+class Tiling(NamedTuple):
+    """Output columns per tile of each GEMM phase (q/k/v in column pairs, o-projection, gate/up, down-projection), the
+    GEMMs' reduction block and rows per tile, the attention's folded query rows and keys per block and its key parts,
+    warps, pipeline stages, whether a waiting tile prefetches its weights (never in the interpreter), and programs
+    per multiprocessor."""
+
+    qkv: int = 16
+    o: int = 16
+    gate_up: int = 32
+    down: int = 16
+    k: int = 64
+    m: int = 64
+    attention_m: int = 16
+    attention_n: int = 32
+    key_parts: int = 4
+    warps: int = 4
+    stages: int = 3
+    prefetch: bool = True
+    per_sm: int = 1
+
+
+class Layers(NamedTuple):
+    """The expert's layers stacked (`[L, ...]`): the norms' scales (`1 + weight`) and the projections' weights as
+    `[in, out]` views of `nn.Linear` weights (q/k/v columns q | k | v, gate/up columns gate | up)."""
+
+    attention_scale: torch.Tensor  # [L, D]
+    qkv: torch.Tensor  # [L, D, (N + 2) H]
+    o: torch.Tensor  # [L, N H, D]
+    mlp_scale: torch.Tensor  # [L, D]
+    gate_up: torch.Tensor  # [L, D, 2 F]
+    down: torch.Tensor  # [L, F, D]
+
+
+class Cache(NamedTuple):
+    """The step's k/v cache of every layer and what the attention sees of it."""
+
+    key: torch.Tensor  # [L, B, S, H]: the prefix written, the action tokens' slots written by the step
+    value: torch.Tensor
+    first: torch.Tensor  # long [B]: each sample's first visible slot
+    row_ends: torch.Tensor  # long [T]: the slot each action token's keys end at (exclusive)
+    first_slot: int  # the action tokens' first slot
+
+
+# -- the kernel -----------------------------------------------------------------------------------------------------
+
+
+@triton.jit
+def _qkv_tile(tile, x_ptr, scale_ptr, w_ptr, cos_ptr, sin_ptr, q_ptr, key_ptr, value_ptr, wait_ptr, need, counter_ptr,
+              M, D, tokens, first_slot, slots, stride_xm, stride_wk, stride_wn, stride_cos_b, stride_cos_t, eps,
+              HEADS: tl.constexpr, HEAD_DIM: tl.constexpr, BLOCK_M: tl.constexpr, N_QKV: tl.constexpr,
+              BLOCK_K: tl.constexpr, DOT: tl.constexpr, PREFETCH: tl.constexpr):
+    """Column pairs `(c, c + H/2)` of q/k/v for row block r: RMSNorm, the projection, RoPE; q into `q`, k and v into the
+    layer's cache (`_rope_store`), once `wait[r]` reaches `need` (the previous layer's down-projection of r); then
+    counted in (`counter`)."""
+    half: tl.constexpr = HEAD_DIM // 2
+    pair_tiles = tl.cdiv((HEADS + 2) * half, N_QKV)
+    block = tile // pair_tiles
+    rows = block * BLOCK_M + tl.arange(0, BLOCK_M)
+    pairs = (tile % pair_tiles) * N_QKV + tl.arange(0, N_QKV)
+    first_half = pairs // half * HEAD_DIM + pairs % half
+    width = (HEADS + 2) * HEAD_DIM
+    _prefetch_weights(w_ptr, stride_wk, stride_wn, first_half, D, width, BLOCK_K, PREFETCH)
+    _prefetch_weights(w_ptr, stride_wk, stride_wn, first_half + half, D, width, BLOCK_K, PREFETCH)
+    _wait_for(wait_ptr + block, need)
+    acc1, acc2, squares = _matmul_tiles(x_ptr, stride_xm, scale_ptr, w_ptr, stride_wk, stride_wn, rows, first_half, half,
+                                        M, 0, D, width, BLOCK_M, N_QKV, BLOCK_K, True, True, DOT, ".cg")
+    _rope_store(acc1, acc2, squares, rows, pairs, pairs < (HEADS + 2) * half, scale_ptr, cos_ptr, sin_ptr, q_ptr,
+                key_ptr, value_ptr, M, D, tokens, first_slot, slots, stride_cos_b, stride_cos_t, eps, HEADS, HEAD_DIM,
+                False)
+    _count_in(counter_ptr)
+
+
+@triton.jit
+def _attention_tile(tile, q_ptr, key_ptr, value_ptr, first_ptr, row_ends_ptr, out_ptr, partial_ptr, stats_ptr,
+                    arrivals_ptr, wait_ptr, need, counter_ptr, batch, tokens, slots, scale, key_parts,
+                    HEADS: tl.constexpr, HEAD_DIM: tl.constexpr, BLOCK_M: tl.constexpr, BLOCK_N: tl.constexpr,
+                    DIM_CHUNK: tl.constexpr, DOT: tl.constexpr):
+    """Part s of the keys of folded query rows block i of sample b (`range_attention`'s program (i, b, s)), once
+    `wait` reaches `need` (every q/k/v tile of the layer); the block's last part to finish combines the parts into
+    `out` and counts the block in (`counter`)."""
+    rows_per_sample = tokens * HEADS
+    blocks = tl.cdiv(rows_per_sample, BLOCK_M)
+    sample = tile // (blocks * key_parts)
+    block = tile // key_parts % blocks
+    part = tile % key_parts
+    _wait_for(wait_ptr, need)
+    rows = block * BLOCK_M + tl.arange(0, BLOCK_M)
+    acc, running_max, total = _attention_part(q_ptr, key_ptr, value_ptr, first_ptr, row_ends_ptr, sample, rows,
+                                              rows_per_sample, HEADS, slots, scale, part, key_parts, HEAD_DIM, DOT,
+                                              BLOCK_M, BLOCK_N, True, ".cg")
+    last = _combine_key_parts(acc, running_max, total, partial_ptr, stats_ptr, arrivals_ptr,
+                              out_ptr + sample * rows_per_sample * HEAD_DIM, sample, block, blocks, part, batch,
+                              rows_per_sample, key_parts, HEAD_DIM, BLOCK_M, DIM_CHUNK)
+    tl.debug_barrier()
+    tl.atomic_add(counter_ptr, tl.where(last, 1, 0), sem="release")
+
+
+@triton.jit
+def _persistent_layers_kernel(
+    x_ptr, attention_scale_ptr, qkv_ptr, o_ptr, mlp_scale_ptr, gate_up_ptr, down_ptr, cos_ptr, sin_ptr, key_ptr,
+    value_ptr, first_ptr, row_ends_ptr, q_ptr, attended_ptr, hidden_ptr, partial_ptr, stats_ptr, state_ptr,
+    layers, M, D, F, tokens, first_slot, slots, eps, scale, key_parts, stride_xm, stride_cos_b, stride_cos_t,
+    layer_qkv, stride_qk, stride_qn, layer_o, stride_ok, stride_on, layer_gate_up, stride_gk, stride_gn,
+    layer_down, stride_dk, stride_dn, layer_cache, reset,
+    HEADS: tl.constexpr, HEAD_DIM: tl.constexpr, BLOCK_M: tl.constexpr, N_QKV: tl.constexpr, N_O: tl.constexpr,
+    N_GATE_UP: tl.constexpr, N_DOWN: tl.constexpr, BLOCK_K: tl.constexpr, ATTENTION_M: tl.constexpr,
+    ATTENTION_N: tl.constexpr, DIM_CHUNK: tl.constexpr, DOT: tl.constexpr, PREFETCH: tl.constexpr,
+):
+    half: tl.constexpr = HEAD_DIM // 2
+    batch = M // tokens
+    row_blocks = tl.cdiv(M, BLOCK_M)
+    attention_blocks = batch * tl.cdiv(tokens * HEADS, ATTENTION_M)
+    qkv_end = row_blocks * tl.cdiv((HEADS + 2) * half, N_QKV)
+    attention_end = qkv_end + attention_blocks * key_parts
+    o_end = attention_end + row_blocks * tl.cdiv(D, N_O)
+    gate_up_end = o_end + row_blocks * tl.cdiv(F, N_GATE_UP)
+    per_layer = gate_up_end + row_blocks * tl.cdiv(D, N_DOWN)
+    # state: [0] the next ticket, [1] programs finished, then per layer: [0] q/k/v tiles done, [1] attention blocks
+    # done, o-projection / gate-up / down-projection tiles done per row block, key parts arrived per attention block
+    layer_state = 2 + 3 * row_blocks + attention_blocks
+    ticket = tl.atomic_add(state_ptr, 1)
+    while ticket < layers * per_layer:
+        layer = ticket // per_layer
+        tile = ticket % per_layer
+        counters = state_ptr + 2 + layer * layer_state
+        o_done = counters + 2
+        gate_up_done = o_done + row_blocks
+        down_done = gate_up_done + row_blocks
+        if tile < qkv_end:  # (layer 0 waits for nothing: its own down-projection counters, need 0)
+            previous = down_done - tl.where(layer > 0, layer_state, 0)
+            _qkv_tile(tile, x_ptr, attention_scale_ptr + layer * D, qkv_ptr + layer * layer_qkv, cos_ptr, sin_ptr, q_ptr,
+                      key_ptr + layer * layer_cache, value_ptr + layer * layer_cache, previous,
+                      tl.where(layer > 0, tl.cdiv(D, N_DOWN), 0), counters, M, D, tokens, first_slot, slots, stride_xm,
+                      stride_qk, stride_qn, stride_cos_b, stride_cos_t, eps, HEADS, HEAD_DIM, BLOCK_M, N_QKV, BLOCK_K,
+                      DOT, PREFETCH)
+        elif tile < attention_end:
+            _attention_tile(tile - qkv_end, q_ptr, key_ptr + layer * layer_cache, value_ptr + layer * layer_cache,
+                            first_ptr, row_ends_ptr, attended_ptr, partial_ptr, stats_ptr, down_done + row_blocks,
+                            counters, qkv_end, counters + 1, batch, tokens, slots, scale, key_parts, HEADS, HEAD_DIM,
+                            ATTENTION_M, ATTENTION_N, DIM_CHUNK, DOT)
+        elif tile < o_end:
+            _o_tile(tile - attention_end, x_ptr, attended_ptr, o_ptr + layer * layer_o, counters + 1, attention_blocks,
+                    o_done, M, D, HEADS * HEAD_DIM, stride_xm, HEADS * HEAD_DIM, stride_ok, stride_on, BLOCK_M, N_O,
+                    BLOCK_K, DOT, PREFETCH)
+        elif tile < gate_up_end:
+            _gate_up_tile(tile - o_end, x_ptr, mlp_scale_ptr + layer * D, gate_up_ptr + layer * layer_gate_up,
+                          hidden_ptr, o_done, gate_up_done, M, D, F, stride_xm, stride_gk, stride_gn, eps, BLOCK_M, N_O,
+                          N_GATE_UP, BLOCK_K, DOT, PREFETCH)
+        else:
+            _down_tile(tile - gate_up_end, x_ptr, hidden_ptr, down_ptr + layer * layer_down, gate_up_done, down_done, M,
+                       D, F, stride_xm, stride_dk, stride_dn, BLOCK_M, N_GATE_UP, N_DOWN, BLOCK_K, DOT, PREFETCH, True)
+        ticket = tl.atomic_add(state_ptr, 1)
+    # the last program out puts every counter back to 0 for the next launch (all others have taken their last ticket;
+    # `reset` 0 keeps them, for `--check` to count)
+    if (tl.atomic_add(state_ptr + 1, 1, sem="acq_rel") == tl.num_programs(0) - 1) & (reset != 0):
+        size = 2 + layers * layer_state
+        for start in range(0, size, 1024):
+            offsets = start + tl.arange(0, 1024)
+            tl.store(state_ptr + offsets, 0, mask=offsets < size)
+
+
+_states: dict[tuple[torch.device, int], torch.Tensor] = {}  # zeroed once; each launch leaves them at 0
+
+
+def persistent_layers_(x: torch.Tensor, layers: Layers, cos: torch.Tensor, sin: torch.Tensor, cache: Cache, eps: float,
+                       tiling: Tiling | None = None, programs: int | None = None,
+                       launch: Callable[..., Any] | None = None, state: torch.Tensor | None = None) -> torch.Tensor:
+    """Every layer of `layers` on the action tokens `x` `[M, D]` (M = B T), in place and in one launch (module
+    docstring): `x += attention(...) @ o; x += geglu(norm(x) @ gate_up) @ down` per layer, k and v written into
+    `cache`. cos, sin `[B or 1, T, H]` float32 (`rope_cos_sin`'s tables). `programs`: the grid (the GPU's
+    multiprocessors by default). `launch`: stands in for the kernel's launch (`--compile`). `state`: zeroed int32
+    counters of `state_size` for this launch alone, left as the launch counted (by default: counters kept per device
+    and size, which each launch puts back to 0)."""
+    tiling = tiling or Tiling()
+    rows, width = x.shape
+    depth, batch, slots, head_dim = cache.key.shape
+    tokens = rows // batch
+    heads = layers.o.shape[1] // head_dim
+    mlp_width = layers.down.shape[1]
+    q = x.new_empty(rows, heads * head_dim)
+    attended = x.new_empty(rows, heads * head_dim)
+    hidden = x.new_empty(rows, mlp_width)
+    partial = x.new_empty(tiling.key_parts, rows * heads, head_dim, dtype=torch.float32)
+    stats = x.new_empty(2, tiling.key_parts, rows * heads, dtype=torch.float32)
+    reset = state is None
+    if state is None:
+        size = state_size(depth, rows, tokens, heads, tiling)
+        state = _states.get((x.device, size))
+        if state is None:
+            state = _states[(x.device, size)] = torch.zeros(size, dtype=torch.int32, device=x.device)
+    programs = programs or default_programs(x.device, tiling)
+    arguments = (
+        x, layers.attention_scale, layers.qkv, layers.o, layers.mlp_scale, layers.gate_up, layers.down, cos, sin,
+        cache.key, cache.value, cache.first, cache.row_ends, q, attended, hidden, partial, stats, state,
+        depth, rows, width, mlp_width, tokens, cache.first_slot, slots, eps, head_dim**-0.5, tiling.key_parts,
+        x.stride(0), cos.stride(0) if cos.shape[0] > 1 else 0, cos.stride(1),
+        layers.qkv.stride(0), layers.qkv.stride(1), layers.qkv.stride(2), layers.o.stride(0), layers.o.stride(1),
+        layers.o.stride(2), layers.gate_up.stride(0), layers.gate_up.stride(1), layers.gate_up.stride(2),
+        layers.down.stride(0), layers.down.stride(1), layers.down.stride(2), cache.key.stride(0), int(reset),
+    )
+    options = {"HEADS": heads, "HEAD_DIM": head_dim, "BLOCK_M": tiling.m, "N_QKV": tiling.qkv, "N_O": tiling.o,
+               "N_GATE_UP": tiling.gate_up, "N_DOWN": tiling.down, "BLOCK_K": tiling.k,
+               "ATTENTION_M": tiling.attention_m, "ATTENTION_N": tiling.attention_n,
+               "DIM_CHUNK": min(head_dim, 4096 // tiling.attention_m), "DOT": dot_dtype(layers.o.dtype),
+               "PREFETCH": tiling.prefetch and not INTERPRETING, "num_warps": tiling.warps, "num_stages": tiling.stages}
+    if launch is not None:
+        return launch(_persistent_layers_kernel, (programs,), arguments, options)
+    _persistent_layers_kernel[(programs,)](*arguments, **options)
+    return x
+
+
+def default_programs(device: torch.device, tiling: Tiling) -> int:
+    """The grid: `tiling.per_sm` programs per multiprocessor of a GPU; 4 in the interpreter."""
+    return tiling.per_sm * torch.cuda.get_device_properties(device).multi_processor_count if device.type == "cuda" else 4
+
+
+def state_size(depth: int, rows: int, tokens: int, heads: int, tiling: Tiling) -> int:
+    """The counters of a launch: the next ticket, the programs finished, and per layer the q/k/v tiles and attention
+    blocks done, the o-projection, gate/up and down-projection tiles done per row block, and the key parts arrived
+    per attention block (`_persistent_layers_kernel`'s layout)."""
+    return 2 + depth * (2 + 3 * cdiv(rows, tiling.m) + rows // tokens * cdiv(tokens * heads, tiling.attention_m))
+
+
+def expected_counts(shape: Shape, tiling: Tiling, programs: int) -> torch.Tensor:
+    """What a launch leaves in its counters without the reset: every ticket taken (and one more per program), every
+    program finished, each phase's tiles (the attention: its blocks) counted once, the key parts' arrivals back at 0."""
+    rows, half = shape.batch * shape.tokens, shape.head_dim // 2
+    row_blocks = cdiv(rows, tiling.m)
+    attention_blocks = shape.batch * cdiv(shape.tokens * shape.heads, tiling.attention_m)
+    per_row_block = [cdiv(shape.width, tiling.o), cdiv(shape.mlp_width, tiling.gate_up), cdiv(shape.width, tiling.down)]
+    qkv_tiles = row_blocks * cdiv((shape.heads + 2) * half, tiling.qkv)
+    tickets = qkv_tiles + attention_blocks * tiling.key_parts + row_blocks * sum(per_row_block)
+    layer = [qkv_tiles, attention_blocks] + [each for each in per_row_block for _ in range(row_blocks)]
+    layer += [0] * attention_blocks
+    return torch.tensor([shape.depth * tickets + programs, programs] + layer * shape.depth, dtype=torch.int32)
+
+
+def layer_by_layer_(x: torch.Tensor, layers: Layers, cos: torch.Tensor, sin: torch.Tensor, cache: Cache, eps: float,
+                    ops: Any = reference) -> torch.Tensor:
+    """The same, five ops per layer: `pi0_torch.kernels.reference`'s, or (`ops=fused_ops`) today's fused kernels (on
+    CUDA; cuBLAS from `CUBLAS_ROWS` rows)."""
+    batch, heads, head_dim = cache.key.shape[1], layers.o.shape[1] // cache.key.shape[-1], cache.key.shape[-1]
+    for layer in range(layers.qkv.shape[0]):
+        key, value = cache.key[layer], cache.value[layer]
+        q = ops.norm_qkv_rope(x, layers.attention_scale[layer], None, layers.qkv[layer], cos, sin, key, value,
+                              cache.first_slot, eps)
+        attended = ops.range_attention(q.view(batch, -1, heads, head_dim), key, value, cache.first, cache.row_ends)
+        ops.matmul_residual_(x, attended, layers.o[layer], None)
+        hidden = ops.norm_gate_up_geglu(x, layers.mlp_scale[layer], None, layers.gate_up[layer], eps)
+        ops.matmul_residual_(x, hidden, layers.down[layer], None)
+    return x
+
+
+class _FusedOps:
+    """Today's fused ops (`pi0_torch.kernels.ops`), as `layer_by_layer_` calls them."""
+
+    def __getattr__(self, name: str) -> Callable[..., Any]:
+        from pi0_torch.kernels import ops
+
+        return lambda *args: ops.call(getattr(ops, name), *args)
+
+
+fused_ops = _FusedOps()
+
+
+# -- check, compile, bench ------------------------------------------------------------------------------------------
+
+
+class Shape(NamedTuple):
+    depth: int
+    batch: int
+    tokens: int
+    prefix: int  # cache slots before the action tokens (π0: the prefix and the state token)
+    width: int
+    heads: int
+    head_dim: int
+    mlp_width: int
+
+
+FULL = Shape(18, 1, 50, 817, 1024, 8, 256, 4096)  # π0's action expert, 3 cameras and 48 prompt tokens
+
+
+def operands(shape: Shape, dtype: torch.dtype, device: torch.device, seed: int = 0
+             ) -> tuple[torch.Tensor, Layers, torch.Tensor, torch.Tensor, Cache]:
+    """x, the layers, cos, sin and the cache (its prefix random, samples after the first starting a few slots in):
+    random, the weights as transposed `[out, in]` tensors (the engine's views)."""
+    generator = torch.Generator(device).manual_seed(seed)
+    depth, batch, tokens, prefix, width, heads, head_dim, mlp_width = shape
+
+    def randn(*size: int, scale: float = 1.0) -> torch.Tensor:
+        return (torch.randn(*size, generator=generator, device=device) * scale).to(dtype)
+
+    def linear(inputs: int, outputs: int) -> torch.Tensor:  # [L, in, out] views of [L, out, in]
+        return randn(depth, outputs, inputs, scale=inputs**-0.5).transpose(1, 2)
+
+    layers = Layers(1 + randn(depth, width, scale=0.1), linear(width, (heads + 2) * head_dim), linear(heads * head_dim, width),
+                    1 + randn(depth, width, scale=0.1), linear(width, 2 * mlp_width), linear(mlp_width, width))
+    slots = prefix + tokens
+    cos, sin = rope_cos_sin(torch.arange(prefix, slots, device=device).expand(batch, tokens), head_dim, 10_000.0)
+    key, value = randn(depth, batch, slots, head_dim), randn(depth, batch, slots, head_dim)
+    first = torch.arange(batch, device=device) * 3 % max(prefix, 1)
+    cache = Cache(key, value, first, torch.full((tokens,), slots, device=device), prefix)
+    return randn(batch * tokens, width), layers, cos, sin, cache
+
+
+def check(device: torch.device, dtype: torch.dtype, shapes: list[Shape], tolerance: float, tilings: list[Tiling]) -> int:
+    """The persistent launch against the reference (and, on CUDA, today's ops), twice in a row (the second launch
+    finds the counters the first left), for each shape and tiling: the action tokens and the caches it wrote."""
+    failures = 0
+    for shape, tiling in itertools.product(shapes, tilings):
+        x, layers, cos, sin, cache = operands(shape, dtype, device)
+        want_cache = Cache(cache.key.clone(), cache.value.clone(), *cache[2:])
+        want = layer_by_layer_(x.clone(), layers, cos, sin, want_cache, 1e-6)
+        for launch in (1, 2, 3):  # (1: its counters kept and compared; 2 and 3 on the counters each leaves at 0)
+            got_cache = Cache(cache.key.clone(), cache.value.clone(), *cache[2:])
+            programs = default_programs(device, tiling)
+            size = state_size(shape.depth, shape.batch * shape.tokens, shape.tokens, shape.heads, tiling)
+            state = torch.zeros(size, dtype=torch.int32, device=device) if launch == 1 else None
+            got = persistent_layers_(x.clone(), layers, cos, sin, got_cache, 1e-6, tiling, programs, state=state)
+            error = max(relative_deviation(got, want), relative_deviation(got_cache.key, want_cache.key),
+                        relative_deviation(got_cache.value, want_cache.value))
+            line = f"{shape} {tiling} launch {launch}: {error:.2e} against the reference"
+            if state is not None:
+                miscounted = (state.cpu() != expected_counts(shape, tiling, programs)).sum().item()
+                line += f", {miscounted} of {size} counters not as expected"
+                error = error if miscounted == 0 else float("inf")
+            if device.type == "cuda" and launch == 1:
+                today = Cache(cache.key.clone(), cache.value.clone(), *cache[2:])
+                line += f", today's ops {relative_deviation(layer_by_layer_(x.clone(), layers, cos, sin, today, 1e-6, fused_ops), want):.2e}"
+            failures += not error <= tolerance
+            print(line + ("" if error <= tolerance else f"  FAILED (bound {tolerance:g})"), flush=True)
+    return failures
+
+
+def compile_for(arch: int, tilings: list[Tiling]) -> int:
+    """Compile the full-size variants (batch 1 and 8) for `arch` with triton's ptxas, on meta tensors (no GPU)."""
+    from kernel_resources import SHARED_PER_BLOCK, TargetDriver, ptxas_usage
+
+    triton.runtime.driver.set_active(TargetDriver(arch))
+    limit = SHARED_PER_BLOCK.get(arch)
+    too_large = 0
+    for batch, tiling in itertools.product((1, 8), tilings):
+        x, layers, cos, sin, cache = operands(FULL._replace(depth=1, batch=batch), torch.bfloat16, torch.device("cpu"))
+        x, cos, sin, *layers, first, row_ends = (tensor.to("meta") for tensor in (x, cos, sin, *layers, *cache[2:4]))
+        variant = persistent_layers_(x, Layers(*layers), cos, sin, Cache(*(each.to("meta") for each in cache[:2]), first,
+                                                                       row_ends, cache.first_slot), 1e-6, tiling, programs=132,
+                                     launch=lambda kernel, grid, arguments, options: kernel.run(*arguments, grid=grid,
+                                                                                                warmup=True, **options))
+        shared = variant.metadata.shared
+        too_large += limit is not None and shared > limit
+        print(f"sm_{arch} batch {batch} {tiling}: shared {shared:,d} B, registers / spill stores "
+              f"{ptxas_usage(variant.asm['ptx'], arch).split()}", flush=True)
+    return too_large
+
+
+def bench(tilings: list[Tiling]) -> None:
+    """π0's 18 expert layers at full size, bf16, batch 1 and 8: today's 90 launches against one persistent launch, 20
+    steps in a CUDA graph (the weights, 600 MB, come from memory: more than the L2 cache holds)."""
+    from pi0_torch.benchmark import graph_time
+
+    device = torch.device("cuda")
+    print(f"{torch.cuda.get_device_name(device)}, torch {torch.__version__}, triton {triton.__version__}; µs per Euler "
+          "step of the 18 layers (today: 5 fused launches per layer), 20 steps in a CUDA graph")
+    for batch in (1, 8):
+        shape = FULL._replace(batch=batch)
+        x, layers, cos, sin, cache = operands(shape, torch.bfloat16, device)
+        want = layer_by_layer_(x.clone(), layers, cos, sin, Cache(cache.key.clone(), cache.value.clone(), *cache[2:]), 1e-6)
+        bytes_ = sum(weight.numel() * weight.element_size() for weight in layers)
+        results = []
+        for tiling in [None, *tilings]:  # (the action tokens accumulate step after step, as a chunk's do)
+            step = (functools.partial(layer_by_layer_, x.clone(), layers, cos, sin, cache, 1e-6, fused_ops)
+                    if tiling is None else functools.partial(persistent_layers_, x.clone(), layers, cos, sin, cache,
+                                                             1e-6, tiling))
+            seconds = graph_time(step, device, calls=20, repeats=5)
+            first = Cache(cache.key.clone(), cache.value.clone(), *cache[2:])
+            got = (layer_by_layer_(x.clone(), layers, cos, sin, first, 1e-6, fused_ops) if tiling is None else
+                   persistent_layers_(x.clone(), layers, cos, sin, first, 1e-6, tiling))
+            results.append((seconds, relative_deviation(got, want), tiling))
+        base = results[0][0]
+        print(f"\nbatch {batch} ({batch * shape.tokens} rows), {bytes_ / 2**20:.0f} MiB of weights")
+        for seconds, deviation, tiling in sorted(results, key=lambda result: result[0]):
+            name = "today's 90 launches" if tiling is None else f"persistent {tiling}"
+            print(f"  {seconds * 1e6:8.1f} us {bytes_ / seconds / 1e9:6.0f} GB/s x{base / seconds:5.2f}  deviation "
+                  f"{deviation:.1e}  {name}", flush=True)
+
+
+TILINGS = [Tiling(), Tiling(k=128), Tiling(prefetch=False), Tiling(qkv=32, o=32, gate_up=64, down=32),
+           Tiling(key_parts=2), Tiling(per_sm=2), Tiling(warps=8)]
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--check", action="store_true", help="against the reference: small float32 shapes in triton's "
+                        "interpreter without a GPU; full size, bf16, every tiling on one")
+    parser.add_argument("--compile", type=int, metavar="ARCH", help="compile every tiling for this compute capability")
+    parser.add_argument("--bench", action="store_true", help="time it against today's ops (CUDA)")
+    args = parser.parse_args()
+    failures = 0
+    if args.check:
+        if torch.cuda.is_available():
+            shapes = [FULL._replace(depth=2), FULL._replace(depth=2, batch=8)]
+            failures += check(torch.device("cuda"), torch.bfloat16, shapes, FUSED_TOLERANCE[torch.bfloat16], TILINGS)
+        else:  # (the interpreter: small, float32; one and two samples, partial row and attention blocks)
+            shapes = [Shape(2, 1, 5, 7, 32, 2, 16, 48), Shape(2, 3, 6, 9, 48, 2, 16, 40)]
+            tiling = Tiling(qkv=8, o=16, gate_up=16, down=16, k=16, m=16, attention_m=16, attention_n=16, key_parts=2)
+            failures += check(torch.device("cpu"), torch.float32, shapes, 1e-5, [tiling])
+    if args.compile:
+        failures += compile_for(args.compile, TILINGS)
+    if args.bench:
+        bench(TILINGS)
+    return 1 if failures else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
