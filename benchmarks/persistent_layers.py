@@ -14,7 +14,11 @@ of the suffix (docs/gpu.md, "Where the next milliseconds are"):
   output, the MLP's hidden activations, the key parts) are one per launch, reused by every layer: each is written
   again only after every reader of the layer before has counted in (the chain of waits above);
 - a tile waits only on tiles handed out before it, whose programs are already running: no deadlock, and triton's
-  interpreter (programs one after another) runs it too (nothing ever waits there: it checks the arithmetic);
+  interpreter (programs one after another) runs it too. Nothing ever waits there, so `--check` there also records
+  what each tile waits for (`wait_graph`, from the kernel's own waits and count-ins) and runs the tiles in other
+  orders those waits allow (`orders`): a read or write that no wait protects comes out wrong in one of them (as a
+  wait on the previous layer's gate/up instead of its down-projection does, or an o-projection not waiting for the
+  attention: both checked once by hand);
 - a waiting tile first asks its weights into L2; the last program to finish puts the counters back to 0, so the
   next launch needs no memset (one launch per step, nothing else).
 
@@ -33,8 +37,9 @@ import argparse
 import functools
 import itertools
 import os
+import random
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -142,7 +147,7 @@ def _qkv_tile(tile, x_ptr, scale_ptr, w_ptr, cos_ptr, sin_ptr, q_ptr, key_ptr, v
     _rope_store(acc1, acc2, squares, rows, pairs, pairs < (HEADS + 2) * half, scale_ptr, cos_ptr, sin_ptr, q_ptr,
                 key_ptr, value_ptr, M, D, tokens, first_slot, slots, stride_cos_b, stride_cos_t, eps, HEADS, HEAD_DIM,
                 False)
-    _count_in(counter_ptr)
+    _count_in(counter_ptr, 1)
 
 
 @triton.jit
@@ -166,20 +171,20 @@ def _attention_tile(tile, q_ptr, key_ptr, value_ptr, first_ptr, row_ends_ptr, ou
     last = _combine_key_parts(acc, running_max, total, partial_ptr, stats_ptr, arrivals_ptr,
                               out_ptr + sample * rows_per_sample * HEAD_DIM, sample, block, blocks, part, batch,
                               rows_per_sample, key_parts, HEAD_DIM, BLOCK_M, DIM_CHUNK)
-    tl.debug_barrier()
-    tl.atomic_add(counter_ptr, tl.where(last, 1, 0), sem="release")
+    _count_in(counter_ptr, tl.where(last, 1, 0))  # (every part counts in, all but the last with 0)
 
 
 @triton.jit
 def _persistent_layers_kernel(
     x_ptr, attention_scale_ptr, qkv_ptr, o_ptr, mlp_scale_ptr, gate_up_ptr, down_ptr, cos_ptr, sin_ptr, key_ptr,
-    value_ptr, first_ptr, row_ends_ptr, q_ptr, attended_ptr, hidden_ptr, partial_ptr, stats_ptr, state_ptr,
+    value_ptr, first_ptr, row_ends_ptr, q_ptr, attended_ptr, hidden_ptr, partial_ptr, stats_ptr, state_ptr, order_ptr,
     layers, M, D, F, tokens, first_slot, slots, eps, scale, key_parts, stride_xm, stride_cos_b, stride_cos_t,
     layer_qkv, stride_qk, stride_qn, layer_o, stride_ok, stride_on, layer_gate_up, stride_gk, stride_gn,
     layer_down, stride_dk, stride_dn, layer_cache, reset,
     HEADS: tl.constexpr, HEAD_DIM: tl.constexpr, BLOCK_M: tl.constexpr, N_QKV: tl.constexpr, N_O: tl.constexpr,
     N_GATE_UP: tl.constexpr, N_DOWN: tl.constexpr, BLOCK_K: tl.constexpr, ATTENTION_M: tl.constexpr,
     ATTENTION_N: tl.constexpr, DIM_CHUNK: tl.constexpr, DOT: tl.constexpr, PREFETCH: tl.constexpr,
+    ORDERED: tl.constexpr,
 ):
     half: tl.constexpr = HEAD_DIM // 2
     batch = M // tokens
@@ -195,8 +200,12 @@ def _persistent_layers_kernel(
     layer_state = 2 + 3 * row_blocks + attention_blocks
     ticket = tl.atomic_add(state_ptr, 1)
     while ticket < layers * per_layer:
-        layer = ticket // per_layer
-        tile = ticket % per_layer
+        if ORDERED:  # (`--check`: the tiles in another order its waits allow, `order[ticket]`)
+            work = tl.load(order_ptr + ticket)
+        else:
+            work = ticket
+        layer = work // per_layer
+        tile = work % per_layer
         counters = state_ptr + 2 + layer * layer_state
         o_done = counters + 2
         gate_up_done = o_done + row_blocks
@@ -239,13 +248,15 @@ _states: dict[tuple[torch.device, int], torch.Tensor] = {}  # zeroed once; each 
 
 def persistent_layers_(x: torch.Tensor, layers: Layers, cos: torch.Tensor, sin: torch.Tensor, cache: Cache, eps: float,
                        tiling: Tiling | None = None, programs: int | None = None,
-                       launch: Callable[..., Any] | None = None, state: torch.Tensor | None = None) -> torch.Tensor:
+                       launch: Callable[..., Any] | None = None, state: torch.Tensor | None = None,
+                       order: torch.Tensor | None = None) -> torch.Tensor:
     """Every layer of `layers` on the action tokens `x` `[M, D]` (M = B T), in place and in one launch (module
     docstring): `x += attention(...) @ o; x += geglu(norm(x) @ gate_up) @ down` per layer, k and v written into
     `cache`. cos, sin `[B or 1, T, H]` float32 (`rope_cos_sin`'s tables). `programs`: the grid (the GPU's
     multiprocessors by default). `launch`: stands in for the kernel's launch (`--compile`). `state`: zeroed int32
     counters of `state_size` for this launch alone, left as the launch counted (by default: counters kept per device
-    and size, which each launch puts back to 0)."""
+    and size, which each launch puts back to 0). `order`: int32, the tiles (numbered layer after layer, in ticket
+    order) in the order the tickets hand them out; one an interpreted launch can follow (`wait_graph`)."""
     tiling = tiling or Tiling()
     rows, width = x.shape
     depth, batch, slots, head_dim = cache.key.shape
@@ -267,7 +278,8 @@ def persistent_layers_(x: torch.Tensor, layers: Layers, cos: torch.Tensor, sin: 
     arguments = (
         x, layers.attention_scale, layers.qkv, layers.o, layers.mlp_scale, layers.gate_up, layers.down, cos, sin,
         cache.key, cache.value, cache.first, cache.row_ends, q, attended, hidden, partial, stats, state,
-        depth, rows, width, mlp_width, tokens, cache.first_slot, slots, eps, head_dim**-0.5, tiling.key_parts,
+        state if order is None else order, depth, rows, width, mlp_width, tokens, cache.first_slot, slots, eps,
+        head_dim**-0.5, tiling.key_parts,
         x.stride(0), cos.stride(0) if cos.shape[0] > 1 else 0, cos.stride(1),
         layers.qkv.stride(0), layers.qkv.stride(1), layers.qkv.stride(2), layers.o.stride(0), layers.o.stride(1),
         layers.o.stride(2), layers.gate_up.stride(0), layers.gate_up.stride(1), layers.gate_up.stride(2),
@@ -277,7 +289,8 @@ def persistent_layers_(x: torch.Tensor, layers: Layers, cos: torch.Tensor, sin: 
                "N_GATE_UP": tiling.gate_up, "N_DOWN": tiling.down, "BLOCK_K": tiling.k,
                "ATTENTION_M": tiling.attention_m, "ATTENTION_N": tiling.attention_n,
                "DIM_CHUNK": min(head_dim, 4096 // tiling.attention_m), "DOT": dot_dtype(layers.o.dtype),
-               "PREFETCH": tiling.prefetch and not INTERPRETING, "num_warps": tiling.warps, "num_stages": tiling.stages}
+               "PREFETCH": tiling.prefetch and not INTERPRETING, "ORDERED": order is not None, "num_warps": tiling.warps,
+               "num_stages": tiling.stages}
     if launch is not None:
         return launch(_persistent_layers_kernel, (programs,), arguments, options)
     _persistent_layers_kernel[(programs,)](*arguments, **options)
@@ -411,6 +424,98 @@ def check(device: torch.device, dtype: torch.dtype, shapes: list[Shape], toleran
     return failures
 
 
+def wait_graph(run: Callable[[], Any]) -> list[set[int]]:
+    """What each tile of an interpreted launch `run` waits for: the tiles (numbered in ticket order) counted in on the
+    counter it waits on, where it needs more than 0. Recorded from the kernel itself: for one launch, its waits and
+    count-ins (one of each per tile, in ticket order) go to a recorder instead (no waiting, no counting)."""
+    import persistent_mlp
+
+    waits: list[tuple[int, int]] = []  # (counter address, need) per tile
+    counts: list[int] = []  # counter address per tile
+
+    def value(each: Any) -> int:
+        return int(each.handle.data.item()) if hasattr(each, "handle") else int(each)
+
+    def wait_for(counter_ptr: Any, need: Any) -> None:
+        waits.append((value(counter_ptr), value(need)))
+
+    def count_in(counter_ptr: Any, count: Any) -> None:
+        counts.append(value(counter_ptr))
+
+    modules = (sys.modules[__name__], persistent_mlp)
+    saved = [(module, module._wait_for, module._count_in) for module in modules]
+    for module in modules:
+        module._wait_for, module._count_in = wait_for, count_in
+    try:
+        run()
+    finally:
+        for module, wait, count in saved:
+            module._wait_for, module._count_in = wait, count
+    assert len(waits) == len(counts), (len(waits), len(counts))
+    producers: dict[int, list[int]] = {}
+    for tile, counter in enumerate(counts):
+        producers.setdefault(counter, []).append(tile)
+    return [set(producers.get(counter, ())) if need > 0 else set() for counter, need in waits]
+
+
+def orders(graph: list[set[int]], seeds: int) -> Iterator[tuple[str, list[int]]]:
+    """Orders of the tiles that `graph`'s waits allow: each tile as early as they let it (the later tile first where
+    several could run: layers and phases running ahead of the ones before), then `seeds` random ones."""
+    def order(pick: Callable[[list[int]], int]) -> list[int]:  # pick(ready tiles): the index of the next
+        waiting_on = [set(each) for each in graph]
+        readers: dict[int, list[int]] = {}
+        for tile, needs in enumerate(graph):
+            for need in needs:
+                readers.setdefault(need, []).append(tile)
+        ready, done = [tile for tile, needs in enumerate(waiting_on) if not needs], []
+        while ready:
+            tile = ready.pop(pick(ready))
+            done.append(tile)
+            for reader in readers.get(tile, ()):
+                waiting_on[reader].discard(tile)
+                if not waiting_on[reader]:
+                    ready.append(reader)
+        assert len(done) == len(graph), "the waits form a cycle"
+        return done
+
+    def at_random(seed: int) -> Callable[[list[int]], int]:
+        chosen = random.Random(seed)
+        return lambda ready: chosen.randrange(len(ready))
+
+    yield "running ahead", order(lambda ready: ready.index(max(ready)))
+    for seed in range(seeds):
+        yield f"random {seed}", order(at_random(seed))
+
+
+def check_orders(shape: Shape, tiling: Tiling, tolerance: float) -> int:
+    """In the interpreter: the launch with its tiles in other orders its waits allow (`orders`) against the reference.
+    A read or a write that no wait orders after what it must follow (a race on a GPU) comes out wrong in some of them,
+    though the interpreter never runs two tiles at once."""
+    device = torch.device("cpu")
+    x, layers, cos, sin, cache = operands(shape, torch.float32, device)
+    want_cache = Cache(cache.key.clone(), cache.value.clone(), *cache[2:])
+    want = layer_by_layer_(x.clone(), layers, cos, sin, want_cache, 1e-6)
+    size = state_size(shape.depth, shape.batch * shape.tokens, shape.tokens, shape.heads, tiling)
+
+    def launch(order: torch.Tensor | None = None) -> float:
+        got_cache = Cache(cache.key.clone(), cache.value.clone(), *cache[2:])
+        state = torch.zeros(size, dtype=torch.int32, device=device)
+        got = persistent_layers_(x.clone(), layers, cos, sin, got_cache, 1e-6, tiling, state=state, order=order)
+        return max(relative_deviation(got, want), relative_deviation(got_cache.key, want_cache.key),
+                   relative_deviation(got_cache.value, want_cache.value))
+
+    graph = wait_graph(launch)
+    tiles = int(expected_counts(shape, tiling, programs=0)[0])  # (the tickets a launch hands out)
+    assert len(graph) == tiles, f"recorded the waits of {len(graph)} tiles, not {tiles}"
+    failures = 0
+    for name, order in orders(graph, seeds=2):
+        error = launch(torch.tensor(order, dtype=torch.int32))
+        failures += not error <= tolerance
+        print(f"{shape} {tiling}, {len(order)} tiles {name}: {error:.2e} against the reference"
+              + ("" if error <= tolerance else f"  FAILED (bound {tolerance:g})"), flush=True)
+    return failures
+
+
 def compile_for(arch: int, tilings: list[Tiling]) -> int:
     """Compile the full-size variants (batch 1 and 8) for `arch` with triton's ptxas, on meta tensors (no GPU)."""
     from kernel_resources import SHARED_PER_BLOCK, TargetDriver, ptxas_usage
@@ -484,6 +589,7 @@ def main() -> int:
             tilings = [Tiling(qkv=8, o=16, gate_up=16, down=16, k=16, m=16, attention_m=16, attention_n=16, key_parts=2),
                        Tiling(qkv=16, o=32, gate_up=32, down=32, k=32, m=32, attention_m=32, attention_n=16, key_parts=1)]
             failures += check(torch.device("cpu"), torch.float32, shapes, 1e-5, tilings)
+            failures += sum(check_orders(shape, tilings[0], 1e-5) for shape in shapes)
     if args.compile:
         failures += compile_for(args.compile, TILINGS)
     if args.bench:

@@ -79,10 +79,10 @@ def _wait_for(counter_ptr, need):
 
 
 @triton.jit
-def _count_in(counter_ptr):
-    """One more tile of this phase done: after every thread's stores (the barrier), a release add."""
+def _count_in(counter_ptr, count):
+    """`count` more of this phase done (a tile: 1): after every thread's stores (the barrier), a release add."""
     tl.debug_barrier()
-    tl.atomic_add(counter_ptr, 1, sem="release")
+    tl.atomic_add(counter_ptr, count, sem="release")
 
 
 @triton.jit
@@ -122,7 +122,7 @@ def _o_tile(tile, x_ptr, attended_ptr, o_ptr, wait_ptr, need, counters_ptr, M, D
     acc, _, _ = _matmul_tiles(attended_ptr, stride_am, attended_ptr, o_ptr, stride_ok, stride_on, rows, columns, 0, M,
                               0, NH, D, BLOCK_M, N_O, BLOCK_K, False, False, DOT, ".cg")
     _add_to_residual(x_ptr, stride_xm, rows, columns, M, D, acc)
-    _count_in(counters_ptr + block)
+    _count_in(counters_ptr + block, 1)
 
 
 @triton.jit
@@ -144,7 +144,7 @@ def _gate_up_tile(tile, x_ptr, scale_ptr, gate_up_ptr, hidden_ptr, o_counters_pt
     hidden = _gelu_tanh(gate * inverse) * (up * inverse)
     ok = (rows < M)[:, None] & (columns < F)[None, :]
     tl.store(hidden_ptr + rows[:, None] * F + columns[None, :], hidden.to(hidden_ptr.dtype.element_ty), mask=ok)
-    _count_in(counters_ptr + block)
+    _count_in(counters_ptr + block, 1)
 
 
 @triton.jit
@@ -164,7 +164,7 @@ def _down_tile(tile, x_ptr, hidden_ptr, down_ptr, gate_up_counters_ptr, counters
                               BLOCK_M, N_DOWN, BLOCK_K, False, False, DOT, ".cg")
     _add_to_residual(x_ptr, stride_xm, rows, columns, M, D, acc)
     if COUNT:
-        _count_in(counters_ptr + block)
+        _count_in(counters_ptr + block, 1)
 
 
 @triton.jit
