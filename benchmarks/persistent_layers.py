@@ -23,8 +23,8 @@ of the suffix (docs/gpu.md, "Where the next milliseconds are"):
   next launch needs no memset (one launch per step, nothing else).
 
 The numbers are those of `pi0_torch.kernels.reference` (float32 sums, bf16 outputs), not bit for bit (no split-K).
-π0's layers (no adaRMS), one kv head, every action token seeing the whole cache up to the step's last slot. Not used
-by sampling: this measures whether it would pay.
+π0's layers, and π0.5's with their adaRMS biases and residual gates (`AdaRMS`); one kv head, every action token
+seeing the whole cache up to the step's last slot. Not used by sampling: this measures whether it would pay.
 
     python benchmarks/persistent_layers.py --check              # CPU: triton's interpreter, small float32 shapes
     python benchmarks/persistent_layers.py --compile 90         # CPU: compile for sm_90 (ptxas), print its use
@@ -44,6 +44,7 @@ from pathlib import Path
 from typing import Any, NamedTuple
 
 import torch
+from torch.utils._pytree import tree_map_only
 
 if "--check" in sys.argv and not torch.cuda.is_available():
     os.environ.setdefault("TRITON_INTERPRET", "1")  # (before triton is imported)
@@ -121,17 +122,41 @@ class Cache(NamedTuple):
     first_slot: int  # the action tokens' first slot
 
 
+class AdaRMS(NamedTuple):
+    """π0.5's time conditioning of the step, per layer: the norms' shifts through the projections after them (biases),
+    and the residual gates."""
+
+    qkv_bias: torch.Tensor  # [L, (N + 2) H]
+    o_gate: torch.Tensor  # [L, D]
+    gate_up_bias: torch.Tensor  # [L, 2 F]
+    down_gate: torch.Tensor  # [L, D]
+
+
+class Step(NamedTuple):
+    """What an Euler step's layers read besides the action tokens."""
+
+    layers: Layers
+    cos: torch.Tensor  # [B or 1, T, H] float32: `rope_cos_sin`'s tables of the action tokens
+    sin: torch.Tensor
+    cache: Cache
+    adarms: AdaRMS | None  # π0.5's; None for π0
+
+    def fresh(self) -> Step:
+        """The same with a copy of the cache (a step writes its action tokens' keys and values)."""
+        return self._replace(cache=self.cache._replace(key=self.cache.key.clone(), value=self.cache.value.clone()))
+
+
 # -- the kernel -----------------------------------------------------------------------------------------------------
 
 
 @triton.jit
-def _qkv_tile(tile, x_ptr, scale_ptr, w_ptr, cos_ptr, sin_ptr, q_ptr, key_ptr, value_ptr, wait_ptr, need, counter_ptr,
-              M, D, tokens, first_slot, slots, stride_xm, stride_wk, stride_wn, stride_cos_b, stride_cos_t, eps,
-              HEADS: tl.constexpr, HEAD_DIM: tl.constexpr, BLOCK_M: tl.constexpr, N_QKV: tl.constexpr,
-              BLOCK_K: tl.constexpr, DOT: tl.constexpr, PREFETCH: tl.constexpr):
-    """Column pairs `(c, c + H/2)` of q/k/v for row block r: RMSNorm, the projection, RoPE; q into `q`, k and v into the
-    layer's cache (`_rope_store`), once `wait[r]` reaches `need` (the previous layer's down-projection of r); then
-    counted in (`counter`)."""
+def _qkv_tile(tile, x_ptr, scale_ptr, w_ptr, bias_ptr, cos_ptr, sin_ptr, q_ptr, key_ptr, value_ptr, wait_ptr, need,
+              counter_ptr, M, D, tokens, first_slot, slots, stride_xm, stride_wk, stride_wn, stride_cos_b, stride_cos_t,
+              eps, HEADS: tl.constexpr, HEAD_DIM: tl.constexpr, BLOCK_M: tl.constexpr, N_QKV: tl.constexpr,
+              BLOCK_K: tl.constexpr, DOT: tl.constexpr, PREFETCH: tl.constexpr, HAS_BIAS: tl.constexpr):
+    """Column pairs `(c, c + H/2)` of q/k/v for row block r: RMSNorm, the projection (adaRMS: plus `bias`), RoPE; q into
+    `q`, k and v into the layer's cache (`_rope_store`), once `wait[r]` reaches `need` (the previous layer's
+    down-projection of r); then counted in (`counter`)."""
     half: tl.constexpr = HEAD_DIM // 2
     pair_tiles = tl.cdiv((HEADS + 2) * half, N_QKV)
     block = tile // pair_tiles
@@ -144,9 +169,9 @@ def _qkv_tile(tile, x_ptr, scale_ptr, w_ptr, cos_ptr, sin_ptr, q_ptr, key_ptr, v
     _wait_for(wait_ptr + block, need)
     acc1, acc2, squares = _matmul_tiles(x_ptr, stride_xm, scale_ptr, w_ptr, stride_wk, stride_wn, rows, first_half, half,
                                         M, 0, D, width, BLOCK_M, N_QKV, BLOCK_K, True, True, DOT, ".cg")
-    _rope_store(acc1, acc2, squares, rows, pairs, pairs < (HEADS + 2) * half, scale_ptr, cos_ptr, sin_ptr, q_ptr,
+    _rope_store(acc1, acc2, squares, rows, pairs, pairs < (HEADS + 2) * half, bias_ptr, cos_ptr, sin_ptr, q_ptr,
                 key_ptr, value_ptr, M, D, tokens, first_slot, slots, stride_cos_b, stride_cos_t, eps, HEADS, HEAD_DIM,
-                False)
+                HAS_BIAS)
     _count_in(counter_ptr, 1)
 
 
@@ -177,14 +202,14 @@ def _attention_tile(tile, q_ptr, key_ptr, value_ptr, first_ptr, row_ends_ptr, ou
 @triton.jit
 def _persistent_layers_kernel(
     x_ptr, attention_scale_ptr, qkv_ptr, o_ptr, mlp_scale_ptr, gate_up_ptr, down_ptr, cos_ptr, sin_ptr, key_ptr,
-    value_ptr, first_ptr, row_ends_ptr, q_ptr, attended_ptr, hidden_ptr, partial_ptr, stats_ptr, state_ptr, order_ptr,
-    layers, M, D, F, tokens, first_slot, slots, eps, scale, key_parts, stride_xm, stride_cos_b, stride_cos_t,
+    value_ptr, first_ptr, row_ends_ptr, qkv_bias_ptr, o_gate_ptr, gate_up_bias_ptr, down_gate_ptr, q_ptr, attended_ptr,
+    hidden_ptr, partial_ptr, stats_ptr, state_ptr, order_ptr, layers, M, D, F, tokens, first_slot, slots, eps, scale, key_parts, stride_xm, stride_cos_b, stride_cos_t,
     layer_qkv, stride_qk, stride_qn, layer_o, stride_ok, stride_on, layer_gate_up, stride_gk, stride_gn,
     layer_down, stride_dk, stride_dn, layer_cache, reset,
     HEADS: tl.constexpr, HEAD_DIM: tl.constexpr, BLOCK_M: tl.constexpr, N_QKV: tl.constexpr, N_O: tl.constexpr,
     N_GATE_UP: tl.constexpr, N_DOWN: tl.constexpr, BLOCK_K: tl.constexpr, ATTENTION_M: tl.constexpr,
     ATTENTION_N: tl.constexpr, DIM_CHUNK: tl.constexpr, DOT: tl.constexpr, PREFETCH: tl.constexpr,
-    ORDERED: tl.constexpr,
+    ADARMS: tl.constexpr, ORDERED: tl.constexpr,
 ):
     half: tl.constexpr = HEAD_DIM // 2
     batch = M // tokens
@@ -212,27 +237,28 @@ def _persistent_layers_kernel(
         down_done = gate_up_done + row_blocks
         if tile < qkv_end:  # (layer 0 waits for nothing: its own down-projection counters, need 0)
             previous = down_done - tl.where(layer > 0, layer_state, 0)
-            _qkv_tile(tile, x_ptr, attention_scale_ptr + layer * D, qkv_ptr + layer * layer_qkv, cos_ptr, sin_ptr, q_ptr,
-                      key_ptr + layer * layer_cache, value_ptr + layer * layer_cache, previous,
-                      tl.where(layer > 0, tl.cdiv(D, N_DOWN), 0), counters, M, D, tokens, first_slot, slots, stride_xm,
-                      stride_qk, stride_qn, stride_cos_b, stride_cos_t, eps, HEADS, HEAD_DIM, BLOCK_M, N_QKV, BLOCK_K,
-                      DOT, PREFETCH)
+            _qkv_tile(tile, x_ptr, attention_scale_ptr + layer * D, qkv_ptr + layer * layer_qkv,
+                      qkv_bias_ptr + layer * (HEADS + 2) * HEAD_DIM, cos_ptr, sin_ptr, q_ptr, key_ptr + layer * layer_cache,
+                      value_ptr + layer * layer_cache, previous, tl.where(layer > 0, tl.cdiv(D, N_DOWN), 0), counters,
+                      M, D, tokens, first_slot, slots, stride_xm, stride_qk, stride_qn, stride_cos_b, stride_cos_t, eps,
+                      HEADS, HEAD_DIM, BLOCK_M, N_QKV, BLOCK_K, DOT, PREFETCH, ADARMS)
         elif tile < attention_end:
             _attention_tile(tile - qkv_end, q_ptr, key_ptr + layer * layer_cache, value_ptr + layer * layer_cache,
                             first_ptr, row_ends_ptr, attended_ptr, partial_ptr, stats_ptr, down_done + row_blocks,
                             counters, qkv_end, counters + 1, batch, tokens, slots, scale, key_parts, HEADS, HEAD_DIM,
                             ATTENTION_M, ATTENTION_N, DIM_CHUNK, DOT)
         elif tile < o_end:
-            _o_tile(tile - attention_end, x_ptr, attended_ptr, o_ptr + layer * layer_o, counters + 1, attention_blocks,
-                    o_done, M, D, HEADS * HEAD_DIM, stride_xm, HEADS * HEAD_DIM, stride_ok, stride_on, BLOCK_M, N_O,
-                    BLOCK_K, DOT, PREFETCH)
+            _o_tile(tile - attention_end, x_ptr, attended_ptr, o_ptr + layer * layer_o, o_gate_ptr + layer * D,
+                    counters + 1, attention_blocks, o_done, M, D, HEADS * HEAD_DIM, stride_xm, HEADS * HEAD_DIM, stride_ok,
+                    stride_on, BLOCK_M, N_O, BLOCK_K, DOT, PREFETCH, ADARMS)
         elif tile < gate_up_end:
             _gate_up_tile(tile - o_end, x_ptr, mlp_scale_ptr + layer * D, gate_up_ptr + layer * layer_gate_up,
-                          hidden_ptr, o_done, gate_up_done, M, D, F, stride_xm, stride_gk, stride_gn, eps, BLOCK_M, N_O,
-                          N_GATE_UP, BLOCK_K, DOT, PREFETCH)
+                          gate_up_bias_ptr + layer * 2 * F, hidden_ptr, o_done, gate_up_done, M, D, F, stride_xm, stride_gk,
+                          stride_gn, eps, BLOCK_M, N_O, N_GATE_UP, BLOCK_K, DOT, PREFETCH, ADARMS)
         else:
-            _down_tile(tile - gate_up_end, x_ptr, hidden_ptr, down_ptr + layer * layer_down, gate_up_done, down_done, M,
-                       D, F, stride_xm, stride_dk, stride_dn, BLOCK_M, N_GATE_UP, N_DOWN, BLOCK_K, DOT, PREFETCH, True)
+            _down_tile(tile - gate_up_end, x_ptr, hidden_ptr, down_ptr + layer * layer_down, down_gate_ptr + layer * D,
+                       gate_up_done, down_done, M, D, F, stride_xm, stride_dk, stride_dn, BLOCK_M, N_GATE_UP, N_DOWN,
+                       BLOCK_K, DOT, PREFETCH, ADARMS, True)
         ticket = tl.atomic_add(state_ptr, 1)
     # the last program out puts every counter back to 0 for the next launch (all others have taken their last ticket;
     # `reset` 0 keeps them, for `--check` to count)
@@ -246,17 +272,17 @@ def _persistent_layers_kernel(
 _states: dict[tuple[torch.device, int], torch.Tensor] = {}  # zeroed once; each launch leaves them at 0
 
 
-def persistent_layers_(x: torch.Tensor, layers: Layers, cos: torch.Tensor, sin: torch.Tensor, cache: Cache, eps: float,
-                       tiling: Tiling | None = None, programs: int | None = None,
+def persistent_layers_(x: torch.Tensor, step: Step, eps: float, tiling: Tiling | None = None, programs: int | None = None,
                        launch: Callable[..., Any] | None = None, state: torch.Tensor | None = None,
                        order: torch.Tensor | None = None) -> torch.Tensor:
-    """Every layer of `layers` on the action tokens `x` `[M, D]` (M = B T), in place and in one launch (module
-    docstring): `x += attention(...) @ o; x += geglu(norm(x) @ gate_up) @ down` per layer, k and v written into
-    `cache`. cos, sin `[B or 1, T, H]` float32 (`rope_cos_sin`'s tables). `programs`: the grid (the GPU's
-    multiprocessors by default). `launch`: stands in for the kernel's launch (`--compile`). `state`: zeroed int32
-    counters of `state_size` for this launch alone, left as the launch counted (by default: counters kept per device
-    and size, which each launch puts back to 0). `order`: int32, the tiles (numbered layer after layer, in ticket
-    order) in the order the tickets hand them out; one an interpreted launch can follow (`wait_graph`)."""
+    """Every layer of `step` on the action tokens `x` `[M, D]` (M = B T), in place and in one launch (module
+    docstring): `x += attention(...) @ o; x += geglu(norm(x) @ gate_up) @ down` per layer (π0.5: with its adaRMS
+    biases and gates), k and v written into the step's cache. `programs`: the grid (`default_programs`). `launch`:
+    stands in for the kernel's launch (`--compile`). `state`: zeroed int32 counters of `state_size` for this launch
+    alone, left as the launch counted (by default: counters kept per device and size, which each launch puts back to
+    0). `order`: int32, the tiles (numbered layer after layer, in ticket order) in the order the tickets hand them
+    out; one an interpreted launch can follow (`wait_graph`)."""
+    layers, cos, sin, cache, adarms = step
     tiling = tiling or Tiling()
     rows, width = x.shape
     depth, batch, slots, head_dim = cache.key.shape
@@ -277,7 +303,8 @@ def persistent_layers_(x: torch.Tensor, layers: Layers, cos: torch.Tensor, sin: 
     programs = programs or default_programs(x.device, tiling)
     arguments = (
         x, layers.attention_scale, layers.qkv, layers.o, layers.mlp_scale, layers.gate_up, layers.down, cos, sin,
-        cache.key, cache.value, cache.first, cache.row_ends, q, attended, hidden, partial, stats, state,
+        cache.key, cache.value, cache.first, cache.row_ends, *(adarms or (x,) * 4), q, attended, hidden, partial, stats,
+        state,
         state if order is None else order, depth, rows, width, mlp_width, tokens, cache.first_slot, slots, eps,
         head_dim**-0.5, tiling.key_parts,
         x.stride(0), cos.stride(0) if cos.shape[0] > 1 else 0, cos.stride(1),
@@ -289,8 +316,8 @@ def persistent_layers_(x: torch.Tensor, layers: Layers, cos: torch.Tensor, sin: 
                "N_GATE_UP": tiling.gate_up, "N_DOWN": tiling.down, "BLOCK_K": tiling.k,
                "ATTENTION_M": tiling.attention_m, "ATTENTION_N": tiling.attention_n,
                "DIM_CHUNK": min(head_dim, 4096 // tiling.attention_m), "DOT": dot_dtype(layers.o.dtype),
-               "PREFETCH": tiling.prefetch and not INTERPRETING, "ORDERED": order is not None, "num_warps": tiling.warps,
-               "num_stages": tiling.stages}
+               "PREFETCH": tiling.prefetch and not INTERPRETING, "ADARMS": adarms is not None, "ORDERED": order is not None,
+               "num_warps": tiling.warps, "num_stages": tiling.stages}
     if launch is not None:
         return launch(_persistent_layers_kernel, (programs,), arguments, options)
     _persistent_layers_kernel[(programs,)](*arguments, **options)
@@ -323,19 +350,20 @@ def expected_counts(shape: Shape, tiling: Tiling, programs: int) -> torch.Tensor
     return torch.tensor([shape.depth * tickets + programs, programs] + layer * shape.depth, dtype=torch.int32)
 
 
-def layer_by_layer_(x: torch.Tensor, layers: Layers, cos: torch.Tensor, sin: torch.Tensor, cache: Cache, eps: float,
-                    ops: Any = reference) -> torch.Tensor:
+def layer_by_layer_(x: torch.Tensor, step: Step, eps: float, ops: Any = reference) -> torch.Tensor:
     """The same, five ops per layer: `pi0_torch.kernels.reference`'s, or (`ops=fused_ops`) today's fused kernels (on
     CUDA; cuBLAS from `CUBLAS_ROWS` rows)."""
+    layers, cos, sin, cache, adarms = step
     batch, heads, head_dim = cache.key.shape[1], layers.o.shape[1] // cache.key.shape[-1], cache.key.shape[-1]
     for layer in range(layers.qkv.shape[0]):
         key, value = cache.key[layer], cache.value[layer]
-        q = ops.norm_qkv_rope(x, layers.attention_scale[layer], None, layers.qkv[layer], cos, sin, key, value,
+        qkv_bias, o_gate, gate_up_bias, down_gate = (None,) * 4 if adarms is None else (each[layer] for each in adarms)
+        q = ops.norm_qkv_rope(x, layers.attention_scale[layer], qkv_bias, layers.qkv[layer], cos, sin, key, value,
                               cache.first_slot, eps)
         attended = ops.range_attention(q.view(batch, -1, heads, head_dim), key, value, cache.first, cache.row_ends)
-        ops.matmul_residual_(x, attended, layers.o[layer], None)
-        hidden = ops.norm_gate_up_geglu(x, layers.mlp_scale[layer], None, layers.gate_up[layer], eps)
-        ops.matmul_residual_(x, hidden, layers.down[layer], None)
+        ops.matmul_residual_(x, attended, layers.o[layer], o_gate)
+        hidden = ops.norm_gate_up_geglu(x, layers.mlp_scale[layer], gate_up_bias, layers.gate_up[layer], eps)
+        ops.matmul_residual_(x, hidden, layers.down[layer], down_gate)
     return x
 
 
@@ -363,17 +391,17 @@ class Shape(NamedTuple):
     heads: int
     head_dim: int
     mlp_width: int
+    adarms: bool = False  # π0.5's layers
 
 
 FULL = Shape(18, 1, 50, 817, 1024, 8, 256, 4096)  # π0's action expert, 3 cameras and 48 prompt tokens
 
 
-def operands(shape: Shape, dtype: torch.dtype, device: torch.device, seed: int = 0
-             ) -> tuple[torch.Tensor, Layers, torch.Tensor, torch.Tensor, Cache]:
-    """x, the layers, cos, sin and the cache (its prefix random, samples after the first starting a few slots in):
+def operands(shape: Shape, dtype: torch.dtype, device: torch.device, seed: int = 0) -> tuple[torch.Tensor, Step]:
+    """The action tokens and the step (the cache's prefix random, samples after the first starting a few slots in):
     random, the weights as transposed `[out, in]` tensors (the engine's views)."""
     generator = torch.Generator(device).manual_seed(seed)
-    depth, batch, tokens, prefix, width, heads, head_dim, mlp_width = shape
+    depth, batch, tokens, prefix, width, heads, head_dim, mlp_width, adarms = shape
 
     def randn(*size: int, scale: float = 1.0) -> torch.Tensor:
         return (torch.randn(*size, generator=generator, device=device) * scale).to(dtype)
@@ -388,7 +416,15 @@ def operands(shape: Shape, dtype: torch.dtype, device: torch.device, seed: int =
     key, value = randn(depth, batch, slots, head_dim), randn(depth, batch, slots, head_dim)
     first = torch.arange(batch, device=device) * 3 % max(prefix, 1)
     cache = Cache(key, value, first, torch.full((tokens,), slots, device=device), prefix)
-    return randn(batch * tokens, width), layers, cos, sin, cache
+    conditioning = AdaRMS(randn(depth, (heads + 2) * head_dim), randn(depth, width), randn(depth, 2 * mlp_width),
+                          randn(depth, width)) if adarms else None
+    return randn(batch * tokens, width), Step(layers, cos, sin, cache, conditioning)
+
+
+def deviation(got: torch.Tensor, got_step: Step, want: torch.Tensor, wanted: Step) -> float:
+    """The largest relative deviation of the action tokens and the keys and values written."""
+    return max(relative_deviation(got, want), relative_deviation(got_step.cache.key, wanted.cache.key),
+               relative_deviation(got_step.cache.value, wanted.cache.value))
 
 
 def check(device: torch.device, dtype: torch.dtype, shapes: list[Shape], tolerance: float, tilings: list[Tiling]) -> int:
@@ -398,27 +434,25 @@ def check(device: torch.device, dtype: torch.dtype, shapes: list[Shape], toleran
     (each other launch option is another compiled variant: on a GPU the check would take minutes)."""
     failures = 0
     for shape, tiling in itertools.product(shapes, tilings):
-        x, layers, cos, sin, cache = operands(shape, dtype, device)
-        want_cache = Cache(cache.key.clone(), cache.value.clone(), *cache[2:])
-        want = layer_by_layer_(x.clone(), layers, cos, sin, want_cache, 1e-6)
+        x, step = operands(shape, dtype, device)
+        wanted = step.fresh()
+        want = layer_by_layer_(x.clone(), wanted, 1e-6)
         first = tiling == tilings[0]
         for launch in (1, 2, 3) if first else (2, 3):  # (1: counters kept and compared; 2 and 3 on those left at 0)
-            got_cache = Cache(cache.key.clone(), cache.value.clone(), *cache[2:])
+            got_step = step.fresh()
             programs = default_programs(device, tiling)
             size = state_size(shape.depth, shape.batch * shape.tokens, shape.tokens, shape.heads, tiling)
             state = torch.zeros(size, dtype=torch.int32, device=device) if launch == 1 else None
-            got = persistent_layers_(x.clone(), layers, cos, sin, got_cache, 1e-6, tiling, programs, state=state)
-            error = max(relative_deviation(got, want), relative_deviation(got_cache.key, want_cache.key),
-                        relative_deviation(got_cache.value, want_cache.value))
+            got = persistent_layers_(x.clone(), got_step, 1e-6, tiling, programs, state=state)
+            error = deviation(got, got_step, want, wanted)
             line = f"{shape} {tiling} launch {launch}: {error:.2e} against the reference"
             if state is not None:
                 miscounted = (state.cpu() != expected_counts(shape, tiling, programs)).sum().item()
                 line += f", {miscounted} of {size} counters not as expected"
                 error = error if miscounted == 0 else float("inf")
                 if device.type == "cuda":
-                    today = Cache(cache.key.clone(), cache.value.clone(), *cache[2:])
-                    deviation = relative_deviation(layer_by_layer_(x.clone(), layers, cos, sin, today, 1e-6, fused_ops), want)
-                    line += f", today's ops {deviation:.2e}"
+                    today = step.fresh()
+                    line += f", today's ops {deviation(layer_by_layer_(x.clone(), today, 1e-6, fused_ops), today, want, wanted):.2e}"
             failures += not error <= tolerance
             print(line + ("" if error <= tolerance else f"  FAILED (bound {tolerance:g})"), flush=True)
     return failures
@@ -492,17 +526,16 @@ def check_orders(shape: Shape, tiling: Tiling, tolerance: float) -> int:
     A read or a write that no wait orders after what it must follow (a race on a GPU) comes out wrong in some of them,
     though the interpreter never runs two tiles at once."""
     device = torch.device("cpu")
-    x, layers, cos, sin, cache = operands(shape, torch.float32, device)
-    want_cache = Cache(cache.key.clone(), cache.value.clone(), *cache[2:])
-    want = layer_by_layer_(x.clone(), layers, cos, sin, want_cache, 1e-6)
+    x, step = operands(shape, torch.float32, device)
+    wanted = step.fresh()
+    want = layer_by_layer_(x.clone(), wanted, 1e-6)
     size = state_size(shape.depth, shape.batch * shape.tokens, shape.tokens, shape.heads, tiling)
 
     def launch(order: torch.Tensor | None = None) -> float:
-        got_cache = Cache(cache.key.clone(), cache.value.clone(), *cache[2:])
+        got_step = step.fresh()
         state = torch.zeros(size, dtype=torch.int32, device=device)
-        got = persistent_layers_(x.clone(), layers, cos, sin, got_cache, 1e-6, tiling, state=state, order=order)
-        return max(relative_deviation(got, want), relative_deviation(got_cache.key, want_cache.key),
-                   relative_deviation(got_cache.value, want_cache.value))
+        return deviation(persistent_layers_(x.clone(), got_step, 1e-6, tiling, state=state, order=order), got_step, want,
+                         wanted)
 
     graph = wait_graph(launch)
     tiles = int(expected_counts(shape, tiling, programs=0)[0])  # (the tickets a launch hands out)
@@ -517,55 +550,54 @@ def check_orders(shape: Shape, tiling: Tiling, tolerance: float) -> int:
 
 
 def compile_for(arch: int, tilings: list[Tiling]) -> int:
-    """Compile the full-size variants (batch 1 and 8) for `arch` with triton's ptxas, on meta tensors (no GPU)."""
+    """Compile the full-size variants (π0 at batch 1 and 8; π0.5 at batch 1 in the first tiling) for `arch` with
+    triton's ptxas, on meta tensors (no GPU)."""
     from kernel_resources import SHARED_PER_BLOCK, TargetDriver, ptxas_usage
 
     triton.runtime.driver.set_active(TargetDriver(arch))
     limit = SHARED_PER_BLOCK.get(arch)
     too_large = 0
-    for batch, tiling in itertools.product((1, 8), tilings):
-        x, layers, cos, sin, cache = operands(FULL._replace(depth=1, batch=batch), torch.bfloat16, torch.device("cpu"))
-        x, cos, sin, *layers, first, row_ends = (tensor.to("meta") for tensor in (x, cos, sin, *layers, *cache[2:4]))
-        variant = persistent_layers_(x, Layers(*layers), cos, sin, Cache(*(each.to("meta") for each in cache[:2]), first,
-                                                                       row_ends, cache.first_slot), 1e-6, tiling, programs=132,
-                                     launch=lambda kernel, grid, arguments, options: kernel.run(*arguments, grid=grid,
-                                                                                                warmup=True, **options))
+    cases = [(FULL._replace(batch=batch), tiling) for batch, tiling in itertools.product((1, 8), tilings)]
+    for shape, tiling in [*cases, (FULL._replace(adarms=True), tilings[0])]:
+        x, step = operands(shape._replace(depth=1), torch.bfloat16, torch.device("cpu"))
+        x, step = x.to("meta"), tree_map_only(torch.Tensor, lambda tensor: tensor.to("meta"), step)
+        variant = persistent_layers_(x, step, 1e-6, tiling, programs=132, launch=lambda kernel, grid, arguments, options:
+                                     kernel.run(*arguments, grid=grid, warmup=True, **options))
         shared = variant.metadata.shared
         too_large += limit is not None and shared > limit
-        print(f"sm_{arch} batch {batch} {tiling}: shared {shared:,d} B, registers / spill stores "
-              f"{ptxas_usage(variant.asm['ptx'], arch).split()}", flush=True)
+        print(f"sm_{arch} batch {shape.batch}{' π0.5' if shape.adarms else ''} {tiling}: shared {shared:,d} B, "
+              f"registers / spill stores {ptxas_usage(variant.asm['ptx'], arch).split()}", flush=True)
     return too_large
 
 
 def bench(tilings: list[Tiling]) -> None:
-    """π0's 18 expert layers at full size, bf16, batch 1 and 8: today's 90 launches against one persistent launch, 20
-    steps in a CUDA graph (the weights, 600 MB, come from memory: more than the L2 cache holds)."""
+    """π0's 18 expert layers at full size, bf16, batch 1 and 8 (π0.5's at batch 1, in the first tiling): today's 90
+    launches against one persistent launch, 20 steps in a CUDA graph (the weights, 600 MB, come from memory: more
+    than the L2 cache holds)."""
     from pi0_torch.benchmark import graph_time
 
     device = torch.device("cuda")
     print(f"{torch.cuda.get_device_name(device)}, torch {torch.__version__}, triton {triton.__version__}; µs per Euler "
           "step of the 18 layers (today: 5 fused launches per layer), 20 steps in a CUDA graph")
-    for batch in (1, 8):
-        shape = FULL._replace(batch=batch)
-        x, layers, cos, sin, cache = operands(shape, torch.bfloat16, device)
-        want = layer_by_layer_(x.clone(), layers, cos, sin, Cache(cache.key.clone(), cache.value.clone(), *cache[2:]), 1e-6)
-        bytes_ = sum(weight.numel() * weight.element_size() for weight in layers)
+    for shape, shape_tilings in ((FULL, tilings), (FULL._replace(batch=8), tilings), (FULL._replace(adarms=True), tilings[:1])):
+        x, step = operands(shape, torch.bfloat16, device)
+        want = layer_by_layer_(x.clone(), step.fresh(), 1e-6)
+        bytes_ = sum(weight.numel() * weight.element_size() for weight in step.layers)
         results = []
-        for tiling in [None, *tilings]:  # (the action tokens accumulate step after step, as a chunk's do)
-            step = (functools.partial(layer_by_layer_, x.clone(), layers, cos, sin, cache, 1e-6, fused_ops)
-                    if tiling is None else functools.partial(persistent_layers_, x.clone(), layers, cos, sin, cache,
-                                                             1e-6, tiling))
-            seconds = graph_time(step, device, calls=20, repeats=5)
-            first = Cache(cache.key.clone(), cache.value.clone(), *cache[2:])
-            got = (layer_by_layer_(x.clone(), layers, cos, sin, first, 1e-6, fused_ops) if tiling is None else
-                   persistent_layers_(x.clone(), layers, cos, sin, first, 1e-6, tiling))
+        for tiling in [None, *shape_tilings]:  # (the action tokens accumulate step after step, as a chunk's do)
+            run = (functools.partial(layer_by_layer_, x.clone(), step, 1e-6, fused_ops) if tiling is None else
+                   functools.partial(persistent_layers_, x.clone(), step, 1e-6, tiling))
+            seconds = graph_time(run, device, calls=20, repeats=5)
+            got = (layer_by_layer_(x.clone(), step.fresh(), 1e-6, fused_ops) if tiling is None else
+                   persistent_layers_(x.clone(), step.fresh(), 1e-6, tiling))
             results.append((seconds, relative_deviation(got, want), tiling))
         base = results[0][0]
-        print(f"\nbatch {batch} ({batch * shape.tokens} rows), {bytes_ / 2**20:.0f} MiB of weights")
-        for seconds, deviation, tiling in sorted(results, key=lambda result: result[0]):
+        print(f"\n{'π0.5' if shape.adarms else 'π0'} batch {shape.batch} ({shape.batch * shape.tokens} rows), "
+              f"{bytes_ / 2**20:.0f} MiB of weights")
+        for seconds, deviation_, tiling in sorted(results, key=lambda result: result[0]):
             name = "today's 90 launches" if tiling is None else f"persistent {tiling}"
             print(f"  {seconds * 1e6:8.1f} us {bytes_ / seconds / 1e9:6.0f} GB/s x{base / seconds:5.2f}  deviation "
-                  f"{deviation:.1e}  {name}", flush=True)
+                  f"{deviation_:.1e}  {name}", flush=True)
 
 
 TILINGS = [Tiling(), Tiling(k=128), Tiling(prefetch=False), Tiling(qkv=32, o=32, gate_up=64, down=32),
@@ -575,7 +607,7 @@ TILINGS = [Tiling(), Tiling(k=128), Tiling(prefetch=False), Tiling(qkv=32, o=32,
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--check", action="store_true", help="against the reference: small float32 shapes in triton's "
-                        "interpreter without a GPU; full size, bf16, every tiling on one")
+                        "interpreter without a GPU; full size, bf16, every tiling on one (π0.5: the first)")
     parser.add_argument("--compile", type=int, metavar="ARCH", help="compile every tiling for this compute capability")
     parser.add_argument("--bench", action="store_true", help="time it against today's ops (CUDA)")
     args = parser.parse_args()
@@ -583,9 +615,11 @@ def main() -> int:
     if args.check:
         if torch.cuda.is_available():
             shapes = [FULL._replace(depth=2), FULL._replace(depth=2, batch=8)]
-            failures += check(torch.device("cuda"), torch.bfloat16, shapes, FUSED_TOLERANCE[torch.bfloat16], TILINGS)
-        else:  # (the interpreter: small, float32; one and two samples, partial row and attention blocks)
-            shapes = [Shape(2, 1, 5, 7, 32, 2, 16, 48), Shape(2, 3, 6, 9, 48, 2, 16, 40)]
+            bound = FUSED_TOLERANCE[torch.bfloat16]
+            failures += check(torch.device("cuda"), torch.bfloat16, shapes, bound, TILINGS)
+            failures += check(torch.device("cuda"), torch.bfloat16, [FULL._replace(depth=2, adarms=True)], bound, TILINGS[:1])
+        else:  # (the interpreter: small, float32; one and three samples, partial row and attention blocks; π0.5)
+            shapes = [Shape(2, 1, 5, 7, 32, 2, 16, 48), Shape(2, 3, 6, 9, 48, 2, 16, 40, adarms=True)]
             tilings = [Tiling(qkv=8, o=16, gate_up=16, down=16, k=16, m=16, attention_m=16, attention_n=16, key_parts=2),
                        Tiling(qkv=16, o=32, gate_up=32, down=32, k=32, m=32, attention_m=32, attention_n=16, key_parts=1)]
             failures += check(torch.device("cpu"), torch.float32, shapes, 1e-5, tilings)

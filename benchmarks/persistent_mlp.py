@@ -99,20 +99,22 @@ def _prefetch_weights(w_ptr, stride_wk, stride_wn, columns, K, N, BLOCK_K: tl.co
 
 
 @triton.jit
-def _add_to_residual(x_ptr, stride_xm, rows, columns, M, N, acc):
-    """`x[rows, columns] += acc` (float32 sum, rounded once), read past L1."""
+def _add_to_residual(x_ptr, stride_xm, rows, columns, M, N, acc, gate_ptr, HAS_GATE: tl.constexpr):
+    """`x[rows, columns] += acc` (adaRMS: `acc * gate[columns]`; float32 sum, rounded once), read past L1."""
     ok = (rows < M)[:, None] & (columns < N)[None, :]
+    if HAS_GATE:
+        acc = acc * tl.load(gate_ptr + columns, mask=columns < N, other=0.0).to(tl.float32)[None, :]
     pointers = x_ptr + rows[:, None] * stride_xm + columns[None, :]
     residual = tl.load(pointers, mask=ok, other=0.0, cache_modifier=".cg").to(tl.float32)
     tl.store(pointers, (residual + acc).to(x_ptr.dtype.element_ty), mask=ok)
 
 
 @triton.jit
-def _o_tile(tile, x_ptr, attended_ptr, o_ptr, wait_ptr, need, counters_ptr, M, D, NH, stride_xm, stride_am, stride_ok,
-            stride_on, BLOCK_M: tl.constexpr, N_O: tl.constexpr, BLOCK_K: tl.constexpr, DOT: tl.constexpr,
-            PREFETCH: tl.constexpr):
-    """`x[r, n] += attended[r] @ o[:, n]`, once `wait` reaches `need` (the attention's tiles: 0 where `attended` was
-    written before the launch); then counted in for row block r (`counters[r]`)."""
+def _o_tile(tile, x_ptr, attended_ptr, o_ptr, gate_ptr, wait_ptr, need, counters_ptr, M, D, NH, stride_xm, stride_am,
+            stride_ok, stride_on, BLOCK_M: tl.constexpr, N_O: tl.constexpr, BLOCK_K: tl.constexpr, DOT: tl.constexpr,
+            PREFETCH: tl.constexpr, HAS_GATE: tl.constexpr):
+    """`x[r, n] += attended[r] @ o[:, n]` (adaRMS: times `gate[n]`), once `wait` reaches `need` (the attention's tiles:
+    0 where `attended` was written before the launch); then counted in for row block r (`counters[r]`)."""
     o_tiles = tl.cdiv(D, N_O)
     block = tile // o_tiles
     rows = block * BLOCK_M + tl.arange(0, BLOCK_M)
@@ -121,16 +123,18 @@ def _o_tile(tile, x_ptr, attended_ptr, o_ptr, wait_ptr, need, counters_ptr, M, D
     _wait_for(wait_ptr, need)
     acc, _, _ = _matmul_tiles(attended_ptr, stride_am, attended_ptr, o_ptr, stride_ok, stride_on, rows, columns, 0, M,
                               0, NH, D, BLOCK_M, N_O, BLOCK_K, False, False, DOT, ".cg")
-    _add_to_residual(x_ptr, stride_xm, rows, columns, M, D, acc)
+    _add_to_residual(x_ptr, stride_xm, rows, columns, M, D, acc, gate_ptr, HAS_GATE)
     _count_in(counters_ptr + block, 1)
 
 
 @triton.jit
-def _gate_up_tile(tile, x_ptr, scale_ptr, gate_up_ptr, hidden_ptr, o_counters_ptr, counters_ptr, M, D, F, stride_xm,
-                  stride_gk, stride_gn, eps, BLOCK_M: tl.constexpr, N_O: tl.constexpr, N_GATE_UP: tl.constexpr,
-                  BLOCK_K: tl.constexpr, DOT: tl.constexpr, PREFETCH: tl.constexpr):
-    """`hidden[r, f] = gelu_tanh(norm(x[r]) @ gate[:, f]) * (norm(x[r]) @ up[:, f])`, once every o-projection tile of
-    row block r is in (`o_counters[r]`); then counted in for r (`counters[r]`)."""
+def _gate_up_tile(tile, x_ptr, scale_ptr, gate_up_ptr, bias_ptr, hidden_ptr, o_counters_ptr, counters_ptr, M, D, F,
+                  stride_xm, stride_gk, stride_gn, eps, BLOCK_M: tl.constexpr, N_O: tl.constexpr,
+                  N_GATE_UP: tl.constexpr, BLOCK_K: tl.constexpr, DOT: tl.constexpr, PREFETCH: tl.constexpr,
+                  HAS_BIAS: tl.constexpr):
+    """`hidden[r, f] = gelu_tanh(norm(x[r]) @ gate[:, f]) * (norm(x[r]) @ up[:, f])` (adaRMS: plus `bias[f]` and
+    `bias[F + f]` before the GeGLU), once every o-projection tile of row block r is in (`o_counters[r]`); then counted
+    in for r (`counters[r]`)."""
     gate_up_tiles = tl.cdiv(F, N_GATE_UP)
     block = tile // gate_up_tiles
     rows = block * BLOCK_M + tl.arange(0, BLOCK_M)
@@ -141,18 +145,24 @@ def _gate_up_tile(tile, x_ptr, scale_ptr, gate_up_ptr, hidden_ptr, o_counters_pt
     gate, up, squares = _matmul_tiles(x_ptr, stride_xm, scale_ptr, gate_up_ptr, stride_gk, stride_gn, rows, columns, F,
                                       M, 0, D, F, BLOCK_M, N_GATE_UP, BLOCK_K, True, True, DOT, ".cg")
     inverse = (1.0 / tl.sqrt(squares / D + eps))[:, None]
-    hidden = _gelu_tanh(gate * inverse) * (up * inverse)
+    gate = gate * inverse
+    up = up * inverse
+    if HAS_BIAS:
+        gate += tl.load(bias_ptr + columns, mask=columns < F, other=0.0).to(tl.float32)[None, :]
+        up += tl.load(bias_ptr + F + columns, mask=columns < F, other=0.0).to(tl.float32)[None, :]
+    hidden = _gelu_tanh(gate) * up
     ok = (rows < M)[:, None] & (columns < F)[None, :]
     tl.store(hidden_ptr + rows[:, None] * F + columns[None, :], hidden.to(hidden_ptr.dtype.element_ty), mask=ok)
     _count_in(counters_ptr + block, 1)
 
 
 @triton.jit
-def _down_tile(tile, x_ptr, hidden_ptr, down_ptr, gate_up_counters_ptr, counters_ptr, M, D, F, stride_xm, stride_dk,
-               stride_dn, BLOCK_M: tl.constexpr, N_GATE_UP: tl.constexpr, N_DOWN: tl.constexpr, BLOCK_K: tl.constexpr,
-               DOT: tl.constexpr, PREFETCH: tl.constexpr, COUNT: tl.constexpr):
-    """`x[r, n] += hidden[r] @ down[:, n]`, once every gate/up tile of row block r is in (so every read of `x[r]` for
-    the norm is done too); with COUNT then counted in for r (`counters[r]`: a next layer's q/k/v of r wait for them.
+def _down_tile(tile, x_ptr, hidden_ptr, down_ptr, gate_ptr, gate_up_counters_ptr, counters_ptr, M, D, F, stride_xm,
+               stride_dk, stride_dn, BLOCK_M: tl.constexpr, N_GATE_UP: tl.constexpr, N_DOWN: tl.constexpr,
+               BLOCK_K: tl.constexpr, DOT: tl.constexpr, PREFETCH: tl.constexpr, HAS_GATE: tl.constexpr,
+               COUNT: tl.constexpr):
+    """`x[r, n] += hidden[r] @ down[:, n]` (adaRMS: times `gate[n]`), once every gate/up tile of row block r is in (so
+    every read of `x[r]` for the norm is done too); with COUNT then counted in for r (`counters[r]`: a next layer's q/k/v of r wait for them.
     Not here: its barrier takes 80 KiB more shared memory with 4 stages of 128-deep blocks, more than sm_90 has)."""
     down_tiles = tl.cdiv(D, N_DOWN)
     block = tile // down_tiles
@@ -162,7 +172,7 @@ def _down_tile(tile, x_ptr, hidden_ptr, down_ptr, gate_up_counters_ptr, counters
     _wait_for(gate_up_counters_ptr + block, tl.cdiv(F, N_GATE_UP))
     acc, _, _ = _matmul_tiles(hidden_ptr, F, hidden_ptr, down_ptr, stride_dk, stride_dn, rows, columns, 0, M, 0, F, D,
                               BLOCK_M, N_DOWN, BLOCK_K, False, False, DOT, ".cg")
-    _add_to_residual(x_ptr, stride_xm, rows, columns, M, D, acc)
+    _add_to_residual(x_ptr, stride_xm, rows, columns, M, D, acc, gate_ptr, HAS_GATE)
     if COUNT:
         _count_in(counters_ptr + block, 1)
 
@@ -184,14 +194,16 @@ def _persistent_mlp_kernel(
     ticket = tl.atomic_add(state_ptr, 1)
     while ticket < total:
         if ticket < o_end:
-            _o_tile(ticket, x_ptr, attended_ptr, o_ptr, gate_up_counters, 0, o_counters, M, D, NH, stride_xm, stride_am,
-                    stride_ok, stride_on, BLOCK_M, N_O, BLOCK_K, DOT, False)  # (the first phase: waits for nothing, need 0)
+            _o_tile(ticket, x_ptr, attended_ptr, o_ptr, o_ptr, gate_up_counters, 0, o_counters, M, D, NH, stride_xm,
+                    stride_am, stride_ok, stride_on, BLOCK_M, N_O, BLOCK_K, DOT, False, False)  # (waits for nothing)
         elif ticket < gate_up_end:
-            _gate_up_tile(ticket - o_end, x_ptr, scale_ptr, gate_up_ptr, hidden_ptr, o_counters, gate_up_counters, M, D,
-                          F, stride_xm, stride_gk, stride_gn, eps, BLOCK_M, N_O, N_GATE_UP, BLOCK_K, DOT, PREFETCH)
+            _gate_up_tile(ticket - o_end, x_ptr, scale_ptr, gate_up_ptr, gate_up_ptr, hidden_ptr, o_counters,
+                          gate_up_counters, M, D, F, stride_xm, stride_gk, stride_gn, eps, BLOCK_M, N_O, N_GATE_UP,
+                          BLOCK_K, DOT, PREFETCH, False)
         else:
-            _down_tile(ticket - gate_up_end, x_ptr, hidden_ptr, down_ptr, gate_up_counters, gate_up_counters, M, D, F,
-                       stride_xm, stride_dk, stride_dn, BLOCK_M, N_GATE_UP, N_DOWN, BLOCK_K, DOT, PREFETCH, False)
+            _down_tile(ticket - gate_up_end, x_ptr, hidden_ptr, down_ptr, down_ptr, gate_up_counters, gate_up_counters,
+                       M, D, F, stride_xm, stride_dk, stride_dn, BLOCK_M, N_GATE_UP, N_DOWN, BLOCK_K, DOT, PREFETCH,
+                       False, False)
         ticket = tl.atomic_add(state_ptr, 1)
 
 
