@@ -203,9 +203,9 @@ def _attention_tile(tile, q_ptr, key_ptr, value_ptr, first_ptr, row_ends_ptr, ou
 def _persistent_layers_kernel(
     x_ptr, attention_scale_ptr, qkv_ptr, o_ptr, mlp_scale_ptr, gate_up_ptr, down_ptr, cos_ptr, sin_ptr, key_ptr,
     value_ptr, first_ptr, row_ends_ptr, qkv_bias_ptr, o_gate_ptr, gate_up_bias_ptr, down_gate_ptr, q_ptr, attended_ptr,
-    hidden_ptr, partial_ptr, stats_ptr, state_ptr, order_ptr, layers, M, D, F, tokens, first_slot, slots, eps, scale, key_parts, stride_xm, stride_cos_b, stride_cos_t,
-    layer_qkv, stride_qk, stride_qn, layer_o, stride_ok, stride_on, layer_gate_up, stride_gk, stride_gn,
-    layer_down, stride_dk, stride_dn, layer_cache, reset,
+    hidden_ptr, partial_ptr, stats_ptr, state_ptr, order_ptr, layers, M, D, F, tokens, first_slot, slots, eps, scale,
+    key_parts, stride_xm, stride_cos_b, stride_cos_t, layer_qkv, stride_qk, stride_qn, layer_o, stride_ok, stride_on,
+    layer_gate_up, stride_gk, stride_gn, layer_down, stride_dk, stride_dn, layer_cache, reset,
     HEADS: tl.constexpr, HEAD_DIM: tl.constexpr, BLOCK_M: tl.constexpr, N_QKV: tl.constexpr, N_O: tl.constexpr,
     N_GATE_UP: tl.constexpr, N_DOWN: tl.constexpr, BLOCK_K: tl.constexpr, ATTENTION_M: tl.constexpr,
     ATTENTION_N: tl.constexpr, DIM_CHUNK: tl.constexpr, DOT: tl.constexpr, PREFETCH: tl.constexpr,
@@ -304,10 +304,8 @@ def persistent_layers_(x: torch.Tensor, step: Step, eps: float, tiling: Tiling |
     arguments = (
         x, layers.attention_scale, layers.qkv, layers.o, layers.mlp_scale, layers.gate_up, layers.down, cos, sin,
         cache.key, cache.value, cache.first, cache.row_ends, *(adarms or (x,) * 4), q, attended, hidden, partial, stats,
-        state,
-        state if order is None else order, depth, rows, width, mlp_width, tokens, cache.first_slot, slots, eps,
-        head_dim**-0.5, tiling.key_parts,
-        x.stride(0), cos.stride(0) if cos.shape[0] > 1 else 0, cos.stride(1),
+        state, state if order is None else order, depth, rows, width, mlp_width, tokens, cache.first_slot, slots, eps,
+        head_dim**-0.5, tiling.key_parts, x.stride(0), cos.stride(0) if cos.shape[0] > 1 else 0, cos.stride(1),
         layers.qkv.stride(0), layers.qkv.stride(1), layers.qkv.stride(2), layers.o.stride(0), layers.o.stride(1),
         layers.o.stride(2), layers.gate_up.stride(0), layers.gate_up.stride(1), layers.gate_up.stride(2),
         layers.down.stride(0), layers.down.stride(1), layers.down.stride(2), cache.key.stride(0), int(reset),
@@ -383,6 +381,8 @@ fused_ops = _FusedOps()
 
 
 class Shape(NamedTuple):
+    """The sizes of a step: layers, samples, action tokens per sample, ..., and whether π0.5's (adaRMS)."""
+
     depth: int
     batch: int
     tokens: int
@@ -409,8 +409,9 @@ def operands(shape: Shape, dtype: torch.dtype, device: torch.device, seed: int =
     def linear(inputs: int, outputs: int) -> torch.Tensor:  # [L, in, out] views of [L, out, in]
         return randn(depth, outputs, inputs, scale=inputs**-0.5).transpose(1, 2)
 
-    layers = Layers(1 + randn(depth, width, scale=0.1), linear(width, (heads + 2) * head_dim), linear(heads * head_dim, width),
-                    1 + randn(depth, width, scale=0.1), linear(width, 2 * mlp_width), linear(mlp_width, width))
+    layers = Layers(1 + randn(depth, width, scale=0.1), linear(width, (heads + 2) * head_dim),
+                    linear(heads * head_dim, width), 1 + randn(depth, width, scale=0.1), linear(width, 2 * mlp_width),
+                    linear(mlp_width, width))
     slots = prefix + tokens
     cos, sin = rope_cos_sin(torch.arange(prefix, slots, device=device).expand(batch, tokens), head_dim, 10_000.0)
     key, value = randn(depth, batch, slots, head_dim), randn(depth, batch, slots, head_dim)
@@ -452,7 +453,8 @@ def check(device: torch.device, dtype: torch.dtype, shapes: list[Shape], toleran
                 error = error if miscounted == 0 else float("inf")
                 if device.type == "cuda":
                     today = step.fresh()
-                    line += f", today's ops {deviation(layer_by_layer_(x.clone(), today, 1e-6, fused_ops), today, want, wanted):.2e}"
+                    todays = layer_by_layer_(x.clone(), today, 1e-6, fused_ops)
+                    line += f", today's ops {deviation(todays, today, want, wanted):.2e}"
             failures += not error <= tolerance
             print(line + ("" if error <= tolerance else f"  FAILED (bound {tolerance:g})"), flush=True)
     return failures
