@@ -226,7 +226,7 @@ def _norm_qkv_rope_kernel(
     half: tl.constexpr = HEAD_DIM // 2
     rows = tl.program_id(0) * BLOCK_M + tl.arange(0, BLOCK_M)
     pairs = tl.program_id(1) * BLOCK_N + tl.arange(0, BLOCK_N)  # column pairs (c, c + H/2) of every head: q..., k, v
-    first_half = pairs // half * HEAD_DIM + pairs % half  # (c)
+    first_half = pairs // half * HEAD_DIM + pairs % half  # (each pair's first column)
     n = (HEADS + 2) * HEAD_DIM
     k_start, k_stop = _k_range(K, k_split, SPLIT)
     acc1, acc2, squares = _matmul_tiles(x_ptr, stride_xm, scale_ptr, w_ptr, stride_wk, stride_wn, rows, first_half, half,
