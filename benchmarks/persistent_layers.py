@@ -33,7 +33,6 @@ seeing the whole cache up to the step's last slot. Not used by sampling: this me
 
 from __future__ import annotations
 
-import argparse
 import functools
 import itertools
 import os
@@ -61,6 +60,8 @@ from persistent_mlp import (
     _o_tile,
     _prefetch_weights,
     _wait_for,
+    compile_variants,
+    experiment_main,
 )
 
 from pi0_torch.inference.fused_pass import FUSED_TOLERANCE
@@ -554,22 +555,15 @@ def check_orders(shape: Shape, tiling: Tiling, tolerance: float) -> int:
 def compile_for(arch: int, tilings: list[Tiling]) -> int:
     """Compile the full-size variants (π0 at batch 1 and 8; π0.5 at batch 1 in the first tiling) for `arch` with
     triton's ptxas, on meta tensors (no GPU)."""
-    from kernel_resources import SHARED_PER_BLOCK, TargetDriver, ptxas_usage
-
-    triton.runtime.driver.set_active(TargetDriver(arch))
-    limit = SHARED_PER_BLOCK.get(arch)
-    too_large = 0
-    cases = [(FULL._replace(batch=batch), tiling) for batch, tiling in itertools.product((1, 8), tilings)]
-    for shape, tiling in [*cases, (FULL._replace(adarms=True), tilings[0])]:
+    def case(shape: Shape, tiling: Tiling) -> tuple[str, Callable[[Callable[..., Any]], Any]]:
         x, step = operands(shape._replace(depth=1), torch.bfloat16, torch.device("cpu"))
         x, step = x.to("meta"), tree_map_only(torch.Tensor, lambda tensor: tensor.to("meta"), step)
-        variant = persistent_layers_(x, step, 1e-6, tiling, programs=132, launch=lambda kernel, grid, arguments, options:
-                                     kernel.run(*arguments, grid=grid, warmup=True, **options))
-        shared = variant.metadata.shared
-        too_large += limit is not None and shared > limit
-        print(f"sm_{arch} batch {shape.batch}{' π0.5' if shape.adarms else ''} {tiling}: shared {shared:,d} B, "
-              f"registers / spill stores {ptxas_usage(variant.asm['ptx'], arch).split()}", flush=True)
-    return too_large
+        name = f"batch {shape.batch}{' π0.5' if shape.adarms else ''} {tiling}"
+        return name, lambda launch: persistent_layers_(x, step, 1e-6, tiling, programs=132, launch=launch)
+
+    cases = [(FULL._replace(batch=batch), tiling) for batch, tiling in itertools.product((1, 8), tilings)]
+    return compile_variants(arch, (case(shape, tiling) for shape, tiling in [*cases, (FULL._replace(adarms=True),
+                                                                                      tilings[0])]))
 
 
 def bench(tilings: list[Tiling]) -> None:
@@ -607,30 +601,21 @@ TILINGS = [Tiling(), Tiling(k=128), Tiling(prefetch=False), Tiling(qkv=32, o=32,
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--check", action="store_true", help="against the reference: small float32 shapes in triton's "
-                        "interpreter without a GPU; full size, bf16, every tiling on one (π0.5: the first)")
-    parser.add_argument("--compile", type=int, metavar="ARCH", help="compile every tiling for this compute capability")
-    parser.add_argument("--bench", action="store_true", help="time it against today's ops (CUDA)")
-    args = parser.parse_args()
-    failures = 0
-    if args.check:
-        if torch.cuda.is_available():
-            shapes = [FULL._replace(depth=2), FULL._replace(depth=2, batch=8)]
+    def check_here() -> int:
+        if torch.cuda.is_available():  # (π0.5 in the first tiling: each tiling is minutes of compiling there)
             bound = FUSED_TOLERANCE[torch.bfloat16]
-            failures += check(torch.device("cuda"), torch.bfloat16, shapes, bound, TILINGS)
-            failures += check(torch.device("cuda"), torch.bfloat16, [FULL._replace(depth=2, adarms=True)], bound, TILINGS[:1])
-        else:  # (the interpreter: small, float32; one and three samples, partial row and attention blocks; π0.5)
-            shapes = [Shape(2, 1, 5, 7, 32, 2, 16, 48), Shape(2, 3, 6, 9, 48, 2, 16, 40, adarms=True)]
-            tilings = [Tiling(qkv=8, o=16, gate_up=16, down=16, k=16, m=16, attention_m=16, attention_n=16, key_parts=2),
-                       Tiling(qkv=16, o=32, gate_up=32, down=32, k=32, m=32, attention_m=32, attention_n=16, key_parts=1)]
-            failures += check(torch.device("cpu"), torch.float32, shapes, 1e-5, tilings)
-            failures += sum(check_orders(shape, tilings[0], 1e-5) for shape in shapes)
-    if args.compile:
-        failures += compile_for(args.compile, TILINGS)
-    if args.bench:
-        bench(TILINGS)
-    return 1 if failures else 0
+            return (check(torch.device("cuda"), torch.bfloat16, [FULL._replace(depth=2), FULL._replace(depth=2, batch=8)],
+                          bound, TILINGS)
+                    + check(torch.device("cuda"), torch.bfloat16, [FULL._replace(depth=2, adarms=True)], bound, TILINGS[:1]))
+        # (the interpreter: small, float32; one and three samples, partial row and attention blocks; π0.5)
+        shapes = [Shape(2, 1, 5, 7, 32, 2, 16, 48), Shape(2, 3, 6, 9, 48, 2, 16, 40, adarms=True)]
+        tilings = [Tiling(qkv=8, o=16, gate_up=16, down=16, k=16, m=16, attention_m=16, attention_n=16, key_parts=2),
+                   Tiling(qkv=16, o=32, gate_up=32, down=32, k=32, m=32, attention_m=32, attention_n=16, key_parts=1)]
+        return (check(torch.device("cpu"), torch.float32, shapes, 1e-5, tilings)
+                + sum(check_orders(shape, tilings[0], 1e-5) for shape in shapes))
+
+    return experiment_main(__doc__, check_here, functools.partial(compile_for, tilings=TILINGS),
+                           functools.partial(bench, TILINGS))
 
 
 if __name__ == "__main__":

@@ -31,7 +31,7 @@ import functools
 import itertools
 import os
 import sys
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -289,19 +289,29 @@ def check(device: torch.device, dtype: torch.dtype, shapes: Iterator[tuple[int, 
 
 def compile_for(arch: int, tilings: list[Tiling]) -> int:
     """Compile the full-size variants (batch 1 and 8) for `arch` with triton's ptxas, on meta tensors (no GPU)."""
+    def case(batch: int, tiling: Tiling) -> tuple[str, Callable[[Callable[..., Any]], Any]]:
+        meta = [tensor.to("meta") for tensor in operands(50 * batch, 1024, 2048, 4096, torch.bfloat16, torch.device("cpu"))]
+        return f"batch {batch} {tiling}", lambda launch: persistent_mlp_(*meta, 1e-6, tiling, programs=132, launch=launch)
+
+    return compile_variants(arch, (case(batch, tiling) for batch, tiling in itertools.product((1, 8), tilings)))
+
+
+def compile_variants(arch: int, cases: Iterable[tuple[str, Callable[[Callable[..., Any]], Any]]]) -> int:
+    """Compile each case for `arch` with triton's ptxas, without a GPU: a case is its name and a call that launches its
+    kernel with the `launch` it is given, which compiles instead. Prints each one's shared memory, registers and
+    spilled bytes; returns how many need more shared memory than one block may have there."""
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     from kernel_resources import SHARED_PER_BLOCK, TargetDriver, ptxas_usage
 
     triton.runtime.driver.set_active(TargetDriver(arch))
     limit = SHARED_PER_BLOCK.get(arch)
     too_large = 0
-    for batch, tiling in itertools.product((1, 8), tilings):
-        meta = [tensor.to("meta") for tensor in operands(50 * batch, 1024, 2048, 4096, torch.bfloat16, torch.device("cpu"))]
-        variant = persistent_mlp_(*meta, 1e-6, tiling, programs=132, launch=lambda kernel, grid, arguments, options:
-                                  kernel.run(*arguments, grid=grid, warmup=True, **options))
+    for name, launch_case in cases:
+        variant = launch_case(lambda kernel, grid, arguments, options: kernel.run(*arguments, grid=grid, warmup=True,
+                                                                                 **options))
         shared = variant.metadata.shared
         too_large += limit is not None and shared > limit
-        print(f"sm_{arch} batch {batch} {tiling}: shared {shared:,d} B, registers / spill stores "
+        print(f"sm_{arch} {name}: shared {shared:,d} B, registers / spill stores "
               f"{ptxas_usage(variant.asm['ptx'], arch).split()}", flush=True)
     return too_large
 
@@ -349,24 +359,33 @@ TILINGS = [Tiling(16, 32, 16, 64), Tiling(16, 32, 16, 128), Tiling(16, 32, 16, 1
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    def check_here() -> int:
+        if torch.cuda.is_available():
+            shapes = iter([(50, 1024, 2048, 4096), (400, 1024, 2048, 4096)])
+            return check(torch.device("cuda"), torch.bfloat16, shapes, FUSED_TOLERANCE[torch.bfloat16], TILINGS)
+        # (the interpreter: small, float32; rows of one and of three row blocks, the last partial)
+        shapes = iter([(50, 64, 128, 96), (150, 48, 64, 80), (1, 32, 64, 32)])
+        return check(torch.device("cpu"), torch.float32, shapes, 1e-5, [Tiling(16, 16, 16, 32)])
+
+    return experiment_main(__doc__, check_here, functools.partial(compile_for, tilings=TILINGS),
+                           functools.partial(bench, TILINGS))
+
+
+def experiment_main(doc: str, check_here: Callable[[], int], compile_for_arch: Callable[[int], int],
+                    bench_here: Callable[[], None]) -> int:
+    """The command line of a persistent-launch experiment (`doc`: its module docstring): `--check` (`check_here`: the
+    number of failures), `--compile ARCH`, `--bench`; exits 1 on a failure or a variant too large."""
+    parser = argparse.ArgumentParser(description=doc.split("\n\n")[0])
     parser.add_argument("--check", action="store_true", help="against the reference: small float32 shapes in triton's "
-                        "interpreter without a GPU; full size, bf16, every tiling on one")
+                        "interpreter without a GPU; full size, bf16, on one")
     parser.add_argument("--compile", type=int, metavar="ARCH", help="compile every tiling for this compute capability")
     parser.add_argument("--bench", action="store_true", help="time it against today's ops (CUDA)")
     args = parser.parse_args()
-    failures = 0
-    if args.check:
-        if torch.cuda.is_available():
-            shapes = iter([(50, 1024, 2048, 4096), (400, 1024, 2048, 4096)])
-            failures += check(torch.device("cuda"), torch.bfloat16, shapes, FUSED_TOLERANCE[torch.bfloat16], TILINGS)
-        else:  # (the interpreter: small, float32; rows of one and of three row blocks, the last partial)
-            shapes = iter([(50, 64, 128, 96), (150, 48, 64, 80), (1, 32, 64, 32)])
-            failures += check(torch.device("cpu"), torch.float32, shapes, 1e-5, [Tiling(16, 16, 16, 32)])
+    failures = check_here() if args.check else 0
     if args.compile:
-        failures += compile_for(args.compile, TILINGS)
+        failures += compile_for_arch(args.compile)
     if args.bench:
-        bench(TILINGS)
+        bench_here()
     return 1 if failures else 0
 
 
