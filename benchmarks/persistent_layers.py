@@ -16,7 +16,7 @@ of the suffix (docs/gpu.md, "Where the next milliseconds are"):
 - a tile waits only on tiles handed out before it, whose programs are already running: no deadlock, and triton's
   interpreter (programs one after another) runs it too. Nothing ever waits there, so `--check` there also records
   what each tile waits for (`wait_graph`, from the kernel's own waits and count-ins) and runs the tiles in other
-  orders those waits allow (`orders`): a read or write that no wait protects comes out wrong in one of them (as a
+  orders those waits allow (`orders`): a read or write that no wait protects is likely to come out wrong in one (as a
   wait on the previous layer's gate/up instead of its down-projection does, or an o-projection not waiting for the
   attention: both checked once by hand);
 - a waiting tile first asks its weights into L2; the last program to finish puts the counters back to 0, so the
@@ -526,8 +526,8 @@ def orders(graph: list[set[int]], seeds: int) -> Iterator[tuple[str, list[int]]]
 
 def check_orders(shape: Shape, tiling: Tiling, tolerance: float) -> int:
     """In the interpreter: the launch with its tiles in other orders its waits allow (`orders`) against the reference.
-    A read or a write that no wait orders after what it must follow (a race on a GPU) comes out wrong in some of them,
-    though the interpreter never runs two tiles at once."""
+    A read or a write that no wait orders after what it must follow (a race on a GPU) is likely to come out wrong in
+    one of them (a sample of the orders, not all), though the interpreter never runs two tiles at once."""
     device = torch.device("cpu")
     x, step = operands(shape, torch.float32, device)
     wanted = step.fresh()

@@ -357,8 +357,8 @@ def test_the_persistent_experiments_equal_the_reference(experiment: str) -> None
     ops compute: in triton's interpreter here (one and several row blocks and samples, partial tiles; the layers
     π0's and π0.5's), at full size on a GPU. The layers also leave each counter at the count its waits need, launch
     again on the counters they put back to 0, and compute the same with their tiles in other orders their waits
-    allow (recorded from the kernel's waits and count-ins): a race on a GPU comes out wrong there, though the
-    interpreter never runs two tiles at once."""
+    allow (recorded from the kernel's waits and count-ins): a race on a GPU is likely to come out wrong there,
+    though the interpreter never runs two tiles at once."""
     script = Path(__file__).resolve().parents[1] / "benchmarks" / experiment
     result = subprocess.run([sys.executable, str(script), "--check"], capture_output=True, text=True, timeout=600)
     assert result.returncode == 0 and "against the reference" in result.stdout, result.stdout + result.stderr[-3000:]
