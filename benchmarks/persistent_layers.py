@@ -59,15 +59,18 @@ from persistent_mlp import (
     _gate_up_tile,
     _o_tile,
     _prefetch_weights,
+    _tile_at,
     _wait_for,
     compile_variants,
     experiment_main,
+    print_times,
 )
 
 from pi0_torch.inference.fused_pass import FUSED_TOLERANCE
 from pi0_torch.inference.graphs import relative_deviation
 from pi0_torch.kernels import reference
 from pi0_torch.kernels.triton_kernels import (
+    INTERPRETING,
     _attention_part,
     _combine_key_parts,
     _matmul_tiles,
@@ -76,8 +79,6 @@ from pi0_torch.kernels.triton_kernels import (
     dot_dtype,
 )
 from pi0_torch.models.layers import rope_cos_sin
-
-INTERPRETING = os.environ.get("TRITON_INTERPRET") == "1"
 
 
 class Tiling(NamedTuple):
@@ -159,10 +160,7 @@ def _qkv_tile(tile, x_ptr, scale_ptr, w_ptr, bias_ptr, cos_ptr, sin_ptr, q_ptr, 
     `q`, k and v into the layer's cache (`_rope_store`), once `wait[r]` reaches `need` (the previous layer's
     down-projection of r); then counted in (`counter`)."""
     half: tl.constexpr = HEAD_DIM // 2
-    pair_tiles = tl.cdiv((HEADS + 2) * half, N_QKV)
-    block = tile // pair_tiles
-    rows = block * BLOCK_M + tl.arange(0, BLOCK_M)
-    pairs = (tile % pair_tiles) * N_QKV + tl.arange(0, N_QKV)
+    block, rows, pairs = _tile_at(tile, (HEADS + 2) * half, BLOCK_M, N_QKV)
     first_half = pairs // half * HEAD_DIM + pairs % half
     width = (HEADS + 2) * HEAD_DIM
     _prefetch_weights(w_ptr, stride_wk, stride_wn, first_half, D, width, BLOCK_K, PREFETCH)
@@ -578,7 +576,6 @@ def bench(tilings: list[Tiling]) -> None:
     for shape, shape_tilings in ((FULL, tilings), (FULL._replace(batch=8), tilings), (FULL._replace(adarms=True), tilings[:1])):
         x, step = operands(shape, torch.bfloat16, device)
         want = layer_by_layer_(x.clone(), step.fresh(), 1e-6)
-        bytes_ = sum(weight.numel() * weight.element_size() for weight in step.layers)
         results = []
         for tiling in [None, *shape_tilings]:  # (the action tokens accumulate step after step, as a chunk's do)
             run = (functools.partial(layer_by_layer_, x.clone(), step, 1e-6, fused_ops) if tiling is None else
@@ -586,14 +583,10 @@ def bench(tilings: list[Tiling]) -> None:
             seconds = graph_time(run, device, calls=20, repeats=5)
             got = (layer_by_layer_(x.clone(), step.fresh(), 1e-6, fused_ops) if tiling is None else
                    persistent_layers_(x.clone(), step.fresh(), 1e-6, tiling))
-            results.append((seconds, relative_deviation(got, want), tiling))
-        base = results[0][0]
-        print(f"\n{'π0.5' if shape.adarms else 'π0'} batch {shape.batch} ({shape.batch * shape.tokens} rows), "
-              f"{bytes_ / 2**20:.0f} MiB of weights")
-        for seconds, deviation_, tiling in sorted(results, key=lambda result: result[0]):
-            name = "today's 90 launches" if tiling is None else f"persistent {tiling}"
-            print(f"  {seconds * 1e6:8.1f} us {bytes_ / seconds / 1e9:6.0f} GB/s x{base / seconds:5.2f}  deviation "
-                  f"{deviation_:.1e}  {name}", flush=True)
+            results.append((tiling, seconds, relative_deviation(got, want)))
+        title = f"{'π0.5' if shape.adarms else 'π0'} batch {shape.batch} ({shape.batch * shape.tokens} rows)"
+        print_times(title, sum(weight.numel() * weight.element_size() for weight in step.layers), results,
+                    "today's 90 launches")
 
 
 TILINGS = [Tiling(), Tiling(k=128), Tiling(prefetch=False), Tiling(qkv=32, o=32, gate_up=64, down=32),

@@ -47,9 +47,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from pi0_torch.inference.fused_pass import FUSED_TOLERANCE
 from pi0_torch.inference.graphs import relative_deviation
 from pi0_torch.kernels import reference
-from pi0_torch.kernels.triton_kernels import _gelu_tanh, _matmul_tiles, cdiv, dot_dtype
-
-INTERPRETING = os.environ.get("TRITON_INTERPRET") == "1"
+from pi0_torch.kernels.triton_kernels import (
+    INTERPRETING,
+    _geglu_store,
+    _matmul_tiles,
+    cdiv,
+    dot_dtype,
+)
 
 
 class Tiling(NamedTuple):
@@ -110,15 +114,21 @@ def _add_to_residual(x_ptr, stride_xm, rows, columns, M, N, acc, gate_ptr, HAS_G
 
 
 @triton.jit
+def _tile_at(tile, N, BLOCK_M: tl.constexpr, BLOCK_N: tl.constexpr):
+    """Output tile `tile` of a phase whose tiles go row block by row block, `cdiv(N, BLOCK_N)` column blocks each:
+    its row block, rows and columns."""
+    column_blocks = tl.cdiv(N, BLOCK_N)
+    block = tile // column_blocks
+    return block, block * BLOCK_M + tl.arange(0, BLOCK_M), (tile % column_blocks) * BLOCK_N + tl.arange(0, BLOCK_N)
+
+
+@triton.jit
 def _o_tile(tile, x_ptr, attended_ptr, o_ptr, gate_ptr, wait_ptr, need, counters_ptr, M, D, NH, stride_xm, stride_am,
             stride_ok, stride_on, BLOCK_M: tl.constexpr, N_O: tl.constexpr, BLOCK_K: tl.constexpr, DOT: tl.constexpr,
             PREFETCH: tl.constexpr, HAS_GATE: tl.constexpr):
     """`x[r, n] += attended[r] @ o[:, n]` (adaRMS: times `gate[n]`), once `wait` reaches `need` (the attention's tiles:
     0 where `attended` was written before the launch); then counted in for row block r (`counters[r]`)."""
-    o_tiles = tl.cdiv(D, N_O)
-    block = tile // o_tiles
-    rows = block * BLOCK_M + tl.arange(0, BLOCK_M)
-    columns = (tile % o_tiles) * N_O + tl.arange(0, N_O)
+    block, rows, columns = _tile_at(tile, D, BLOCK_M, N_O)
     _prefetch_weights(o_ptr, stride_ok, stride_on, columns, NH, D, BLOCK_K, PREFETCH)
     _wait_for(wait_ptr, need)
     acc, _, _ = _matmul_tiles(attended_ptr, stride_am, attended_ptr, o_ptr, stride_ok, stride_on, rows, columns, 0, M,
@@ -135,24 +145,13 @@ def _gate_up_tile(tile, x_ptr, scale_ptr, gate_up_ptr, bias_ptr, hidden_ptr, o_c
     """`hidden[r, f] = gelu_tanh(norm(x[r]) @ gate[:, f]) * (norm(x[r]) @ up[:, f])` (adaRMS: plus `bias[f]` and
     `bias[F + f]` before the GeGLU), once every o-projection tile of row block r is in (`o_counters[r]`); then counted
     in for r (`counters[r]`)."""
-    gate_up_tiles = tl.cdiv(F, N_GATE_UP)
-    block = tile // gate_up_tiles
-    rows = block * BLOCK_M + tl.arange(0, BLOCK_M)
-    columns = (tile % gate_up_tiles) * N_GATE_UP + tl.arange(0, N_GATE_UP)
+    block, rows, columns = _tile_at(tile, F, BLOCK_M, N_GATE_UP)
     _prefetch_weights(gate_up_ptr, stride_gk, stride_gn, columns, D, F, BLOCK_K, PREFETCH)
     _prefetch_weights(gate_up_ptr + F * stride_gn, stride_gk, stride_gn, columns, D, F, BLOCK_K, PREFETCH)
     _wait_for(o_counters_ptr + block, tl.cdiv(D, N_O))
     gate, up, squares = _matmul_tiles(x_ptr, stride_xm, scale_ptr, gate_up_ptr, stride_gk, stride_gn, rows, columns, F,
                                       M, 0, D, F, BLOCK_M, N_GATE_UP, BLOCK_K, True, True, DOT, ".cg")
-    inverse = (1.0 / tl.sqrt(squares / D + eps))[:, None]
-    gate = gate * inverse
-    up = up * inverse
-    if HAS_BIAS:
-        gate += tl.load(bias_ptr + columns, mask=columns < F, other=0.0).to(tl.float32)[None, :]
-        up += tl.load(bias_ptr + F + columns, mask=columns < F, other=0.0).to(tl.float32)[None, :]
-    hidden = _gelu_tanh(gate) * up
-    ok = (rows < M)[:, None] & (columns < F)[None, :]
-    tl.store(hidden_ptr + rows[:, None] * F + columns[None, :], hidden.to(hidden_ptr.dtype.element_ty), mask=ok)
+    _geglu_store(gate, up, squares, rows, columns, columns < F, bias_ptr, hidden_ptr, M, D, F, eps, HAS_BIAS)
     _count_in(counters_ptr + block, 1)
 
 
@@ -162,12 +161,10 @@ def _down_tile(tile, x_ptr, hidden_ptr, down_ptr, gate_ptr, gate_up_counters_ptr
                BLOCK_K: tl.constexpr, DOT: tl.constexpr, PREFETCH: tl.constexpr, HAS_GATE: tl.constexpr,
                COUNT: tl.constexpr):
     """`x[r, n] += hidden[r] @ down[:, n]` (adaRMS: times `gate[n]`), once every gate/up tile of row block r is in (so
-    every read of `x[r]` for the norm is done too); with COUNT then counted in for r (`counters[r]`: a next layer's q/k/v of r wait for them.
-    Not here: its barrier takes 80 KiB more shared memory with 4 stages of 128-deep blocks, more than sm_90 has)."""
-    down_tiles = tl.cdiv(D, N_DOWN)
-    block = tile // down_tiles
-    rows = block * BLOCK_M + tl.arange(0, BLOCK_M)
-    columns = (tile % down_tiles) * N_DOWN + tl.arange(0, N_DOWN)
+    every read of `x[r]` for the norm is done too); with COUNT then counted in for r (`counters[r]`: a next layer's
+    q/k/v of r wait for them. Not here: its barrier takes 80 KiB more shared memory with 4 stages of 128-deep blocks,
+    more than sm_90 has)."""
+    block, rows, columns = _tile_at(tile, D, BLOCK_M, N_DOWN)
     _prefetch_weights(down_ptr, stride_dk, stride_dn, columns, F, D, BLOCK_K, PREFETCH)
     _wait_for(gate_up_counters_ptr + block, tl.cdiv(F, N_GATE_UP))
     acc, _, _ = _matmul_tiles(hidden_ptr, F, hidden_ptr, down_ptr, stride_dk, stride_dn, rows, columns, 0, M, 0, F, D,
@@ -344,13 +341,18 @@ def bench_batch(rows: int, tilings: list[Tiling], device: torch.device) -> None:
         first = (copies[0][0].clone(), *copies[0][1:], 1e-6)
         return relative_deviation(fused_mlp_(*first) if tiling is None else persistent_mlp_(*first, tiling), want)
 
-    times = {tiling: (graph_time(functools.partial(run, tiling), device), error(tiling)) for tiling in [None, *tilings]}
-    base = times[None][0]
-    weights_bytes = 2 * (1024 * 2048 + 1024 * 2 * 4096 + 4096 * 1024)
-    print(f"\n{rows} rows, {weights_bytes / 2**20:.0f} MiB of weights")
-    for tiling, (seconds, deviation_) in sorted(times.items(), key=lambda item: item[1][0]):
-        name = "today's three launches" if tiling is None else f"persistent {tiling}"
-        print(f"  {seconds * 1e6:7.1f} us {weights_bytes / seconds / 1e9:6.0f} GB/s x{base / seconds:5.2f}  deviation "
+    times = [(tiling, graph_time(functools.partial(run, tiling), device), error(tiling)) for tiling in [None, *tilings]]
+    print_times(f"{rows} rows", 2 * (1024 * 2048 + 1024 * 2 * 4096 + 4096 * 1024), times, "today's three launches")
+
+
+def print_times(title: str, weights_bytes: int, times: list[tuple[Any, float, float]], today: str) -> None:
+    """A table of (tiling, seconds, deviation), fastest first: µs, GB/s of `weights_bytes`, the speed-up over today's
+    launches (the tiling None, named `today`) and the deviation from the reference."""
+    base = next(seconds for tiling, seconds, _ in times if tiling is None)
+    print(f"\n{title}, {weights_bytes / 2**20:.0f} MiB of weights")
+    for tiling, seconds, deviation_ in sorted(times, key=lambda row: row[1]):
+        name = today if tiling is None else f"persistent {tiling}"
+        print(f"  {seconds * 1e6:8.1f} us {weights_bytes / seconds / 1e9:6.0f} GB/s x{base / seconds:5.2f}  deviation "
               f"{deviation_:.1e}  {name}", flush=True)
 
 

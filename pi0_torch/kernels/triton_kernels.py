@@ -297,6 +297,13 @@ def _norm_gate_up_geglu_kernel(
         gate, up, squares, last = _sum_splits(gate, up, squares, workspace_ptr, counter_ptr, splits, BLOCK_M, BLOCK_N,
                                               True, True)
         column_ok = columns < tl.where(last, F, 0)  # (only the last program writes)
+    _geglu_store(gate, up, squares, rows, columns, column_ok, bias_ptr, out_ptr, M, K, F, eps, HAS_BIAS)
+
+
+@triton.jit
+def _geglu_store(gate, up, squares, rows, columns, column_ok, bias_ptr, out_ptr, M, K, F, eps, HAS_BIAS: tl.constexpr):
+    """The epilogue of a gate/up tile: the RMSNorm's `1 / rms` (from the rows' sums of squares over K), adaRMS's bias
+    (`bias[c]` and `bias[F + c]`), then `gelu_tanh(gate) * up` into `out` `[M, F]` (only `column_ok` written)."""
     inverse = (1.0 / tl.sqrt(squares / K + eps))[:, None]
     gate = gate * inverse
     up = up * inverse
