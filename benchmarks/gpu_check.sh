@@ -4,19 +4,21 @@
 # files: this writes 8); the last lines of each are printed too. Run from the repository root with the Python that
 # holds torch, triton, transformers and pytest (the GPU image's python3: no network, no [dev] extra):
 #
-#     OUT=/tmp/gpu benchmarks/gpu_check.sh          # at most 9.0 minutes (the steps' limits) on an H100 or H200
+#     OUT=/tmp/gpu benchmarks/gpu_check.sh          # at most 9.4 minutes (the steps' limits) on an H100 or H200
 #     SKIP="bench doctor" OUT=/tmp/gpu benchmarks/gpu_check.sh   # leave steps out (default: SKIP=tilings)
-#     SKIP= OUT=/tmp/gpu benchmarks/gpu_check.sh    # everything, the kernels' tilings too (about 10.5 minutes)
+#     SKIP= OUT=/tmp/gpu benchmarks/gpu_check.sh    # everything, the kernels' tilings too (about 11 minutes)
 #
 # Timings run alone on the GPU; the checks run side by side (correctness does not mind sharing the GPU):
 # 1. alone: the benchmark, fused steps against the torch path, eager and graph, π0 and π0.5, batch 1, 4 and 8, with each
 #    row's GPU activities, GPU time and its 30 longest kinds of kernel;
-# 2. together: doctor (every sampling path at full size against its reference), the GPU tests (tests/test_cuda.py),
-#    the fused kernels' tests on real kernels (tests/test_kernels.py), and issue 37's persistent experiments against
-#    their references (which compiles what step 3 times into triton's disk cache; with tilings, every tiling too);
-# 3. alone: the step GEMMs against cuBLAS (GB/s); the MLP half of a layer-step as one persistent launch against
-#    today's three (benchmarks/persistent_mlp.py) and an Euler step's 18 layers as one against today's 90
-#    (benchmarks/persistent_layers.py); with tilings, the kernels' tilings (benchmarks/kernel_sweep.py: every
+# 2. together: doctor (every sampling path at full size against its reference, sampling_kernels="persistent" too),
+#    the GPU tests (tests/test_cuda.py), the fused kernels' tests on real kernels (tests/test_kernels.py, the persistent
+#    launch's sampling included), and issue 37's persistent experiments against their references (which compiles what
+#    step 3 times into triton's disk cache; with tilings, every tiling too);
+# 3. alone: the step GEMMs against cuBLAS (GB/s); an Euler step's 18 layers as one persistent launch against today's
+#    90 (benchmarks/persistent_layers.py: its tilings); the benchmark again with sampling_kernels="persistent" (whole
+#    chunks, eager and graph, batch 1 and 8: compare with step 1's "fused" rows, same machine; the MLP half alone,
+#    benchmarks/persistent_mlp.py, is left out); with tilings, the kernels' tilings (benchmarks/kernel_sweep.py: every
 #    candidate timed and checked against the reference, the fastest written to $OUT/tilings.json, then π0 and π0.5
 #    sampled with them; measured on an H200 on 2026-11-27); and π0-FAST's decoding, fused against the modules,
 #    eager and replayed as hand-captured CUDA graphs. (benchmarks/eager_host.py, eager's host time, is left out.)
@@ -55,9 +57,9 @@ step bench 150 "$PY" -m pi0_torch.cli bench --device cuda --presets pi0,pi05 --d
 step doctor 200 "$PY" -m pi0_torch.cli doctor --full --device cuda &
 step gpu-tests 200 "$PY" -m pytest -q -s -p no:cacheprovider -m gpu tests/test_cuda.py &
 # (the shared-memory and direct-launch tests compile for an RTX 4090 on the CPU, as in CI; here the real launches say it;
-#  the persistent MLP experiment's test is its --check below)
+#  the persistent experiments' test is their --check below)
 step kernel-tests 200 "$PY" -m pytest -q -p no:cacheprovider tests/test_kernels.py \
-    -k "not shared_memory and not direct_launches and not persistent" &
+    -k "not shared_memory and not direct_launches and not persistent_experiments" &
 for shard in 0 1 2 3 4 5 6 7; do
     step tilings 190 "$PY" benchmarks/kernel_sweep.py --compile-only --shard "$shard/8" &
 done
@@ -71,12 +73,15 @@ grep -h "against the reference\|^exit" "$OUT/persistent-check.log"
 
 # 3. alone
 step sweep 20 "$PY" -m pi0_torch.cli bench --device cuda --skip-generate --gemms --presets pi0 --batches 1,8 --repeats 10
-step sweep 45 "$PY" benchmarks/persistent_mlp.py --bench
 step sweep 60 "$PY" benchmarks/persistent_layers.py --bench
+step bench 90 "$PY" -m pi0_torch.cli bench --device cuda --presets pi0,pi05 --dtypes bfloat16 --cameras 3 --batches 1,8 \
+    --kernels persistent --repeats 10 --kernel-table 15
 step tilings 100 "$PY" benchmarks/kernel_sweep.py --write "$OUT/tilings.json" --bench
 step fast-bench 45 "$PY" -m pi0_torch.cli bench --device cuda --skip-generate --fast --fast-presets pi0_fast \
     --dtypes bfloat16 --batches 1 --kernels auto,torch --repeats 3
-TAIL=70 show sweep
+TAIL=50 show sweep
+printf '\n---- bench, sampling_kernels="persistent"\n'
+grep -v '^      ' "$OUT/bench.log" | tail -n 12
 TAIL=40 show tilings
 TAIL=8 show fast-bench
 printf '\nlogs in %s\n' "$OUT"

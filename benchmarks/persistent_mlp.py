@@ -17,7 +17,8 @@ residual):
 - before it waits, a program asks its tile's weights into L2 (`prefetch.global.L2`; not in the interpreter).
 
 The numbers are those of `pi0_torch.kernels.reference` (float32 sums, bf16 outputs), not bit for bit: no split-K here.
-π0's layer (no adaRMS gate). Not used by sampling: this measures whether it would pay.
+π0's layer (no adaRMS gate). Its tiles are those of `pi0_torch.kernels.persistent`, whose launch of a whole step's
+layers sampling runs under `sampling_kernels="persistent"`; this launch of half a layer is not used by sampling.
 
     python benchmarks/persistent_mlp.py --check              # CPU: triton's interpreter, small float32 shapes
     python benchmarks/persistent_mlp.py --compile 90         # CPU: compile the variants for sm_90 (ptxas), print their use
@@ -47,13 +48,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from pi0_torch.inference.fused_pass import FUSED_TOLERANCE
 from pi0_torch.inference.graphs import relative_deviation
 from pi0_torch.kernels import reference
-from pi0_torch.kernels.triton_kernels import (
-    INTERPRETING,
-    _geglu_store,
-    _matmul_tiles,
-    cdiv,
-    dot_dtype,
-)
+from pi0_torch.kernels.persistent import _down_tile, _gate_up_tile, _o_tile
+from pi0_torch.kernels.triton_kernels import INTERPRETING, cdiv, dot_dtype
 
 
 class Tiling(NamedTuple):
@@ -72,106 +68,6 @@ class Tiling(NamedTuple):
 
 
 # -- the kernel -----------------------------------------------------------------------------------------------------
-
-
-@triton.jit
-def _wait_for(counter_ptr, need):
-    """Spin until the int32 counter reaches `need` (acquire: what its producers stored before counting is visible)."""
-    count = tl.atomic_add(counter_ptr, 0, sem="acquire")
-    while count < need:
-        count = tl.atomic_add(counter_ptr, 0, sem="acquire")
-
-
-@triton.jit
-def _count_in(counter_ptr, count):
-    """`count` more of this phase done (a tile: 1): after every thread's stores (the barrier), a release add."""
-    tl.debug_barrier()
-    tl.atomic_add(counter_ptr, count, sem="release")
-
-
-@triton.jit
-def _prefetch_weights(w_ptr, stride_wk, stride_wn, columns, K, N, BLOCK_K: tl.constexpr, PREFETCH: tl.constexpr):
-    """Ask `w[:, columns]` into the L2 cache (a hint: nothing comes into registers): one address per 32 bytes of a
-    column of a bf16 `[in, out]` view of an `nn.Linear` weight (`in` has unit stride)."""
-    if PREFETCH:
-        for k0 in range(0, K, BLOCK_K):
-            ks = k0 + tl.arange(0, BLOCK_K // 16) * 16
-            ok = (ks < K)[:, None] & (columns < N)[None, :]
-            offsets = tl.where(ok, ks[:, None] * stride_wk + columns[None, :] * stride_wn, 0)
-            tl.inline_asm_elementwise("prefetch.global.L2 [$1]; mov.u32 $0, 0;", "=r,l", [w_ptr + offsets],
-                                      dtype=tl.int32, is_pure=False, pack=1)
-
-
-@triton.jit
-def _add_to_residual(x_ptr, stride_xm, rows, columns, M, N, acc, gate_ptr, HAS_GATE: tl.constexpr):
-    """`x[rows, columns] += acc` (adaRMS: `acc * gate[columns]`; float32 sum, rounded once), read past L1."""
-    ok = (rows < M)[:, None] & (columns < N)[None, :]
-    if HAS_GATE:
-        acc = acc * tl.load(gate_ptr + columns, mask=columns < N, other=0.0).to(tl.float32)[None, :]
-    pointers = x_ptr + rows[:, None] * stride_xm + columns[None, :]
-    residual = tl.load(pointers, mask=ok, other=0.0, cache_modifier=".cg").to(tl.float32)
-    tl.store(pointers, (residual + acc).to(x_ptr.dtype.element_ty), mask=ok)
-
-
-@triton.jit
-def _tile_at(tile, N, BLOCK_M: tl.constexpr, BLOCK_N: tl.constexpr):
-    """Output tile `tile` of a phase whose tiles go row block by row block, `cdiv(N, BLOCK_N)` column blocks each:
-    its row block, rows and columns."""
-    column_blocks = tl.cdiv(N, BLOCK_N)
-    block = tile // column_blocks
-    return block, block * BLOCK_M + tl.arange(0, BLOCK_M), (tile % column_blocks) * BLOCK_N + tl.arange(0, BLOCK_N)
-
-
-@triton.jit
-def _o_tile(tile, x_ptr, attended_ptr, o_ptr, gate_ptr, wait_ptr, need, counters_ptr, M, D, NH, stride_xm, stride_am,
-            stride_ok, stride_on, BLOCK_M: tl.constexpr, N_O: tl.constexpr, BLOCK_K: tl.constexpr, DOT: tl.constexpr,
-            PREFETCH: tl.constexpr, HAS_GATE: tl.constexpr):
-    """`x[r, n] += attended[r] @ o[:, n]` (adaRMS: times `gate[n]`), once `wait` reaches `need` (the attention's tiles:
-    0 where `attended` was written before the launch); then counted in for row block r (`counters[r]`)."""
-    block, rows, columns = _tile_at(tile, D, BLOCK_M, N_O)
-    _prefetch_weights(o_ptr, stride_ok, stride_on, columns, NH, D, BLOCK_K, PREFETCH)
-    _wait_for(wait_ptr, need)
-    acc, _, _ = _matmul_tiles(attended_ptr, stride_am, attended_ptr, o_ptr, stride_ok, stride_on, rows, columns, 0, M,
-                              0, NH, D, BLOCK_M, N_O, BLOCK_K, False, False, DOT, ".cg")
-    _add_to_residual(x_ptr, stride_xm, rows, columns, M, D, acc, gate_ptr, HAS_GATE)
-    _count_in(counters_ptr + block, 1)
-
-
-@triton.jit
-def _gate_up_tile(tile, x_ptr, scale_ptr, gate_up_ptr, bias_ptr, hidden_ptr, o_counters_ptr, counters_ptr, M, D, F,
-                  stride_xm, stride_gk, stride_gn, eps, BLOCK_M: tl.constexpr, N_O: tl.constexpr,
-                  N_GATE_UP: tl.constexpr, BLOCK_K: tl.constexpr, DOT: tl.constexpr, PREFETCH: tl.constexpr,
-                  HAS_BIAS: tl.constexpr):
-    """`hidden[r, f] = gelu_tanh(norm(x[r]) @ gate[:, f]) * (norm(x[r]) @ up[:, f])` (adaRMS: plus `bias[f]` and
-    `bias[F + f]` before the GeGLU), once every o-projection tile of row block r is in (`o_counters[r]`); then counted
-    in for r (`counters[r]`)."""
-    block, rows, columns = _tile_at(tile, F, BLOCK_M, N_GATE_UP)
-    _prefetch_weights(gate_up_ptr, stride_gk, stride_gn, columns, D, F, BLOCK_K, PREFETCH)
-    _prefetch_weights(gate_up_ptr + F * stride_gn, stride_gk, stride_gn, columns, D, F, BLOCK_K, PREFETCH)
-    _wait_for(o_counters_ptr + block, tl.cdiv(D, N_O))
-    gate, up, squares = _matmul_tiles(x_ptr, stride_xm, scale_ptr, gate_up_ptr, stride_gk, stride_gn, rows, columns, F,
-                                      M, 0, D, F, BLOCK_M, N_GATE_UP, BLOCK_K, True, True, DOT, ".cg")
-    _geglu_store(gate, up, squares, rows, columns, columns < F, bias_ptr, hidden_ptr, M, D, F, eps, HAS_BIAS)
-    _count_in(counters_ptr + block, 1)
-
-
-@triton.jit
-def _down_tile(tile, x_ptr, hidden_ptr, down_ptr, gate_ptr, gate_up_counters_ptr, counters_ptr, M, D, F, stride_xm,
-               stride_dk, stride_dn, BLOCK_M: tl.constexpr, N_GATE_UP: tl.constexpr, N_DOWN: tl.constexpr,
-               BLOCK_K: tl.constexpr, DOT: tl.constexpr, PREFETCH: tl.constexpr, HAS_GATE: tl.constexpr,
-               COUNT: tl.constexpr):
-    """`x[r, n] += hidden[r] @ down[:, n]` (adaRMS: times `gate[n]`), once every gate/up tile of row block r is in (so
-    every read of `x[r]` for the norm is done too); with COUNT then counted in for r (`counters[r]`: a next layer's
-    q/k/v of r wait for them. Not here: its barrier takes 80 KiB more shared memory with 4 stages of 128-deep blocks,
-    more than sm_90 has)."""
-    block, rows, columns = _tile_at(tile, D, BLOCK_M, N_DOWN)
-    _prefetch_weights(down_ptr, stride_dk, stride_dn, columns, F, D, BLOCK_K, PREFETCH)
-    _wait_for(gate_up_counters_ptr + block, tl.cdiv(F, N_GATE_UP))
-    acc, _, _ = _matmul_tiles(hidden_ptr, F, hidden_ptr, down_ptr, stride_dk, stride_dn, rows, columns, 0, M, 0, F, D,
-                              BLOCK_M, N_DOWN, BLOCK_K, False, False, DOT, ".cg")
-    _add_to_residual(x_ptr, stride_xm, rows, columns, M, D, acc, gate_ptr, HAS_GATE)
-    if COUNT:
-        _count_in(counters_ptr + block, 1)
 
 
 @triton.jit

@@ -300,7 +300,7 @@ def bench_generate(args: argparse.Namespace, device: torch.device) -> None:
 
             reason = launch_mode()
         print(f"fused kernels: {reason}")
-    print(f"{'preset':12s} {'dtype':9s} {'mode':14s} {'steps':7s} {'rtc':12s} {'cams':>4s} {'batch':>5s} {'set-up s':>8s} {'median ms':>10s} "
+    print(f"{'preset':12s} {'dtype':9s} {'mode':14s} {'steps':8s} {'rtc':12s} {'cams':>4s} {'batch':>5s} {'set-up s':>8s} {'median ms':>10s} "
           f"{'min ms':>10s} {'max ms':>10s} {'peak MiB':>10s} {'GFLOP/s':>8s} {'% peak':>6s}"
           + (f" {'GPU ops':>7s} {'GPU ms':>7s}" if cuda else ""))
     for preset in args.presets:
@@ -332,7 +332,7 @@ def bench_generate(args: argparse.Namespace, device: torch.device) -> None:
                             refused = method == "guidance" and model.sampling_captured and not model.replays_graphs(method)
                             label = "guid. eager" if refused else method or "-"  # (guided chunks replay no graph)
                             fused = steps_path(model, device, method, batch, cameras)
-                            print(f"{preset:12s} {dtype_name:9s} {mode:14s} {fused:7s} {label:12s} {cameras:4d} {batch:5d} "
+                            print(f"{preset:12s} {dtype_name:9s} {mode:14s} {fused:8s} {label:12s} {cameras:4d} {batch:5d} "
                                   f"{setup:8.1f} {timing.row()} {rate}{work}")
                             print_kernel_table(table, args.kernel_table)
             del model
@@ -340,12 +340,15 @@ def bench_generate(args: argparse.Namespace, device: torch.device) -> None:
 
 
 def steps_path(model: PI0ForActionGeneration, device: torch.device, method: str | None, batch: int, cameras: int) -> str:
-    """What ran a row's Euler steps: "fused", "torch", or "refused" (fused, but its first call's verification against
-    the unfused path refused this batch size and camera count: they ran unfused)."""
+    """What ran a row's Euler steps: "fused", "persist." (fused, each step's decoder layers in one launch), "torch", or
+    "refused" (fused, but its first call's verification against the unfused path refused this batch size and camera
+    count: they ran unfused)."""
     if model.fused_steps_reason(device, model.dtype, method) is not None:
         return "torch"
     images = [signature[0][0][:2] for signature in (key[1] for key, why in model._fused_refusals.items() if why is not None)]
-    return "refused" if (batch, cameras) in images else "fused"
+    if (batch, cameras) in images:
+        return "refused"
+    return "persist." if model.sampling_kernels == "persistent" else "fused"
 
 
 def bench_op_counts(args: argparse.Namespace) -> None:
@@ -367,20 +370,22 @@ def bench_op_counts(args: argparse.Namespace) -> None:
         gc.collect()
     print(f"\nATen ops of the sampling a CUDA graph captures, full size, bfloat16, batch 1, {TEXT_TOKENS} prompt tokens, "
           "10 steps (counted on the meta device: no weights)")
-    print("(steps 'fused': the fused kernels, as on CUDA in bf16, each kernel one op; per layer and step: the kernels of "
-          "the 10 steps / (10 x layers))")
-    print(f"{'preset':12s} {'steps':7s} {'cameras':>7s} {'ops':>6s} {'views':>6s} {'kernels':>7s} {'host copies':>11s} "
+    print("(steps 'fused': the fused kernels, as on CUDA in bf16, each kernel one op; 'persist.': the same with each "
+          "step's decoder layers in one (sampling_kernels='persistent'); per layer and step: the kernels of the 10 steps "
+          "/ (10 x layers))")
+    print(f"{'preset':12s} {'steps':8s} {'cameras':>7s} {'ops':>6s} {'views':>6s} {'kernels':>7s} {'host copies':>11s} "
           f"{'per layer-step':>14s}")
     for preset in ("pi0", "pi05"):
-        for fused in (False, True):
+        for steps, fused, persistent in (("torch", False, False), ("fused", True, False), ("persist.", True, True)):
             for cameras in (1, 3):
                 config = PI0Config.from_preset(preset)
                 shown = tuple(camera < cameras for camera in range(config.num_cameras))
                 facts = InputFacts((shown,), (TEXT_TOKENS,), TEXT_TOKENS)
-                _, counter = sample_on_meta(config, facts, config.num_inference_steps, torch.bfloat16, fused=fused)
-                _, one_step = sample_on_meta(config, facts, 1, torch.bfloat16, fused=fused)
+                _, counter = sample_on_meta(config, facts, config.num_inference_steps, torch.bfloat16, fused=fused,
+                                            persistent=persistent)
+                _, one_step = sample_on_meta(config, facts, 1, torch.bfloat16, fused=fused, persistent=persistent)
                 per_step = (counter.kernels - one_step.kernels) / ((config.num_inference_steps - 1) * config.num_hidden_layers)
-                print(f"{preset:12s} {'fused' if fused else 'torch':7s} {cameras:7d} {counter.total:6d} {counter.views:6d} "
+                print(f"{preset:12s} {steps:8s} {cameras:7d} {counter.total:6d} {counter.views:6d} "
                       f"{counter.kernels:7d} {counter.host_copies:11d} {per_step:14.2f}")
     print("\nATen ops of one π0-FAST decoded token (decode_step), full size, bfloat16, batch 1, 3 cameras, "
           f"{TEXT_TOKENS} prompt tokens (meta device; layers 'fused': decoding_kernels as on CUDA in bf16)")
@@ -477,11 +482,12 @@ def bench_gemms(args: argparse.Namespace, device: torch.device) -> None:
 
 def sample_on_meta(
     config: PI0Config, facts: InputFacts, steps: int, dtype: torch.dtype = torch.float32, rtc_method: str | None = None,
-    fused: bool = False, count: bool = True,
+    fused: bool = False, count: bool = True, persistent: bool = False,
 ) -> tuple[torch.Tensor, AtenOpCounter | None]:
     """Run `generate_actions`' sampling region (`_sample`: everything after the input checks, what `capture_sampling`
     records) for a model built on the meta device, with inputs laid out as `facts` says: the actions (shapes only)
-    and the ops it ran (`fused`: the steps in the fused kernels, as on CUDA in bf16, each kernel one op; `count=False`:
+    and the ops it ran (`fused`: the steps in the fused kernels, as on CUDA in bf16, each kernel one op, with
+    `persistent` each step's decoder layers in one, as `sampling_kernels="persistent"` runs them; `count=False`:
     not counted, None, and the fused ops call their implementations instead of their fakes). No weights are needed,
     so a full-size model costs no memory, and any read of a device value on the host (`.item()`, `bool()`,
     `.tolist()`, `nonzero`) raises."""
@@ -505,7 +511,8 @@ def sample_on_meta(
     )
     max_guidance = DEFAULT_MAX_GUIDANCE if rtc_method == "guidance" else 0.0
     with torch.no_grad(), (AtenOpCounter() if count else contextlib.nullcontext()) as counter:
-        sampled = model._sample(inputs, SamplingPlan(layout, tuple(euler_times(steps)), rtc_method, max_guidance, fused))
+        plan = SamplingPlan(layout, tuple(euler_times(steps)), rtc_method, max_guidance, fused, fused and persistent)
+        sampled = model._sample(inputs, plan)
     return sampled, counter
 
 
@@ -703,7 +710,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--compile", action="store_true", help="also time regionally compiled sampling (on CUDA also "
                         "compiled inside the CUDA graph); on CUDA the hand-captured graph is always timed")
     parser.add_argument("--kernels", type=_csv(str), default="auto", help="comma list of sampling_kernels to time: "
-                        "auto (the fused kernels on CUDA in bf16 where they pass their check), torch, triton")
+                        "auto (the fused kernels on CUDA in bf16 where they pass their check), torch, triton, "
+                        "persistent (each step's decoder layers in one launch; experimental)")
     parser.add_argument("--gemms", action="store_true", help="also time the sampling steps' GEMM shapes (CUDA): cuBLAS "
                         "against the fused kernels, microseconds and GB/s of weights read")
     parser.add_argument("--rtc", type=_csv(str), default="", help="also time chunks continued by real-time chunking "

@@ -212,11 +212,13 @@ def test_varlen_kernel_matches_sdpa(reference: OpenpiReference) -> None:
 
 @torch.no_grad()
 @pytest.mark.parametrize("preset", ["pi0", "pi05"])
-def test_fused_steps_hold_at_full_width_for_every_batch_class(preset: str) -> None:
+@pytest.mark.parametrize("setting", ["auto", "persistent"])
+def test_fused_steps_hold_at_full_width_for_every_batch_class(preset: str, setting: str) -> None:
     """Full-size widths (two decoder layers, random weights), bf16, "auto": at batch 1 (one-row state token, key
     parts), 3 (64-row attention blocks) and 8 (row counts divisible by 16; 400 rows: the GEMM ops run cuBLAS's GEMM
     with the epilogue kernels, `CUBLAS_ROWS`) each call's first-use verification keeps the fused steps, and they give
-    the unfused path's actions within bf16's bound."""
+    the unfused path's actions within bf16's bound. "persistent" (each step's layers in one launch): the same, and
+    its CUDA graph replays what it samples eagerly."""
     from pi0_torch import PI0Config, PI0ForActionGeneration
     from pi0_torch.benchmark import example_batch
 
@@ -229,12 +231,18 @@ def test_fused_steps_hold_at_full_width_for_every_batch_class(preset: str) -> No
         if config.pi05:
             inputs.pop("state")
         noise = torch.randn(batch, config.action_horizon, config.action_dim, device=CUDA)
-        model.sampling_kernels = "auto"
+        model.sampling_kernels = setting
         fused = model.generate_actions(**inputs, noise=noise)
         assert list(model._fused_refusals.values()) == [None], model._fused_refusals
+        if setting == "persistent":
+            model.capture_sampling()
+            replayed = [model.generate_actions(**inputs, noise=noise) for _ in range(2)]
+            model.capture_sampling(disable=True)
+            print(f"{preset} batch {batch}: persistent graph against eager {relative(replayed[1], fused):.2e}")
+            assert relative(replayed[1], fused) <= 1e-3
         model.sampling_kernels = "torch"
         unfused = model.generate_actions(**inputs, noise=noise)
-        print(f"{preset} batch {batch}: fused against unfused {relative(fused, unfused):.2e}")
+        print(f"{preset} batch {batch} {setting}: fused against unfused {relative(fused, unfused):.2e}")
         assert relative(fused, unfused) <= 3e-2
 
 

@@ -182,6 +182,25 @@ def test_each_op_is_one_op_on_the_meta_device_and_traces_under_compile() -> None
     torch.testing.assert_close(torch.compile(mlp, fullgraph=True, backend="aot_eager")(*arguments), mlp(*arguments))
 
 
+def test_the_persistent_launch_refuses_layers_it_cannot_address() -> None:
+    """One launch reads every layer's weights at layer 0's strides, from an offset per layer (`weight_offsets`): layers
+    whose weights differ in shape, strides or dtype, or start off a 16-byte boundary, are refused by name."""
+    from pi0_torch.kernels import persistent
+
+    weights = [torch.randn(4, 64, 32).unbind(0) for _ in range(4)]
+    table = persistent.weight_offsets(weights, torch.device("cpu"))
+    assert table.shape == (4, 4) and table[0].eq(0).all()
+    assert table[:, 0].tolist() == [(w.data_ptr() - weights[0][0].data_ptr()) // 4 for w in weights[0]]
+    transposed = [list(weights[0]), list(weights[1]), list(weights[2]), [*weights[3][:3], weights[3][3].t().contiguous().t()]]
+    with pytest.raises(ValueError, match=r"layer 3's down weight is \(64, 32\) with strides \(1, 64\)"):
+        persistent.weight_offsets(transposed, torch.device("cpu"))
+    storage = torch.randn(64 * 32 + 1)
+    shifted = [list(weights[0]), [weights[1][0], storage[1:].view(64, 32), *weights[1][2:]], list(weights[2]),
+               list(weights[3])]
+    with pytest.raises(ValueError, match="layer 1's o weight starts at an address that is not a multiple of 16 bytes"):
+        persistent.weight_offsets(shifted, torch.device("cpu"))
+
+
 def sampling_inputs(config: PI0Config, batch: int, seed: int) -> dict[str, torch.Tensor]:
     """Padded prompts of several lengths and a camera no sample shows."""
     generator = torch.Generator().manual_seed(seed)
@@ -203,15 +222,24 @@ def tiny_config(preset: str = "pi0_small", **overrides) -> PI0Config:
                                  vision_num_layers=1, vision_num_heads=2, max_token_len=12, action_horizon=10, **overrides)
 
 
-@pytest.mark.parametrize("preset", ["pi0_small", "pi05_small"])
-@pytest.mark.parametrize("dtype, tolerance", [(torch.float32, 1e-5), (torch.bfloat16, 3e-2)])
-@pytest.mark.parametrize("batch", [1, 3])
-def test_fused_steps_equal_the_unfused_ones_and_the_reference_loop(preset: str, dtype: torch.dtype, tolerance: float,
-                                                                     batch: int, monkeypatch: pytest.MonkeyPatch) -> None:
-    """`sampling_kernels="triton"`: every Euler step in the fused kernels. The actions equal the unfused engine's and
-    `sample_actions_reference`'s (float32 tightly; bf16 to its rounding: the fused epilogues round less often). At
-    batch 3 the step's GEMMs run as from `CUBLAS_ROWS` rows on (here lowered to 30: cuBLAS's GEMMs with the epilogue
-    kernels around them)."""
+PRECISIONS = [(torch.float32, 1e-5), (torch.bfloat16, 3e-2)]
+
+
+@pytest.mark.parametrize("setting, preset, dtype, tolerance, batch", [
+    *(("triton", preset, *precision, batch) for preset in ("pi0_small", "pi05_small") for precision in PRECISIONS
+      for batch in (1, 3)),
+    # (the persistent launch: each family, precision and batch size once; 10 s each in the interpreter)
+    ("persistent", "pi0_small", *PRECISIONS[0], 3), ("persistent", "pi0_small", *PRECISIONS[1], 1),
+    ("persistent", "pi05_small", *PRECISIONS[0], 1), ("persistent", "pi05_small", *PRECISIONS[1], 3),
+])
+def test_fused_steps_equal_the_unfused_ones_and_the_reference_loop(setting: str, preset: str, dtype: torch.dtype,
+                                                                     tolerance: float, batch: int,
+                                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    """`sampling_kernels="triton"`: every Euler step in the fused kernels ("persistent": each step's decoder layers in
+    one launch, `kernels.persistent`). The actions equal the unfused engine's and `sample_actions_reference`'s (float32
+    tightly; bf16 to its rounding: the fused epilogues round less often). At batch 3 the step's GEMMs run as from
+    `CUBLAS_ROWS` rows on (here lowered to 30: cuBLAS's GEMMs with the epilogue kernels around them; the persistent
+    launch has no such switch)."""
     monkeypatch.setattr(kernels(), "CUBLAS_ROWS", 30)
     torch.manual_seed(0)
     config = tiny_config(preset)
@@ -222,7 +250,7 @@ def test_fused_steps_equal_the_unfused_ones_and_the_reference_loop(preset: str, 
     model.sampling_kernels = "torch"
     unfused = model.generate_actions(**inputs, num_steps=3)
     plain = model.sample_actions_reference(**inputs, num_steps=3)
-    model.sampling_kernels = "triton"
+    model.sampling_kernels = setting
     assert model.fused_steps_reason(DEVICE, dtype) is None
     fused = model.generate_actions(**inputs, num_steps=3)
     assert relative(fused, unfused) <= tolerance and relative(fused, plain) <= tolerance
@@ -319,7 +347,8 @@ def test_the_fused_steps_run_few_kernels_per_layer_and_step() -> None:
     each fused step is the action embedding, five ops per decoder layer and the fused final norm + Euler update; the
     prefix pass keeps cuBLAS's GEMMs with RoPE + cache write and GeGLU fused around them, π0's state token runs the
     fused ops, SigLIP nine ops per layer, and one RoPE table serves every pass. 1,454 (π0) and 1,439 (π0.5) kernels,
-    from 3,736 and 3,868 unfused (issue 37: 1,500 / 1,600)."""
+    from 3,736 and 3,868 unfused (issue 37: 1,500 / 1,600); 566 and 555 with each step's layers in one launch
+    (`sampling_kernels="persistent"`)."""
     facts = InputFacts(((True, True, True),), (48,), 48)
     for preset, ceiling in (("pi0", 1_460), ("pi05", 1_445)):
         config = PI0Config.from_preset(preset)
@@ -333,6 +362,10 @@ def test_the_fused_steps_run_few_kernels_per_layer_and_step() -> None:
         assert fused.ops["rope_cache_write"] == layers and fused.ops["geglu"] == layers - 1  # (the last layer: k/v only)
         assert fused.ops["add_layer_norm_"] == 2 * config.vision_num_layers == 2 * fused.ops["_addmm_activation"]
         assert fused.kernels <= ceiling < unfused.kernels, (preset, fused.kernels, unfused.kernels)
+        _, persistent = sample_on_meta(config, facts, 10, torch.bfloat16, fused=True, persistent=True)
+        assert persistent.ops["expert_layers_"] == 10 and persistent.ops["norm_qkv_rope"] == state * layers, persistent.ops
+        # (the steps' 5 ops per layer become one per step; the stacked norm scales and adaRMS tensors: 2 and 6 more)
+        assert persistent.kernels == fused.kernels - 10 * (5 * layers - 1) + (6 if config.pi05 else 2), persistent.kernels
 
 
 def test_every_kernel_variant_fits_the_shared_memory_of_an_rtx_4090() -> None:

@@ -2,7 +2,8 @@
 
 - Each Euler step of the action expert (`FusedSteps`): the action tokens in one launch (π0: with the action/time MLP),
   then per decoder layer five launches (norm + q/k/v + RoPE + cache write, attention over the key range, o-projection
-  + residual, norm + gate/up + GeGLU, down-projection + residual), then the final norm, `action_out_proj` and the
+  + residual, norm + gate/up + GeGLU, down-projection + residual; `sampling_kernels="persistent"`: every layer of the
+  step in one persistent launch, `kernels.persistent.expert_layers_`), then the final norm, `action_out_proj` and the
   Euler update in one.
 - The prefix pass (`prefix_layer`): the VLM's GEMMs stay cuBLAS's (compute-bound at 800+ rows) with RoPE and the cache
   write, and the GeGLU, fused around them (nine launches per layer instead of fifteen); π0's state token, one row,
@@ -27,7 +28,7 @@ import functools
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import torch
 
@@ -54,10 +55,10 @@ FUSED_TOLERANCE = {torch.float32: 1e-4, torch.bfloat16: 3e-2, torch.float16: 3e-
 
 def kernels_setting_reason(setting: str, name: str, device: torch.device, dtype: torch.dtype,
                            check: Callable[[], str | None], unsupported: str | None = None) -> str | None:
-    """Why a model's fused-kernels setting `name` (`setting`: "auto", "torch" or "triton") does not run them on
-    `device` in `dtype` (None: it does): "torch"; then `unsupported` (what the call asks for that they do not do);
-    "auto" off CUDA in bf16 / fp16; then `check()` (the model and the kernels), which "triton" turns into a
-    `ValueError`."""
+    """Why a model's fused-kernels setting `name` (`setting`: "auto", "torch", or a kernel set asked for by name:
+    "triton", sampling's "persistent") does not run them on `device` in `dtype` (None: it does): "torch"; then
+    `unsupported` (what the call asks for that they do not do); "auto" off CUDA in bf16 / fp16; then `check()` (the
+    model and the kernels), which a setting asked for by name turns into a `ValueError`."""
     if setting == "torch":
         return f"{name} is 'torch'"
     if unsupported is not None:
@@ -65,8 +66,8 @@ def kernels_setting_reason(setting: str, name: str, device: torch.device, dtype:
     if setting == "auto" and not (device.type == "cuda" and dtype in (torch.bfloat16, torch.float16)):
         return f"the fused kernels run on CUDA in bf16 / fp16 ({name}='triton' to force them)"
     reason = check()
-    if reason is not None and setting == "triton":
-        raise ValueError(f"{name}='triton' cannot run: {reason}")
+    if reason is not None and setting != "auto":
+        raise ValueError(f"{name}={setting!r} cannot run: {reason}")
     return reason
 
 
@@ -112,7 +113,7 @@ def verify_fused_sampling(model: PI0ForActionGeneration, inputs: SamplingInputs,
     of these shapes (None: it may run), and the actions to return (the fused ones where it may, else the unfused).
     Refused where it raises (a kernel variant that does not compile or does not fit the device) or where its actions
     deviate from the unfused ones by more than `FUSED_TOLERANCE` (a non-finite action deviates infinitely)."""
-    unfused = model._sample(inputs, replace(plan, fused=False))
+    unfused = model._sample(inputs, replace(plan, fused=False, persistent=False))
     try:
         fused = model._sample(inputs, plan)
     except Exception as error:  # (the inputs were checked and the unfused path ran them: what fails is the kernels)
@@ -215,18 +216,17 @@ def _compare(cases: list[tuple[str, Callable[[], tuple]]], device: torch.device,
 
 @dataclass
 class FusedSteps:
-    """What every fused step of one call shares: the caches as `[B, S, H]`, the action tokens' RoPE tables
-    `[B, T, H]`, their key range, the transposed weights, π0's norm scales, the action embedding's weights and each
-    step's bias (π0: action_in_proj folded into the action half of action_time_mlp_in, the step's time half in the
-    bias), and the final bias of each step (`action_out_proj`'s bias, plus π0.5's final adaRMS shift through it)."""
+    """What every fused step of one call shares: the decoder layers' arguments of each step after its action tokens
+    (`expert_layers_`'s: the layers' weights, their norms' scales and π0.5's adaRMS biases and gates of the step, the
+    caches, the action tokens' RoPE tables `[B, T, H]` and key range; stacked `[L, ...]` for the persistent launch,
+    lists of each layer's views for five launches per layer), whether a step's layers run as one persistent launch,
+    the action embedding's weights and each step's bias (π0: action_in_proj folded into the action half of
+    action_time_mlp_in, the step's time half in the bias), and the final norm's scale and bias of each step
+    (`action_out_proj`'s bias, plus π0.5's final adaRMS shift through it)."""
 
     model: PI0ForActionGeneration
-    actions: ActionPass
-    keys: list[torch.Tensor]
-    values: list[torch.Tensor]
-    cos: torch.Tensor
-    sin: torch.Tensor
-    row_ends: torch.Tensor
+    persistent: bool
+    layer_arguments: list[tuple[Any, ...]]  # per step
     in_weight: torch.Tensor  # [A, D1]
     in_biases: torch.Tensor  # [steps or 1, D1]
     mlp_out: tuple[torch.Tensor, torch.Tensor] | None  # π0: action_time_mlp_out's weight [D1, D1] (transposed), bias
@@ -235,48 +235,58 @@ class FusedSteps:
     final_biases: torch.Tensor  # [steps or 1, A]
 
     @classmethod
-    def build(cls, model: PI0ForActionGeneration, actions: ActionPass, conditioning: StepConditioning) -> FusedSteps:
+    def build(cls, model: PI0ForActionGeneration, actions: ActionPass, conditioning: StepConditioning, steps: int,
+              persistent: bool = False) -> FusedSteps:
         """`conditioning`: every step's, with the time axis first (`ActionSampling.step_conditioning`)."""
         config = model.config
         cache, stream = actions.cache, actions.stream
-        keys = [k[:, 0] for k in cache.keys]  # [B, S, H] views (one kv head)
-        values = [v[:, 0] for v in cache.values]
+        norms = conditioning.layer_norms if config.pi05 else actions.expert_norms  # per layer: (attention, MLP)
+        names = ((0, "scale"), (1, "scale"))  # (π0.5: then its adaRMS biases and gates)
+        names += ((0, "shift_projected"), (0, "gate"), (1, "shift_projected"), (1, "gate")) if config.pi05 else ()
+        if persistent:  # (stacked: [L, ...] per step, the caches [L, B, S, H])
+            keys, values = (buffer[:, :, 0] for buffer in cache.buffers)
+            stacked = [torch.stack([getattr(pair[index], name) for pair in norms], dim=-2) for index, name in names]
+            per_step = [[each[step] if config.pi05 else each for each in stacked] for step in range(steps)]
+        else:  # (lists of each layer's, the caches [B, S, H] views)
+            keys, values = ([each[:, 0] for each in buffers] for buffers in (cache.keys, cache.values))
+            step_norms = [step.layer_norms for step in conditioning.steps()] if config.pi05 else [norms] * steps
+            per_step = [[[getattr(pair[index], name) for pair in layer_norms] for index, name in names]
+                        for layer_norms in step_norms]
+        qkv, o, gate_up, down = (list(each) for each in zip(*((own.qkv, own.o, own.gate_up, own.down)
+                                                              for own in actions.expert_weights)))
+        row_ends = torch.full((stream.tokens,), cache.slots, device=cache.first.device)
+        layer_arguments = [(scales, qkv, o, mlp_scales, gate_up, down, stream.cos[:, :, 0], stream.sin[:, :, 0], keys,
+                            values, cache.first, row_ends, stream.first_slot, config.rms_norm_eps, *(adarms or (None,) * 4))
+                           for scales, mlp_scales, *adarms in per_step]
         out_weight = model.action_out_proj.weight.t()
         final: NormParams = conditioning.final_norm if config.pi05 else actions.final_norm
         final_biases = model.action_out_proj.bias[None]
         if final.shift is not None:
             final_biases = torch.addmm(final_biases, final.shift, out_weight)  # [steps, A]
-        row_ends = torch.full((stream.tokens,), cache.slots, device=cache.first.device)
         in_weight, in_biases, mlp_out = model.action_in_proj.weight.t(), model.action_in_proj.bias[None], None
         if not config.pi05:  # (x W_in + b_in) W_a + c = x (W_in W_a) + (b_in W_a + c)
-            steps = conditioning.condition.shape[0]
             in_biases = torch.addmm(conditioning.condition, in_biases.expand(steps, -1), actions.action_weight)  # [steps, D1]
             in_weight = torch.mm(in_weight, actions.action_weight)
             mlp_out = (model.action_time_mlp_out.weight.t(), model.action_time_mlp_out.bias)
-        return cls(model, actions, keys, values, stream.cos[:, :, 0], stream.sin[:, :, 0], row_ends, in_weight, in_biases,
-                   mlp_out, out_weight, final.scale.view(-1, final.scale.shape[-1]), final_biases)
+        return cls(model, persistent, layer_arguments, in_weight, in_biases, mlp_out, out_weight,
+                   final.scale.view(-1, final.scale.shape[-1]), final_biases)
 
-    def step_(self, x_t: torch.Tensor, index: int, step: StepConditioning, dt: float) -> None:
-        """One Euler step of the flow at `x_t` (float32 `[B, horizon, A]`, updated in place), the `index`-th of the
-        call with its conditioning `step`."""
-        model, actions = self.model, self.actions
-        config = model.config
-        eps, heads, head_dim = config.rms_norm_eps, config.num_attention_heads, config.head_dim
-        batch = x_t.shape[0]
+    def step_(self, x_t: torch.Tensor, index: int, dt: float) -> None:
+        """The `index`-th Euler step of the call at `x_t` (float32 `[B, horizon, A]`, updated in place)."""
         row = index if self.in_biases.shape[0] > 1 else 0  # (π0: a time half per step)
         tokens = ops.call(ops.embed_actions, x_t, self.in_weight, self.in_biases[row], *(self.mlp_out or (None, None)))  # [B * T, D1]
-        norms = step.layer_norms if config.pi05 else actions.expert_norms
-        first_slot = actions.stream.first_slot
-        for own, (attn, mlp), keys, values in zip(actions.expert_weights, norms, self.keys, self.values):
-            q = ops.call(ops.norm_qkv_rope, tokens, attn.scale, attn.shift_projected, own.qkv, self.cos, self.sin,
-                         keys, values, first_slot, eps)
-            attended = ops.call(ops.range_attention, q.view(batch, -1, heads, head_dim), keys, values,
-                                actions.cache.first, self.row_ends)
-            ops.call(ops.matmul_residual_, tokens, attended, own.o, attn.gate)
-            hidden = ops.call(ops.norm_gate_up_geglu, tokens, mlp.scale, mlp.shift_projected, own.gate_up, eps)
-            ops.call(ops.matmul_residual_, tokens, hidden, own.down, mlp.gate)
+        if self.persistent:
+            ops.call(ops.expert_layers_, tokens, *self.layer_arguments[index])
+        else:
+            reference.layer_by_layer_(_call_op, tokens, *self.layer_arguments[index])
         row = index if self.final_scales.shape[0] > 1 else 0  # (π0.5: a final norm per step)
-        ops.call(ops.norm_linear_euler_, x_t, tokens, self.final_scales[row], self.final_biases[row], self.out_weight, dt, eps)
+        ops.call(ops.norm_linear_euler_, x_t, tokens, self.final_scales[row], self.final_biases[row], self.out_weight, dt,
+                 self.model.config.rms_norm_eps)
+
+
+def _call_op(name: str, *args: Any) -> Any:
+    """The fused op `name` on `args` (`ops.call`)."""
+    return ops.call(getattr(ops, name), *args)
 
 
 def prefix_layer(

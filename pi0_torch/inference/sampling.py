@@ -43,12 +43,13 @@ class PrefixCache:
     `[B, K, slots, H]` whose last `action_horizon` slots each step's action tokens fill, each sample's first valid
     slot `[B]` (its valid prefix tokens end at `layout.length`), and the RoPE tables of every slot."""
 
-    keys: list[torch.Tensor]
+    keys: list[torch.Tensor]  # per layer: views of `buffers[0]`
     values: list[torch.Tensor]
     first: torch.Tensor
     layout: PrefixLayout
     slots: int  # the prefix's and the suffix's; the buffers may hold more (zeros: `cache_prefix`)
     rope: tuple[torch.Tensor, torch.Tensor]  # `rope_tables` of every slot `[B, slots, H]`, shared by the passes
+    buffers: tuple[torch.Tensor, torch.Tensor]  # every layer's keys, values: [L, B, K, slots, H]
 
 
 @dataclass
@@ -90,6 +91,7 @@ class SamplingPlan:
     rtc_method: str | None = None  # None: plain sampling
     max_guidance: float = 0.0
     fused: bool = False  # the steps in the fused kernels (`pi0_torch.inference.fused_pass`)
+    persistent: bool = False  # (fused) each step's decoder layers in one launch (`pi0_torch.kernels.persistent`)
 
 
 class ActionSampling:
@@ -104,7 +106,7 @@ class ActionSampling:
     # (`allow_recompiles`).
     RECOMPILE_LIMIT = 64
 
-    SAMPLING_KERNELS = ("auto", "torch", "triton")
+    SAMPLING_KERNELS = ("auto", "torch", "triton", "persistent")
 
     _attention_kernel: str = "auto"
     _sampling_kernels: str = "auto"
@@ -130,9 +132,11 @@ class ActionSampling:
     def sampling_kernels(self) -> str:
         """What runs the Euler steps of plain sampling: "auto" (the fused Triton kernels of `pi0_torch.kernels`, five
         launches per decoder layer, on CUDA in bf16 / fp16 where they passed their check against the torch references
-        on that device; else "torch"), "torch" (the layers' GEMMs and ATen ops; the CPU's path) or "triton" (the fused
-        kernels wherever triton runs them, `TRITON_INTERPRET=1` included, or a `ValueError` naming why not). The
-        prefix pass and real-time chunking's steps always run "torch"."""
+        on that device; else "torch"), "torch" (the layers' GEMMs and ATen ops; the CPU's path), "triton" (the fused
+        kernels wherever triton runs them, `TRITON_INTERPRET=1` included, or a `ValueError` naming why not) or
+        "persistent" (as "triton", with every decoder layer of a step in one persistent launch instead of five
+        launches per layer: `pi0_torch.kernels.persistent`; experimental, see docs/gpu.md). Real-time chunking's steps
+        always run "torch"; each fused plan is checked against it on its first call."""
         return self._sampling_kernels
 
     @sampling_kernels.setter
@@ -146,7 +150,8 @@ class ActionSampling:
 
     def fused_steps_reason(self, device: torch.device, dtype: torch.dtype, rtc_method: str | None = None) -> str | None:
         """Why plain sampling's steps on `device` in `dtype` do not run the fused kernels (None: they do); see
-        `sampling_kernels`. Raises `ValueError` with the reason where "triton" was asked for and cannot be had."""
+        `sampling_kernels`. Raises `ValueError` with the reason where "triton" or "persistent" was asked for and cannot
+        be had."""
         config = self.config
 
         def check() -> str | None:
@@ -161,15 +166,15 @@ class ActionSampling:
         """The fused `plan`, or it unfused where its fused steps are refused for these input shapes; and, on the first
         call of each plan and input shapes, that call's actions. The verdict is taken on that first call
         (`fused_pass.verify_fused_sampling`: unfused against fused, eagerly) and kept; a refusal is logged once, or
-        raised (`ValueError`) where `sampling_kernels` is "triton"."""
+        raised (`ValueError`) where `sampling_kernels` asks for them by name ("triton", "persistent")."""
         key = (plan, input_signature(inputs))
         sampled = None
         if key not in self._fused_refusals:
             refusal, sampled = verify_fused_sampling(self, inputs, plan)
             if refusal is not None:
                 described = describe_plan(plan, inputs.noise.shape[0])
-                if self._sampling_kernels == "triton":
-                    raise ValueError(f"sampling_kernels='triton' cannot run {described}: {refusal}")
+                if self._sampling_kernels != "auto":
+                    raise ValueError(f"sampling_kernels={self._sampling_kernels!r} cannot run {described}: {refusal}")
                 logger.warning("the fused kernels were refused for %s: %s; it runs the torch path from now on", described, refusal)
             self._fused_refusals[key] = refusal
         return (plan if self._fused_refusals[key] is None else replace(plan, fused=False)), sampled
@@ -243,7 +248,8 @@ class ActionSampling:
             committed=prefix.committed if method == "conditioning" else None,
         )
         fused = self.fused_steps_reason(pixel_values.device, self.dtype, method) is None
-        plan = SamplingPlan(layout, times, method, float(rtc_max_guidance) if method == "guidance" else 0.0, fused)
+        plan = SamplingPlan(layout, times, method, float(rtc_max_guidance) if method == "guidance" else 0.0, fused,
+                            persistent=fused and self._sampling_kernels == "persistent")
         if plan.fused:
             plan, sampled = self._verified_plan(inputs, plan)
             if sampled is not None and graphs is None:
@@ -268,10 +274,10 @@ class ActionSampling:
         conditioning = self.step_conditioning(inputs.times, actions.expert_weights if committed is None else None)
         dt = -1.0 / len(plan.times)
         if plan.fused:
-            fused = FusedSteps.build(self, actions, conditioning)
+            fused = FusedSteps.build(self, actions, conditioning, len(plan.times), plan.persistent)
             x_t = inputs.noise.clone()  # (updated in place)
-            for index, step in enumerate(conditioning.steps()):
-                fused.step_(x_t, index, step, dt)
+            for index in range(len(plan.times)):
+                fused.step_(x_t, index, dt)
             return x_t
         steps = conditioning.steps()
         if committed is not None:  # committed actions take the conditioning of flow time 0
@@ -326,10 +332,9 @@ class ActionSampling:
         # zeros (finite) for that
         masked = layout.padded and (kernel == "sdpa" or differentiable_steps)
         shape = (batch, config.num_key_value_heads, aligned_key_count(slots) if masked else slots, config.head_dim)
-        if masked:  # (one zeroing for every layer's buffer)
-            keys, values = (list(prefix.new_zeros(len(self.layers), *shape).unbind(0)) for _ in range(2))
-        else:
-            keys, values = ([prefix.new_empty(shape) for _ in self.layers] for _ in range(2))
+        # (one buffer for every layer: one zeroing where masked, one pointer for `kernels.persistent`)
+        buffers = tuple((prefix.new_zeros if masked else prefix.new_empty)(len(self.layers), *shape) for _ in range(2))
+        keys, values = (list(buffer.unbind(0)) for buffer in buffers)
         rope = rope_tables(config, first, slots)  # (one table for every stream of the call)
         streams = (
             prefix_stream(config, first, layout, kernel, shape[2], self.dtype, rope),
@@ -349,7 +354,7 @@ class ActionSampling:
                                                    weights, first, state_ends, config.rms_norm_eps, keys_only=last)
             else:
                 x, state = self._layer_pass(layer, x, state, streams, (layer_keys, layer_values), None, weights, keys_only=last)
-        return PrefixCache(keys, values, first, layout, slots, rope)
+        return PrefixCache(keys, values, first, layout, slots, rope, buffers)
 
     def action_pass(self, cache: PrefixCache, differentiable: bool = False) -> ActionPass:
         """What every sampling step shares (see `ActionPass`), computed once per call; `differentiable` for steps that

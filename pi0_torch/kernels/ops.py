@@ -14,7 +14,7 @@ import functools
 import importlib.util
 import logging
 import os
-from typing import Any, Callable, Optional
+from typing import Any, Callable, List, Optional
 
 import torch
 from torch.utils._python_dispatch import _get_current_dispatch_mode
@@ -29,7 +29,7 @@ def _triton_import_error() -> Optional[str]:
     if importlib.util.find_spec("triton") is None:
         return "triton is not installed (torch's CUDA wheels bring it; pip install 'pi0-torch[kernels]')"
     try:
-        from pi0_torch.kernels import triton_kernels  # noqa: F401  (compiles nothing yet: kernels JIT on first launch)
+        from pi0_torch.kernels import persistent, triton_kernels  # noqa: F401  (compiles nothing: kernels JIT on first launch)
     except Exception as error:  # an incompatible triton
         return f"the installed triton does not load the kernels ({type(error).__name__}: {error})"
     return None
@@ -45,9 +45,9 @@ def triton_reason(device: torch.device) -> Optional[str]:
 
 def _implementation(name: str, device: torch.device) -> Callable[..., Any]:
     if triton_reason(device) is None:
-        from pi0_torch.kernels import triton_kernels
+        from pi0_torch.kernels import persistent, triton_kernels
 
-        return getattr(triton_kernels, name)
+        return getattr(persistent if name == "expert_layers_" else triton_kernels, name)
     return getattr(reference, name)
 
 
@@ -169,3 +169,21 @@ def geglu(gate_up: torch.Tensor) -> torch.Tensor:
 @geglu.register_fake
 def _(gate_up):
     return gate_up.new_empty(gate_up.shape[0], gate_up.shape[1] // 2)
+
+
+@torch.library.custom_op("pi0_torch::expert_layers_", mutates_args=("x", "key_cache", "value_cache"))
+def expert_layers_(
+    x: torch.Tensor, attention_scales: torch.Tensor, qkv: List[torch.Tensor], o: List[torch.Tensor],
+    mlp_scales: torch.Tensor, gate_up: List[torch.Tensor], down: List[torch.Tensor], cos: torch.Tensor,
+    sin: torch.Tensor, key_cache: torch.Tensor, value_cache: torch.Tensor, first: torch.Tensor, row_ends: torch.Tensor,
+    first_slot: int, eps: float, qkv_bias: Optional[torch.Tensor], o_gate: Optional[torch.Tensor],
+    gate_up_bias: Optional[torch.Tensor], down_gate: Optional[torch.Tensor],
+) -> None:
+    _run("expert_layers_", x, attention_scales, qkv, o, mlp_scales, gate_up, down, cos, sin, key_cache, value_cache,
+         first, row_ends, first_slot, eps, qkv_bias, o_gate, gate_up_bias, down_gate)
+
+
+@expert_layers_.register_fake
+def _(x, attention_scales, qkv, o, mlp_scales, gate_up, down, cos, sin, key_cache, value_cache, first, row_ends,
+      first_slot, eps, qkv_bias, o_gate, gate_up_bias, down_gate):
+    return None

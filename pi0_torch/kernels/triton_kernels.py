@@ -593,7 +593,7 @@ def _geglu_kernel(gate_up_ptr, out_ptr, M, F, stride_gm, BLOCK_M: tl.constexpr, 
 
 
 COUNTER_SLOTS = 4_096  # output tiles (attention: row blocks) one launch in parts may have
-_counters: dict[tuple[torch.device, int], torch.Tensor] = {}  # arrival counters of split-K and key parts per (device, stream)
+_counters: dict[tuple[torch.device, int, int], torch.Tensor] = {}  # `zeroed_counters` per (device, stream, size)
 
 
 def split_k(x: torch.Tensor, tile: Blocks, tiles: int, depth: int) -> tuple[Blocks, torch.Tensor, torch.Tensor, int]:
@@ -612,12 +612,17 @@ def split_k(x: torch.Tensor, tile: Blocks, tiles: int, depth: int) -> tuple[Bloc
 
 
 def arrival_counters(device: torch.device) -> torch.Tensor:
-    """The int32 `[COUNTER_SLOTS]` arrival counters of the current stream on `device` (see `split_k`), made on first
-    use."""
-    key = (device, torch.cuda.current_stream(device).cuda_stream if device.type == "cuda" else 0)
+    """The int32 `[COUNTER_SLOTS]` arrival counters of the current stream on `device` (see `split_k`)."""
+    return zeroed_counters(device, COUNTER_SLOTS)
+
+
+def zeroed_counters(device: torch.device, size: int) -> torch.Tensor:
+    """int32 `[size]` counters of the current stream on `device`, zeroed when made (on first use) and left at 0 by
+    every launch that counts in them (`split_k`'s arrivals, `persistent.expert_layers_`'s phases)."""
+    key = (device, torch.cuda.current_stream(device).cuda_stream if device.type == "cuda" else 0, size)
     counters = _counters.get(key)
     if counters is None:
-        counters = _counters[key] = torch.zeros(COUNTER_SLOTS, dtype=torch.int32, device=device)
+        counters = _counters[key] = torch.zeros(size, dtype=torch.int32, device=device)
     return counters
 
 

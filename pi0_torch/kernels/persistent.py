@@ -1,0 +1,421 @@
+"""Every decoder layer of the action expert in one Euler step, as one persistent launch (`expert_layers_`) instead
+of five launches per layer (90 for π0's 18 layers): `sampling_kernels="persistent"`.
+
+- One launch of as many programs as the GPU has multiprocessors (`Tiling.per_sm` per multiprocessor). Each takes
+  tiles in ticket order from an atomic counter, layer after layer: the q/k/v projection's tiles (RMSNorm, RoPE, k and
+  v into the layer's cache: `norm_qkv_rope`'s epilogue, `_rope_store`), the attention's (folded query rows of a sample
+  and one part of their keys; the last part to finish combines them: `range_attention`'s `_attention_part` and
+  `_combine_key_parts`), the o-projection's (+ residual), gate/up's (norm, GeGLU: `_geglu_store`) and the
+  down-projection's (+ residual). π0.5's adaRMS biases and residual gates ride in the same epilogues.
+- A tile waits on counters for what it reads: q/k/v of row block r for the previous layer's down-projection of r,
+  the attention for every q/k/v tile of its layer, the o-projection for every attention block, gate/up for the
+  o-projection of its row block, the down-projection for gate/up's. The buffers between phases (q, the attention's
+  output, the MLP's hidden activations, the key parts) are one per launch and reused by every layer: each is written
+  again only after every reader of the layer before has counted in (the chain of waits above).
+- A tile waits only on tiles handed out before it, whose programs are already running: no deadlock however many
+  programs the GPU runs at once, and triton's interpreter (programs one after another) runs it too. Nothing ever
+  waits there, so `benchmarks/persistent_layers.py --check` also records what each tile waits for and runs the tiles
+  in other orders those waits allow.
+- A waiting tile first asks its weights into L2. The last program to finish puts the counters back to 0, so the next
+  launch needs no memset: a step's layers are one launch and nothing else. The counters are kept per stream
+  (`zeroed_counters`), so two streams' launches never count into each other's.
+
+The layers' weights stay where the model keeps them: the kernel reads layer 0's and, per layer, its offset from them
+(`weight_offsets`, a table made once per set of weights), so every layer's weights must have the same shape, strides
+and dtype and start 16-byte aligned. The caches, norm scales and adaRMS tensors are stacked `[L, ...]`.
+
+The numbers are those of `pi0_torch.kernels.reference.expert_layers_` (float32 sums, bf16 outputs), not bit for bit
+(no split-K). Experimental: opt-in until a GPU measures it against the five launches per layer (docs/gpu.md).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from typing import Any, NamedTuple
+
+import torch
+
+from pi0_torch.utils.extras import require_extra
+
+require_extra("kernels", "pi0_torch.kernels.persistent")
+import triton  # noqa: E402
+import triton.language as tl  # noqa: E402
+
+from pi0_torch.kernels.triton_kernels import (  # noqa: E402
+    INTERPRETING,
+    _attention_part,
+    _combine_key_parts,
+    _geglu_store,
+    _matmul_tiles,
+    _rope_store,
+    cdiv,
+    dot_dtype,
+    zeroed_counters,
+)
+
+
+class Tiling(NamedTuple):
+    """Output columns per tile of each GEMM phase (q/k/v in column pairs, o-projection, gate/up, down-projection), the
+    GEMMs' reduction block and rows per tile, the attention's folded query rows and keys per block and its key parts,
+    warps, pipeline stages, whether a waiting tile prefetches its weights (never in the interpreter), and programs
+    per multiprocessor."""
+
+    qkv: int = 16
+    o: int = 16
+    gate_up: int = 32
+    down: int = 16
+    k: int = 64
+    m: int = 64
+    attention_m: int = 16
+    attention_n: int = 32
+    key_parts: int = 4
+    warps: int = 4
+    stages: int = 3
+    prefetch: bool = True
+    per_sm: int = 1
+
+
+# -- tiles ----------------------------------------------------------------------------------------------------------
+
+
+@triton.jit
+def _wait_for(counter_ptr, need):
+    """Spin until the int32 counter reaches `need` (acquire: what its producers stored before counting is visible)."""
+    count = tl.atomic_add(counter_ptr, 0, sem="acquire")
+    while count < need:
+        count = tl.atomic_add(counter_ptr, 0, sem="acquire")
+
+
+@triton.jit
+def _count_in(counter_ptr, count):
+    """`count` more of this phase done (a tile: 1): after every thread's stores (the barrier), a release add."""
+    tl.debug_barrier()
+    tl.atomic_add(counter_ptr, count, sem="release")
+
+
+@triton.jit
+def _prefetch_weights(w_ptr, stride_wk, stride_wn, columns, K, N, BLOCK_K: tl.constexpr, PREFETCH: tl.constexpr):
+    """Ask `w[:, columns]` into the L2 cache (a hint: nothing comes into registers): one address per 32 bytes of a
+    column of a bf16 `[in, out]` view of an `nn.Linear` weight (`in` has unit stride)."""
+    if PREFETCH:
+        for k0 in range(0, K, BLOCK_K):
+            ks = k0 + tl.arange(0, BLOCK_K // 16) * 16
+            ok = (ks < K)[:, None] & (columns < N)[None, :]
+            offsets = tl.where(ok, ks[:, None] * stride_wk + columns[None, :] * stride_wn, 0)
+            tl.inline_asm_elementwise("prefetch.global.L2 [$1]; mov.u32 $0, 0;", "=r,l", [w_ptr + offsets],
+                                      dtype=tl.int32, is_pure=False, pack=1)
+
+
+@triton.jit
+def _add_to_residual(x_ptr, stride_xm, rows, columns, M, N, acc, gate_ptr, HAS_GATE: tl.constexpr):
+    """`x[rows, columns] += acc` (adaRMS: `acc * gate[columns]`; float32 sum, rounded once), read past L1."""
+    ok = (rows < M)[:, None] & (columns < N)[None, :]
+    if HAS_GATE:
+        acc = acc * tl.load(gate_ptr + columns, mask=columns < N, other=0.0).to(tl.float32)[None, :]
+    pointers = x_ptr + rows[:, None] * stride_xm + columns[None, :]
+    residual = tl.load(pointers, mask=ok, other=0.0, cache_modifier=".cg").to(tl.float32)
+    tl.store(pointers, (residual + acc).to(x_ptr.dtype.element_ty), mask=ok)
+
+
+@triton.jit
+def _tile_at(tile, N, BLOCK_M: tl.constexpr, BLOCK_N: tl.constexpr):
+    """Output tile `tile` of a phase whose tiles go row block by row block, `cdiv(N, BLOCK_N)` column blocks each:
+    its row block, rows and columns."""
+    column_blocks = tl.cdiv(N, BLOCK_N)
+    block = tile // column_blocks
+    return block, block * BLOCK_M + tl.arange(0, BLOCK_M), (tile % column_blocks) * BLOCK_N + tl.arange(0, BLOCK_N)
+
+
+@triton.jit
+def _o_tile(tile, x_ptr, attended_ptr, o_ptr, gate_ptr, wait_ptr, need, counters_ptr, M, D, NH, stride_xm, stride_am,
+            stride_ok, stride_on, BLOCK_M: tl.constexpr, N_O: tl.constexpr, BLOCK_K: tl.constexpr, DOT: tl.constexpr,
+            PREFETCH: tl.constexpr, HAS_GATE: tl.constexpr):
+    """`x[r, n] += attended[r] @ o[:, n]` (adaRMS: times `gate[n]`), once `wait` reaches `need` (the attention's tiles:
+    0 where `attended` was written before the launch); then counted in for row block r (`counters[r]`)."""
+    block, rows, columns = _tile_at(tile, D, BLOCK_M, N_O)
+    _prefetch_weights(o_ptr, stride_ok, stride_on, columns, NH, D, BLOCK_K, PREFETCH)
+    _wait_for(wait_ptr, need)
+    acc, _, _ = _matmul_tiles(attended_ptr, stride_am, attended_ptr, o_ptr, stride_ok, stride_on, rows, columns, 0, M,
+                              0, NH, D, BLOCK_M, N_O, BLOCK_K, False, False, DOT, ".cg")
+    _add_to_residual(x_ptr, stride_xm, rows, columns, M, D, acc, gate_ptr, HAS_GATE)
+    _count_in(counters_ptr + block, 1)
+
+
+@triton.jit
+def _gate_up_tile(tile, x_ptr, scale_ptr, gate_up_ptr, bias_ptr, hidden_ptr, o_counters_ptr, counters_ptr, M, D, F,
+                  stride_xm, stride_gk, stride_gn, eps, BLOCK_M: tl.constexpr, N_O: tl.constexpr,
+                  N_GATE_UP: tl.constexpr, BLOCK_K: tl.constexpr, DOT: tl.constexpr, PREFETCH: tl.constexpr,
+                  HAS_BIAS: tl.constexpr):
+    """`hidden[r, f] = gelu_tanh(norm(x[r]) @ gate[:, f]) * (norm(x[r]) @ up[:, f])` (adaRMS: plus `bias[f]` and
+    `bias[F + f]` before the GeGLU), once every o-projection tile of row block r is in (`o_counters[r]`); then counted
+    in for r (`counters[r]`)."""
+    block, rows, columns = _tile_at(tile, F, BLOCK_M, N_GATE_UP)
+    _prefetch_weights(gate_up_ptr, stride_gk, stride_gn, columns, D, F, BLOCK_K, PREFETCH)
+    _prefetch_weights(gate_up_ptr + F * stride_gn, stride_gk, stride_gn, columns, D, F, BLOCK_K, PREFETCH)
+    _wait_for(o_counters_ptr + block, tl.cdiv(D, N_O))
+    gate, up, squares = _matmul_tiles(x_ptr, stride_xm, scale_ptr, gate_up_ptr, stride_gk, stride_gn, rows, columns, F,
+                                      M, 0, D, F, BLOCK_M, N_GATE_UP, BLOCK_K, True, True, DOT, ".cg")
+    _geglu_store(gate, up, squares, rows, columns, columns < F, bias_ptr, hidden_ptr, M, D, F, eps, HAS_BIAS)
+    _count_in(counters_ptr + block, 1)
+
+
+@triton.jit
+def _down_tile(tile, x_ptr, hidden_ptr, down_ptr, gate_ptr, gate_up_counters_ptr, counters_ptr, M, D, F, stride_xm,
+               stride_dk, stride_dn, BLOCK_M: tl.constexpr, N_GATE_UP: tl.constexpr, N_DOWN: tl.constexpr,
+               BLOCK_K: tl.constexpr, DOT: tl.constexpr, PREFETCH: tl.constexpr, HAS_GATE: tl.constexpr,
+               COUNT: tl.constexpr):
+    """`x[r, n] += hidden[r] @ down[:, n]` (adaRMS: times `gate[n]`), once every gate/up tile of row block r is in (so
+    every read of `x[r]` for the norm is done too); with COUNT then counted in for r (`counters[r]`: a next layer's
+    q/k/v of r wait for them. Optional: in `benchmarks/persistent_mlp.py`'s launch, with 4 stages of 128-deep blocks,
+    its barrier took 80 KiB more shared memory, more than sm_90 has)."""
+    block, rows, columns = _tile_at(tile, D, BLOCK_M, N_DOWN)
+    _prefetch_weights(down_ptr, stride_dk, stride_dn, columns, F, D, BLOCK_K, PREFETCH)
+    _wait_for(gate_up_counters_ptr + block, tl.cdiv(F, N_GATE_UP))
+    acc, _, _ = _matmul_tiles(hidden_ptr, F, hidden_ptr, down_ptr, stride_dk, stride_dn, rows, columns, 0, M, 0, F, D,
+                              BLOCK_M, N_DOWN, BLOCK_K, False, False, DOT, ".cg")
+    _add_to_residual(x_ptr, stride_xm, rows, columns, M, D, acc, gate_ptr, HAS_GATE)
+    if COUNT:
+        _count_in(counters_ptr + block, 1)
+
+
+@triton.jit
+def _qkv_tile(tile, x_ptr, scale_ptr, w_ptr, bias_ptr, cos_ptr, sin_ptr, q_ptr, key_ptr, value_ptr, wait_ptr, need,
+              counter_ptr, M, D, tokens, first_slot, slots, stride_xm, stride_wk, stride_wn, stride_cos_b, stride_cos_t,
+              eps, HEADS: tl.constexpr, HEAD_DIM: tl.constexpr, BLOCK_M: tl.constexpr, N_QKV: tl.constexpr,
+              BLOCK_K: tl.constexpr, DOT: tl.constexpr, PREFETCH: tl.constexpr, HAS_BIAS: tl.constexpr):
+    """Column pairs `(c, c + H/2)` of q/k/v for row block r: RMSNorm, the projection (adaRMS: plus `bias`), RoPE; q into
+    `q`, k and v into the layer's cache (`_rope_store`), once `wait[r]` reaches `need` (the previous layer's
+    down-projection of r); then counted in (`counter`)."""
+    half: tl.constexpr = HEAD_DIM // 2
+    block, rows, pairs = _tile_at(tile, (HEADS + 2) * half, BLOCK_M, N_QKV)
+    first_half = pairs // half * HEAD_DIM + pairs % half
+    width = (HEADS + 2) * HEAD_DIM
+    _prefetch_weights(w_ptr, stride_wk, stride_wn, first_half, D, width, BLOCK_K, PREFETCH)
+    _prefetch_weights(w_ptr, stride_wk, stride_wn, first_half + half, D, width, BLOCK_K, PREFETCH)
+    _wait_for(wait_ptr + block, need)
+    acc1, acc2, squares = _matmul_tiles(x_ptr, stride_xm, scale_ptr, w_ptr, stride_wk, stride_wn, rows, first_half, half,
+                                        M, 0, D, width, BLOCK_M, N_QKV, BLOCK_K, True, True, DOT, ".cg")
+    _rope_store(acc1, acc2, squares, rows, pairs, pairs < (HEADS + 2) * half, bias_ptr, cos_ptr, sin_ptr, q_ptr,
+                key_ptr, value_ptr, M, D, tokens, first_slot, slots, stride_cos_b, stride_cos_t, eps, HEADS, HEAD_DIM,
+                HAS_BIAS)
+    _count_in(counter_ptr, 1)
+
+
+@triton.jit
+def _attention_tile(tile, q_ptr, key_ptr, value_ptr, first_ptr, row_ends_ptr, out_ptr, partial_ptr, stats_ptr,
+                    arrivals_ptr, wait_ptr, need, counter_ptr, batch, tokens, slots, scale, key_parts,
+                    HEADS: tl.constexpr, HEAD_DIM: tl.constexpr, BLOCK_M: tl.constexpr, BLOCK_N: tl.constexpr,
+                    DIM_CHUNK: tl.constexpr, DOT: tl.constexpr):
+    """Part s of the keys of folded query rows block i of sample b (`range_attention`'s program (i, b, s)), once
+    `wait` reaches `need` (every q/k/v tile of the layer); the block's last part to finish combines the parts into
+    `out` and counts the block in (`counter`)."""
+    rows_per_sample = tokens * HEADS
+    blocks = tl.cdiv(rows_per_sample, BLOCK_M)
+    sample = tile // (blocks * key_parts)
+    block = tile // key_parts % blocks
+    part = tile % key_parts
+    _wait_for(wait_ptr, need)
+    rows = block * BLOCK_M + tl.arange(0, BLOCK_M)
+    acc, running_max, total = _attention_part(q_ptr, key_ptr, value_ptr, first_ptr, row_ends_ptr, sample, rows,
+                                              rows_per_sample, HEADS, slots, scale, part, key_parts, HEAD_DIM, DOT,
+                                              BLOCK_M, BLOCK_N, True, ".cg")
+    last = _combine_key_parts(acc, running_max, total, partial_ptr, stats_ptr, arrivals_ptr,
+                              out_ptr + sample * rows_per_sample * HEAD_DIM, sample, block, blocks, part, batch,
+                              rows_per_sample, key_parts, HEAD_DIM, BLOCK_M, DIM_CHUNK)
+    _count_in(counter_ptr, tl.where(last, 1, 0))  # (every part counts in, all but the last with 0)
+
+
+@triton.jit
+def _expert_layers_kernel(
+    x_ptr, attention_scale_ptr, qkv_ptr, o_ptr, mlp_scale_ptr, gate_up_ptr, down_ptr, offsets_ptr, cos_ptr, sin_ptr, key_ptr,
+    value_ptr, first_ptr, row_ends_ptr, qkv_bias_ptr, o_gate_ptr, gate_up_bias_ptr, down_gate_ptr, q_ptr, attended_ptr,
+    hidden_ptr, partial_ptr, stats_ptr, state_ptr, order_ptr, layers, M, D, F, tokens, first_slot, slots, eps, scale,
+    key_parts, stride_xm, stride_cos_b, stride_cos_t, stride_qk, stride_qn, stride_ok, stride_on, stride_gk, stride_gn,
+    stride_dk, stride_dn, layer_cache, reset,
+    HEADS: tl.constexpr, HEAD_DIM: tl.constexpr, BLOCK_M: tl.constexpr, N_QKV: tl.constexpr, N_O: tl.constexpr,
+    N_GATE_UP: tl.constexpr, N_DOWN: tl.constexpr, BLOCK_K: tl.constexpr, ATTENTION_M: tl.constexpr,
+    ATTENTION_N: tl.constexpr, DIM_CHUNK: tl.constexpr, DOT: tl.constexpr, PREFETCH: tl.constexpr,
+    ADARMS: tl.constexpr, ORDERED: tl.constexpr, ALIGN: tl.constexpr,
+):
+    half: tl.constexpr = HEAD_DIM // 2
+    batch = M // tokens
+    row_blocks = tl.cdiv(M, BLOCK_M)
+    attention_blocks = batch * tl.cdiv(tokens * HEADS, ATTENTION_M)
+    qkv_end = row_blocks * tl.cdiv((HEADS + 2) * half, N_QKV)
+    attention_end = qkv_end + attention_blocks * key_parts
+    o_end = attention_end + row_blocks * tl.cdiv(D, N_O)
+    gate_up_end = o_end + row_blocks * tl.cdiv(F, N_GATE_UP)
+    per_layer = gate_up_end + row_blocks * tl.cdiv(D, N_DOWN)
+    # state: [0] the next ticket, [1] programs finished, then per layer: [0] q/k/v tiles done, [1] attention blocks
+    # done, o-projection / gate-up / down-projection tiles done per row block, key parts arrived per attention block
+    layer_state = 2 + 3 * row_blocks + attention_blocks
+    ticket = tl.atomic_add(state_ptr, 1)
+    while ticket < layers * per_layer:
+        if ORDERED:  # (`--check`: the tiles in another order its waits allow, `order[ticket]`)
+            work = tl.load(order_ptr + ticket)
+        else:
+            work = ticket
+        layer = work // per_layer
+        tile = work % per_layer
+        counters = state_ptr + 2 + layer * layer_state
+        o_done = counters + 2
+        gate_up_done = o_done + row_blocks
+        down_done = gate_up_done + row_blocks
+        weight_offsets = offsets_ptr + layer * 4  # (its q/k/v, o, gate/up and down weights' from layer 0's)
+        if tile < qkv_end:  # (layer 0 waits for nothing: its own down-projection counters, need 0)
+            previous = down_done - tl.where(layer > 0, layer_state, 0)
+            _qkv_tile(tile, x_ptr, attention_scale_ptr + layer * D,
+                      qkv_ptr + tl.multiple_of(tl.load(weight_offsets), ALIGN),
+                      qkv_bias_ptr + layer * (HEADS + 2) * HEAD_DIM, cos_ptr, sin_ptr, q_ptr,
+                      key_ptr + layer * layer_cache, value_ptr + layer * layer_cache, previous,
+                      tl.where(layer > 0, tl.cdiv(D, N_DOWN), 0), counters, M, D, tokens, first_slot, slots,
+                      stride_xm, stride_qk, stride_qn, stride_cos_b, stride_cos_t, eps, HEADS, HEAD_DIM, BLOCK_M,
+                      N_QKV, BLOCK_K, DOT, PREFETCH, ADARMS)
+        elif tile < attention_end:
+            _attention_tile(tile - qkv_end, q_ptr, key_ptr + layer * layer_cache, value_ptr + layer * layer_cache,
+                            first_ptr, row_ends_ptr, attended_ptr, partial_ptr, stats_ptr, down_done + row_blocks,
+                            counters, qkv_end, counters + 1, batch, tokens, slots, scale, key_parts, HEADS, HEAD_DIM,
+                            ATTENTION_M, ATTENTION_N, DIM_CHUNK, DOT)
+        elif tile < o_end:
+            _o_tile(tile - attention_end, x_ptr, attended_ptr,
+                    o_ptr + tl.multiple_of(tl.load(weight_offsets + 1), ALIGN), o_gate_ptr + layer * D, counters + 1,
+                    attention_blocks, o_done, M, D, HEADS * HEAD_DIM, stride_xm, HEADS * HEAD_DIM, stride_ok,
+                    stride_on, BLOCK_M, N_O, BLOCK_K, DOT, PREFETCH, ADARMS)
+        elif tile < gate_up_end:
+            _gate_up_tile(tile - o_end, x_ptr, mlp_scale_ptr + layer * D,
+                          gate_up_ptr + tl.multiple_of(tl.load(weight_offsets + 2), ALIGN),
+                          gate_up_bias_ptr + layer * 2 * F, hidden_ptr, o_done, gate_up_done, M, D, F, stride_xm,
+                          stride_gk, stride_gn, eps, BLOCK_M, N_O, N_GATE_UP, BLOCK_K, DOT, PREFETCH, ADARMS)
+        else:
+            _down_tile(tile - gate_up_end, x_ptr, hidden_ptr,
+                       down_ptr + tl.multiple_of(tl.load(weight_offsets + 3), ALIGN), down_gate_ptr + layer * D,
+                       gate_up_done, down_done, M, D, F, stride_xm, stride_dk, stride_dn, BLOCK_M, N_GATE_UP, N_DOWN,
+                       BLOCK_K, DOT, PREFETCH, ADARMS, True)
+        ticket = tl.atomic_add(state_ptr, 1)
+    # the last program out puts every counter back to 0 for the next launch (all others have taken their last ticket;
+    # `reset` 0 keeps them, for `--check` to count)
+    if (tl.atomic_add(state_ptr + 1, 1, sem="acq_rel") == tl.num_programs(0) - 1) & (reset != 0):
+        size = 2 + layers * layer_state
+        for start in range(0, size, 1024):
+            offsets = start + tl.arange(0, 1024)
+            tl.store(state_ptr + offsets, 0, mask=offsets < size)
+
+
+# -- the op ---------------------------------------------------------------------------------------------------------
+
+
+def expert_layers_(
+    x: torch.Tensor,  # [M, D] (M = B T), updated in place
+    attention_scales: torch.Tensor,  # [L, D]: each layer's attention norm scale (`1 + weight`, adaRMS: this step's)
+    qkv: Sequence[torch.Tensor],  # L x [D, (N + 2) H]: `[in, out]` views of the layers' weights (q | k | v columns)
+    o: Sequence[torch.Tensor],  # L x [N H, D]
+    mlp_scales: torch.Tensor,  # [L, D]
+    gate_up: Sequence[torch.Tensor],  # L x [D, 2 F] (gate | up columns)
+    down: Sequence[torch.Tensor],  # L x [F, D]
+    cos: torch.Tensor,  # [B or 1, T, H] float32: the action tokens' RoPE tables
+    sin: torch.Tensor,
+    key_cache: torch.Tensor,  # [L, B, S, H], the action tokens' slots written here
+    value_cache: torch.Tensor,
+    first: torch.Tensor,  # long [B]: each sample's first visible slot
+    row_ends: torch.Tensor,  # long [T]: where each action token's keys end (exclusive)
+    first_slot: int,  # the action tokens' first slot
+    eps: float,
+    qkv_bias: torch.Tensor | None = None,  # π0.5: [L, (N + 2) H], the attention norms' shifts through q/k/v
+    o_gate: torch.Tensor | None = None,  # π0.5: [L, D]
+    gate_up_bias: torch.Tensor | None = None,  # π0.5: [L, 2 F]
+    down_gate: torch.Tensor | None = None,  # π0.5: [L, D]
+    *,
+    tiling: Tiling | None = None,
+    programs: int | None = None,
+    launch: Callable[..., Any] | None = None,
+    state: torch.Tensor | None = None,
+    order: torch.Tensor | None = None,
+) -> None:
+    """Every layer of an Euler step on the action tokens `x`, in place and in one launch (module docstring): what
+    `reference.expert_layers_` computes. `tiling`: `Tiling()` by default. `programs`: the grid (`default_programs`).
+    `launch`: stands in for the kernel's launch (compiling without a GPU). `state`: zeroed int32 counters of
+    `state_size` for this launch alone, left as the launch counted (by default: the stream's, which each launch puts
+    back to 0). `order`: int32, the tiles (numbered layer after layer, in ticket order) in the order the tickets hand
+    them out; one an interpreted launch can follow (`benchmarks/persistent_layers.py`)."""
+    tiling = tiling or Tiling()
+    rows, width = x.shape
+    depth, batch, slots, head_dim = key_cache.shape
+    tokens = rows // batch
+    heads = o[0].shape[0] // head_dim
+    mlp_width = down[0].shape[0]
+    if value_cache.stride() != key_cache.stride() or key_cache[0].stride() != (slots * head_dim, head_dim, 1):
+        raise ValueError(f"expert_layers_: the caches must be [L, B, S, H] buffers, each layer's contiguous; got strides "
+                         f"{tuple(key_cache.stride())} and {tuple(value_cache.stride())} for shape {tuple(key_cache.shape)}")
+    q = x.new_empty(rows, heads * head_dim)
+    attended = x.new_empty(rows, heads * head_dim)
+    hidden = x.new_empty(rows, mlp_width)
+    partial = x.new_empty(tiling.key_parts, rows * heads, head_dim, dtype=torch.float32)
+    stats = x.new_empty(2, tiling.key_parts, rows * heads, dtype=torch.float32)
+    reset = state is None
+    if state is None:
+        state = zeroed_counters(x.device, state_size(depth, rows, tokens, heads, tiling))
+    programs = programs or default_programs(x.device, tiling)
+    attention_scales, mlp_scales = attention_scales.contiguous(), mlp_scales.contiguous()  # (layer l's at l * D)
+    adarms = [x] * 4 if qkv_bias is None else [t.contiguous() for t in (qkv_bias, o_gate, gate_up_bias, down_gate)]
+    arguments = (
+        x, attention_scales, qkv[0], o[0], mlp_scales, gate_up[0], down[0], weight_offsets((qkv, o, gate_up, down), x.device),
+        cos, sin, key_cache, value_cache, first, row_ends, *adarms, q, attended, hidden, partial, stats,
+        state, state if order is None else order, depth, rows, width, mlp_width, tokens, first_slot, slots, eps,
+        head_dim**-0.5, tiling.key_parts, x.stride(0), cos.stride(0) if cos.shape[0] > 1 else 0, cos.stride(1),
+        *qkv[0].stride(), *o[0].stride(), *gate_up[0].stride(), *down[0].stride(), key_cache.stride(0), int(reset),
+    )
+    options = {"HEADS": heads, "HEAD_DIM": head_dim, "BLOCK_M": tiling.m, "N_QKV": tiling.qkv, "N_O": tiling.o,
+               "N_GATE_UP": tiling.gate_up, "N_DOWN": tiling.down, "BLOCK_K": tiling.k,
+               "ATTENTION_M": tiling.attention_m, "ATTENTION_N": tiling.attention_n,
+               "DIM_CHUNK": min(head_dim, 4096 // tiling.attention_m), "DOT": dot_dtype(o[0].dtype),
+               "PREFETCH": tiling.prefetch and not INTERPRETING, "ADARMS": qkv_bias is not None,
+               "ORDERED": order is not None, "ALIGN": WEIGHT_ALIGNMENT // o[0].element_size(),
+               "num_warps": tiling.warps, "num_stages": tiling.stages}
+    if launch is not None:
+        return launch(_expert_layers_kernel, (programs,), arguments, options)
+    _expert_layers_kernel[(programs,)](*arguments, **options)
+    return None
+
+
+WEIGHT_ALIGNMENT = 16  # bytes: every layer's weights start at a multiple of this (the kernel's loads assume it)
+_offset_tables: dict[tuple[Any, ...], torch.Tensor] = {}  # (device, every weight's address) -> `weight_offsets`
+_OFFSET_TABLES_KEPT = 16
+
+
+def weight_offsets(weights: Sequence[Sequence[torch.Tensor]], device: torch.device) -> torch.Tensor:
+    """int64 `[L, 4]` on `device`: where each layer's q/k/v, o, gate/up and down weights (`weights`: the four lists)
+    start, in elements from layer 0's. Made on first use per set of addresses and kept (a CUDA graph's capture finds
+    it made by its warm-up runs). Raises `ValueError` where the layers' weights differ in shape, strides or dtype, or
+    one does not start `WEIGHT_ALIGNMENT`-aligned."""
+    key = (device, *(t.data_ptr() for each in weights for t in each))
+    table = _offset_tables.get(key)
+    if table is not None:
+        return table
+    rows = []
+    for name, each in zip(("qkv", "o", "gate_up", "down"), weights):
+        first = each[0]
+        for layer, t in enumerate(each):
+            if (t.shape, t.stride(), t.dtype) != (first.shape, first.stride(), first.dtype):
+                raise ValueError(f"expert_layers_: layer {layer}'s {name} weight is {tuple(t.shape)} with strides "
+                                 f"{t.stride()} in {t.dtype}, layer 0's {tuple(first.shape)} with {first.stride()} in "
+                                 f"{first.dtype}: one launch reads every layer's weights alike")
+            if t.data_ptr() % WEIGHT_ALIGNMENT:
+                raise ValueError(f"expert_layers_: layer {layer}'s {name} weight starts at an address that is not a "
+                                 f"multiple of {WEIGHT_ALIGNMENT} bytes")
+        rows.append([(t.data_ptr() - first.data_ptr()) // first.element_size() for t in each])
+    if len(_offset_tables) >= _OFFSET_TABLES_KEPT:
+        _offset_tables.pop(next(iter(_offset_tables)))
+    table = _offset_tables[key] = torch.tensor(rows, dtype=torch.int64).t().contiguous().to(device)
+    return table
+
+
+def default_programs(device: torch.device, tiling: Tiling) -> int:
+    """The grid: `tiling.per_sm` programs per multiprocessor of a GPU; 4 in the interpreter."""
+    return tiling.per_sm * torch.cuda.get_device_properties(device).multi_processor_count if device.type == "cuda" else 4
+
+
+def state_size(depth: int, rows: int, tokens: int, heads: int, tiling: Tiling) -> int:
+    """The counters of a launch: the next ticket, the programs finished, and per layer the q/k/v tiles and attention
+    blocks done, the o-projection, gate/up and down-projection tiles done per row block, and the key parts arrived
+    per attention block (`_expert_layers_kernel`'s layout)."""
+    return 2 + depth * (2 + 3 * cdiv(rows, tiling.m) + rows // tokens * cdiv(tokens * heads, tiling.attention_m))
