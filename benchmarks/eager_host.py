@@ -6,6 +6,7 @@ Eager sampling on a GPU is bound by the host: the H200 run of 2026-11-27 measure
 18.8 ms of GPU work. This says which part of the host's work that is.
 
     python benchmarks/eager_host.py                      # CUDA, full-size π0, bf16, batch 1, 3 cameras
+    python benchmarks/eager_host.py --kernels persistent # the same with each step's decoder layers in one launch
     python benchmarks/eager_host.py --device cpu --preset pi0_small --top 10   # a dry run (no fused kernels)
 """
 
@@ -33,6 +34,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--batch", type=int, default=1)
     parser.add_argument("--repeats", type=int, default=10)
     parser.add_argument("--top", type=int, default=25, help="rows of each profile table")
+    parser.add_argument("--kernels", default="auto", help="sampling_kernels: auto, or persistent (each step's decoder "
+                        "layers in one launch)")
     args = parser.parse_args(argv)
     device = torch.device(args.device)
     config = PI0Config.from_preset(args.preset)
@@ -42,7 +45,7 @@ def main(argv: list[str] | None = None) -> int:
     if config.pi05:
         inputs.pop("state")
     noise = torch.randn(args.batch, config.action_horizon, config.action_dim, device=device)
-    model.sampling_kernels = "auto"
+    model.sampling_kernels = args.kernels
 
     def chunk() -> torch.Tensor:
         return model.generate_actions(**inputs, noise=noise)
@@ -56,6 +59,7 @@ def main(argv: list[str] | None = None) -> int:
     modes = {"direct launches": contextlib.nullcontext, "triton's launches": launch.through_triton} if direct else {
         "as installed": contextlib.nullcontext}
     print(f"eager generate_actions, {args.preset}, {str(dtype).removeprefix('torch.')}, batch {args.batch}, 3 cameras, "
+          f"sampling_kernels={args.kernels!r}, "
           f"on {torch.cuda.get_device_name(device) if device.type == 'cuda' else 'CPU'}"
           + (f" (fused kernels: {reason})" if reason else ""))
     for _ in range(2):

@@ -155,34 +155,32 @@ class Doctor:
 
         self.row(f"{name} RTC conditioning, eager", torch.bfloat16, conditioning)
 
-        def fused(kernels: str) -> Callable[[], tuple[float | None, float | None, str]]:
-            def check() -> tuple[float | None, float | None, str]:
-                if (reason := ops.triton_reason(device)) is not None:
-                    return None, None, f"skip: {reason}"
-                from pi0_torch.kernels.launch import launch_mode
+        def fused() -> tuple[float, float, str]:
+            if (reason := ops.triton_reason(device)) is not None:
+                return None, None, f"skip: {reason}"
+            from pi0_torch.kernels.launch import launch_mode
 
-                model.sampling_kernels = kernels
-                try:
-                    return against(sample(model), reference, BF16_BOUND, launch_mode())
-                finally:
-                    model.sampling_kernels = "torch"
-            return check
+            model.sampling_kernels = "triton"
+            try:
+                return against(sample(model), reference, BF16_BOUND, launch_mode())
+            finally:
+                model.sampling_kernels = "torch"
 
-        self.row(f"{name} fused kernels", torch.bfloat16, fused("triton"), needs_cuda=True)
-        # (experimental: each step's decoder layers in one launch, `sampling_kernels="persistent"`)
-        self.row(f"{name} persistent layers", torch.bfloat16, fused("persistent"), needs_cuda=True)
+        self.row(f"{name} fused kernels", torch.bfloat16, fused, needs_cuda=True)
 
         def graph(method: str | None, want: torch.Tensor, guidance: bool = False,
                   kernels: str = "auto") -> Callable[[], tuple[float, float, str]]:
             def check() -> tuple[float, float, str]:
                 model.sampling_kernels = kernels
                 model.capture_sampling(guidance=guidance)
-                options = {} if method is None else dict(rtc, rtc_method=method)
-                replays = [sample(model, **options) for _ in range(2)]
-                refused = list(model._graphs.refused.values())
-                unfused = [why for why in model._fused_refusals.values() if why is not None]
-                model.capture_sampling(disable=True)
-                model.sampling_kernels = "torch"
+                try:  # ("persistent" raises where its first call's verification refuses it)
+                    options = {} if method is None else dict(rtc, rtc_method=method)
+                    replays = [sample(model, **options) for _ in range(2)]
+                    refused = list(model._graphs.refused.values())
+                    unfused = [why for why in model._fused_refusals.values() if why is not None]
+                finally:
+                    model.capture_sampling(disable=True)
+                    model.sampling_kernels = "torch"
                 deviation = max(relative_deviation(replay, want) for replay in replays)
                 if refused and method == "guidance":  # (not yet proven on a GPU: refused means eager, correct)
                     return deviation, BF16_BOUND, f"graph refused at capture, guided chunks sample eagerly ({refused[0]})"
@@ -192,6 +190,7 @@ class Doctor:
             return check
 
         self.row(f"{name} CUDA graph", torch.bfloat16, graph(None, reference), needs_cuda=True)
+        # (experimental: each step's decoder layers in one launch, verified eagerly on its first call)
         self.row(f"{name} persistent layers, CUDA graph", torch.bfloat16, graph(None, reference, kernels="persistent"),
                  needs_cuda=True)
         self.row(f"{name} RTC conditioning, CUDA graph", torch.bfloat16, graph("conditioning", conditioned32), needs_cuda=True)

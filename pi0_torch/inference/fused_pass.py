@@ -252,8 +252,7 @@ class FusedSteps:
             step_norms = [step.layer_norms for step in conditioning.steps()] if config.pi05 else [norms] * steps
             per_step = [[[getattr(pair[index], name) for pair in layer_norms] for index, name in names]
                         for layer_norms in step_norms]
-        qkv, o, gate_up, down = (list(each) for each in zip(*((own.qkv, own.o, own.gate_up, own.down)
-                                                              for own in actions.expert_weights)))
+        qkv, o, gate_up, down = projection_lists(actions.expert_weights)
         row_ends = torch.full((stream.tokens,), cache.slots, device=cache.first.device)
         layer_arguments = [(scales, qkv, o, mlp_scales, gate_up, down, stream.cos[:, :, 0], stream.sin[:, :, 0], keys,
                             values, cache.first, row_ends, stream.first_slot, config.rms_norm_eps, *(adarms or (None,) * 4))
@@ -282,6 +281,31 @@ class FusedSteps:
         row = index if self.final_scales.shape[0] > 1 else 0  # (π0.5: a final norm per step)
         ops.call(ops.norm_linear_euler_, x_t, tokens, self.final_scales[row], self.final_biases[row], self.out_weight, dt,
                  self.model.config.rms_norm_eps)
+
+
+def state_layers_(
+    state: torch.Tensor,  # π0: [B, D1], updated in place
+    scales: list[tuple[torch.Tensor, torch.Tensor]],  # per layer: the expert's attention and MLP norm scales
+    weights: list[SamplingWeights],  # per layer: the expert's
+    stream: StreamPass,  # the state token's
+    buffers: tuple[torch.Tensor, torch.Tensor],  # every layer's keys, values [L, B, 1, S, H], the prefix's written
+    first: torch.Tensor,
+    ends: torch.Tensor,  # long [1]: where the state token's keys end (it sees the prefix and itself)
+    eps: float,
+) -> None:
+    """π0's state token through every decoder layer of the action expert in one persistent launch (`expert_layers_`),
+    once the prefix has written its keys (which is all the state token reads): what `prefix_layer` computes for it
+    layer by layer (the last layer's attention and MLP too, whose output nobody reads), its k/v into the caches."""
+    attention_scales, mlp_scales = (torch.stack(each) for each in zip(*scales))  # [L, D1]
+    keys, values = (buffer[:, :, 0] for buffer in buffers)  # [L, B, S, H]
+    qkv, o, gate_up, down = projection_lists(weights)
+    ops.call(ops.expert_layers_, state, attention_scales, qkv, o, mlp_scales, gate_up, down, stream.cos[:, :, 0],
+             stream.sin[:, :, 0], keys, values, first, ends, stream.first_slot, eps, None, None, None, None)
+
+
+def projection_lists(weights: list[SamplingWeights]) -> tuple[list[torch.Tensor], ...]:
+    """Each layer's q/k/v, o, gate/up and down weights (transposed) as four lists, `expert_layers_`'s arguments."""
+    return tuple(list(each) for each in zip(*((own.qkv, own.o, own.gate_up, own.down) for own in weights)))
 
 
 def _call_op(name: str, *args: Any) -> Any:

@@ -135,7 +135,8 @@ class ActionSampling:
         on that device; else "torch"), "torch" (the layers' GEMMs and ATen ops; the CPU's path), "triton" (the fused
         kernels wherever triton runs them, `TRITON_INTERPRET=1` included, or a `ValueError` naming why not) or
         "persistent" (as "triton", with every decoder layer of a step in one persistent launch instead of five
-        launches per layer: `pi0_torch.kernels.persistent`; experimental, see docs/gpu.md). Real-time chunking's steps
+        launches per layer, and π0's state token's layers in one: `pi0_torch.kernels.persistent`; experimental, see
+        docs/gpu.md). Real-time chunking's steps
         always run "torch"; each fused plan is checked against it on its first call."""
         return self._sampling_kernels
 
@@ -268,7 +269,8 @@ class ActionSampling:
         if guided and torch.is_inference_mode_enabled():
             with torch.inference_mode(False), torch.no_grad():
                 return self._sample(inputs, plan)
-        cache = self.cache_prefix(inputs, plan.layout, differentiable_steps=guided, fused=plan.fused)
+        cache = self.cache_prefix(inputs, plan.layout, differentiable_steps=guided, fused=plan.fused,
+                                  persistent=plan.persistent)
         actions = self.action_pass(cache, differentiable=guided)
         committed = inputs.committed
         conditioning = self.step_conditioning(inputs.times, actions.expert_weights if committed is None else None)
@@ -310,7 +312,8 @@ class ActionSampling:
         return StepConditioning(None, layer_norms, params[-1])
 
     def cache_prefix(
-        self, inputs: SamplingInputs, layout: PrefixLayout, differentiable_steps: bool = False, fused: bool = False
+        self, inputs: SamplingInputs, layout: PrefixLayout, differentiable_steps: bool = False, fused: bool = False,
+        persistent: bool = False,
     ) -> PrefixCache:
         """Run the prefix once (π0: with the state token) and keep every layer's post-RoPE k/v.
 
@@ -318,7 +321,8 @@ class ActionSampling:
         and itself, so neither changes with the noisy actions or the flow time. The buffers have room for the action
         tokens, whose k/v each denoising step writes in place (no per-step copy of the prefix). `differentiable_steps`:
         the steps will attend through SDPA's mask (RTC guidance), so the buffers are laid out for it. `fused`: the
-        layers run `fused_pass.prefix_layer` (the fused kernels around cuBLAS's GEMMs), SigLIP `vision_pass`.
+        layers run `fused_pass.prefix_layer` (the fused kernels around cuBLAS's GEMMs), SigLIP `vision_pass`; with
+        `persistent` π0's state token then runs every layer in one launch after them (`fused_pass.state_layers_`).
         """
         config = self.config
         vision = vision_pass.tower_pass(self.vision_tower) if fused else None  # (None: the tower's modules run)
@@ -345,15 +349,24 @@ class ActionSampling:
                  + (() if config.pi05 else (layer.expert.attn_norm, layer.expert.mlp_norm))] if fused else []
         scales = iter(norm.scale for norm in rms_norm_params(norms))  # (fused: 2 or 4 per layer, in order)
         state_ends = streams[1].slots[:1] + 1 if fused and streams[1] is not None else None  # (the prefix and itself)
-        for index, (layer, layer_keys, layer_values) in enumerate(zip(self.layers, keys, values)):
-            weights = layer_sampling_weights(layer, vlm=True, expert=state is not None)
+        weights = [layer_sampling_weights(layer, vlm=True, expert=state is not None) for layer in self.layers]
+        # (the state token only reads the prefix's keys: with `persistent` it runs after them, where every layer is fused)
+        state_later = fused and persistent and state is not None and all(vlm.usable and own.usable for vlm, own in weights)
+        later, state = (state, None) if state_later else (None, state)
+        state_scales = []
+        for index, (layer, layer_keys, layer_values, layer_weights) in enumerate(zip(self.layers, keys, values, weights)):
             last = index == len(self.layers) - 1
             layer_scales = tuple(next(scales) for _ in range(2 if config.pi05 else 4)) if fused else ()
-            if fused and all(own.usable for own, x in zip(weights, (x, state)) if x is not None):
+            state_scales.append(layer_scales[2:])
+            if fused and all(own.usable for own, x in zip(layer_weights, (x, state)) if x is not None):
                 x, state = fused_pass.prefix_layer(layer, x, state, streams, (layer_keys, layer_values), layer_scales,
-                                                   weights, first, state_ends, config.rms_norm_eps, keys_only=last)
+                                                   layer_weights, first, state_ends, config.rms_norm_eps, keys_only=last)
             else:
-                x, state = self._layer_pass(layer, x, state, streams, (layer_keys, layer_values), None, weights, keys_only=last)
+                x, state = self._layer_pass(layer, x, state, streams, (layer_keys, layer_values), None, layer_weights,
+                                            keys_only=last)
+        if later is not None:
+            fused_pass.state_layers_(later, state_scales, [own for _, own in weights], streams[1], buffers, first,
+                                     state_ends, config.rms_norm_eps)
         return PrefixCache(keys, values, first, layout, slots, rope, buffers)
 
     def action_pass(self, cache: PrefixCache, differentiable: bool = False) -> ActionPass:

@@ -330,12 +330,12 @@ def expert_layers_(
     launch: Callable[..., Any] | None = None,
     state: torch.Tensor | None = None,
     order: torch.Tensor | None = None,
-) -> None:
+) -> Any:
     """Every layer of an Euler step on the action tokens `x`, in place and in one launch (module docstring): what
     `reference.expert_layers_` computes. `tiling`: `Tiling()` by default. `programs`: the grid (`default_programs`).
-    `launch`: stands in for the kernel's launch (compiling without a GPU). `state`: zeroed int32 counters of
-    `state_size` for this launch alone, left as the launch counted (by default: the stream's, which each launch puts
-    back to 0). `order`: int32, the tiles (numbered layer after layer, in ticket order) in the order the tickets hand
+    `launch`: stands in for the kernel's launch (compiling without a GPU; what it returns is returned, else None).
+    `state`: zeroed int32 counters of `state_size` for this launch alone, left as the launch counted (by default: the
+    stream's, which each launch puts back to 0). `order`: int32, the tiles (numbered layer after layer, in ticket order) in the order the tickets hand
     them out; one an interpreted launch can follow (`benchmarks/persistent_layers.py`)."""
     tiling = tiling or Tiling()
     rows, width = x.shape
