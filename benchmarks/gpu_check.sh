@@ -4,9 +4,9 @@
 # files: this writes 8); the last lines of each are printed too. Run from the repository root with the Python that
 # holds torch, triton, transformers and pytest (the GPU image's python3: no network, no [dev] extra):
 #
-#     OUT=/tmp/gpu benchmarks/gpu_check.sh          # at most 9.4 minutes (the steps' limits) on an H100 or H200
+#     OUT=/tmp/gpu benchmarks/gpu_check.sh          # at most 8.9 minutes (the steps' limits) on an H100 or H200
 #     SKIP="bench doctor" OUT=/tmp/gpu benchmarks/gpu_check.sh   # leave steps out (default: SKIP=tilings)
-#     SKIP= OUT=/tmp/gpu benchmarks/gpu_check.sh    # everything, the kernels' tilings too (about 11 minutes)
+#     SKIP= OUT=/tmp/gpu benchmarks/gpu_check.sh    # everything, the kernels' tilings too (about 10.5 minutes)
 #
 # Timings run alone on the GPU; the checks run side by side (correctness does not mind sharing the GPU):
 # 1. alone: the benchmark, fused steps against the torch path, eager and graph, π0 and π0.5, batch 1, 4 and 8, with each
@@ -73,8 +73,8 @@ grep -h "against the reference\|^exit" "$OUT/persistent-check.log"
 
 # 3. alone
 step sweep 20 "$PY" -m pi0_torch.cli bench --device cuda --skip-generate --gemms --presets pi0 --batches 1,8 --repeats 10
-step sweep 60 "$PY" benchmarks/persistent_layers.py --bench
-step bench 90 "$PY" -m pi0_torch.cli bench --device cuda --presets pi0,pi05 --dtypes bfloat16 --cameras 3 --batches 1,8 \
+step sweep 45 "$PY" benchmarks/persistent_layers.py --bench
+step bench 75 "$PY" -m pi0_torch.cli bench --device cuda --presets pi0,pi05 --dtypes bfloat16 --cameras 3 --batches 1,8 \
     --kernels persistent --repeats 10 --kernel-table 15
 step tilings 100 "$PY" benchmarks/kernel_sweep.py --write "$OUT/tilings.json" --bench
 step fast-bench 45 "$PY" -m pi0_torch.cli bench --device cuda --skip-generate --fast --fast-presets pi0_fast \

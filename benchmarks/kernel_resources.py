@@ -2,7 +2,8 @@
 
 Triton compiles a kernel anew for each class of its arguments (block sizes picked by row count, an integer equal to 1
 or divisible by 16, a dtype), so what a GPU must hold depends on the calls. This script makes the calls: full-size
-π0 and π0.5 sampling at the given batch sizes and one π0-FAST decoded token, bf16, on the meta device (no weights),
+π0 and π0.5 sampling at the given batch sizes (π0's persistent launch of its layers, `sampling_kernels="persistent"`,
+at batch 1) and one π0-FAST decoded token, bf16, on the meta device (no weights),
 with triton's driver replaced by one that names the target GPU and every launch turned into a compile
 (`JITFunction.run(..., warmup=True)`). Each variant is compiled to the target's machine code by the ptxas that comes
 with triton, and gets one row: its shared memory against the most one block may have on that GPU, its registers and
@@ -83,8 +84,8 @@ def replace_launches(arch: int, launch: Callable[[Any, tuple], None]) -> None:
 
 
 def compile_launches(arch: int, batches: list[int]) -> dict[str, tuple[str, Any]]:
-    """Every kernel variant that full-size sampling (π0, π0.5 at `batches`) and π0-FAST decoding launch, compiled
-    for `arch`: {hash: (kernel name, compiled kernel)}."""
+    """Every kernel variant that full-size sampling (π0, π0.5 at `batches`; π0's persistent launch at batch 1) and
+    π0-FAST decoding launch, compiled for `arch`: {hash: (kernel name, compiled kernel)}."""
     import triton
     from triton.runtime.jit import JITFunction
 
@@ -110,6 +111,10 @@ def compile_launches(arch: int, batches: list[int]) -> dict[str, tuple[str, Any]
             for batch in batches:
                 facts = InputFacts(((True,) * config.num_cameras,) * batch, (TEXT_TOKENS,) * batch, TEXT_TOKENS)
                 sample_on_meta(config, facts, config.num_inference_steps, torch.bfloat16, fused=True, count=False)
+        # the persistent launch (`sampling_kernels="persistent"`, experimental): π0 at batch 1, its steps and state token
+        config = PI0Config.from_preset("pi0")
+        facts = InputFacts(((True,) * config.num_cameras,), (TEXT_TOKENS,), TEXT_TOKENS)
+        sample_on_meta(config, facts, 1, torch.bfloat16, fused=True, count=False, persistent=True)
         decode_step_on_meta(PI0FastConfig.from_preset("pi0_fast"), fused=True, count=False)
     finally:
         JITFunction.__getitem__ = original
@@ -143,7 +148,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if os.environ.get("TRITON_INTERPRET") == "1":
         parser.error("unset TRITON_INTERPRET: the kernels are compiled here, not interpreted")
-    from pi0_torch.kernels import triton_kernels  # noqa: F401  (imported as compiled kernels, before the next line)
+    from pi0_torch.kernels import persistent, triton_kernels  # noqa: F401  (compiled kernels, before the next line)
 
     os.environ["TRITON_INTERPRET"] = "1"  # (only so that the ops take their Triton implementation for meta tensors)
     too_large = 0

@@ -214,11 +214,11 @@ def test_varlen_kernel_matches_sdpa(reference: OpenpiReference) -> None:
 @pytest.mark.parametrize("preset", ["pi0", "pi05"])
 @pytest.mark.parametrize("setting", ["auto", "persistent"])
 def test_fused_steps_hold_at_full_width_for_every_batch_class(preset: str, setting: str) -> None:
-    """Full-size widths (two decoder layers, random weights), bf16, "auto": at batch 1 (one-row state token, key
+    """Full-size widths (two decoder layers, random weights), bf16, "auto" and "persistent": at batch 1 (one-row state token, key
     parts), 3 (64-row attention blocks) and 8 (row counts divisible by 16; 400 rows: the GEMM ops run cuBLAS's GEMM
     with the epilogue kernels, `CUBLAS_ROWS`) each call's first-use verification keeps the fused steps, and they give
-    the unfused path's actions within bf16's bound. "persistent" (each step's layers in one launch): the same, and
-    its CUDA graph replays what it samples eagerly."""
+    the unfused path's actions within bf16's bound. "persistent" (each step's layers in one launch) also replays its
+    CUDA graph alike twice, near what it samples eagerly (the graph's prefix slots are bucketed: another rounding)."""
     from pi0_torch import PI0Config, PI0ForActionGeneration
     from pi0_torch.benchmark import example_batch
 
@@ -239,7 +239,7 @@ def test_fused_steps_hold_at_full_width_for_every_batch_class(preset: str, setti
             replayed = [model.generate_actions(**inputs, noise=noise) for _ in range(2)]
             model.capture_sampling(disable=True)
             print(f"{preset} batch {batch}: persistent graph against eager {relative(replayed[1], fused):.2e}")
-            assert relative(replayed[1], fused) <= 1e-3
+            assert relative(replayed[1], replayed[0]) <= 1e-3 and relative(replayed[1], fused) <= 2e-2
         model.sampling_kernels = "torch"
         unfused = model.generate_actions(**inputs, noise=noise)
         print(f"{preset} batch {batch} {setting}: fused against unfused {relative(fused, unfused):.2e}")

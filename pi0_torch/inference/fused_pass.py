@@ -7,8 +7,8 @@
   Euler update in one.
 - The prefix pass (`prefix_layer`): the VLM's GEMMs stay cuBLAS's (compute-bound at 800+ rows) with RoPE and the cache
   write, and the GeGLU, fused around them (nine launches per layer instead of fifteen); π0's state token, one row,
-  goes through the action expert's fused ops (five instead of fifteen). SigLIP runs `vision_pass` (nine launches per
-  encoder layer instead of twelve).
+  goes through the action expert's fused ops (five instead of fifteen; "persistent": all its layers in one launch
+  after the prefix's, `state_layers_`). SigLIP runs `vision_pass` (nine launches per encoder layer instead of twelve).
 
 It computes what `ActionSampling.denoise_step` followed by `x_t += dt * velocity` computes, with fewer roundings in
 bf16 (the fused epilogues round once). Used for plain sampling on CUDA in bf16 / fp16 (`ActionSampling.sampling_kernels`,
@@ -18,8 +18,8 @@ that device (once per device, dtype and sizes); real-time chunking's steps run u
 Triton compiles a kernel anew for each class of its arguments (block sizes chosen by row count, an integer equal to
 1 or divisible by 16), so the batch sizes and prompt lengths of real calls launch variants no fixed self-check runs.
 Each plan and input shapes is therefore verified once, on its first call: `verify_fused_sampling` runs the call
-unfused and fused and compares the actions (`FUSED_TOLERANCE`); a plan that fails or deviates samples unfused from
-then on.
+unfused and fused and compares the actions (`FUSED_TOLERANCE`); under "auto" a plan that fails or deviates samples
+unfused from then on, and a setting that names its kernels ("triton", "persistent") raises instead.
 """
 
 from __future__ import annotations
@@ -277,7 +277,7 @@ class FusedSteps:
         if self.persistent:
             ops.call(ops.expert_layers_, tokens, *self.layer_arguments[index])
         else:
-            reference.layer_by_layer_(_call_op, tokens, *self.layer_arguments[index])
+            reference.layer_by_layer_(call_op, tokens, *self.layer_arguments[index])
         row = index if self.final_scales.shape[0] > 1 else 0  # (π0.5: a final norm per step)
         ops.call(ops.norm_linear_euler_, x_t, tokens, self.final_scales[row], self.final_biases[row], self.out_weight, dt,
                  self.model.config.rms_norm_eps)
@@ -308,8 +308,8 @@ def projection_lists(weights: list[SamplingWeights]) -> tuple[list[torch.Tensor]
     return tuple(list(each) for each in zip(*((own.qkv, own.o, own.gate_up, own.down) for own in weights)))
 
 
-def _call_op(name: str, *args: Any) -> Any:
-    """The fused op `name` on `args` (`ops.call`)."""
+def call_op(name: str, *args: Any) -> Any:
+    """The fused op `name` of `pi0_torch.kernels.ops` on `args` (`ops.call`)."""
     return ops.call(getattr(ops, name), *args)
 
 

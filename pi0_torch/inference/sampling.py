@@ -49,7 +49,7 @@ class PrefixCache:
     layout: PrefixLayout
     slots: int  # the prefix's and the suffix's; the buffers may hold more (zeros: `cache_prefix`)
     rope: tuple[torch.Tensor, torch.Tensor]  # `rope_tables` of every slot `[B, slots, H]`, shared by the passes
-    buffers: tuple[torch.Tensor, torch.Tensor]  # every layer's keys, values: [L, B, K, slots, H]
+    buffers: tuple[torch.Tensor, torch.Tensor]  # every layer's keys, values: [L, B, K, slots or more, H]
 
 
 @dataclass
@@ -136,8 +136,8 @@ class ActionSampling:
         kernels wherever triton runs them, `TRITON_INTERPRET=1` included, or a `ValueError` naming why not) or
         "persistent" (as "triton", with every decoder layer of a step in one persistent launch instead of five
         launches per layer, and π0's state token's layers in one: `pi0_torch.kernels.persistent`; experimental, see
-        docs/gpu.md). Real-time chunking's steps
-        always run "torch"; each fused plan is checked against it on its first call."""
+        docs/gpu.md). Real-time chunking's steps always run "torch"; each fused plan is checked against it on its first
+        call."""
         return self._sampling_kernels
 
     @sampling_kernels.setter

@@ -18,7 +18,8 @@ of five launches per layer (90 for π0's 18 layers): `sampling_kernels="persiste
   in other orders those waits allow.
 - A waiting tile first asks its weights into L2. The last program to finish puts the counters back to 0, so the next
   launch needs no memset: a step's layers are one launch and nothing else. The counters are kept per stream
-  (`zeroed_counters`), so two streams' launches never count into each other's.
+  (`zeroed_counters`), so launches of two streams at once never count into each other's (a model's CUDA graphs share
+  their capture stream's, and replay one after another).
 
 The layers' weights stay where the model keeps them: the kernel reads layer 0's and, per layer, its offset from them
 (`weight_offsets`, a table made once per set of weights), so every layer's weights must have the same shape, strides
@@ -261,11 +262,11 @@ def _expert_layers_kernel(
         o_done = counters + 2
         gate_up_done = o_done + row_blocks
         down_done = gate_up_done + row_blocks
-        weight_offsets = offsets_ptr + layer * 4  # (its q/k/v, o, gate/up and down weights' from layer 0's)
+        offsets_at = offsets_ptr + layer * 4  # (its q/k/v, o, gate/up and down weights' from layer 0's)
         if tile < qkv_end:  # (layer 0 waits for nothing: its own down-projection counters, need 0)
             previous = down_done - tl.where(layer > 0, layer_state, 0)
             _qkv_tile(tile, x_ptr, attention_scale_ptr + layer * D,
-                      qkv_ptr + tl.multiple_of(tl.load(weight_offsets), ALIGN),
+                      qkv_ptr + tl.multiple_of(tl.load(offsets_at), ALIGN),
                       qkv_bias_ptr + layer * (HEADS + 2) * HEAD_DIM, cos_ptr, sin_ptr, q_ptr,
                       key_ptr + layer * layer_cache, value_ptr + layer * layer_cache, previous,
                       tl.where(layer > 0, tl.cdiv(D, N_DOWN), 0), counters, M, D, tokens, first_slot, slots,
@@ -278,17 +279,17 @@ def _expert_layers_kernel(
                             ATTENTION_M, ATTENTION_N, DIM_CHUNK, DOT)
         elif tile < o_end:
             _o_tile(tile - attention_end, x_ptr, attended_ptr,
-                    o_ptr + tl.multiple_of(tl.load(weight_offsets + 1), ALIGN), o_gate_ptr + layer * D, counters + 1,
+                    o_ptr + tl.multiple_of(tl.load(offsets_at + 1), ALIGN), o_gate_ptr + layer * D, counters + 1,
                     attention_blocks, o_done, M, D, HEADS * HEAD_DIM, stride_xm, HEADS * HEAD_DIM, stride_ok,
                     stride_on, BLOCK_M, N_O, BLOCK_K, DOT, PREFETCH, ADARMS)
         elif tile < gate_up_end:
             _gate_up_tile(tile - o_end, x_ptr, mlp_scale_ptr + layer * D,
-                          gate_up_ptr + tl.multiple_of(tl.load(weight_offsets + 2), ALIGN),
+                          gate_up_ptr + tl.multiple_of(tl.load(offsets_at + 2), ALIGN),
                           gate_up_bias_ptr + layer * 2 * F, hidden_ptr, o_done, gate_up_done, M, D, F, stride_xm,
                           stride_gk, stride_gn, eps, BLOCK_M, N_O, N_GATE_UP, BLOCK_K, DOT, PREFETCH, ADARMS)
         else:
             _down_tile(tile - gate_up_end, x_ptr, hidden_ptr,
-                       down_ptr + tl.multiple_of(tl.load(weight_offsets + 3), ALIGN), down_gate_ptr + layer * D,
+                       down_ptr + tl.multiple_of(tl.load(offsets_at + 3), ALIGN), down_gate_ptr + layer * D,
                        gate_up_done, down_done, M, D, F, stride_xm, stride_dk, stride_dn, BLOCK_M, N_GATE_UP, N_DOWN,
                        BLOCK_K, DOT, PREFETCH, ADARMS, True)
         ticket = tl.atomic_add(state_ptr, 1)
@@ -378,16 +379,18 @@ def expert_layers_(
 
 
 WEIGHT_ALIGNMENT = 16  # bytes: every layer's weights start at a multiple of this (the kernel's loads assume it)
-_offset_tables: dict[tuple[Any, ...], torch.Tensor] = {}  # (device, every weight's address) -> `weight_offsets`
-_OFFSET_TABLES_KEPT = 16
+# `weight_offsets` by (device, dtype, layer 0's shapes and strides, every weight's address): a few hundred bytes each,
+# never dropped (a captured CUDA graph reads its table's address at every replay)
+_offset_tables: dict[tuple[Any, ...], torch.Tensor] = {}
 
 
 def weight_offsets(weights: Sequence[Sequence[torch.Tensor]], device: torch.device) -> torch.Tensor:
     """int64 `[L, 4]` on `device`: where each layer's q/k/v, o, gate/up and down weights (`weights`: the four lists)
-    start, in elements from layer 0's. Made on first use per set of addresses and kept (a CUDA graph's capture finds
-    it made by its warm-up runs). Raises `ValueError` where the layers' weights differ in shape, strides or dtype, or
-    one does not start `WEIGHT_ALIGNMENT`-aligned."""
-    key = (device, *(t.data_ptr() for each in weights for t in each))
+    start, in elements from layer 0's. Made on first use per set of weights (checked then) and kept: a CUDA graph's
+    capture finds it made by the eager runs before it. Raises `ValueError` where the layers' weights differ in shape,
+    strides or dtype, or one does not start `WEIGHT_ALIGNMENT`-aligned."""
+    key = (device, weights[0][0].dtype, *((each[0].shape, each[0].stride()) for each in weights),
+           *(t.data_ptr() for each in weights for t in each))
     table = _offset_tables.get(key)
     if table is not None:
         return table
@@ -403,8 +406,6 @@ def weight_offsets(weights: Sequence[Sequence[torch.Tensor]], device: torch.devi
                 raise ValueError(f"expert_layers_: layer {layer}'s {name} weight starts at an address that is not a "
                                  f"multiple of {WEIGHT_ALIGNMENT} bytes")
         rows.append([(t.data_ptr() - first.data_ptr()) // first.element_size() for t in each])
-    if len(_offset_tables) >= _OFFSET_TABLES_KEPT:
-        _offset_tables.pop(next(iter(_offset_tables)))
     table = _offset_tables[key] = torch.tensor(rows, dtype=torch.int64).t().contiguous().to(device)
     return table
 

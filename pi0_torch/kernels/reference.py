@@ -158,7 +158,6 @@ def norm_linear_euler_(
     x_t.add_(velocity.view(x_t.shape).float(), alpha=dt)
 
 
-
 def expert_layers_(
     x: torch.Tensor,  # [M, D], updated in place
     attention_scales: torch.Tensor,  # [L, D]: each layer's attention norm scale (adaRMS: this step's)
