@@ -69,7 +69,7 @@ wait
 show doctor
 show gpu-tests
 TAIL=8 show kernel-tests
-grep -h "against the reference\|^exit" "$OUT/persistent-check.log"
+grep -h "against the reference\|outputs NaN\|^exit" "$OUT/persistent-check.log"
 
 # 3. alone
 step sweep 20 "$PY" -m pi0_torch.cli bench --device cuda --skip-generate --gemms --presets pi0 --batches 1,8 --repeats 10

@@ -8,7 +8,9 @@ ends at (`expected_counts`), records what each tile waits for (`wait_graph`, fro
 count-ins) and runs the tiles in other orders those waits allow (`orders`): a read or write that no wait protects is
 likely to come out wrong in one (as a wait on the previous layer's gate/up instead of its down-projection does, or
 an o-projection not waiting for the attention: both checked once by hand). On a GPU `--check` runs full-size layers
-against the reference and today's ops, and `--bench` times the tilings (`TILINGS`) against today's launches.
+against the reference and today's ops, and `--bench` times the tilings (`TILINGS`) against today's launches. On
+both, `--check` also launches with counters that never reach the waits: the launch must give up (`watchdog`) and
+return NaN, not hang.
 
 The numbers are those of `pi0_torch.kernels.reference` (float32 sums, bf16 outputs), not bit for bit (no split-K).
 π0's layers, and π0.5's with their adaRMS biases and residual gates (`AdaRMS`); one kv head, every action token
@@ -116,11 +118,11 @@ def op_arguments(x: torch.Tensor, step: Step, eps: float) -> tuple[Any, ...]:
 
 def persistent_layers_(x: torch.Tensor, step: Step, eps: float, tiling: Tiling | None = None, programs: int | None = None,
                        launch: Callable[..., Any] | None = None, state: torch.Tensor | None = None,
-                       order: torch.Tensor | None = None) -> Any:
+                       order: torch.Tensor | None = None, watch: torch.Tensor | None = None) -> Any:
     """Every layer of `step` on `x` in place, in one launch (`pi0_torch.kernels.persistent.expert_layers_`, whose
     keywords these are); returns `x` (with `launch`: what `launch` returns)."""
     launched = expert_layers_(*op_arguments(x, step, eps), tiling=tiling, programs=programs, launch=launch, state=state,
-                              order=order)
+                              order=order, watch=watch)
     return x if launch is None else launched
 
 
@@ -254,7 +256,7 @@ def wait_graph(run: Callable[[], Any]) -> list[set[int]]:
     def value(each: Any) -> int:
         return int(each.handle.data.item()) if hasattr(each, "handle") else int(each)
 
-    def wait_for(counter_ptr: Any, need: Any) -> None:
+    def wait_for(counter_ptr: Any, need: Any, watch_ptr: Any) -> None:
         waits.append((value(counter_ptr), value(need)))
 
     def count_in(counter_ptr: Any, count: Any) -> None:
@@ -271,6 +273,27 @@ def wait_graph(run: Callable[[], Any]) -> list[set[int]]:
     for tile, counter in enumerate(counts):
         producers.setdefault(counter, []).append(tile)
     return [set(producers.get(counter, ())) if need > 0 else set() for counter, need in waits]
+
+
+def check_abandoned(device: torch.device, dtype: torch.dtype, shape: Shape, tiling: Tiling) -> int:
+    """A wait that never ends is abandoned, not hung on (`persistent.watchdog`): a launch whose counters start below
+    what its first waits need (-1), on a watch of its own that allows 64 spins, returns with `x` all NaN and the
+    watch set; a second launch on that watch, with counters that would serve it, gives up its waits at once and
+    returns NaN too."""
+    x, step = operands(shape, dtype, device)
+    size = state_size(shape.depth, shape.batch * shape.tokens, shape.tokens, shape.heads, tiling)
+    watch = torch.tensor([0, 64], dtype=torch.int32, device=device)
+    failures = 0
+    for launch, first_counters in ((1, -1), (2, 0)):
+        state = torch.zeros(size, dtype=torch.int32, device=device)
+        state[2:] = first_counters
+        got = persistent_layers_(x.clone(), step.fresh(), 1e-6, tiling, state=state, watch=watch)
+        failed = not (bool(got.isnan().all()) and int(watch[0]) == 1)
+        failures += failed
+        print(f"{shape} {tiling}, launch {launch} {'with counters that never reach their waits' if launch == 1 else 'after it'}"
+              f": {int(got.isnan().sum())} of {got.numel()} outputs NaN, watch {watch.tolist()}"
+              + ("  FAILED (want every output NaN and the watch set)" if failed else ""), flush=True)
+    return failures
 
 
 def orders(graph: list[set[int]], seeds: int) -> Iterator[tuple[str, list[int]]]:
@@ -379,13 +402,15 @@ def main() -> int:
             bound = FUSED_TOLERANCE[torch.bfloat16]
             return (check(torch.device("cuda"), torch.bfloat16, [FULL._replace(depth=2), FULL._replace(depth=2, batch=8)],
                           bound, TILINGS)
-                    + check(torch.device("cuda"), torch.bfloat16, [FULL._replace(depth=2, adarms=True)], bound, TILINGS[:1]))
+                    + check(torch.device("cuda"), torch.bfloat16, [FULL._replace(depth=2, adarms=True)], bound, TILINGS[:1])
+                    + check_abandoned(torch.device("cuda"), torch.bfloat16, FULL._replace(depth=2), TILINGS[0]))
         # (the interpreter: small, float32; one and three samples, partial row and attention blocks; π0.5)
         shapes = [Shape(2, 1, 5, 7, 32, 2, 16, 48), Shape(2, 3, 6, 9, 48, 2, 16, 40, adarms=True)]
         tilings = [Tiling(qkv=8, o=16, gate_up=16, down=16, k=16, m=16, attention_m=16, attention_n=16, key_parts=2),
                    Tiling(qkv=16, o=32, gate_up=32, down=32, k=32, m=32, attention_m=32, attention_n=16, key_parts=1)]
         return (check(torch.device("cpu"), torch.float32, shapes, 1e-5, tilings)
-                + sum(check_orders(shape, tilings[0], 1e-5) for shape in shapes))
+                + sum(check_orders(shape, tilings[0], 1e-5) for shape in shapes)
+                + check_abandoned(torch.device("cpu"), torch.float32, shapes[1], tilings[0]))
 
     return experiment_main(__doc__, check_here, functools.partial(compile_for, tilings=TILINGS),
                            functools.partial(bench, TILINGS))

@@ -48,7 +48,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from pi0_torch.inference.fused_pass import FUSED_TOLERANCE
 from pi0_torch.inference.graphs import relative_deviation
 from pi0_torch.kernels import reference
-from pi0_torch.kernels.persistent import _down_tile, _gate_up_tile, _o_tile
+from pi0_torch.kernels.persistent import _down_tile, _gate_up_tile, _o_tile, watchdog
 from pi0_torch.kernels.triton_kernels import INTERPRETING, cdiv, dot_dtype
 
 
@@ -72,7 +72,7 @@ class Tiling(NamedTuple):
 
 @triton.jit
 def _persistent_mlp_kernel(
-    x_ptr, attended_ptr, o_ptr, scale_ptr, gate_up_ptr, down_ptr, hidden_ptr, state_ptr,
+    x_ptr, attended_ptr, o_ptr, scale_ptr, gate_up_ptr, down_ptr, hidden_ptr, state_ptr, watch_ptr,
     M, D, NH, F, stride_xm, stride_am, stride_ok, stride_on, stride_gk, stride_gn, stride_dk, stride_dn, eps,
     BLOCK_M: tl.constexpr, N_O: tl.constexpr, N_GATE_UP: tl.constexpr, N_DOWN: tl.constexpr, BLOCK_K: tl.constexpr,
     DOT: tl.constexpr, PREFETCH: tl.constexpr,
@@ -87,16 +87,16 @@ def _persistent_mlp_kernel(
     ticket = tl.atomic_add(state_ptr, 1)
     while ticket < total:
         if ticket < o_end:
-            _o_tile(ticket, x_ptr, attended_ptr, o_ptr, o_ptr, gate_up_counters, 0, o_counters, M, D, NH, stride_xm,
-                    stride_am, stride_ok, stride_on, BLOCK_M, N_O, BLOCK_K, DOT, False, False)  # (waits for nothing)
+            _o_tile(ticket, x_ptr, attended_ptr, o_ptr, o_ptr, gate_up_counters, 0, o_counters, watch_ptr, M, D, NH,
+                    stride_xm, stride_am, stride_ok, stride_on, BLOCK_M, N_O, BLOCK_K, DOT, False, False)  # (waits for nothing)
         elif ticket < gate_up_end:
             _gate_up_tile(ticket - o_end, x_ptr, scale_ptr, gate_up_ptr, gate_up_ptr, hidden_ptr, o_counters,
-                          gate_up_counters, M, D, F, stride_xm, stride_gk, stride_gn, eps, BLOCK_M, N_O, N_GATE_UP,
-                          BLOCK_K, DOT, PREFETCH, False)
+                          gate_up_counters, watch_ptr, M, D, F, stride_xm, stride_gk, stride_gn, eps, BLOCK_M, N_O,
+                          N_GATE_UP, BLOCK_K, DOT, PREFETCH, False)
         else:
             _down_tile(ticket - gate_up_end, x_ptr, hidden_ptr, down_ptr, down_ptr, gate_up_counters, gate_up_counters,
-                       M, D, F, stride_xm, stride_dk, stride_dn, BLOCK_M, N_GATE_UP, N_DOWN, BLOCK_K, DOT, PREFETCH,
-                       False, False)
+                       watch_ptr, M, D, F, stride_xm, stride_dk, stride_dn, BLOCK_M, N_GATE_UP, N_DOWN, BLOCK_K, DOT,
+                       PREFETCH, False, False)
         ticket = tl.atomic_add(state_ptr, 1)
 
 
@@ -117,7 +117,7 @@ def persistent_mlp_(x: torch.Tensor, attended: torch.Tensor, o: torch.Tensor, sc
     if programs is None:
         programs = torch.cuda.get_device_properties(x.device).multi_processor_count if x.is_cuda else 4
     arguments = (
-        x, attended, o, scale, gate_up, down, hidden, state, rows, width, attended.shape[1], mlp_width, x.stride(0),
+        x, attended, o, scale, gate_up, down, hidden, state, watchdog(x.device), rows, width, attended.shape[1], mlp_width, x.stride(0),
         attended.stride(0), o.stride(0), o.stride(1), gate_up.stride(0), gate_up.stride(1), down.stride(0),
         down.stride(1), eps,
     )

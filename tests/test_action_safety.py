@@ -20,6 +20,7 @@ import torch
 import websockets.sync.client
 from conftest import HORIZON, tiny_policy
 
+from pi0_torch.kernels import ops
 from pi0_torch.models.rtc import MAX_GUIDANCE, MAX_PREVIOUS_ACTION
 from pi0_torch.processing.normalization import NormStats
 from pi0_torch.runtime.action_safety import UnsafeActionsError
@@ -149,6 +150,27 @@ def test_non_finite_actions_are_withheld_naming_the_cause(cause: str, monkeypatc
                                                  + message) as withheld:
         policy.infer({**OBSERVATION, **fields})
     assert "\n" not in str(withheld.value)
+
+
+@pytest.mark.skipif(ops.triton_reason(torch.device("cpu")) is not None, reason="the persistent launch runs in triton's "
+                    "interpreter here (TRITON_INTERPRET=1, the repository's conftest.py) and needs triton")
+def test_a_persistent_launch_that_abandoned_a_wait_is_named_and_its_chunk_withheld(monkeypatch: pytest.MonkeyPatch) -> None:
+    """`sampling_kernels="persistent"`: a launch that waited too long (a synchronization fault on a GPU) returns NaN
+    rather than hang, and so does every later one in the process (`kernels.persistent.watchdog`): a plan verified
+    before that happened now gets its chunk withheld, naming the launch; a plan verified after it is refused."""
+    from pi0_torch.kernels import persistent
+
+    monkeypatch.setattr(persistent, "_watches", {})  # (this test's watch, not the process's)
+    policy = tiny_policy(rtc_max_delay=0)
+    policy.model.sampling_kernels = "persistent"
+    assert np.isfinite(policy.infer(OBSERVATION)["actions"]).all()  # (verified against the unfused path, then kept)
+    persistent.watchdog(policy.model.device)[0] = 1  # (as a wait given up by the kernel sets it)
+    with pytest.raises(UnsafeActionsError, match=r"withheld; cause: persistent launch abandoned a wait that did not end "
+                                                 r".*\(sampling_kernels='auto' samples without it\)"):
+        policy.infer(OBSERVATION)
+    with pytest.raises(ValueError, match="sampling_kernels='persistent' cannot run sampling .*its persistent launch "
+                                         "abandoned a wait"):
+        policy.model.generate_actions(**policy._batch([policy.prepare(OBSERVATION)]), num_steps=3)  # (a new plan)
 
 
 def test_a_batch_keeps_the_chunks_that_are_fine(monkeypatch: pytest.MonkeyPatch) -> None:

@@ -111,18 +111,36 @@ def fused_kernels_reason(device: torch.device, dtype: torch.dtype, width: int, h
 def verify_fused_sampling(model: PI0ForActionGeneration, inputs: SamplingInputs, plan: SamplingPlan) -> tuple[str | None, torch.Tensor]:
     """Sample `inputs` with `plan`'s fused steps and unfused, eagerly: why the fused sampling is refused for inputs
     of these shapes (None: it may run), and the actions to return (the fused ones where it may, else the unfused).
-    Refused where it raises (a kernel variant that does not compile or does not fit the device) or where its actions
-    deviate from the unfused ones by more than `FUSED_TOLERANCE` (a non-finite action deviates infinitely)."""
+    Refused where it raises (a kernel variant that does not compile or does not fit the device), where a persistent
+    launch abandoned a wait (`kernels.persistent.watchdog`), or where its actions deviate from the unfused ones by
+    more than `FUSED_TOLERANCE` (a non-finite action deviates infinitely)."""
     unfused = model._sample(inputs, replace(plan, fused=False, persistent=False))
     try:
         fused = model._sample(inputs, plan)
     except Exception as error:  # (the inputs were checked and the unfused path ran them: what fails is the kernels)
         return f"it failed ({type(error).__name__}: {str(error)[:300]})", unfused
+    if plan.persistent and persistent_abandoned(fused.device):
+        return PERSISTENT_ABANDONED, unfused
     deviation = relative_deviation(fused, unfused)
     bound = FUSED_TOLERANCE.get(model.dtype, FUSED_TOLERANCE[torch.float32])
     if deviation <= bound:
         return None, fused
     return f"its actions deviate from the unfused path's by {deviation:.3g} of the largest action (bound {bound:g})", unfused
+
+
+PERSISTENT_ABANDONED = ("its persistent launch abandoned a wait that did not end (a synchronization fault of "
+                        "pi0_torch.kernels.persistent on this GPU: please report it); its launches return NaN in this "
+                        "process from now on")
+
+
+def persistent_abandoned(device: torch.device) -> bool:
+    """Whether a persistent launch on `device` abandoned a wait (`kernels.persistent.abandoned`; False where none
+    ran or none can run). Reads the GPU."""
+    if ops.triton_reason(device) is not None:
+        return False
+    from pi0_torch.kernels import persistent
+
+    return persistent.abandoned(device)
 
 
 def kernels_reason(device: torch.device, dtype: torch.dtype, cases: Callable[[], list[tuple[str, Callable[[], tuple]]]],

@@ -16,6 +16,10 @@ of five launches per layer (90 for π0's 18 layers): `sampling_kernels="persiste
   programs the GPU runs at once, and triton's interpreter (programs one after another) runs it too. Nothing ever
   waits there, so `benchmarks/persistent_layers.py --check` also records what each tile waits for and runs the tiles
   in other orders those waits allow.
+- A wait that has not ended after a few seconds (`SPINS`) is abandoned rather than hung on: the launch then returns
+  NaN actions, the device's `watchdog` says so (`abandoned`), and every later launch there does the same at once. A
+  correct launch never gets there; what would is a synchronization fault on a GPU, and a robot is better served by
+  a refusal (the first call's verification) or a withheld chunk than by a process that never returns.
 - A waiting tile first asks its weights into L2. The last program to finish puts the counters back to 0, so the next
   launch needs no memset: a step's layers are one launch and nothing else. The counters are kept per stream
   (`zeroed_counters`), so launches of two streams at once never count into each other's (a model's CUDA graphs share
@@ -80,11 +84,18 @@ class Tiling(NamedTuple):
 
 
 @triton.jit
-def _wait_for(counter_ptr, need):
-    """Spin until the int32 counter reaches `need` (acquire: what its producers stored before counting is visible)."""
+def _wait_for(counter_ptr, need, watch_ptr):
+    """Spin until the int32 counter reaches `need` (acquire: what its producers stored before counting is visible),
+    or abandon the wait after `watch[1]` spins (about a second per million): then `watch[0]` is set, every later wait
+    gives up at once (this launch's and the next ones'), and the launch's last program fills `x` with NaN."""
     count = tl.atomic_add(counter_ptr, 0, sem="acquire")
-    while count < need:
-        count = tl.atomic_add(counter_ptr, 0, sem="acquire")
+    if count < need:
+        spins = tl.where(tl.atomic_add(watch_ptr, 0) == 0, tl.load(watch_ptr + 1), 0)
+        while (count < need) & (spins > 0):
+            count = tl.atomic_add(counter_ptr, 0, sem="acquire")
+            spins -= 1
+        if count < need:
+            tl.atomic_xchg(watch_ptr, 1)
 
 
 @triton.jit
@@ -128,14 +139,14 @@ def _tile_at(tile, N, BLOCK_M: tl.constexpr, BLOCK_N: tl.constexpr):
 
 
 @triton.jit
-def _o_tile(tile, x_ptr, attended_ptr, o_ptr, gate_ptr, wait_ptr, need, counters_ptr, M, D, NH, stride_xm, stride_am,
-            stride_ok, stride_on, BLOCK_M: tl.constexpr, N_O: tl.constexpr, BLOCK_K: tl.constexpr, DOT: tl.constexpr,
+def _o_tile(tile, x_ptr, attended_ptr, o_ptr, gate_ptr, wait_ptr, need, counters_ptr, watch_ptr, M, D, NH, stride_xm,
+            stride_am, stride_ok, stride_on, BLOCK_M: tl.constexpr, N_O: tl.constexpr, BLOCK_K: tl.constexpr, DOT: tl.constexpr,
             PREFETCH: tl.constexpr, HAS_GATE: tl.constexpr):
     """`x[r, n] += attended[r] @ o[:, n]` (adaRMS: times `gate[n]`), once `wait` reaches `need` (the attention's tiles:
     0 where `attended` was written before the launch); then counted in for row block r (`counters[r]`)."""
     block, rows, columns = _tile_at(tile, D, BLOCK_M, N_O)
     _prefetch_weights(o_ptr, stride_ok, stride_on, columns, NH, D, BLOCK_K, PREFETCH)
-    _wait_for(wait_ptr, need)
+    _wait_for(wait_ptr, need, watch_ptr)
     acc, _, _ = _matmul_tiles(attended_ptr, stride_am, attended_ptr, o_ptr, stride_ok, stride_on, rows, columns, 0, M,
                               0, NH, D, BLOCK_M, N_O, BLOCK_K, False, False, DOT, ".cg")
     _add_to_residual(x_ptr, stride_xm, rows, columns, M, D, acc, gate_ptr, HAS_GATE)
@@ -143,8 +154,8 @@ def _o_tile(tile, x_ptr, attended_ptr, o_ptr, gate_ptr, wait_ptr, need, counters
 
 
 @triton.jit
-def _gate_up_tile(tile, x_ptr, scale_ptr, gate_up_ptr, bias_ptr, hidden_ptr, o_counters_ptr, counters_ptr, M, D, F,
-                  stride_xm, stride_gk, stride_gn, eps, BLOCK_M: tl.constexpr, N_O: tl.constexpr,
+def _gate_up_tile(tile, x_ptr, scale_ptr, gate_up_ptr, bias_ptr, hidden_ptr, o_counters_ptr, counters_ptr, watch_ptr, M,
+                  D, F, stride_xm, stride_gk, stride_gn, eps, BLOCK_M: tl.constexpr, N_O: tl.constexpr,
                   N_GATE_UP: tl.constexpr, BLOCK_K: tl.constexpr, DOT: tl.constexpr, PREFETCH: tl.constexpr,
                   HAS_BIAS: tl.constexpr):
     """`hidden[r, f] = gelu_tanh(norm(x[r]) @ gate[:, f]) * (norm(x[r]) @ up[:, f])` (adaRMS: plus `bias[f]` and
@@ -153,7 +164,7 @@ def _gate_up_tile(tile, x_ptr, scale_ptr, gate_up_ptr, bias_ptr, hidden_ptr, o_c
     block, rows, columns = _tile_at(tile, F, BLOCK_M, N_GATE_UP)
     _prefetch_weights(gate_up_ptr, stride_gk, stride_gn, columns, D, F, BLOCK_K, PREFETCH)
     _prefetch_weights(gate_up_ptr + F * stride_gn, stride_gk, stride_gn, columns, D, F, BLOCK_K, PREFETCH)
-    _wait_for(o_counters_ptr + block, tl.cdiv(D, N_O))
+    _wait_for(o_counters_ptr + block, tl.cdiv(D, N_O), watch_ptr)
     gate, up, squares = _matmul_tiles(x_ptr, stride_xm, scale_ptr, gate_up_ptr, stride_gk, stride_gn, rows, columns, F,
                                       M, 0, D, F, BLOCK_M, N_GATE_UP, BLOCK_K, True, True, DOT, ".cg")
     _geglu_store(gate, up, squares, rows, columns, columns < F, bias_ptr, hidden_ptr, M, D, F, eps, HAS_BIAS)
@@ -161,8 +172,8 @@ def _gate_up_tile(tile, x_ptr, scale_ptr, gate_up_ptr, bias_ptr, hidden_ptr, o_c
 
 
 @triton.jit
-def _down_tile(tile, x_ptr, hidden_ptr, down_ptr, gate_ptr, gate_up_counters_ptr, counters_ptr, M, D, F, stride_xm,
-               stride_dk, stride_dn, BLOCK_M: tl.constexpr, N_GATE_UP: tl.constexpr, N_DOWN: tl.constexpr,
+def _down_tile(tile, x_ptr, hidden_ptr, down_ptr, gate_ptr, gate_up_counters_ptr, counters_ptr, watch_ptr, M, D, F,
+               stride_xm, stride_dk, stride_dn, BLOCK_M: tl.constexpr, N_GATE_UP: tl.constexpr, N_DOWN: tl.constexpr,
                BLOCK_K: tl.constexpr, DOT: tl.constexpr, PREFETCH: tl.constexpr, HAS_GATE: tl.constexpr,
                COUNT: tl.constexpr):
     """`x[r, n] += hidden[r] @ down[:, n]` (adaRMS: times `gate[n]`), once every gate/up tile of row block r is in (so
@@ -171,7 +182,7 @@ def _down_tile(tile, x_ptr, hidden_ptr, down_ptr, gate_ptr, gate_up_counters_ptr
     its barrier took 80 KiB more shared memory, more than sm_90 has)."""
     block, rows, columns = _tile_at(tile, D, BLOCK_M, N_DOWN)
     _prefetch_weights(down_ptr, stride_dk, stride_dn, columns, F, D, BLOCK_K, PREFETCH)
-    _wait_for(gate_up_counters_ptr + block, tl.cdiv(F, N_GATE_UP))
+    _wait_for(gate_up_counters_ptr + block, tl.cdiv(F, N_GATE_UP), watch_ptr)
     acc, _, _ = _matmul_tiles(hidden_ptr, F, hidden_ptr, down_ptr, stride_dk, stride_dn, rows, columns, 0, M, 0, F, D,
                               BLOCK_M, N_DOWN, BLOCK_K, False, False, DOT, ".cg")
     _add_to_residual(x_ptr, stride_xm, rows, columns, M, D, acc, gate_ptr, HAS_GATE)
@@ -181,8 +192,8 @@ def _down_tile(tile, x_ptr, hidden_ptr, down_ptr, gate_ptr, gate_up_counters_ptr
 
 @triton.jit
 def _qkv_tile(tile, x_ptr, scale_ptr, w_ptr, bias_ptr, cos_ptr, sin_ptr, q_ptr, key_ptr, value_ptr, wait_ptr, need,
-              counter_ptr, M, D, tokens, first_slot, slots, stride_xm, stride_wk, stride_wn, stride_cos_b, stride_cos_t,
-              eps, HEADS: tl.constexpr, HEAD_DIM: tl.constexpr, BLOCK_M: tl.constexpr, N_QKV: tl.constexpr,
+              counter_ptr, watch_ptr, M, D, tokens, first_slot, slots, stride_xm, stride_wk, stride_wn, stride_cos_b,
+              stride_cos_t, eps, HEADS: tl.constexpr, HEAD_DIM: tl.constexpr, BLOCK_M: tl.constexpr, N_QKV: tl.constexpr,
               BLOCK_K: tl.constexpr, DOT: tl.constexpr, PREFETCH: tl.constexpr, HAS_BIAS: tl.constexpr):
     """Column pairs `(c, c + H/2)` of q/k/v for row block r: RMSNorm, the projection (adaRMS: plus `bias`), RoPE; q into
     `q`, k and v into the layer's cache (`_rope_store`), once `wait[r]` reaches `need` (the previous layer's
@@ -193,7 +204,7 @@ def _qkv_tile(tile, x_ptr, scale_ptr, w_ptr, bias_ptr, cos_ptr, sin_ptr, q_ptr, 
     width = (HEADS + 2) * HEAD_DIM
     _prefetch_weights(w_ptr, stride_wk, stride_wn, first_half, D, width, BLOCK_K, PREFETCH)
     _prefetch_weights(w_ptr, stride_wk, stride_wn, first_half + half, D, width, BLOCK_K, PREFETCH)
-    _wait_for(wait_ptr + block, need)
+    _wait_for(wait_ptr + block, need, watch_ptr)
     acc1, acc2, squares = _matmul_tiles(x_ptr, stride_xm, scale_ptr, w_ptr, stride_wk, stride_wn, rows, first_half, half,
                                         M, 0, D, width, BLOCK_M, N_QKV, BLOCK_K, True, True, DOT, ".cg")
     _rope_store(acc1, acc2, squares, rows, pairs, pairs < (HEADS + 2) * half, bias_ptr, cos_ptr, sin_ptr, q_ptr,
@@ -204,7 +215,7 @@ def _qkv_tile(tile, x_ptr, scale_ptr, w_ptr, bias_ptr, cos_ptr, sin_ptr, q_ptr, 
 
 @triton.jit
 def _attention_tile(tile, q_ptr, key_ptr, value_ptr, first_ptr, row_ends_ptr, out_ptr, partial_ptr, stats_ptr,
-                    arrivals_ptr, wait_ptr, need, counter_ptr, batch, tokens, slots, scale, key_parts,
+                    arrivals_ptr, wait_ptr, need, counter_ptr, watch_ptr, batch, tokens, slots, scale, key_parts,
                     HEADS: tl.constexpr, HEAD_DIM: tl.constexpr, BLOCK_M: tl.constexpr, BLOCK_N: tl.constexpr,
                     DIM_CHUNK: tl.constexpr, DOT: tl.constexpr):
     """Part s of the keys of folded query rows block i of sample b (`range_attention`'s program (i, b, s)), once
@@ -215,7 +226,7 @@ def _attention_tile(tile, q_ptr, key_ptr, value_ptr, first_ptr, row_ends_ptr, ou
     sample = tile // (blocks * key_parts)
     block = tile // key_parts % blocks
     part = tile % key_parts
-    _wait_for(wait_ptr, need)
+    _wait_for(wait_ptr, need, watch_ptr)
     rows = block * BLOCK_M + tl.arange(0, BLOCK_M)
     acc, running_max, total = _attention_part(q_ptr, key_ptr, value_ptr, first_ptr, row_ends_ptr, sample, rows,
                                               rows_per_sample, HEADS, slots, scale, part, key_parts, HEAD_DIM, DOT,
@@ -230,8 +241,8 @@ def _attention_tile(tile, q_ptr, key_ptr, value_ptr, first_ptr, row_ends_ptr, ou
 def _expert_layers_kernel(
     x_ptr, attention_scale_ptr, qkv_ptr, o_ptr, mlp_scale_ptr, gate_up_ptr, down_ptr, offsets_ptr, cos_ptr, sin_ptr, key_ptr,
     value_ptr, first_ptr, row_ends_ptr, qkv_bias_ptr, o_gate_ptr, gate_up_bias_ptr, down_gate_ptr, q_ptr, attended_ptr,
-    hidden_ptr, partial_ptr, stats_ptr, state_ptr, order_ptr, layers, M, D, F, tokens, first_slot, slots, eps, scale,
-    key_parts, stride_xm, stride_cos_b, stride_cos_t, stride_qk, stride_qn, stride_ok, stride_on, stride_gk, stride_gn,
+    hidden_ptr, partial_ptr, stats_ptr, state_ptr, watch_ptr, order_ptr, layers, M, D, F, tokens, first_slot, slots, eps,
+    scale, key_parts, stride_xm, stride_cos_b, stride_cos_t, stride_qk, stride_qn, stride_ok, stride_on, stride_gk, stride_gn,
     stride_dk, stride_dn, layer_cache, reset,
     HEADS: tl.constexpr, HEAD_DIM: tl.constexpr, BLOCK_M: tl.constexpr, N_QKV: tl.constexpr, N_O: tl.constexpr,
     N_GATE_UP: tl.constexpr, N_DOWN: tl.constexpr, BLOCK_K: tl.constexpr, ATTENTION_M: tl.constexpr,
@@ -269,37 +280,43 @@ def _expert_layers_kernel(
                       qkv_ptr + tl.multiple_of(tl.load(offsets_at), ALIGN),
                       qkv_bias_ptr + layer * (HEADS + 2) * HEAD_DIM, cos_ptr, sin_ptr, q_ptr,
                       key_ptr + layer * layer_cache, value_ptr + layer * layer_cache, previous,
-                      tl.where(layer > 0, tl.cdiv(D, N_DOWN), 0), counters, M, D, tokens, first_slot, slots,
+                      tl.where(layer > 0, tl.cdiv(D, N_DOWN), 0), counters, watch_ptr, M, D, tokens, first_slot, slots,
                       stride_xm, stride_qk, stride_qn, stride_cos_b, stride_cos_t, eps, HEADS, HEAD_DIM, BLOCK_M,
                       N_QKV, BLOCK_K, DOT, PREFETCH, ADARMS)
         elif tile < attention_end:
             _attention_tile(tile - qkv_end, q_ptr, key_ptr + layer * layer_cache, value_ptr + layer * layer_cache,
                             first_ptr, row_ends_ptr, attended_ptr, partial_ptr, stats_ptr, down_done + row_blocks,
-                            counters, qkv_end, counters + 1, batch, tokens, slots, scale, key_parts, HEADS, HEAD_DIM,
+                            counters, qkv_end, counters + 1, watch_ptr, batch, tokens, slots, scale, key_parts, HEADS, HEAD_DIM,
                             ATTENTION_M, ATTENTION_N, DIM_CHUNK, DOT)
         elif tile < o_end:
             _o_tile(tile - attention_end, x_ptr, attended_ptr,
                     o_ptr + tl.multiple_of(tl.load(offsets_at + 1), ALIGN), o_gate_ptr + layer * D, counters + 1,
-                    attention_blocks, o_done, M, D, HEADS * HEAD_DIM, stride_xm, HEADS * HEAD_DIM, stride_ok,
+                    attention_blocks, o_done, watch_ptr, M, D, HEADS * HEAD_DIM, stride_xm, HEADS * HEAD_DIM, stride_ok,
                     stride_on, BLOCK_M, N_O, BLOCK_K, DOT, PREFETCH, ADARMS)
         elif tile < gate_up_end:
             _gate_up_tile(tile - o_end, x_ptr, mlp_scale_ptr + layer * D,
                           gate_up_ptr + tl.multiple_of(tl.load(offsets_at + 2), ALIGN),
-                          gate_up_bias_ptr + layer * 2 * F, hidden_ptr, o_done, gate_up_done, M, D, F, stride_xm,
+                          gate_up_bias_ptr + layer * 2 * F, hidden_ptr, o_done, gate_up_done, watch_ptr, M, D, F, stride_xm,
                           stride_gk, stride_gn, eps, BLOCK_M, N_O, N_GATE_UP, BLOCK_K, DOT, PREFETCH, ADARMS)
         else:
             _down_tile(tile - gate_up_end, x_ptr, hidden_ptr,
                        down_ptr + tl.multiple_of(tl.load(offsets_at + 3), ALIGN), down_gate_ptr + layer * D,
-                       gate_up_done, down_done, M, D, F, stride_xm, stride_dk, stride_dn, BLOCK_M, N_GATE_UP, N_DOWN,
+                       gate_up_done, down_done, watch_ptr, M, D, F, stride_xm, stride_dk, stride_dn, BLOCK_M, N_GATE_UP, N_DOWN,
                        BLOCK_K, DOT, PREFETCH, ADARMS, True)
         ticket = tl.atomic_add(state_ptr, 1)
-    # the last program out puts every counter back to 0 for the next launch (all others have taken their last ticket;
-    # `reset` 0 keeps them, for `--check` to count)
-    if (tl.atomic_add(state_ptr + 1, 1, sem="acq_rel") == tl.num_programs(0) - 1) & (reset != 0):
-        size = 2 + layers * layer_state
-        for start in range(0, size, 1024):
-            offsets = start + tl.arange(0, 1024)
-            tl.store(state_ptr + offsets, 0, mask=offsets < size)
+    # the last program out (all others have taken their last ticket): where a wait was abandoned, nothing of the
+    # launch may pass for actions, so `x` becomes NaN; every counter goes back to 0 for the next launch (`reset` 0
+    # keeps them, for `--check` to count)
+    if tl.atomic_add(state_ptr + 1, 1, sem="acq_rel") == tl.num_programs(0) - 1:
+        if tl.atomic_add(watch_ptr, 0) != 0:
+            for start in range(0, M * D, 1024):
+                offsets = start + tl.arange(0, 1024)
+                tl.store(x_ptr + offsets // D * stride_xm + offsets % D, float("nan"), mask=offsets < M * D)
+        if reset != 0:
+            size = 2 + layers * layer_state
+            for start in range(0, size, 1024):
+                offsets = start + tl.arange(0, 1024)
+                tl.store(state_ptr + offsets, 0, mask=offsets < size)
 
 
 # -- the op ---------------------------------------------------------------------------------------------------------
@@ -331,13 +348,16 @@ def expert_layers_(
     launch: Callable[..., Any] | None = None,
     state: torch.Tensor | None = None,
     order: torch.Tensor | None = None,
+    watch: torch.Tensor | None = None,
 ) -> Any:
     """Every layer of an Euler step on the action tokens `x`, in place and in one launch (module docstring): what
     `reference.expert_layers_` computes. `tiling`: `Tiling()` by default. `programs`: the grid (`default_programs`).
     `launch`: stands in for the kernel's launch (compiling without a GPU; what it returns is returned, else None).
     `state`: zeroed int32 counters of `state_size` for this launch alone, left as the launch counted (by default: the
-    stream's, which each launch puts back to 0). `order`: int32, the tiles (numbered layer after layer, in ticket order) in the order the tickets hand
-    them out; one an interpreted launch can follow (`benchmarks/persistent_layers.py`)."""
+    stream's, which each launch puts back to 0). `order`: int32, the tiles (numbered layer after layer, in ticket
+    order) in the order the tickets hand them out; one an interpreted launch can follow
+    (`benchmarks/persistent_layers.py`). `watch`: int32 `[2]`, whether a wait was abandoned and after how many spins
+    (by default the device's, `watchdog`)."""
     tiling = tiling or Tiling()
     rows, width = x.shape
     depth, batch, slots, head_dim = key_cache.shape
@@ -361,7 +381,7 @@ def expert_layers_(
     arguments = (
         x, attention_scales, qkv[0], o[0], mlp_scales, gate_up[0], down[0], weight_offsets((qkv, o, gate_up, down), x.device),
         cos, sin, key_cache, value_cache, first, row_ends, *adarms, q, attended, hidden, partial, stats,
-        state, state if order is None else order, depth, rows, width, mlp_width, tokens, first_slot, slots, eps,
+        state, watchdog(x.device) if watch is None else watch, state if order is None else order, depth, rows, width, mlp_width, tokens, first_slot, slots, eps,
         head_dim**-0.5, tiling.key_parts, x.stride(0), cos.stride(0) if cos.shape[0] > 1 else 0, cos.stride(1),
         *qkv[0].stride(), *o[0].stride(), *gate_up[0].stride(), *down[0].stride(), key_cache.stride(0), int(reset),
     )
@@ -376,6 +396,31 @@ def expert_layers_(
         return launch(_expert_layers_kernel, (programs,), arguments, options)
     _expert_layers_kernel[(programs,)](*arguments, **options)
     return None
+
+
+SPINS = 1 << 22  # a wait's spins before it is abandoned: a few seconds (one atomic read of L2 per spin), where a
+# wait the kernel's order allows ends within microseconds
+_watches: dict[torch.device, torch.Tensor] = {}
+
+
+def watchdog(device: torch.device) -> torch.Tensor:
+    """int32 `[2]` on `device`, read and written by every persistent launch there: `[0]` whether a launch abandoned
+    a wait that did not end (0: none did; never reset: once set, every later launch gives up its waits at once and
+    returns NaN, so a process never samples with the launch again), `[1]` the spins before a wait is abandoned
+    (`SPINS`). Made on first use, zeroed, by an eager call before any graph captures it."""
+    watch = _watches.get(device)
+    if watch is None:
+        with torch.inference_mode(False):  # (a plain tensor, whichever mode the first launch ran in)
+            watch = _watches[device] = torch.zeros(2, dtype=torch.int32, device=device)
+            watch[1] = SPINS
+    return watch
+
+
+def abandoned(device: torch.device) -> bool:
+    """Whether a persistent launch on `device` abandoned a wait (`watchdog`): a synchronization fault of the kernel
+    on this GPU, whose launches then return NaN. Reads the GPU (synchronizes)."""
+    watch = _watches.get(device)
+    return watch is not None and bool(watch[0] != 0)
 
 
 WEIGHT_ALIGNMENT = 16  # bytes: every layer's weights start at a multiple of this (the kernel's loads assume it)

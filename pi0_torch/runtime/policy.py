@@ -34,6 +34,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from pi0_torch.inference.fused_pass import PERSISTENT_ABANDONED, persistent_abandoned
 from pi0_torch.inference.graphs import SamplingCaptureError
 from pi0_torch.models.configuration_base import PI0BaseConfig
 from pi0_torch.models.configuration_pi0 import MAX_INFERENCE_STEPS
@@ -281,6 +282,8 @@ class PI0Policy(BasePolicy):
         if continuation is not None and continuation.method == "guidance":
             return (f"real-time chunking guidance diverged (rtc_max_guidance {self.rtc_max_guidance:g}, previous_actions "
                     f"up to {float(continuation.previous_actions.abs().max()):.3g} in model space)")
+        if self.model.sampling_kernels == "persistent" and persistent_abandoned(self.model.device):
+            return f"{PERSISTENT_ABANDONED.removeprefix('its ')} (sampling_kernels='auto' samples without it)"
         return (f"the model returned NaN/inf from finite inputs ({self._dtype_name} weights, noise_scale "
                 f"{self.noise_scale:g})")
 
