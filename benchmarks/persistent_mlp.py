@@ -48,7 +48,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from pi0_torch.inference.fused_pass import FUSED_TOLERANCE
 from pi0_torch.inference.graphs import relative_deviation
 from pi0_torch.kernels import reference
-from pi0_torch.kernels.persistent import _down_tile, _gate_up_tile, _o_tile, watchdog
+from pi0_torch.kernels.persistent import _gate_up_tile, _residual_tile, watchdog
 from pi0_torch.kernels.triton_kernels import INTERPRETING, cdiv, dot_dtype
 
 
@@ -87,16 +87,17 @@ def _persistent_mlp_kernel(
     ticket = tl.atomic_add(state_ptr, 1)
     while ticket < total:
         if ticket < o_end:
-            _o_tile(ticket, x_ptr, attended_ptr, o_ptr, o_ptr, gate_up_counters, 0, o_counters, watch_ptr, M, D, NH,
-                    stride_xm, stride_am, stride_ok, stride_on, BLOCK_M, N_O, BLOCK_K, DOT, False, False)  # (waits for nothing)
+            _residual_tile(ticket, x_ptr, attended_ptr, stride_am, o_ptr, stride_ok, stride_on, o_ptr, gate_up_counters,
+                           0, 0, o_counters, watch_ptr, x_ptr, x_ptr, M, D, NH, stride_xm, BLOCK_M, N_O, BLOCK_K, 1,
+                           DOT, False, False, True)  # (waits for nothing)
         elif ticket < gate_up_end:
             _gate_up_tile(ticket - o_end, x_ptr, scale_ptr, gate_up_ptr, gate_up_ptr, hidden_ptr, o_counters,
                           gate_up_counters, watch_ptr, M, D, F, stride_xm, stride_gk, stride_gn, eps, BLOCK_M, N_O,
                           N_GATE_UP, BLOCK_K, DOT, PREFETCH, False)
         else:
-            _down_tile(ticket - gate_up_end, x_ptr, hidden_ptr, down_ptr, down_ptr, gate_up_counters, gate_up_counters,
-                       watch_ptr, M, D, F, stride_xm, stride_dk, stride_dn, BLOCK_M, N_GATE_UP, N_DOWN, BLOCK_K, DOT,
-                       PREFETCH, False, False)
+            _residual_tile(ticket - gate_up_end, x_ptr, hidden_ptr, F, down_ptr, stride_dk, stride_dn, down_ptr,
+                           gate_up_counters, 1, tl.cdiv(F, N_GATE_UP), gate_up_counters, watch_ptr, x_ptr, x_ptr, M, D,
+                           F, stride_xm, BLOCK_M, N_DOWN, BLOCK_K, 1, DOT, PREFETCH, False, False)
         ticket = tl.atomic_add(state_ptr, 1)
 
 

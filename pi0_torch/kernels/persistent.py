@@ -6,7 +6,9 @@ of five launches per layer (90 for π0's 18 layers): `sampling_kernels="persiste
   v into the layer's cache: `norm_qkv_rope`'s epilogue, `_rope_store`), the attention's (folded query rows of a sample
   and one part of their keys; the last part to finish combines them: `range_attention`'s `_attention_part` and
   `_combine_key_parts`), the o-projection's (+ residual), gate/up's (norm, GeGLU: `_geglu_store`) and the
-  down-projection's (+ residual). π0.5's adaRMS biases and residual gates ride in the same epilogues.
+  down-projection's (+ residual; with the o-projection one tile function, `_residual_tile`, whose reduction may be
+  split into parts that the last to arrive sums: `Tiling.o_splits`, `down_splits`, `_sum_splits`). π0.5's adaRMS
+  biases and residual gates ride in the same epilogues.
 - A tile waits on counters for what it reads: q/k/v of row block r for the previous layer's down-projection of r,
   the attention for every q/k/v tile of its layer, the o-projection for every attention block, gate/up for the
   o-projection of its row block, the down-projection for gate/up's. The buffers between phases (q, the attention's
@@ -53,6 +55,7 @@ from pi0_torch.kernels.triton_kernels import (  # noqa: E402
     _geglu_store,
     _matmul_tiles,
     _rope_store,
+    _sum_splits,
     cdiv,
     dot_dtype,
     zeroed_counters,
@@ -62,8 +65,9 @@ from pi0_torch.kernels.triton_kernels import (  # noqa: E402
 class Tiling(NamedTuple):
     """Output columns per tile of each GEMM phase (q/k/v in column pairs, o-projection, gate/up, down-projection), the
     GEMMs' reduction block and rows per tile, the attention's folded query rows and keys per block and its key parts,
-    warps, pipeline stages, whether a waiting tile prefetches its weights (never in the interpreter), and programs
-    per multiprocessor."""
+    warps, pipeline stages, whether a waiting tile prefetches its weights (never in the interpreter), programs per
+    multiprocessor, and the parts the o- and down-projections' reductions (2,048 and 4,096 deep in π0's expert) are
+    split into (split-K: more tiles, each a part as deep, summed by the last part to arrive)."""
 
     qkv: int = 16
     o: int = 16
@@ -78,6 +82,8 @@ class Tiling(NamedTuple):
     stages: int = 3
     prefetch: bool = True
     per_sm: int = 1
+    o_splits: int = 1
+    down_splits: int = 1
 
 
 # -- tiles ----------------------------------------------------------------------------------------------------------
@@ -106,13 +112,14 @@ def _count_in(counter_ptr, count):
 
 
 @triton.jit
-def _prefetch_weights(w_ptr, stride_wk, stride_wn, columns, K, N, BLOCK_K: tl.constexpr, PREFETCH: tl.constexpr):
-    """Ask `w[:, columns]` into the L2 cache (a hint: nothing comes into registers): one address per 32 bytes of a
-    column of a bf16 `[in, out]` view of an `nn.Linear` weight (`in` has unit stride)."""
+def _prefetch_weights(w_ptr, stride_wk, stride_wn, columns, k_start, k_stop, N, BLOCK_K: tl.constexpr,
+                      PREFETCH: tl.constexpr):
+    """Ask `w[k_start:k_stop, columns]` into the L2 cache (a hint: nothing comes into registers): one address per 32
+    bytes of a column of a bf16 `[in, out]` view of an `nn.Linear` weight (`in` has unit stride)."""
     if PREFETCH:
-        for k0 in range(0, K, BLOCK_K):
+        for k0 in range(k_start, k_stop, BLOCK_K):
             ks = k0 + tl.arange(0, BLOCK_K // 16) * 16
-            ok = (ks < K)[:, None] & (columns < N)[None, :]
+            ok = (ks < k_stop)[:, None] & (columns < N)[None, :]
             offsets = tl.where(ok, ks[:, None] * stride_wk + columns[None, :] * stride_wn, 0)
             tl.inline_asm_elementwise("prefetch.global.L2 [$1]; mov.u32 $0, 0;", "=r,l", [w_ptr + offsets],
                                       dtype=tl.int32, is_pure=False, pack=1)
@@ -139,18 +146,35 @@ def _tile_at(tile, N, BLOCK_M: tl.constexpr, BLOCK_N: tl.constexpr):
 
 
 @triton.jit
-def _o_tile(tile, x_ptr, attended_ptr, o_ptr, gate_ptr, wait_ptr, need, counters_ptr, watch_ptr, M, D, NH, stride_xm,
-            stride_am, stride_ok, stride_on, BLOCK_M: tl.constexpr, N_O: tl.constexpr, BLOCK_K: tl.constexpr, DOT: tl.constexpr,
-            PREFETCH: tl.constexpr, HAS_GATE: tl.constexpr):
-    """`x[r, n] += attended[r] @ o[:, n]` (adaRMS: times `gate[n]`), once `wait` reaches `need` (the attention's tiles:
-    0 where `attended` was written before the launch); then counted in for row block r (`counters[r]`)."""
-    block, rows, columns = _tile_at(tile, D, BLOCK_M, N_O)
-    _prefetch_weights(o_ptr, stride_ok, stride_on, columns, NH, D, BLOCK_K, PREFETCH)
-    _wait_for(wait_ptr, need, watch_ptr)
-    acc, _, _ = _matmul_tiles(attended_ptr, stride_am, attended_ptr, o_ptr, stride_ok, stride_on, rows, columns, 0, M,
-                              0, NH, D, BLOCK_M, N_O, BLOCK_K, False, False, DOT, ".cg")
-    _add_to_residual(x_ptr, stride_xm, rows, columns, M, D, acc, gate_ptr, HAS_GATE)
-    _count_in(counters_ptr + block, 1)
+def _residual_tile(tile, x_ptr, a_ptr, stride_am, w_ptr, stride_wk, stride_wn, gate_ptr, wait_ptr, wait_stride, need,
+                   counters_ptr, watch_ptr, workspace_ptr, arrivals_ptr, M, D, K, stride_xm, BLOCK_M: tl.constexpr,
+                   BLOCK_N: tl.constexpr, BLOCK_K: tl.constexpr, SPLITS: tl.constexpr, DOT: tl.constexpr,
+                   PREFETCH: tl.constexpr, HAS_GATE: tl.constexpr, COUNT: tl.constexpr):
+    """`x[r, n] += a[r] @ w[:, n]` (adaRMS: times `gate[n]`) for output tile `tile // SPLITS` (row block r, columns
+    n): the o-projection (`a`: the attention's output) and the down-projection (`a`: the MLP's hidden activations).
+    It starts once `wait[r * wait_stride]` reaches `need`, and with COUNT it is then counted in for r
+    (`counters[r]`). With SPLITS > 1 this is part `tile % SPLITS` of the reduction (a whole number of BLOCK_K): the
+    part to arrive last adds the parts up in part order (`_sum_splits`: float32 sums in `workspace`, the tile's
+    `arrivals` back at 0) and updates `x`; every part counts in, all but the last with 0."""
+    output = tile // SPLITS
+    block, rows, columns = _tile_at(output, D, BLOCK_M, BLOCK_N)
+    k_split = tl.cdiv(tl.cdiv(K, SPLITS), BLOCK_K) * BLOCK_K
+    k_start = tile % SPLITS * k_split
+    k_stop = tl.minimum(k_start + k_split, K)
+    _prefetch_weights(w_ptr, stride_wk, stride_wn, columns, k_start, k_stop, D, BLOCK_K, PREFETCH)
+    _wait_for(wait_ptr + block * wait_stride, need, watch_ptr)
+    acc, unused, no_squares = _matmul_tiles(a_ptr, stride_am, a_ptr, w_ptr, stride_wk, stride_wn, rows, columns, 0, M,
+                                            k_start, k_stop, D, BLOCK_M, BLOCK_N, BLOCK_K, False, False, DOT, ".cg")
+    if SPLITS > 1:
+        acc, unused, no_squares, last = _sum_splits(acc, unused, no_squares, workspace_ptr, arrivals_ptr, output,
+                                                    tile % SPLITS, SPLITS, BLOCK_M, BLOCK_N, False, False)
+        _add_to_residual(x_ptr, stride_xm, rows, columns, M, tl.where(last, D, 0), acc, gate_ptr, HAS_GATE)
+        if COUNT:
+            _count_in(counters_ptr + block, tl.where(last, 1, 0))
+    else:
+        _add_to_residual(x_ptr, stride_xm, rows, columns, M, D, acc, gate_ptr, HAS_GATE)
+        if COUNT:
+            _count_in(counters_ptr + block, 1)
 
 
 @triton.jit
@@ -162,32 +186,13 @@ def _gate_up_tile(tile, x_ptr, scale_ptr, gate_up_ptr, bias_ptr, hidden_ptr, o_c
     `bias[F + f]` before the GeGLU), once every o-projection tile of row block r is in (`o_counters[r]`); then counted
     in for r (`counters[r]`)."""
     block, rows, columns = _tile_at(tile, F, BLOCK_M, N_GATE_UP)
-    _prefetch_weights(gate_up_ptr, stride_gk, stride_gn, columns, D, F, BLOCK_K, PREFETCH)
-    _prefetch_weights(gate_up_ptr + F * stride_gn, stride_gk, stride_gn, columns, D, F, BLOCK_K, PREFETCH)
+    _prefetch_weights(gate_up_ptr, stride_gk, stride_gn, columns, 0, D, F, BLOCK_K, PREFETCH)
+    _prefetch_weights(gate_up_ptr + F * stride_gn, stride_gk, stride_gn, columns, 0, D, F, BLOCK_K, PREFETCH)
     _wait_for(o_counters_ptr + block, tl.cdiv(D, N_O), watch_ptr)
     gate, up, squares = _matmul_tiles(x_ptr, stride_xm, scale_ptr, gate_up_ptr, stride_gk, stride_gn, rows, columns, F,
                                       M, 0, D, F, BLOCK_M, N_GATE_UP, BLOCK_K, True, True, DOT, ".cg")
     _geglu_store(gate, up, squares, rows, columns, columns < F, bias_ptr, hidden_ptr, M, D, F, eps, HAS_BIAS)
     _count_in(counters_ptr + block, 1)
-
-
-@triton.jit
-def _down_tile(tile, x_ptr, hidden_ptr, down_ptr, gate_ptr, gate_up_counters_ptr, counters_ptr, watch_ptr, M, D, F,
-               stride_xm, stride_dk, stride_dn, BLOCK_M: tl.constexpr, N_GATE_UP: tl.constexpr, N_DOWN: tl.constexpr,
-               BLOCK_K: tl.constexpr, DOT: tl.constexpr, PREFETCH: tl.constexpr, HAS_GATE: tl.constexpr,
-               COUNT: tl.constexpr):
-    """`x[r, n] += hidden[r] @ down[:, n]` (adaRMS: times `gate[n]`), once every gate/up tile of row block r is in (so
-    every read of `x[r]` for the norm is done too); with COUNT then counted in for r (`counters[r]`: a next layer's
-    q/k/v of r wait for them. Optional: in `benchmarks/persistent_mlp.py`'s launch, with 4 stages of 128-deep blocks,
-    its barrier took 80 KiB more shared memory, more than sm_90 has)."""
-    block, rows, columns = _tile_at(tile, D, BLOCK_M, N_DOWN)
-    _prefetch_weights(down_ptr, stride_dk, stride_dn, columns, F, D, BLOCK_K, PREFETCH)
-    _wait_for(gate_up_counters_ptr + block, tl.cdiv(F, N_GATE_UP), watch_ptr)
-    acc, _, _ = _matmul_tiles(hidden_ptr, F, hidden_ptr, down_ptr, stride_dk, stride_dn, rows, columns, 0, M, 0, F, D,
-                              BLOCK_M, N_DOWN, BLOCK_K, False, False, DOT, ".cg")
-    _add_to_residual(x_ptr, stride_xm, rows, columns, M, D, acc, gate_ptr, HAS_GATE)
-    if COUNT:
-        _count_in(counters_ptr + block, 1)
 
 
 @triton.jit
@@ -202,8 +207,8 @@ def _qkv_tile(tile, x_ptr, scale_ptr, w_ptr, bias_ptr, cos_ptr, sin_ptr, q_ptr, 
     block, rows, pairs = _tile_at(tile, (HEADS + 2) * half, BLOCK_M, N_QKV)
     first_half = pairs // half * HEAD_DIM + pairs % half
     width = (HEADS + 2) * HEAD_DIM
-    _prefetch_weights(w_ptr, stride_wk, stride_wn, first_half, D, width, BLOCK_K, PREFETCH)
-    _prefetch_weights(w_ptr, stride_wk, stride_wn, first_half + half, D, width, BLOCK_K, PREFETCH)
+    _prefetch_weights(w_ptr, stride_wk, stride_wn, first_half, 0, D, width, BLOCK_K, PREFETCH)
+    _prefetch_weights(w_ptr, stride_wk, stride_wn, first_half + half, 0, D, width, BLOCK_K, PREFETCH)
     _wait_for(wait_ptr + block, need, watch_ptr)
     acc1, acc2, squares = _matmul_tiles(x_ptr, stride_xm, scale_ptr, w_ptr, stride_wk, stride_wn, rows, first_half, half,
                                         M, 0, D, width, BLOCK_M, N_QKV, BLOCK_K, True, True, DOT, ".cg")
@@ -241,13 +246,14 @@ def _attention_tile(tile, q_ptr, key_ptr, value_ptr, first_ptr, row_ends_ptr, ou
 def _expert_layers_kernel(
     x_ptr, attention_scale_ptr, qkv_ptr, o_ptr, mlp_scale_ptr, gate_up_ptr, down_ptr, offsets_ptr, cos_ptr, sin_ptr, key_ptr,
     value_ptr, first_ptr, row_ends_ptr, qkv_bias_ptr, o_gate_ptr, gate_up_bias_ptr, down_gate_ptr, q_ptr, attended_ptr,
-    hidden_ptr, partial_ptr, stats_ptr, state_ptr, watch_ptr, order_ptr, layers, M, D, F, tokens, first_slot, slots, eps,
+    hidden_ptr, partial_ptr, stats_ptr, o_parts_ptr, down_parts_ptr, state_ptr, watch_ptr, order_ptr, layers, M, D, F, tokens, first_slot, slots, eps,
     scale, key_parts, stride_xm, stride_cos_b, stride_cos_t, stride_qk, stride_qn, stride_ok, stride_on, stride_gk, stride_gn,
     stride_dk, stride_dn, layer_cache, reset,
     HEADS: tl.constexpr, HEAD_DIM: tl.constexpr, BLOCK_M: tl.constexpr, N_QKV: tl.constexpr, N_O: tl.constexpr,
     N_GATE_UP: tl.constexpr, N_DOWN: tl.constexpr, BLOCK_K: tl.constexpr, ATTENTION_M: tl.constexpr,
     ATTENTION_N: tl.constexpr, DIM_CHUNK: tl.constexpr, DOT: tl.constexpr, PREFETCH: tl.constexpr,
-    ADARMS: tl.constexpr, ORDERED: tl.constexpr, ALIGN: tl.constexpr,
+    O_SPLITS: tl.constexpr, DOWN_SPLITS: tl.constexpr, ADARMS: tl.constexpr, ORDERED: tl.constexpr,
+    ALIGN: tl.constexpr,
 ):
     half: tl.constexpr = HEAD_DIM // 2
     batch = M // tokens
@@ -255,12 +261,15 @@ def _expert_layers_kernel(
     attention_blocks = batch * tl.cdiv(tokens * HEADS, ATTENTION_M)
     qkv_end = row_blocks * tl.cdiv((HEADS + 2) * half, N_QKV)
     attention_end = qkv_end + attention_blocks * key_parts
-    o_end = attention_end + row_blocks * tl.cdiv(D, N_O)
+    o_tiles = row_blocks * tl.cdiv(D, N_O)  # (output tiles; with O_SPLITS parts each)
+    down_tiles = row_blocks * tl.cdiv(D, N_DOWN)
+    o_end = attention_end + o_tiles * O_SPLITS
     gate_up_end = o_end + row_blocks * tl.cdiv(F, N_GATE_UP)
-    per_layer = gate_up_end + row_blocks * tl.cdiv(D, N_DOWN)
+    per_layer = gate_up_end + down_tiles * DOWN_SPLITS
     # state: [0] the next ticket, [1] programs finished, then per layer: [0] q/k/v tiles done, [1] attention blocks
-    # done, o-projection / gate-up / down-projection tiles done per row block, key parts arrived per attention block
-    layer_state = 2 + 3 * row_blocks + attention_blocks
+    # done, o-projection / gate-up / down-projection tiles done per row block, key parts arrived per attention block,
+    # split-K parts arrived per o-projection and per down-projection tile
+    layer_state = 2 + 3 * row_blocks + attention_blocks + o_tiles + down_tiles
     ticket = tl.atomic_add(state_ptr, 1)
     while ticket < layers * per_layer:
         if ORDERED:  # (`--check`: the tiles in another order its waits allow, `order[ticket]`)
@@ -273,6 +282,7 @@ def _expert_layers_kernel(
         o_done = counters + 2
         gate_up_done = o_done + row_blocks
         down_done = gate_up_done + row_blocks
+        o_arrivals = down_done + row_blocks + attention_blocks
         offsets_at = offsets_ptr + layer * 4  # (its q/k/v, o, gate/up and down weights' from layer 0's)
         if tile < qkv_end:  # (layer 0 waits for nothing: its own down-projection counters, need 0)
             previous = down_done - tl.where(layer > 0, layer_state, 0)
@@ -286,23 +296,25 @@ def _expert_layers_kernel(
         elif tile < attention_end:
             _attention_tile(tile - qkv_end, q_ptr, key_ptr + layer * layer_cache, value_ptr + layer * layer_cache,
                             first_ptr, row_ends_ptr, attended_ptr, partial_ptr, stats_ptr, down_done + row_blocks,
-                            counters, qkv_end, counters + 1, watch_ptr, batch, tokens, slots, scale, key_parts, HEADS, HEAD_DIM,
-                            ATTENTION_M, ATTENTION_N, DIM_CHUNK, DOT)
+                            counters, qkv_end, counters + 1, watch_ptr, batch, tokens, slots, scale, key_parts, HEADS,
+                            HEAD_DIM, ATTENTION_M, ATTENTION_N, DIM_CHUNK, DOT)
         elif tile < o_end:
-            _o_tile(tile - attention_end, x_ptr, attended_ptr,
-                    o_ptr + tl.multiple_of(tl.load(offsets_at + 1), ALIGN), o_gate_ptr + layer * D, counters + 1,
-                    attention_blocks, o_done, watch_ptr, M, D, HEADS * HEAD_DIM, stride_xm, HEADS * HEAD_DIM, stride_ok,
-                    stride_on, BLOCK_M, N_O, BLOCK_K, DOT, PREFETCH, ADARMS)
+            _residual_tile(tile - attention_end, x_ptr, attended_ptr, HEADS * HEAD_DIM,
+                           o_ptr + tl.multiple_of(tl.load(offsets_at + 1), ALIGN), stride_ok, stride_on,
+                           o_gate_ptr + layer * D, counters + 1, 0, attention_blocks, o_done, watch_ptr, o_parts_ptr,
+                           o_arrivals, M, D, HEADS * HEAD_DIM, stride_xm, BLOCK_M, N_O, BLOCK_K, O_SPLITS, DOT,
+                           PREFETCH, ADARMS, True)
         elif tile < gate_up_end:
             _gate_up_tile(tile - o_end, x_ptr, mlp_scale_ptr + layer * D,
                           gate_up_ptr + tl.multiple_of(tl.load(offsets_at + 2), ALIGN),
-                          gate_up_bias_ptr + layer * 2 * F, hidden_ptr, o_done, gate_up_done, watch_ptr, M, D, F, stride_xm,
-                          stride_gk, stride_gn, eps, BLOCK_M, N_O, N_GATE_UP, BLOCK_K, DOT, PREFETCH, ADARMS)
+                          gate_up_bias_ptr + layer * 2 * F, hidden_ptr, o_done, gate_up_done, watch_ptr, M, D, F,
+                          stride_xm, stride_gk, stride_gn, eps, BLOCK_M, N_O, N_GATE_UP, BLOCK_K, DOT, PREFETCH, ADARMS)
         else:
-            _down_tile(tile - gate_up_end, x_ptr, hidden_ptr,
-                       down_ptr + tl.multiple_of(tl.load(offsets_at + 3), ALIGN), down_gate_ptr + layer * D,
-                       gate_up_done, down_done, watch_ptr, M, D, F, stride_xm, stride_dk, stride_dn, BLOCK_M, N_GATE_UP, N_DOWN,
-                       BLOCK_K, DOT, PREFETCH, ADARMS, True)
+            _residual_tile(tile - gate_up_end, x_ptr, hidden_ptr, F,
+                           down_ptr + tl.multiple_of(tl.load(offsets_at + 3), ALIGN), stride_dk, stride_dn,
+                           down_gate_ptr + layer * D, gate_up_done, 1, tl.cdiv(F, N_GATE_UP), down_done, watch_ptr,
+                           down_parts_ptr, o_arrivals + o_tiles, M, D, F, stride_xm, BLOCK_M, N_DOWN, BLOCK_K,
+                           DOWN_SPLITS, DOT, PREFETCH, ADARMS, True)
         ticket = tl.atomic_add(state_ptr, 1)
     # the last program out (all others have taken their last ticket): where a wait was abandoned, nothing of the
     # launch may pass for actions, so `x` becomes NaN; every counter goes back to 0 for the next launch (`reset` 0
@@ -372,16 +384,18 @@ def expert_layers_(
     hidden = x.new_empty(rows, mlp_width)
     partial = x.new_empty(tiling.key_parts, rows * heads, head_dim, dtype=torch.float32)
     stats = x.new_empty(2, tiling.key_parts, rows * heads, dtype=torch.float32)
+    o_parts, down_parts = (split_workspace(x, tiling.m, columns, splits)
+                           for columns, splits in ((tiling.o, tiling.o_splits), (tiling.down, tiling.down_splits)))
     reset = state is None
     if state is None:
-        state = zeroed_counters(x.device, state_size(depth, rows, tokens, heads, tiling))
+        state = zeroed_counters(x.device, state_size(depth, rows, tokens, heads, width, tiling))
     programs = programs or default_programs(x.device, tiling)
     attention_scales, mlp_scales = attention_scales.contiguous(), mlp_scales.contiguous()  # (layer l's at l * D)
     adarms = [x] * 4 if qkv_bias is None else [t.contiguous() for t in (qkv_bias, o_gate, gate_up_bias, down_gate)]
     arguments = (
         x, attention_scales, qkv[0], o[0], mlp_scales, gate_up[0], down[0], weight_offsets((qkv, o, gate_up, down), x.device),
-        cos, sin, key_cache, value_cache, first, row_ends, *adarms, q, attended, hidden, partial, stats,
-        state, watchdog(x.device) if watch is None else watch, state if order is None else order, depth, rows, width, mlp_width, tokens, first_slot, slots, eps,
+        cos, sin, key_cache, value_cache, first, row_ends, *adarms, q, attended, hidden, partial, stats, o_parts,
+        down_parts, state, watchdog(x.device) if watch is None else watch, state if order is None else order, depth, rows, width, mlp_width, tokens, first_slot, slots, eps,
         head_dim**-0.5, tiling.key_parts, x.stride(0), cos.stride(0) if cos.shape[0] > 1 else 0, cos.stride(1),
         *qkv[0].stride(), *o[0].stride(), *gate_up[0].stride(), *down[0].stride(), key_cache.stride(0), int(reset),
     )
@@ -390,7 +404,7 @@ def expert_layers_(
                "ATTENTION_M": tiling.attention_m, "ATTENTION_N": tiling.attention_n,
                "DIM_CHUNK": min(head_dim, 4096 // tiling.attention_m), "DOT": dot_dtype(o[0].dtype),
                "PREFETCH": tiling.prefetch and not INTERPRETING, "ADARMS": qkv_bias is not None,
-               "ORDERED": order is not None, "ALIGN": WEIGHT_ALIGNMENT // o[0].element_size(),
+               "O_SPLITS": tiling.o_splits, "DOWN_SPLITS": tiling.down_splits, "ORDERED": order is not None, "ALIGN": WEIGHT_ALIGNMENT // o[0].element_size(),
                "num_warps": tiling.warps, "num_stages": tiling.stages}
     if launch is not None:
         return launch(_expert_layers_kernel, (programs,), arguments, options)
@@ -460,8 +474,21 @@ def default_programs(device: torch.device, tiling: Tiling) -> int:
     return tiling.per_sm * torch.cuda.get_device_properties(device).multi_processor_count if device.type == "cuda" else 4
 
 
-def state_size(depth: int, rows: int, tokens: int, heads: int, tiling: Tiling) -> int:
+def state_size(depth: int, rows: int, tokens: int, heads: int, width: int, tiling: Tiling) -> int:
     """The counters of a launch: the next ticket, the programs finished, and per layer the q/k/v tiles and attention
-    blocks done, the o-projection, gate/up and down-projection tiles done per row block, and the key parts arrived
-    per attention block (`_expert_layers_kernel`'s layout)."""
-    return 2 + depth * (2 + 3 * cdiv(rows, tiling.m) + rows // tokens * cdiv(tokens * heads, tiling.attention_m))
+    blocks done, the o-projection, gate/up and down-projection tiles done per row block, the key parts arrived per
+    attention block, and the split-K parts arrived per o- and down-projection tile (`_expert_layers_kernel`'s
+    layout)."""
+    row_blocks = cdiv(rows, tiling.m)
+    attention_blocks = rows // tokens * cdiv(tokens * heads, tiling.attention_m)
+    split_tiles = row_blocks * (cdiv(width, tiling.o) + cdiv(width, tiling.down))
+    return 2 + depth * (2 + 3 * row_blocks + attention_blocks + split_tiles)
+
+
+def split_workspace(x: torch.Tensor, rows: int, columns: int, splits: int) -> torch.Tensor:
+    """float32 room for the split-K parts of a phase's output tiles (`rows` x `columns` each, `_sum_splits`' layout;
+    one launch's layers take turns in it), or `x` where the phase is not split (never read)."""
+    if splits == 1:
+        return x
+    tiles = cdiv(x.shape[0], rows) * cdiv(x.shape[1], columns)
+    return x.new_empty(tiles * splits * (2 * rows * columns + rows), dtype=torch.float32)

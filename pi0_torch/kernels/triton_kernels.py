@@ -170,18 +170,24 @@ def _k_range(K, k_split, SPLIT: tl.constexpr):
 
 
 @triton.jit
-def _sum_splits(acc, acc_second, squares, workspace_ptr, counter_ptr, splits,
+def _split_tile():
+    """The output tile of a split-K launch's program: its row and column blocks (grid axes 0 and 1; axis 2 is the
+    part)."""
+    return tl.program_id(0) * tl.num_programs(1) + tl.program_id(1)
+
+
+@triton.jit
+def _sum_splits(acc, acc_second, squares, workspace_ptr, counter_ptr, tile, split, splits,
                 BLOCK_M: tl.constexpr, BLOCK_N: tl.constexpr, PAIRED: tl.constexpr, NORM: tl.constexpr):
-    """Split-K's reduction, in the same launch. Each program of an output tile stores its partial sums in
-    `workspace` and counts itself in on the tile's counter (after a barrier, so that every thread's stores come
-    first; acquire-release at GPU scope). The program that arrives last adds the parts up in split order (the same
+    """Split-K's reduction, in the same launch: part `split` of output tile `tile`. Each part stores its partial sums
+    in `workspace` and counts itself in on the tile's counter (after a barrier, so that every thread's stores come
+    first; acquire-release at GPU scope). The part that arrives last adds the parts up in split order (the same
     sums whichever arrives last: deterministic), reading past the L1 cache, and puts the counter back to 0 for the
-    next launch. Returns the sums and whether this program is the last (only it writes the output)."""
-    tile = tl.program_id(0) * tl.num_programs(1) + tl.program_id(1)
+    next launch. Returns the sums and whether this part is the last (only it writes the output)."""
     size: tl.constexpr = 2 * BLOCK_M * BLOCK_N + BLOCK_M  # per part: acc, acc_second, squares
     part = tl.arange(0, BLOCK_M)[:, None] * BLOCK_N + tl.arange(0, BLOCK_N)[None, :]
     rows = tl.arange(0, BLOCK_M)
-    mine = workspace_ptr + (tile * splits + tl.program_id(2)) * size
+    mine = workspace_ptr + (tile * splits + split) * size
     tl.store(mine + part, acc)
     if PAIRED:
         tl.store(mine + BLOCK_M * BLOCK_N + part, acc_second)
@@ -233,8 +239,8 @@ def _norm_qkv_rope_kernel(
                                         M, k_start, k_stop, n, BLOCK_M, BLOCK_N, BLOCK_K, True, True, DOT, "")
     pair_ok = pairs < (HEADS + 2) * half
     if SPLIT:
-        acc1, acc2, squares, last = _sum_splits(acc1, acc2, squares, workspace_ptr, counter_ptr, splits, BLOCK_M, BLOCK_N,
-                                                True, True)
+        acc1, acc2, squares, last = _sum_splits(acc1, acc2, squares, workspace_ptr, counter_ptr, _split_tile(),
+                                                tl.program_id(2), splits, BLOCK_M, BLOCK_N, True, True)
         pair_ok = pairs < tl.where(last, (HEADS + 2) * half, 0)  # (only the last program writes)
     _rope_store(acc1, acc2, squares, rows, pairs, pair_ok, bias_ptr, cos_ptr, sin_ptr, q_ptr, key_ptr, value_ptr, M, K,
                 tokens, first_slot, slots, stride_cos_b, stride_cos_t, eps, HEADS, HEAD_DIM, HAS_BIAS)
@@ -294,8 +300,8 @@ def _norm_gate_up_geglu_kernel(
                                       k_start, k_stop, F, BLOCK_M, BLOCK_N, BLOCK_K, True, True, DOT, "")
     column_ok = columns < F
     if SPLIT:
-        gate, up, squares, last = _sum_splits(gate, up, squares, workspace_ptr, counter_ptr, splits, BLOCK_M, BLOCK_N,
-                                              True, True)
+        gate, up, squares, last = _sum_splits(gate, up, squares, workspace_ptr, counter_ptr, _split_tile(),
+                                              tl.program_id(2), splits, BLOCK_M, BLOCK_N, True, True)
         column_ok = columns < tl.where(last, F, 0)  # (only the last program writes)
     _geglu_store(gate, up, squares, rows, columns, column_ok, bias_ptr, out_ptr, M, K, F, eps, HAS_BIAS)
 
@@ -329,8 +335,8 @@ def _matmul_residual_kernel(
                                             k_start, k_stop, N, BLOCK_M, BLOCK_N, BLOCK_K, False, False, DOT, "")
     column_ok = columns < N
     if SPLIT:
-        acc, unused, no_squares, last = _sum_splits(acc, unused, no_squares, workspace_ptr, counter_ptr, splits, BLOCK_M,
-                                                    BLOCK_N, False, False)
+        acc, unused, no_squares, last = _sum_splits(acc, unused, no_squares, workspace_ptr, counter_ptr, _split_tile(),
+                                                    tl.program_id(2), splits, BLOCK_M, BLOCK_N, False, False)
         column_ok = columns < tl.where(last, N, 0)  # (only the last program writes)
     if HAS_GATE:
         acc = acc * tl.load(gate_ptr + columns, mask=column_ok, other=0.0).to(tl.float32)[None, :]
