@@ -16,7 +16,8 @@
 #    launch's sampling included), and issue 37's persistent experiments against their references (which compiles what
 #    step 3 times into triton's disk cache; with tilings, every tiling too);
 # 3. alone: the step GEMMs against cuBLAS (GB/s); an Euler step's 18 layers as one persistent launch against today's
-#    90 (benchmarks/persistent_layers.py: its tilings); the benchmark again with sampling_kernels="persistent" (whole
+#    90 (benchmarks/persistent_layers.py: its tilings, then where one launch's time went, phase by phase, from the
+#    timeline its tiles stamp); the benchmark again with sampling_kernels="persistent" (whole
 #    chunks, eager and graph, batch 1 and 8: compare with step 1's "fused" rows, same machine; the MLP half alone,
 #    benchmarks/persistent_mlp.py, is left out); with tilings, the kernels' tilings (benchmarks/kernel_sweep.py: every
 #    candidate timed and checked against the reference, the fastest written to $OUT/tilings.json, then π0 and π0.5
@@ -73,13 +74,13 @@ grep -h "against the reference\|outputs NaN\|^exit" "$OUT/persistent-check.log"
 
 # 3. alone
 step sweep 20 "$PY" -m pi0_torch.cli bench --device cuda --skip-generate --gemms --presets pi0 --batches 1,8 --repeats 10
-step sweep 45 "$PY" benchmarks/persistent_layers.py --bench
+step sweep 50 "$PY" benchmarks/persistent_layers.py --bench
 step bench 75 "$PY" -m pi0_torch.cli bench --device cuda --presets pi0,pi05 --dtypes bfloat16 --cameras 3 --batches 1,8 \
     --kernels persistent --repeats 10 --kernel-table 15
 step tilings 100 "$PY" benchmarks/kernel_sweep.py --write "$OUT/tilings.json" --bench
-step fast-bench 45 "$PY" -m pi0_torch.cli bench --device cuda --skip-generate --fast --fast-presets pi0_fast \
+step fast-bench 40 "$PY" -m pi0_torch.cli bench --device cuda --skip-generate --fast --fast-presets pi0_fast \
     --dtypes bfloat16 --batches 1 --kernels auto,torch --repeats 3
-TAIL=50 show sweep
+TAIL=70 show sweep
 printf '\n---- bench, sampling_kernels="persistent"\n'
 grep -v '^      ' "$OUT/bench.log" | tail -n 12
 TAIL=40 show tilings

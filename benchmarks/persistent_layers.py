@@ -49,9 +49,11 @@ from pi0_torch.inference.fused_pass import FUSED_TOLERANCE, call_op
 from pi0_torch.inference.graphs import relative_deviation
 from pi0_torch.kernels import persistent, reference
 from pi0_torch.kernels.persistent import (
+    PHASES,
     Tiling,
     default_programs,
     expert_layers_,
+    phase_tiles,
     state_size,
 )
 from pi0_torch.kernels.triton_kernels import cdiv
@@ -118,11 +120,12 @@ def op_arguments(x: torch.Tensor, step: Step, eps: float) -> tuple[Any, ...]:
 
 def persistent_layers_(x: torch.Tensor, step: Step, eps: float, tiling: Tiling | None = None, programs: int | None = None,
                        launch: Callable[..., Any] | None = None, state: torch.Tensor | None = None,
-                       order: torch.Tensor | None = None, watch: torch.Tensor | None = None) -> Any:
+                       order: torch.Tensor | None = None, watch: torch.Tensor | None = None,
+                       timeline: torch.Tensor | None = None) -> Any:
     """Every layer of `step` on `x` in place, in one launch (`pi0_torch.kernels.persistent.expert_layers_`, whose
     keywords these are); returns `x` (with `launch`: what `launch` returns)."""
     launched = expert_layers_(*op_arguments(x, step, eps), tiling=tiling, programs=programs, launch=launch, state=state,
-                              order=order, watch=watch)
+                              order=order, watch=watch, timeline=timeline)
     return x if launch is None else launched
 
 
@@ -143,17 +146,20 @@ def expected_counts(shape: Shape, tiling: Tiling, programs: int) -> torch.Tensor
     """What a launch leaves in its counters without the reset: every ticket taken (and one more per program), every
     program finished, each phase's output tiles (the attention: its blocks) counted once, the key parts' and split-K
     parts' arrivals back at 0."""
-    rows, half = shape.batch * shape.tokens, shape.head_dim // 2
+    rows = shape.batch * shape.tokens
     row_blocks = cdiv(rows, tiling.m)
     attention_blocks = shape.batch * cdiv(shape.tokens * shape.heads, tiling.attention_m)
     per_row_block = [cdiv(shape.width, tiling.o), cdiv(shape.mlp_width, tiling.gate_up), cdiv(shape.width, tiling.down)]
-    parts = [tiling.o_splits, 1, tiling.down_splits]
-    qkv_tiles = row_blocks * cdiv((shape.heads + 2) * half, tiling.qkv)
-    tickets = (qkv_tiles + attention_blocks * tiling.key_parts
-               + row_blocks * sum(tiles * split for tiles, split in zip(per_row_block, parts)))
-    layer = [qkv_tiles, attention_blocks] + [each for each in per_row_block for _ in range(row_blocks)]
+    tiles = tiles_per_phase(shape, tiling)
+    layer = [tiles[0], attention_blocks] + [each for each in per_row_block for _ in range(row_blocks)]
     layer += [0] * (attention_blocks + row_blocks * (per_row_block[0] + per_row_block[2]))
-    return torch.tensor([shape.depth * tickets + programs, programs] + layer * shape.depth, dtype=torch.int32)
+    return torch.tensor([shape.depth * sum(tiles) + programs, programs] + layer * shape.depth, dtype=torch.int32)
+
+
+def tiles_per_phase(shape: Shape, tiling: Tiling) -> list[int]:
+    """`persistent.phase_tiles` of `shape`: the tiles of each phase of a layer, in ticket order."""
+    return phase_tiles(shape.batch * shape.tokens, shape.tokens, shape.heads, shape.head_dim, shape.width,
+                       shape.mlp_width, tiling)
 
 
 # -- check, compile, bench ------------------------------------------------------------------------------------------
@@ -212,8 +218,9 @@ def check(device: torch.device, dtype: torch.dtype, shapes: list[Shape], toleran
     wrote, launched once on counters of its own, kept and compared with `expected_counts`, then twice in a row on the
     stream's (the second finds the counters the first put back to 0). On CUDA the first tiling also runs today's
     ops (each other launch option is another compiled variant: the check would take minutes) and launches `REPEATS`
-    more times: a tile's sums go in a fixed order, so every launch must give the same bits, and one that
-    does not has read something before it was written (a race the reference bound may not see)."""
+    more times: a tile's sums go in a fixed order, so every launch must give the same bits, and one that does not
+    has read something before it was written (a race the reference bound may not see); then once with a timeline
+    (`--bench` prints it), which must give the same bits and stamp every tile."""
     failures = 0
     for shape, tiling in itertools.product(shapes, tilings):
         x, step = operands(shape, dtype, device)
@@ -232,7 +239,7 @@ def check(device: torch.device, dtype: torch.dtype, shapes: list[Shape], toleran
                 miscounted = (state.cpu() != expected_counts(shape, tiling, programs)).sum().item()
                 line += f", {miscounted} of {size} counters not as expected"
                 error = error if miscounted == 0 else float("inf")
-                if device.type == "cuda":
+                if device.type == "cuda" and first:
                     today = step.fresh()
                     todays = todays_layers_(x.clone(), today, 1e-6)
                     line += f", today's ops {deviation(todays, today, want, wanted):.2e}"
@@ -240,7 +247,12 @@ def check(device: torch.device, dtype: torch.dtype, shapes: list[Shape], toleran
                 differing = sum(not torch.equal(persistent_layers_(x.clone(), step.fresh(), 1e-6, tiling), got)
                                 for _ in range(REPEATS))
                 line += f", {differing} of {REPEATS} more launches not bit for bit the same"
-                error = error if differing == 0 else float("inf")
+                timeline = new_timeline(shape, tiling, device)
+                timed = persistent_layers_(x.clone(), step.fresh(), 1e-6, tiling, timeline=timeline)
+                stamped = bool((timeline[:, 0] > 0).all() and (timeline[:, 1] >= timeline[:, 0]).all())
+                line += f", with a timeline {'the same bits' if torch.equal(timed, got) else 'OTHER BITS'}"
+                line += "" if stamped else " and tiles it did not stamp"
+                error = error if differing == 0 and stamped and torch.equal(timed, got) else float("inf")
             failures += not error <= tolerance
             print(line + ("" if error <= tolerance else f"  FAILED (bound {tolerance:g})"), flush=True)
     return failures
@@ -357,23 +369,24 @@ def check_orders(shape: Shape, tiling: Tiling, tolerance: float) -> int:
 
 
 def compile_for(arch: int, tilings: list[Tiling]) -> int:
-    """Compile the full-size variants (π0 at batch 1 and 8; π0.5 at batch 1 in the first tiling) for `arch` with
-    triton's ptxas, on meta tensors (no GPU)."""
-    def case(shape: Shape, tiling: Tiling) -> tuple[str, Callable[[Callable[..., Any]], Any]]:
+    """Compile the full-size variants (π0 at batch 1 and 8; π0.5 at batch 1 in the first tiling; π0 at batch 1 in
+    the first tiling with a timeline) for `arch` with triton's ptxas, on meta tensors (no GPU)."""
+    def case(shape: Shape, tiling: Tiling, timed: bool = False) -> tuple[str, Callable[[Callable[..., Any]], Any]]:
         x, step = operands(shape._replace(depth=1), torch.bfloat16, torch.device("cpu"))
         x, step = x.to("meta"), tree_map_only(torch.Tensor, lambda tensor: tensor.to("meta"), step)
-        name = f"batch {shape.batch}{' π0.5' if shape.adarms else ''} {tiling}"
-        return name, lambda launch: persistent_layers_(x, step, 1e-6, tiling, programs=132, launch=launch)
+        name = f"batch {shape.batch}{' π0.5' if shape.adarms else ''}{' timeline' if timed else ''} {tiling}"
+        timeline = new_timeline(shape._replace(depth=1), tiling, torch.device("meta")) if timed else None
+        return name, lambda launch: persistent_layers_(x, step, 1e-6, tiling, programs=132, launch=launch,
+                                                       timeline=timeline)
 
-    cases = [(FULL._replace(batch=batch), tiling) for batch, tiling in itertools.product((1, 8), tilings)]
-    return compile_variants(arch, (case(shape, tiling) for shape, tiling in [*cases, (FULL._replace(adarms=True),
-                                                                                      tilings[0])]))
+    cases = [case(FULL._replace(batch=batch), tiling) for batch, tiling in itertools.product((1, 8), tilings)]
+    return compile_variants(arch, [*cases, case(FULL._replace(adarms=True), tilings[0]), case(FULL, tilings[0], True)])
 
 
 def bench(tilings: list[Tiling]) -> None:
     """π0's 18 expert layers at full size, bf16, batch 1 and 8 (π0.5's at batch 1, in the first tiling): today's 90
     launches against one persistent launch, 20 steps in a CUDA graph (the weights, 600 MB, come from memory: more
-    than the L2 cache holds)."""
+    than the L2 cache holds); then where one launch's time went in the first tiling (`print_timeline`)."""
     from pi0_torch.benchmark import graph_time
 
     device = torch.device("cuda")
@@ -393,6 +406,59 @@ def bench(tilings: list[Tiling]) -> None:
         title = f"{'π0.5' if shape.adarms else 'π0'} batch {shape.batch} ({shape.batch * shape.tokens} rows)"
         print_times(title, sum(weight.numel() * weight.element_size() for weight in step.layers), results,
                     "today's 90 launches")
+        timeline = new_timeline(shape, tilings[0], device)  # (its variant compiled by `--check`)
+        persistent_layers_(x.clone(), step.fresh(), 1e-6, tilings[0], timeline=timeline)
+        print_timeline(shape, tilings[0], timeline, default_programs(device, tilings[0]))
+
+
+def new_timeline(shape: Shape, tiling: Tiling, device: torch.device) -> torch.Tensor:
+    """A zeroed timeline for one launch of `shape` (`expert_layers_(..., timeline=)`)."""
+    return torch.zeros(shape.depth * sum(tiles_per_phase(shape, tiling)), 3, dtype=torch.int64, device=device)
+
+
+def print_timeline(shape: Shape, tiling: Tiling, timeline: torch.Tensor, programs: int) -> None:
+    """Where one launch's time went, from its `timeline`: per phase, its tiles per layer and the medians over them of
+    a tile's time (from its ticket to its count-in), of how long it waited for what it reads (from its start to the
+    last end among the tiles it waits on, where that is later) and of the rest, its work; and the median span of the
+    phase in a layer (its first start to its last end). Then the launch's span, and the share of its `programs`'
+    time that went to tiles and to their work (the rest: taking tickets, the gaps between tiles)."""
+    stamps = timeline.cpu().double()
+    origin = stamps[:, 0].min()
+    start, end = (stamps[:, 0] - origin) / 1e3, (stamps[:, 1] - origin) / 1e3  # µs
+    tiles = tiles_per_phase(shape, tiling)
+    per_layer, first = sum(tiles), [sum(tiles[:phase]) for phase in range(len(tiles))]
+    row_blocks = cdiv(shape.batch * shape.tokens, tiling.m)
+    per_block = [count // row_blocks for count in tiles]  # (the attention's tiles wait as one group)
+
+    def ends(layer: int, phase: int, block: int | None) -> float:  # the last end of a phase's tiles (of a row block)
+        base = layer * per_layer + first[phase]
+        if block is not None:
+            base, count = base + block * per_block[phase], per_block[phase]
+        else:
+            count = tiles[phase]
+        return float(end[base : base + count].max())
+
+    ready = torch.zeros_like(start)  # when what each tile reads was all written
+    for layer in range(shape.depth):
+        for phase, count in enumerate(tiles):
+            for index in range(count):
+                if phase == 0:
+                    when = ends(layer - 1, 4, index // per_block[0]) if layer > 0 else 0.0
+                else:  # (the attention waits for every q/k/v tile, the o-projection for every attention tile)
+                    when = ends(layer, phase - 1, None if phase in (1, 2) else index // per_block[phase])
+                ready[layer * per_layer + first[phase] + index] = when
+    waited = (ready - start).clamp(min=0)
+    work = (end - torch.maximum(start, ready)).clamp(min=0)  # (a producer stamps its end just after counting in)
+    span = float(end.max())
+    print(f"  one launch, {tiling}: {span:.0f} µs; tiles {float((end - start).sum()) / (programs * span):.0%} of its "
+          f"{programs} programs' time, their work {float(work.sum()) / (programs * span):.0%}")
+    print(f"    {'phase':16s} {'tiles/layer':>11s} {'tile µs':>8s} {'waited µs':>9s} {'work µs':>8s} {'span/layer µs':>13s}")
+    for phase, name in enumerate(PHASES):
+        at = torch.cat([torch.arange(tiles[phase]) + layer * per_layer + first[phase] for layer in range(shape.depth)])
+        spans = [float(end[at[layer * tiles[phase] : (layer + 1) * tiles[phase]]].max()
+                       - start[at[layer * tiles[phase] : (layer + 1) * tiles[phase]]].min()) for layer in range(shape.depth)]
+        print(f"    {name:16s} {tiles[phase]:11d} {float((end - start)[at].median()):8.2f} {float(waited[at].median()):9.2f} "
+              f"{float(work[at].median()):8.2f} {float(torch.tensor(spans).median()):13.2f}", flush=True)
 
 
 TILINGS = [Tiling(), Tiling(o_splits=2, down_splits=2), Tiling(o_splits=2, down_splits=4), Tiling(k=128),

@@ -47,6 +47,7 @@ from pi0_torch.utils.extras import require_extra
 require_extra("kernels", "pi0_torch.kernels.persistent")
 import triton  # noqa: E402
 import triton.language as tl  # noqa: E402
+from triton.language.extra.cuda import globaltimer, smid  # noqa: E402
 
 from pi0_torch.kernels.triton_kernels import (  # noqa: E402
     INTERPRETING,
@@ -246,14 +247,15 @@ def _attention_tile(tile, q_ptr, key_ptr, value_ptr, first_ptr, row_ends_ptr, ou
 def _expert_layers_kernel(
     x_ptr, attention_scale_ptr, qkv_ptr, o_ptr, mlp_scale_ptr, gate_up_ptr, down_ptr, offsets_ptr, cos_ptr, sin_ptr, key_ptr,
     value_ptr, first_ptr, row_ends_ptr, qkv_bias_ptr, o_gate_ptr, gate_up_bias_ptr, down_gate_ptr, q_ptr, attended_ptr,
-    hidden_ptr, partial_ptr, stats_ptr, o_parts_ptr, down_parts_ptr, state_ptr, watch_ptr, order_ptr, layers, M, D, F, tokens, first_slot, slots, eps,
+    hidden_ptr, partial_ptr, stats_ptr, o_parts_ptr, down_parts_ptr, state_ptr, watch_ptr, order_ptr, timeline_ptr,
+    layers, M, D, F, tokens, first_slot, slots, eps,
     scale, key_parts, stride_xm, stride_cos_b, stride_cos_t, stride_qk, stride_qn, stride_ok, stride_on, stride_gk, stride_gn,
     stride_dk, stride_dn, layer_cache, reset,
     HEADS: tl.constexpr, HEAD_DIM: tl.constexpr, BLOCK_M: tl.constexpr, N_QKV: tl.constexpr, N_O: tl.constexpr,
     N_GATE_UP: tl.constexpr, N_DOWN: tl.constexpr, BLOCK_K: tl.constexpr, ATTENTION_M: tl.constexpr,
     ATTENTION_N: tl.constexpr, DIM_CHUNK: tl.constexpr, DOT: tl.constexpr, PREFETCH: tl.constexpr,
     O_SPLITS: tl.constexpr, DOWN_SPLITS: tl.constexpr, ADARMS: tl.constexpr, ORDERED: tl.constexpr,
-    ALIGN: tl.constexpr,
+    ALIGN: tl.constexpr, TIMELINE: tl.constexpr,
 ):
     half: tl.constexpr = HEAD_DIM // 2
     batch = M // tokens
@@ -276,6 +278,8 @@ def _expert_layers_kernel(
             work = tl.load(order_ptr + ticket)
         else:
             work = ticket
+        if TIMELINE:
+            started = globaltimer()
         layer = work // per_layer
         tile = work % per_layer
         counters = state_ptr + 2 + layer * layer_state
@@ -315,6 +319,10 @@ def _expert_layers_kernel(
                            down_gate_ptr + layer * D, gate_up_done, 1, tl.cdiv(F, N_GATE_UP), down_done, watch_ptr,
                            down_parts_ptr, o_arrivals + o_tiles, M, D, F, stride_xm, BLOCK_M, N_DOWN, BLOCK_K,
                            DOWN_SPLITS, DOT, PREFETCH, ADARMS, True)
+        if TIMELINE:  # (when each tile started and ended, ns, and on which multiprocessor)
+            tl.store(timeline_ptr + work * 3, started)
+            tl.store(timeline_ptr + work * 3 + 1, globaltimer())
+            tl.store(timeline_ptr + work * 3 + 2, smid().to(tl.int64))
         ticket = tl.atomic_add(state_ptr, 1)
     # the last program out (all others have taken their last ticket): where a wait was abandoned, nothing of the
     # launch may pass for actions, so `x` becomes NaN; every counter goes back to 0 for the next launch (`reset` 0
@@ -361,6 +369,7 @@ def expert_layers_(
     state: torch.Tensor | None = None,
     order: torch.Tensor | None = None,
     watch: torch.Tensor | None = None,
+    timeline: torch.Tensor | None = None,
 ) -> Any:
     """Every layer of an Euler step on the action tokens `x`, in place and in one launch (module docstring): what
     `reference.expert_layers_` computes. `tiling`: `Tiling()` by default. `programs`: the grid (`default_programs`).
@@ -369,7 +378,9 @@ def expert_layers_(
     stream's, which each launch puts back to 0). `order`: int32, the tiles (numbered layer after layer, in ticket
     order) in the order the tickets hand them out; one an interpreted launch can follow
     (`benchmarks/persistent_layers.py`). `watch`: int32 `[2]`, whether a wait was abandoned and after how many spins
-    (by default the device's, `watchdog`)."""
+    (by default the device's, `watchdog`). `timeline`: int64 `[L * tiles per layer, 3]` (`phase_tiles`), where the
+    launch writes when each tile (numbered layer after layer, in ticket order) started and ended (`%globaltimer`,
+    ns) and on which multiprocessor it ran (not in triton's interpreter)."""
     tiling = tiling or Tiling()
     rows, width = x.shape
     depth, batch, slots, head_dim = key_cache.shape
@@ -386,6 +397,11 @@ def expert_layers_(
     stats = x.new_empty(2, tiling.key_parts, rows * heads, dtype=torch.float32)
     o_parts, down_parts = (split_workspace(x, tiling.m, columns, splits)
                            for columns, splits in ((tiling.o, tiling.o_splits), (tiling.down, tiling.down_splits)))
+    if timeline is not None:
+        tickets = depth * sum(phase_tiles(rows, tokens, heads, head_dim, width, mlp_width, tiling))
+        if INTERPRETING or timeline.shape != (tickets, 3) or timeline.dtype != torch.int64:
+            raise ValueError(f"expert_layers_: a timeline is int64 [{tickets}, 3], read from a GPU's clock (not in "
+                             f"triton's interpreter); got {timeline.dtype} {tuple(timeline.shape)} on {timeline.device}")
     reset = state is None
     if state is None:
         state = zeroed_counters(x.device, state_size(depth, rows, tokens, heads, width, tiling))
@@ -395,8 +411,8 @@ def expert_layers_(
     arguments = (
         x, attention_scales, qkv[0], o[0], mlp_scales, gate_up[0], down[0], weight_offsets((qkv, o, gate_up, down), x.device),
         cos, sin, key_cache, value_cache, first, row_ends, *adarms, q, attended, hidden, partial, stats, o_parts,
-        down_parts, state, watchdog(x.device) if watch is None else watch, state if order is None else order, depth, rows, width, mlp_width, tokens, first_slot, slots, eps,
-        head_dim**-0.5, tiling.key_parts, x.stride(0), cos.stride(0) if cos.shape[0] > 1 else 0, cos.stride(1),
+        down_parts, state, watchdog(x.device) if watch is None else watch, state if order is None else order,
+        state if timeline is None else timeline, depth, rows, width, mlp_width, tokens, first_slot, slots, eps, head_dim**-0.5, tiling.key_parts, x.stride(0), cos.stride(0) if cos.shape[0] > 1 else 0, cos.stride(1),
         *qkv[0].stride(), *o[0].stride(), *gate_up[0].stride(), *down[0].stride(), key_cache.stride(0), int(reset),
     )
     options = {"HEADS": heads, "HEAD_DIM": head_dim, "BLOCK_M": tiling.m, "N_QKV": tiling.qkv, "N_O": tiling.o,
@@ -404,7 +420,8 @@ def expert_layers_(
                "ATTENTION_M": tiling.attention_m, "ATTENTION_N": tiling.attention_n,
                "DIM_CHUNK": min(head_dim, 4096 // tiling.attention_m), "DOT": dot_dtype(o[0].dtype),
                "PREFETCH": tiling.prefetch and not INTERPRETING, "ADARMS": qkv_bias is not None,
-               "O_SPLITS": tiling.o_splits, "DOWN_SPLITS": tiling.down_splits, "ORDERED": order is not None, "ALIGN": WEIGHT_ALIGNMENT // o[0].element_size(),
+               "O_SPLITS": tiling.o_splits, "DOWN_SPLITS": tiling.down_splits, "ORDERED": order is not None,
+               "TIMELINE": timeline is not None, "ALIGN": WEIGHT_ALIGNMENT // o[0].element_size(),
                "num_warps": tiling.warps, "num_stages": tiling.stages}
     if launch is not None:
         return launch(_expert_layers_kernel, (programs,), arguments, options)
@@ -483,6 +500,19 @@ def state_size(depth: int, rows: int, tokens: int, heads: int, width: int, tilin
     attention_blocks = rows // tokens * cdiv(tokens * heads, tiling.attention_m)
     split_tiles = row_blocks * (cdiv(width, tiling.o) + cdiv(width, tiling.down))
     return 2 + depth * (2 + 3 * row_blocks + attention_blocks + split_tiles)
+
+
+PHASES = ("q/k/v", "attention", "o-projection", "gate/up", "down-projection")
+
+
+def phase_tiles(rows: int, tokens: int, heads: int, head_dim: int, width: int, mlp_width: int, tiling: Tiling) -> list[int]:
+    """The tiles of each phase of a layer (`PHASES`), in the order a launch hands them out (`_expert_layers_kernel`'s
+    tickets; the attention's: its blocks' key parts, split projections': their parts)."""
+    row_blocks = cdiv(rows, tiling.m)
+    return [row_blocks * cdiv((heads + 2) * head_dim // 2, tiling.qkv),
+            rows // tokens * cdiv(tokens * heads, tiling.attention_m) * tiling.key_parts,
+            row_blocks * cdiv(width, tiling.o) * tiling.o_splits, row_blocks * cdiv(mlp_width, tiling.gate_up),
+            row_blocks * cdiv(width, tiling.down) * tiling.down_splits]
 
 
 def split_workspace(x: torch.Tensor, rows: int, columns: int, splits: int) -> torch.Tensor:
