@@ -4,7 +4,7 @@
 # files: this writes 8); the last lines of each are printed too. Run from the repository root with the Python that
 # holds torch, triton, transformers and pytest (the GPU image's python3: no network, no [dev] extra):
 #
-#     OUT=/tmp/gpu benchmarks/gpu_check.sh          # at most 8.9 minutes (the steps' limits) on an H100 or H200
+#     OUT=/tmp/gpu benchmarks/gpu_check.sh          # at most 9.0 minutes (the steps' limits) on an H100 or H200
 #     SKIP="bench doctor" OUT=/tmp/gpu benchmarks/gpu_check.sh   # leave steps out (default: SKIP=tilings)
 #     SKIP= OUT=/tmp/gpu benchmarks/gpu_check.sh    # everything, the kernels' tilings too (about 10.5 minutes)
 #
@@ -78,7 +78,7 @@ step sweep 50 "$PY" benchmarks/persistent_layers.py --bench
 step bench 75 "$PY" -m pi0_torch.cli bench --device cuda --presets pi0,pi05 --dtypes bfloat16 --cameras 3 --batches 1,8 \
     --kernels persistent --repeats 10 --kernel-table 15
 step tilings 100 "$PY" benchmarks/kernel_sweep.py --write "$OUT/tilings.json" --bench
-step fast-bench 40 "$PY" -m pi0_torch.cli bench --device cuda --skip-generate --fast --fast-presets pi0_fast \
+step fast-bench 45 "$PY" -m pi0_torch.cli bench --device cuda --skip-generate --fast --fast-presets pi0_fast \
     --dtypes bfloat16 --batches 1 --kernels auto,torch --repeats 3
 TAIL=70 show sweep
 printf '\n---- bench, sampling_kernels="persistent"\n'

@@ -12,10 +12,10 @@ against the reference and today's ops, and `--bench` times the tilings (`TILINGS
 both, `--check` also launches with counters that never reach the waits: the launch must give up (`watchdog`) and
 return NaN, not hang.
 
-The numbers are those of `pi0_torch.kernels.reference` (float32 sums, bf16 outputs), not bit for bit (no split-K).
-π0's layers, and π0.5's with their adaRMS biases and residual gates (`AdaRMS`); one kv head, every action token
-seeing the whole cache up to the step's last slot. The weights here are stacked `[L, ...]` (each layer's a view:
-their offsets from layer 0's are a whole stride apart); sampling passes the model's own, wherever they are.
+The numbers are those of `pi0_torch.kernels.reference` (float32 sums, bf16 outputs), not bit for bit (its sums go in
+other orders). π0's layers, and π0.5's with their adaRMS biases and residual gates (`AdaRMS`); one kv head, every
+action token seeing the whole cache up to the step's last slot. The weights here are stacked `[L, ...]` (each layer's
+a view: their offsets from layer 0's are a whole stride apart); sampling passes the model's own, wherever they are.
 
     python benchmarks/persistent_layers.py --check              # CPU: triton's interpreter, small float32 shapes
     python benchmarks/persistent_layers.py --compile 90         # CPU: compile for sm_90 (ptxas), print its use
@@ -422,9 +422,9 @@ def print_timeline(shape: Shape, tiling: Tiling, timeline: torch.Tensor, program
     last end among the tiles it waits on, where that is later) and of the rest, its work; and the median span of the
     phase in a layer (its first start to its last end). Then the launch's span, and the share of its `programs`'
     time that went to tiles and to their work (the rest: taking tickets, the gaps between tiles)."""
-    stamps = timeline.cpu().double()
-    origin = stamps[:, 0].min()
-    start, end = (stamps[:, 0] - origin) / 1e3, (stamps[:, 1] - origin) / 1e3  # µs
+    stamps = timeline.cpu()
+    start, end = ((stamps[:, column] - stamps[:, 0].min()).double() / 1e3 for column in (0, 1))  # µs (int64 first:
+    # the clock counts ns since 1970, past float64's ns precision)
     tiles = tiles_per_phase(shape, tiling)
     per_layer, first = sum(tiles), [sum(tiles[:phase]) for phase in range(len(tiles))]
     row_blocks = cdiv(shape.batch * shape.tokens, tiling.m)
@@ -449,7 +449,7 @@ def print_timeline(shape: Shape, tiling: Tiling, timeline: torch.Tensor, program
                 ready[layer * per_layer + first[phase] + index] = when
     waited = (ready - start).clamp(min=0)
     work = (end - torch.maximum(start, ready)).clamp(min=0)  # (a producer stamps its end just after counting in)
-    span = float(end.max())
+    span = max(float(end.max()), 1e-3)
     print(f"  one launch, {tiling}: {span:.0f} µs; tiles {float((end - start).sum()) / (programs * span):.0%} of its "
           f"{programs} programs' time, their work {float(work.sum()) / (programs * span):.0%}")
     print(f"    {'phase':16s} {'tiles/layer':>11s} {'tile µs':>8s} {'waited µs':>9s} {'work µs':>8s} {'span/layer µs':>13s}")
@@ -467,12 +467,11 @@ TILINGS = [Tiling(), Tiling(o_splits=2, down_splits=2), Tiling(o_splits=2, down_
 
 def main() -> int:
     def check_here() -> int:
-        if torch.cuda.is_available():  # (π0.5 in the first tiling: each tiling is minutes of compiling there)
-            bound = FUSED_TOLERANCE[torch.bfloat16]
-            return (check(torch.device("cuda"), torch.bfloat16, [FULL._replace(depth=2), FULL._replace(depth=2, batch=8)],
-                          bound, TILINGS)
-                    + check(torch.device("cuda"), torch.bfloat16, [FULL._replace(depth=2, adarms=True)], bound, TILINGS[:1])
-                    + check_abandoned(torch.device("cuda"), torch.bfloat16, FULL._replace(depth=2), TILINGS[0]))
+        if torch.cuda.is_available():  # (π0.5 in the first tiling: each tiling is seconds of compiling there)
+            bound, device = FUSED_TOLERANCE[torch.bfloat16], torch.device("cuda")
+            return (check_abandoned(device, torch.bfloat16, FULL._replace(depth=2), TILINGS[0])  # (first: one variant)
+                    + check(device, torch.bfloat16, [FULL._replace(depth=2), FULL._replace(depth=2, batch=8)], bound, TILINGS)
+                    + check(device, torch.bfloat16, [FULL._replace(depth=2, adarms=True)], bound, TILINGS[:1]))
         # (the interpreter: small, float32; one and three samples, partial row and attention blocks; π0.5)
         shapes = [Shape(2, 1, 5, 7, 32, 2, 16, 48), Shape(2, 3, 6, 9, 48, 2, 16, 40, adarms=True)]
         # (the first with the o- and down-projections split: 2 and 3 parts, the last part shallower than the others)

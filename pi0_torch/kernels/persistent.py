@@ -32,7 +32,7 @@ The layers' weights stay where the model keeps them: the kernel reads layer 0's 
 and dtype and start 16-byte aligned. The caches, norm scales and adaRMS tensors are stacked `[L, ...]`.
 
 The numbers are those of `pi0_torch.kernels.reference.expert_layers_` (float32 sums, bf16 outputs), not bit for bit
-(no split-K). Experimental: opt-in until a GPU measures it against the five launches per layer (docs/gpu.md).
+(its sums go in other orders). Experimental: opt-in until a GPU measures it against the five launches per layer (docs/gpu.md).
 """
 
 from __future__ import annotations
@@ -156,7 +156,9 @@ def _residual_tile(tile, x_ptr, a_ptr, stride_am, w_ptr, stride_wk, stride_wn, g
     It starts once `wait[r * wait_stride]` reaches `need`, and with COUNT it is then counted in for r
     (`counters[r]`). With SPLITS > 1 this is part `tile % SPLITS` of the reduction (a whole number of BLOCK_K): the
     part to arrive last adds the parts up in part order (`_sum_splits`: float32 sums in `workspace`, the tile's
-    `arrivals` back at 0) and updates `x`; every part counts in, all but the last with 0."""
+    `arrivals` back at 0) and updates `x`; every part counts in, all but the last with 0. (COUNT is optional for
+    `benchmarks/persistent_mlp.py`, whose down-projection nothing waits for: with 4 stages of 128-deep blocks its
+    barrier took 80 KiB more shared memory than sm_90 has.)"""
     output = tile // SPLITS
     block, rows, columns = _tile_at(output, D, BLOCK_M, BLOCK_N)
     k_split = tl.cdiv(tl.cdiv(K, SPLITS), BLOCK_K) * BLOCK_K
@@ -243,7 +245,7 @@ def _attention_tile(tile, q_ptr, key_ptr, value_ptr, first_ptr, row_ends_ptr, ou
     _count_in(counter_ptr, tl.where(last, 1, 0))  # (every part counts in, all but the last with 0)
 
 
-@triton.jit
+@triton.jit(do_not_specialize=["reset"])  # (0 for `--check`'s counted launches, 1 otherwise: one variant)
 def _expert_layers_kernel(
     x_ptr, attention_scale_ptr, qkv_ptr, o_ptr, mlp_scale_ptr, gate_up_ptr, down_ptr, offsets_ptr, cos_ptr, sin_ptr, key_ptr,
     value_ptr, first_ptr, row_ends_ptr, qkv_bias_ptr, o_gate_ptr, gate_up_bias_ptr, down_gate_ptr, q_ptr, attended_ptr,
@@ -397,6 +399,9 @@ def expert_layers_(
     stats = x.new_empty(2, tiling.key_parts, rows * heads, dtype=torch.float32)
     o_parts, down_parts = (split_workspace(x, tiling.m, columns, splits)
                            for columns, splits in ((tiling.o, tiling.o_splits), (tiling.down, tiling.down_splits)))
+    if watch is not None and (watch.shape != (2,) or watch.dtype != torch.int32 or watch.device != x.device):
+        raise ValueError(f"expert_layers_: a watch is int32 [2] on {x.device}; got {watch.dtype} {tuple(watch.shape)} on "
+                         f"{watch.device}")
     if timeline is not None:
         tickets = depth * sum(phase_tiles(rows, tokens, heads, head_dim, width, mlp_width, tiling))
         if INTERPRETING or timeline.shape != (tickets, 3) or timeline.dtype != torch.int64:
@@ -438,9 +443,14 @@ def watchdog(device: torch.device) -> torch.Tensor:
     """int32 `[2]` on `device`, read and written by every persistent launch there: `[0]` whether a launch abandoned
     a wait that did not end (0: none did; never reset: once set, every later launch gives up its waits at once and
     returns NaN, so a process never samples with the launch again), `[1]` the spins before a wait is abandoned
-    (`SPINS`). Made on first use, zeroed, by an eager call before any graph captures it."""
+    (`SPINS`). Made on first use, by an eager launch: one made while a CUDA graph is captured would be zeroed again
+    at each replay, so a capture that finds none raises (sampling's graphs capture after an eager call)."""
+    device = _indexed(device)
     watch = _watches.get(device)
     if watch is None:
+        if device.type == "cuda" and torch.cuda.is_current_stream_capturing():
+            raise RuntimeError("the persistent launch's watchdog is made by an eager launch on its GPU before a CUDA "
+                               "graph captures one")
         with torch.inference_mode(False):  # (a plain tensor, whichever mode the first launch ran in)
             watch = _watches[device] = torch.zeros(2, dtype=torch.int32, device=device)
             watch[1] = SPINS
@@ -450,8 +460,13 @@ def watchdog(device: torch.device) -> torch.Tensor:
 def abandoned(device: torch.device) -> bool:
     """Whether a persistent launch on `device` abandoned a wait (`watchdog`): a synchronization fault of the kernel
     on this GPU, whose launches then return NaN. Reads the GPU (synchronizes)."""
-    watch = _watches.get(device)
+    watch = _watches.get(_indexed(device))
     return watch is not None and bool(watch[0] != 0)
+
+
+def _indexed(device: torch.device) -> torch.device:
+    """`device` with its index (a CUDA device without one: the current GPU), as tensors name theirs."""
+    return torch.device("cuda", torch.cuda.current_device()) if device.type == "cuda" and device.index is None else device
 
 
 WEIGHT_ALIGNMENT = 16  # bytes: every layer's weights start at a multiple of this (the kernel's loads assume it)
