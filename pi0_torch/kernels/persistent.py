@@ -32,7 +32,8 @@ The layers' weights stay where the model keeps them: the kernel reads layer 0's 
 and dtype and start 16-byte aligned. The caches, norm scales and adaRMS tensors are stacked `[L, ...]`.
 
 The numbers are those of `pi0_torch.kernels.reference.expert_layers_` (float32 sums, bf16 outputs), not bit for bit
-(its sums go in other orders). Experimental: opt-in until a GPU measures it against the five launches per layer (docs/gpu.md).
+(its sums go in other orders). Experimental: opt-in until a GPU measures it against the five launches per layer
+(docs/gpu.md).
 """
 
 from __future__ import annotations
@@ -250,9 +251,8 @@ def _expert_layers_kernel(
     x_ptr, attention_scale_ptr, qkv_ptr, o_ptr, mlp_scale_ptr, gate_up_ptr, down_ptr, offsets_ptr, cos_ptr, sin_ptr, key_ptr,
     value_ptr, first_ptr, row_ends_ptr, qkv_bias_ptr, o_gate_ptr, gate_up_bias_ptr, down_gate_ptr, q_ptr, attended_ptr,
     hidden_ptr, partial_ptr, stats_ptr, o_parts_ptr, down_parts_ptr, state_ptr, watch_ptr, order_ptr, timeline_ptr,
-    layers, M, D, F, tokens, first_slot, slots, eps,
-    scale, key_parts, stride_xm, stride_cos_b, stride_cos_t, stride_qk, stride_qn, stride_ok, stride_on, stride_gk, stride_gn,
-    stride_dk, stride_dn, layer_cache, reset,
+    layers, M, D, F, tokens, first_slot, slots, eps, scale, key_parts, stride_xm, stride_cos_b, stride_cos_t, stride_qk,
+    stride_qn, stride_ok, stride_on, stride_gk, stride_gn, stride_dk, stride_dn, layer_cache, reset,
     HEADS: tl.constexpr, HEAD_DIM: tl.constexpr, BLOCK_M: tl.constexpr, N_QKV: tl.constexpr, N_O: tl.constexpr,
     N_GATE_UP: tl.constexpr, N_DOWN: tl.constexpr, BLOCK_K: tl.constexpr, ATTENTION_M: tl.constexpr,
     ATTENTION_N: tl.constexpr, DIM_CHUNK: tl.constexpr, DOT: tl.constexpr, PREFETCH: tl.constexpr,
@@ -417,7 +417,8 @@ def expert_layers_(
         x, attention_scales, qkv[0], o[0], mlp_scales, gate_up[0], down[0], weight_offsets((qkv, o, gate_up, down), x.device),
         cos, sin, key_cache, value_cache, first, row_ends, *adarms, q, attended, hidden, partial, stats, o_parts,
         down_parts, state, watchdog(x.device) if watch is None else watch, state if order is None else order,
-        state if timeline is None else timeline, depth, rows, width, mlp_width, tokens, first_slot, slots, eps, head_dim**-0.5, tiling.key_parts, x.stride(0), cos.stride(0) if cos.shape[0] > 1 else 0, cos.stride(1),
+        state if timeline is None else timeline, depth, rows, width, mlp_width, tokens, first_slot, slots, eps,
+        head_dim**-0.5, tiling.key_parts, x.stride(0), cos.stride(0) if cos.shape[0] > 1 else 0, cos.stride(1),
         *qkv[0].stride(), *o[0].stride(), *gate_up[0].stride(), *down[0].stride(), key_cache.stride(0), int(reset),
     )
     options = {"HEADS": heads, "HEAD_DIM": head_dim, "BLOCK_M": tiling.m, "N_QKV": tiling.qkv, "N_O": tiling.o,
