@@ -115,7 +115,8 @@ def persistent_mlp_(x: torch.Tensor, attended: torch.Tensor, o: torch.Tensor, sc
     row_blocks = cdiv(rows, tiling.m)
     hidden = x.new_empty(rows, mlp_width)
     state = torch.zeros(1 + 2 * row_blocks, dtype=torch.int32, device=x.device)
-    watch = torch.tensor([0, SPINS], dtype=torch.int32, device=x.device)  # (its own: the experiment fills no NaN)
+    watch = torch.zeros(2, dtype=torch.int32, device=x.device)  # (its own: the experiment fills no NaN; no copy from
+    watch[1] = SPINS  # the host, which a CUDA graph's capture, as `--bench` times it, would refuse)
     if programs is None:
         programs = torch.cuda.get_device_properties(x.device).multi_processor_count if x.is_cuda else 4
     arguments = (
