@@ -430,6 +430,7 @@ def print_timeline(shape: Shape, tiling: Tiling, timeline: torch.Tensor, program
     row_blocks = cdiv(shape.batch * shape.tokens, tiling.m)
     per_block = [count // row_blocks for count in tiles]  # (the attention's tiles wait as one group)
 
+    @functools.cache  # (every tile of a group waits on the same tiles)
     def ends(layer: int, phase: int, block: int | None) -> float:  # the last end of a phase's tiles (of a row block)
         base = layer * per_layer + first[phase]
         if block is not None:
