@@ -4,7 +4,9 @@
 Eager sampling is bound by this host time (about a thousand launches per π0 chunk), so it is measured on the CPU,
 where it happens: the kernels are compiled for sm_90 by triton's ptxas (`kernel_resources.TargetDriver`, no GPU
 needed), and the compiled kernels' launcher does nothing. Shapes are full-size π0's suffix at batch 1 (50 rows),
-bf16. Each row: the best of 5 rounds of 3,000 calls, two passes side by side.
+bf16. Each op's row: the best of 5 rounds of 3,000 calls; the last row is one whole Euler step as eager sampling
+runs it (`ops.call` on each op, as `FusedSteps.step_` does: the action tokens, 18 layers of five ops, the Euler
+update; 92 launches), the best of 5 rounds of 30 steps. Two passes side by side.
 
     python benchmarks/launch_cost.py
 """
@@ -19,7 +21,7 @@ from pathlib import Path
 
 import torch
 
-ROUNDS, CALLS = 5, 3_000
+ROUNDS, CALLS, STEPS = 5, 3_000, 30
 
 
 def main() -> int:
@@ -30,12 +32,15 @@ def main() -> int:
     import triton
     from kernel_resources import replace_launches
 
-    from pi0_torch.kernels import launch, triton_kernels as K
+    from pi0_torch.inference.fused_pass import call_op
+    from pi0_torch.kernels import launch, ops, reference, triton_kernels as K
 
     if launch.DIRECT_REASON is not None:
         print(f"no direct launches here: {launch.DIRECT_REASON}")
         return 0
     replace_launches(90, lambda compiled, arguments: None)
+    os.environ["TRITON_INTERPRET"] = "1"  # (only so that `ops.call` takes the Triton implementations for CPU tensors;
+    # the kernels were made by `@triton.jit` at import, so they compile, not interpret)
     bf16 = torch.bfloat16
     x, hidden = torch.randn(50, 1024, dtype=bf16), torch.randn(50, 4096, dtype=bf16)
     gate_up, scale = torch.randn(50, 8192, dtype=bf16), torch.randn(1024, dtype=bf16)
@@ -50,16 +55,28 @@ def main() -> int:
         "norm_gate_up_geglu": lambda: K.norm_gate_up_geglu(x, scale, None, gate_up_w, 1e-6),
         "geglu (the prefix's)": lambda: K.geglu(gate_up),
     }
+    layers, o_w = 18, torch.randn(2048, 1024, dtype=bf16)  # (one layer's weights for all 18: the host cost is the same)
+    tables, x_t = torch.randn(1, 50, 256), torch.randn(1, 50, 32)
+    in_w, mlp_w, out_w = torch.randn(32, 1024, dtype=bf16), torch.randn(1024, 1024, dtype=bf16), torch.randn(1024, 32, dtype=bf16)
+    caches = [cache] * layers
+
+    def step() -> None:  # (`FusedSteps.step_`'s ops, π0)
+        tokens = ops.call(ops.embed_actions, x_t, in_w, scale, mlp_w, scale)
+        reference.layer_by_layer_(call_op, tokens, [scale] * layers, [qkv_w] * layers, [o_w] * layers, [scale] * layers,
+                                  [gate_up_w] * layers, [down_w] * layers, tables, tables, caches, caches, first,
+                                  ends[:50], 818, 1e-6)
+        ops.call(ops.norm_linear_euler_, x_t, tokens, scale, scale[:32], out_w, -0.1, 1e-6)
     print(f"host µs per call, launch stubbed, triton {triton.__version__}, torch {torch.__version__}")
-    print(f"{'op':26s} {'triton run':>11s} {'direct':>8s} {'triton run':>11s} {'direct':>8s}")
-    for name, call in calls.items():
+    print(f"{'op':28s} {'triton run':>11s} {'direct':>8s} {'triton run':>11s} {'direct':>8s}")
+    rows = [(name, call, CALLS) for name, call in calls.items()] + [("one Euler step (92 launches)", step, STEPS)]
+    for name, call, number in rows:
         times = []
         for _ in range(2):
             for direct in (False, True):
                 with contextlib.nullcontext() if direct else launch.through_triton():
                     call(), call()  # (the first call of a class compiles, or goes through triton)
-                    times.append(min(timeit.repeat(call, number=CALLS, repeat=ROUNDS)) / CALLS * 1e6)
-        print(f"{name:26s} " + " ".join(f"{each:{11 if i % 2 == 0 else 8}.1f}" for i, each in enumerate(times)))
+                    times.append(min(timeit.repeat(call, number=number, repeat=ROUNDS)) / number * 1e6)
+        print(f"{name:28s} " + " ".join(f"{each:{11 if i % 2 == 0 else 8}.1f}" for i, each in enumerate(times)))
     return 0
 
 

@@ -58,12 +58,18 @@ def cases(K: Any) -> dict[str, Callable[[], Any]]:
 
 
 def normalized(record: tuple) -> tuple:
-    """A recorded launch with tensors as (dtype, shape, strides, address modulo 16) and the launch metadata as a dict."""
+    """A recorded launch with tensors as (dtype, shape, strides, address modulo 16), the launch metadata as a dict,
+    and an empty chain of launch hooks as None, its launch metadata None (the launcher calls no hook then; a chain
+    with nothing in it calls nothing either)."""
+    from triton.knobs import HookChain
+
     compiled, arguments = record
-    metadata = arguments[6]
+    metadata, *hooks = arguments[6:9]
+    enter_hook, exit_hook = (None if isinstance(hook, HookChain) and not hook.calls else hook for hook in hooks)
     plain = tuple(("tensor", each.dtype, tuple(each.shape), each.stride(), each.data_ptr() & 15)
                   if isinstance(each, torch.Tensor) else each for each in arguments)
-    return (id(compiled), *plain[:6], None if metadata is None else dict(metadata.get()), *plain[7:])
+    return (id(compiled), *plain[:6], None if metadata is None or enter_hook is None else dict(metadata.get()), enter_hook,
+            exit_hook, *plain[9:])
 
 
 def main() -> int:
@@ -98,8 +104,9 @@ def main() -> int:
         return [normalized(each) for each in recorded]
 
     compared = 0
-    for hooked in (False, True):
-        knobs.runtime.launch_enter_hook = (lambda metadata: None) if hooked else None
+    default_hooks = knobs.runtime.launch_enter_hook, knobs.runtime.launch_exit_hook
+    for enter in ("triton's default", None, lambda metadata: None):  # (3.5 to 3.9: an empty `HookChain`)
+        knobs.runtime.launch_enter_hook = default_hooks[0] if enter == "triton's default" else enter
         through_triton = launches(direct=False)
         first_direct = launches(direct=True)
         second_direct = launches(direct=True)
@@ -111,6 +118,9 @@ def main() -> int:
             compared += 1
         kernels = [each[0] for each in through_triton]
         assert kernels[0] != kernels[1] and len(set(kernels[2:5])) == 3, "triton compiled no variant apart"
+        if not callable(enter):  # (the second direct pass's own launches: no hook passed, no metadata made for one)
+            assert all(arguments[6] is None and arguments[7] is None for _, arguments in recorded), "a hook for nothing"
+    knobs.runtime.launch_enter_hook = default_hooks[0]
     geglu = triton_kernels._geglu_kernel  # a kernel with a pre-run hook takes triton's path, which runs the hook
     geglu.kernel.add_pre_run_hook(lambda *args, **kwargs: None)
     entered.clear()

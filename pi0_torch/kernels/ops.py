@@ -14,6 +14,7 @@ import functools
 import importlib.util
 import logging
 import os
+import sys
 from typing import Any, Callable, List, Optional
 
 import torch
@@ -22,6 +23,8 @@ from torch.utils._python_dispatch import _get_current_dispatch_mode
 from pi0_torch.kernels import reference
 
 logger = logging.getLogger(__name__)
+
+TRITON_KERNELS, PERSISTENT = "pi0_torch.kernels.triton_kernels", "pi0_torch.kernels.persistent"  # the Triton modules
 
 
 @functools.lru_cache(maxsize=None)
@@ -44,10 +47,8 @@ def triton_reason(device: torch.device) -> Optional[str]:
 
 
 def _implementation(name: str, device: torch.device) -> Callable[..., Any]:
-    if triton_reason(device) is None:
-        from pi0_torch.kernels import persistent, triton_kernels
-
-        return getattr(persistent if name == "expert_layers_" else triton_kernels, name)
+    if triton_reason(device) is None:  # (so `_triton_import_error` imported them: no import statement per call)
+        return getattr(sys.modules[PERSISTENT if name == "expert_layers_" else TRITON_KERNELS], name)
     return getattr(reference, name)
 
 

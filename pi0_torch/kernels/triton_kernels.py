@@ -32,6 +32,7 @@ a GEMM's output tiles are few, see `split_k` and `_sum_splits`). Each kernel lau
 
 from __future__ import annotations
 
+import functools
 import os
 from typing import NamedTuple
 
@@ -98,8 +99,12 @@ def blocks(rows: int, columns: int, depth: int) -> Blocks | None:
     each tile's reduction into parts (`splits`, a power of two up to 8). Few rows (π0's state token) keep the small
     blocks. With 4 stages a tiling takes at most 96 KiB of shared memory on sm_80/86/89/120 (128 KiB on sm_90),
     within what a block may have on each (`benchmarks/kernel_resources.py`; `make test` checks sm_89)."""
-    if rows >= CUBLAS_ROWS:
-        return None
+    return None if rows >= CUBLAS_ROWS else _fused_blocks(rows, columns, depth)
+
+
+@functools.lru_cache(maxsize=None)
+def _fused_blocks(rows: int, columns: int, depth: int) -> Blocks:
+    """`blocks` below `CUBLAS_ROWS` rows (kept per shape: every launch asks)."""
     if rows <= 32:
         return narrow_blocks(rows, columns)
     deep = depth >= 2 * columns
@@ -114,6 +119,7 @@ def blocks(rows: int, columns: int, depth: int) -> Blocks | None:
     return Blocks(64, block_n, block_k, warps, stages, splits)
 
 
+@functools.lru_cache(maxsize=None)
 def narrow_blocks(rows: int, columns: int) -> Blocks:
     """The tiling of a GEMM kernel without split-K (`embed_actions`, `norm_linear_euler_`) and of few rows: narrow
     column blocks, so that its few output tiles still make many programs (on an H200 the action embedding took
@@ -625,7 +631,8 @@ def arrival_counters(device: torch.device) -> torch.Tensor:
 def zeroed_counters(device: torch.device, size: int) -> torch.Tensor:
     """int32 `[size]` counters of the current stream on `device`, zeroed when made (on first use) and left at 0 by
     every launch that counts in them (`split_k`'s arrivals, `persistent.expert_layers_`'s phases)."""
-    key = (device, torch.cuda.current_stream(device).cuda_stream if device.type == "cuda" else 0, size)
+    stream = torch._C._cuda_getCurrentRawStream(device.index) if device.type == "cuda" else 0  # (triton's driver's call)
+    key = (device, stream, size)
     counters = _counters.get(key)
     if counters is None:
         counters = _counters[key] = torch.zeros(size, dtype=torch.int32, device=device)
@@ -759,6 +766,7 @@ class AttentionBlocks(NamedTuple):
     splits: int
 
 
+@functools.lru_cache(maxsize=None)
 def attention_blocks(rows: int, batch: int, slots: int) -> AttentionBlocks:
     """The tiling of `range_attention` for `rows` folded query rows per sample over a cache of `slots`.
 
