@@ -56,7 +56,7 @@ class CapturedDecoding:
 def cache_tensors(cache: DecodingCache) -> list[torch.Tensor]:
     """Every tensor of `cache`, in a fixed order (the absent mask left out)."""
     tensors = [*cache.keys, *cache.values, cache.cos, cache.sin, cache.slots, cache.first]
-    return tensors + ([] if cache.masks is None else [cache.masks]) + list(cache.norm_scales or ())
+    return tensors + ([] if cache.masks is None else [cache.masks]) + ([] if cache.fused is None else cache.fused.tensors())
 
 
 def input_signature(inputs: tuple[Any, ...]) -> tuple[Any, ...]:

@@ -19,12 +19,13 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import torch
 
 from pi0_torch.inference.fused_pass import attention_shape_reason, kernels_reason, seeded_random
-from pi0_torch.inference.layer_pass import runs_extra_code, runs_its_weights
+from pi0_torch.inference.layer_pass import SamplingWeights, expert_sampling_weights, runs_extra_code, runs_its_weights
 from pi0_torch.kernels import ops
 from pi0_torch.models.layers import rms_norm, rope_cos_sin
 
@@ -73,33 +74,50 @@ def decoding_kernels_reason(device: torch.device, dtype: torch.dtype, heads: int
     return kernels_reason(device, dtype, cases, "π0-FAST decodes through the modules")
 
 
-def norm_scales(layers: Sequence[FastDecoderLayer]) -> list[torch.Tensor]:
-    """Each layer's attention and MLP norm scales, `1 + weight` `[D]` (interleaved), in one op for all of them."""
-    return torch._foreach_add([norm.weight for layer in layers for norm in (layer.block.attn_norm, layer.block.mlp_norm)], 1)
+@dataclass(frozen=True)
+class DecodingLayers:
+    """What the fused ops read of every decoder layer, made once per call of `generate_tokens` (`prepare_decoding`),
+    so that a decoded token takes no view of its own (a view is host time like a launch: 108 of a token's 303 ops
+    were these): per layer the attention and MLP norm scales `1 + weight` `[D]`, the projections' weights transposed
+    (views) and the k/v caches `[B, S, H]` (views of the decoding cache's buffers)."""
+
+    scales: list[tuple[torch.Tensor, torch.Tensor]]
+    weights: list[SamplingWeights]
+    keys: list[torch.Tensor]
+    values: list[torch.Tensor]
+    eps: float
+
+    @classmethod
+    def build(cls, layers: Sequence[FastDecoderLayer], keys: Sequence[torch.Tensor],
+              values: Sequence[torch.Tensor]) -> DecodingLayers:
+        """`keys`, `values`: the decoding cache's per-layer buffers `[B, 1, S, H]`."""
+        norms = [norm.weight for layer in layers for norm in (layer.block.attn_norm, layer.block.mlp_norm)]
+        scales = torch._foreach_add(norms, 1)  # (one op for all of them)
+        return cls(list(zip(scales[::2], scales[1::2])), [expert_sampling_weights(layer.block) for layer in layers],
+                   [each[:, 0] for each in keys], [each[:, 0] for each in values], layers[0].block.attn_norm.eps)
+
+    def tensors(self) -> list[torch.Tensor]:
+        """The tensors made here (the norm scales), not views of the model's or the cache's."""
+        return [scale for pair in self.scales for scale in pair]
 
 
 def decode_layers_(
-    layers: Sequence[FastDecoderLayer],
+    layers: DecodingLayers,
     x: torch.Tensor,  # [B, D]: the decoded token's embedding, updated in place
     cos: torch.Tensor,  # [B, 1, H] RoPE of its position
     sin: torch.Tensor,
-    keys: Sequence[torch.Tensor],  # per layer [B, 1, S, H]
-    values: Sequence[torch.Tensor],
-    scales: Sequence[torch.Tensor],  # `norm_scales(layers)`
     first: torch.Tensor,  # long [B]: the first slot the token sees
     slot: torch.Tensor,  # long [1]: its own slot (written here; the last it sees)
 ) -> torch.Tensor:
     """The decoder layers on one decoded token per sample: writes its k/v at `slot` of every layer's buffers and
     returns `x` (the last layer's output)."""
-    batch, heads = x.shape[0], layers[0].block.heads[0]
+    batch, head_dim, eps = x.shape[0], layers.keys[0].shape[-1], layers.eps
     ends = slot + 1
-    for index, (layer, key_buffer, value_buffer) in enumerate(zip(layers, keys, values)):
-        block = layer.block
-        key_cache, value_cache = key_buffer[:, 0], value_buffer[:, 0]  # [B, S, H]
-        qkv = torch.mm(rms_norm(x, block.attn_norm.eps, scales[2 * index]), block.qkv_proj.weight.t())
+    for (attention_scale, mlp_scale), weights, key_cache, value_cache in zip(layers.scales, layers.weights, layers.keys,
+                                                                             layers.values):
+        qkv = torch.mm(rms_norm(x, eps, attention_scale), weights.qkv)
         q = ops.call(ops.rope_cache_write, qkv, cos, sin, key_cache, value_cache, 0, slot)  # [B, N * H]
-        attended = ops.call(ops.range_attention, q.view(batch, 1, heads, -1), key_cache, value_cache, first, ends)
-        x.addmm_(attended, block.o_proj.weight.t())
-        gate_up = torch.mm(rms_norm(x, block.mlp_norm.eps, scales[2 * index + 1]), block.gate_up_proj.weight.t())
-        x.addmm_(ops.call(ops.geglu, gate_up), block.down_proj.weight.t())
+        attended = ops.call(ops.range_attention, q.view(batch, 1, -1, head_dim), key_cache, value_cache, first, ends)
+        x.addmm_(attended, weights.o)
+        x.addmm_(ops.call(ops.geglu, torch.mm(rms_norm(x, eps, mlp_scale), weights.gate_up)), weights.down)
     return x

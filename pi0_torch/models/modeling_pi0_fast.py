@@ -25,7 +25,7 @@ from torch import nn
 from transformers.modeling_layers import GradientCheckpointingLayer
 from transformers.utils import ModelOutput
 
-from pi0_torch.inference.fast_decoding import decode_layers_, decoding_kernels_reason, norm_scales, structural_reason
+from pi0_torch.inference.fast_decoding import DecodingLayers, decode_layers_, decoding_kernels_reason, structural_reason
 from pi0_torch.inference.fused_pass import kernels_setting_reason
 from pi0_torch.inference.graphs import relative_deviation, verify_bound
 from pi0_torch.masks import aligned_key_count, masked_attention, pad_keys, prefix_lm_mask, to_additive_mask
@@ -120,7 +120,7 @@ class DecodingCache:
     sin: torch.Tensor
     slots: torch.Tensor  # long [T]: slot of the token decoded at step t (P + t)
     first: torch.Tensor  # long [B]: the first slot decoded tokens see; the token of step t sees [first, P + t]
-    norm_scales: list[torch.Tensor] | None  # the fused kernels' norm scales (`fast_decoding.norm_scales`); None: modules
+    fused: DecodingLayers | None  # what the fused kernels read of each layer (its k/v views of `keys` and `values`); None: modules
 
 
 class PI0FastPreTrainedModel(PI0PreTrainedModel):
@@ -315,7 +315,7 @@ class PI0FastForActionGeneration(SiglipImageEmbedding, PI0FastPreTrainedModel):
             sin=decode_sin,
             slots=prefix_len + steps,
             first=window_start[:, 0],
-            norm_scales=norm_scales(self.layers) if fused else None,
+            fused=DecodingLayers.build(self.layers, keys, values) if fused else None,
         )
         return cache, logits
 
@@ -332,9 +332,8 @@ class PI0FastForActionGeneration(SiglipImageEmbedding, PI0FastPreTrainedModel):
         x = x * torch.tensor(math.sqrt(x.shape[-1]), dtype=x.dtype)  # [B, 1, D]
         cos, sin = cache.cos.index_select(2, step), cache.sin.index_select(2, step)
         slot = cache.slots.index_select(0, step)
-        if cache.norm_scales is not None:  # the fused kernels: attention over the slots [first, slot], no mask
-            x = decode_layers_(self.layers, x[:, 0], cos[:, 0], sin[:, 0], cache.keys, cache.values, cache.norm_scales,
-                               cache.first, slot)
+        if cache.fused is not None:  # the fused kernels: attention over the slots [first, slot], no mask
+            x = decode_layers_(cache.fused, x[:, 0], cos[:, 0], sin[:, 0], cache.first, slot)
             return self.lm_head(self.final_norm(x))
         mask = cache.masks.index_select(2, step)  # [B, 1, 1, S]
         for layer, key_buffer, value_buffer in zip(self.layers, cache.keys, cache.values):
