@@ -6,7 +6,8 @@ where it happens: the kernels are compiled for sm_90 by triton's ptxas (`kernel_
 needed), and the compiled kernels' launcher does nothing. Shapes are full-size π0's suffix at batch 1 (50 rows),
 bf16. Each op's row: the best of 5 rounds of 3,000 calls; the last row is one whole Euler step as eager sampling
 runs it (`ops.call` on each op, as `FusedSteps.step_` does: the action tokens, 18 layers of five ops, the Euler
-update; 92 launches), the best of 5 rounds of 30 steps. Two passes side by side.
+update; 92 launches), then the same step under `sampling_kernels="persistent"` (its 18 layers in one launch: 3),
+each the best of 5 rounds of 30 steps. Two passes side by side.
 
     python benchmarks/launch_cost.py
 """
@@ -33,7 +34,8 @@ def main() -> int:
     from kernel_resources import replace_launches
 
     from pi0_torch.inference.fused_pass import call_op
-    from pi0_torch.kernels import launch, ops, reference, triton_kernels as K
+    # (every kernel module imported before TRITON_INTERPRET is set below, so that its kernels compile)
+    from pi0_torch.kernels import launch, ops, persistent, reference, triton_kernels as K  # noqa: F401
 
     if launch.DIRECT_REASON is not None:
         print(f"no direct launches here: {launch.DIRECT_REASON}")
@@ -66,9 +68,19 @@ def main() -> int:
                                   [gate_up_w] * layers, [down_w] * layers, tables, tables, caches, caches, first,
                                   ends[:50], 818, 1e-6)
         ops.call(ops.norm_linear_euler_, x_t, tokens, scale, scale[:32], out_w, -0.1, 1e-6)
+
+    stacked_scales, stacked_cache = scale.expand(layers, -1), cache.expand(layers, -1, -1, -1)
+
+    def persistent_step() -> None:  # (the same step with `sampling_kernels="persistent"`: its layers in one launch)
+        tokens = ops.call(ops.embed_actions, x_t, in_w, scale, mlp_w, scale)
+        ops.call(ops.expert_layers_, tokens, stacked_scales, [qkv_w] * layers, [o_w] * layers, stacked_scales,
+                 [gate_up_w] * layers, [down_w] * layers, tables, tables, stacked_cache, stacked_cache, first,
+                 ends[:50], 818, 1e-6, None, None, None, None)
+        ops.call(ops.norm_linear_euler_, x_t, tokens, scale, scale[:32], out_w, -0.1, 1e-6)
     print(f"host µs per call, launch stubbed, triton {triton.__version__}, torch {torch.__version__}")
     print(f"{'op':28s} {'triton run':>11s} {'direct':>8s} {'triton run':>11s} {'direct':>8s}")
-    rows = [(name, call, CALLS) for name, call in calls.items()] + [("one Euler step (92 launches)", step, STEPS)]
+    rows = [(name, call, CALLS) for name, call in calls.items()] + [("one Euler step (92 launches)", step, STEPS),
+                                                                    ("the step, persistent (3)", persistent_step, STEPS)]
     for name, call, number in rows:
         times = []
         for _ in range(2):
