@@ -104,9 +104,9 @@ def main() -> int:
         return [normalized(each) for each in recorded]
 
     compared = 0
-    default_hooks = knobs.runtime.launch_enter_hook, knobs.runtime.launch_exit_hook
-    for enter in ("triton's default", None, lambda metadata: None):  # (3.5 to 3.9: an empty `HookChain`)
-        knobs.runtime.launch_enter_hook = default_hooks[0] if enter == "triton's default" else enter
+    default_enter = knobs.runtime.launch_enter_hook  # (3.5 to 3.9: an empty `HookChain`)
+    for enter in ("triton's default", None, lambda metadata: None):
+        knobs.runtime.launch_enter_hook = default_enter if enter == "triton's default" else enter
         through_triton = launches(direct=False)
         first_direct = launches(direct=True)
         second_direct = launches(direct=True)
@@ -120,7 +120,7 @@ def main() -> int:
         assert kernels[0] != kernels[1] and len(set(kernels[2:5])) == 3, "triton compiled no variant apart"
         if not callable(enter):  # (the second direct pass's own launches: no hook passed, no metadata made for one)
             assert all(arguments[6] is None and arguments[7] is None for _, arguments in recorded), "a hook for nothing"
-    knobs.runtime.launch_enter_hook = default_hooks[0]
+    knobs.runtime.launch_enter_hook = default_enter
     geglu = triton_kernels._geglu_kernel  # a kernel with a pre-run hook takes triton's path, which runs the hook
     geglu.kernel.add_pre_run_hook(lambda *args, **kwargs: None)
     entered.clear()
