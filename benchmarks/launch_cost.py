@@ -5,7 +5,7 @@ Eager sampling is bound by this host time (about a thousand launches per π0 chu
 where it happens: the kernels are compiled for sm_90 by triton's ptxas (`kernel_resources.TargetDriver`, no GPU
 needed), and the compiled kernels' launcher does nothing. Shapes are full-size π0's suffix at batch 1 (50 rows),
 bf16. Each op's row: the best of 5 rounds of 3,000 calls; the last row is one whole Euler step as eager sampling
-runs it (`ops.call` on each op, as `FusedSteps.step_` does: the action tokens, 18 layers of five ops, the Euler
+runs it (as `FusedSteps.step_` calls its ops: the action tokens, 18 layers of five ops, the Euler
 update; 92 launches), then the same step under `sampling_kernels="persistent"` (its 18 layers in one launch: 3),
 each the best of 5 rounds of 30 steps. Two passes side by side.
 
@@ -33,7 +33,6 @@ def main() -> int:
     import triton
     from kernel_resources import replace_launches
 
-    from pi0_torch.inference.fused_pass import call_op
     # (every kernel module imported before TRITON_INTERPRET is set below, so that its kernels compile)
     from pi0_torch.kernels import launch, ops, persistent, reference, triton_kernels as K  # noqa: F401
 
@@ -64,9 +63,9 @@ def main() -> int:
 
     def step() -> None:  # (`FusedSteps.step_`'s ops, π0)
         tokens = ops.call(ops.embed_actions, x_t, in_w, scale, mlp_w, scale)
-        reference.layer_by_layer_(call_op, tokens, [scale] * layers, [qkv_w] * layers, [o_w] * layers, [scale] * layers,
-                                  [gate_up_w] * layers, [down_w] * layers, tables, tables, caches, caches, first,
-                                  ends[:50], 818, 1e-6)
+        reference.layer_by_layer_(ops.runner(tokens.device), tokens, [scale] * layers, [qkv_w] * layers,
+                                  [o_w] * layers, [scale] * layers, [gate_up_w] * layers, [down_w] * layers, tables,
+                                  tables, caches, caches, first, ends[:50], 818, 1e-6)
         ops.call(ops.norm_linear_euler_, x_t, tokens, scale, scale[:32], out_w, -0.1, 1e-6)
 
     stacked_scales, stacked_cache = scale.expand(layers, -1), cache.expand(layers, -1, -1, -1)

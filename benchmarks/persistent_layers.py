@@ -45,9 +45,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from persistent_mlp import compile_variants, experiment_main, print_times
 
-from pi0_torch.inference.fused_pass import FUSED_TOLERANCE, call_op
+from pi0_torch.inference.fused_pass import FUSED_TOLERANCE
 from pi0_torch.inference.graphs import relative_deviation
-from pi0_torch.kernels import persistent, reference
+from pi0_torch.kernels import ops, persistent, reference
 from pi0_torch.kernels.persistent import (
     PHASES,
     Tiling,
@@ -138,7 +138,7 @@ def reference_layers_(x: torch.Tensor, step: Step, eps: float) -> torch.Tensor:
 def todays_layers_(x: torch.Tensor, step: Step, eps: float) -> torch.Tensor:
     """The same in today's five fused ops per layer (`pi0_torch.kernels.ops`: on CUDA their kernels, cuBLAS from
     `CUBLAS_ROWS` rows); returns `x`."""
-    reference.layer_by_layer_(call_op, *op_arguments(x, step, eps))
+    reference.layer_by_layer_(ops.runner(x.device), *op_arguments(x, step, eps))
     return x
 
 

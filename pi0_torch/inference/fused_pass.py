@@ -295,7 +295,7 @@ class FusedSteps:
         if self.persistent:
             ops.call(ops.expert_layers_, tokens, *self.layer_arguments[index])
         else:
-            reference.layer_by_layer_(call_op, tokens, *self.layer_arguments[index])
+            reference.layer_by_layer_(ops.runner(tokens.device), tokens, *self.layer_arguments[index])
         row = index if self.final_scales.shape[0] > 1 else 0  # (π0.5: a final norm per step)
         ops.call(ops.norm_linear_euler_, x_t, tokens, self.final_scales[row], self.final_biases[row], self.out_weight, dt,
                  self.model.config.rms_norm_eps)
@@ -324,11 +324,6 @@ def state_layers_(
 def projection_lists(weights: list[SamplingWeights]) -> tuple[list[torch.Tensor], ...]:
     """Each layer's q/k/v, o, gate/up and down weights (transposed) as four lists, `expert_layers_`'s arguments."""
     return tuple(list(each) for each in zip(*((own.qkv, own.o, own.gate_up, own.down) for own in weights)))
-
-
-def call_op(name: str, *args: Any) -> Any:
-    """The fused op `name` of `pi0_torch.kernels.ops` on `args` (`ops.call`)."""
-    return ops.call(getattr(ops, name), *args)
 
 
 def prefix_layer(
