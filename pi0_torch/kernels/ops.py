@@ -5,7 +5,8 @@ Each op runs its Triton kernel (`pi0_torch.kernels.triton_kernels`) where `trito
 CUDA tensor and an importable triton, or `TRITON_INTERPRET=1`), else its torch reference
 (`pi0_torch.kernels.reference`). `call` goes through the dispatcher only where something has to see the op itself
 (a dispatch mode such as the op counter or FakeTensor, or compiling): a custom op's dispatch costs 20-70 µs of host
-time per call, more than the kernel it launches.
+time per call, more than the kernel it launches. `runner` makes the same choice once for a run of calls (a sampling
+step's layers).
 
 (No `from __future__ import annotations` here: `torch.library.custom_op` reads the schema from the annotations.)
 """
