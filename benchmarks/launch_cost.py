@@ -4,10 +4,10 @@
 Eager sampling is bound by this host time (about a thousand launches per π0 chunk), so it is measured on the CPU,
 where it happens: the kernels are compiled for sm_90 by triton's ptxas (`kernel_resources.TargetDriver`, no GPU
 needed), and the compiled kernels' launcher does nothing. Shapes are full-size π0's suffix at batch 1 (50 rows),
-bf16. Each op's row: the best of 5 rounds of 3,000 calls; the last row is one whole Euler step as eager sampling
-runs it (as `FusedSteps.step_` calls its ops: the action tokens, 18 layers of five ops, the Euler
-update; 92 launches), then the same step under `sampling_kernels="persistent"` (its 18 layers in one launch: 3),
-each the best of 5 rounds of 30 steps. Two passes side by side.
+bf16. Each op's row: the best of 5 rounds of 3,000 calls. The last two rows: one whole Euler step as eager sampling
+runs it (as `FusedSteps.step_` calls its ops: the action tokens, 18 layers of five ops, the Euler update; 92
+launches), then the same step under `sampling_kernels="persistent"` (its 18 layers in one launch: 3), each the best
+of 5 rounds of 30 steps. Two passes side by side.
 
     python benchmarks/launch_cost.py
 """

@@ -449,7 +449,8 @@ def test_fused_decoding_matches_openpi_and_the_modules(fast_reference: FastRefer
 
 def test_decoding_kernels_run_only_where_they_apply(monkeypatch: pytest.MonkeyPatch) -> None:
     """"auto" fuses only on CUDA in bf16 / fp16; "torch" never; "triton" refuses, naming why, a model it cannot run
-    (grouped kv heads, LoRA); a kernel that differs from its reference on a device keeps decoding on the modules."""
+    (grouped kv heads, LoRA), and so does building the fused layers for one; a kernel that differs from its reference
+    on a device keeps decoding on the modules."""
     model = PI0FastForActionGeneration(PI0FastConfig.from_preset("pi0_fast_small")).eval()
     cpu = torch.device("cpu")
     assert "run on CUDA in bf16 / fp16" in model.decoding_kernels_reason(cpu, torch.float32)
@@ -466,6 +467,9 @@ def test_decoding_kernels_run_only_where_they_apply(monkeypatch: pytest.MonkeyPa
     hooked.layers[1].block.o_proj.register_forward_hook(lambda module, args, output: output)
     with pytest.raises(ValueError, match="a layer's projections are not plain weights"):
         hooked.decoding_kernels_reason(cpu, torch.float32)
+    buffers = [torch.zeros(1, 1, 8, hooked.config.head_dim) for _ in hooked.layers]  # (never read)
+    with pytest.raises(ValueError, match="a layer's projections are not plain weights"):  # (no None weight at a token)
+        fast_decoding.DecodingLayers.build(hooked.layers, buffers, buffers)
     if TRITON_REASON is not None:
         return
     from pi0_torch.kernels import triton_kernels

@@ -91,10 +91,14 @@ class DecodingLayers:
     def build(cls, layers: Sequence[FastDecoderLayer], keys: Sequence[torch.Tensor],
               values: Sequence[torch.Tensor]) -> DecodingLayers:
         """`keys`, `values`: the decoding cache's per-layer buffers `[B, 1, S, H]`."""
+        weights = [expert_sampling_weights(layer.block) for layer in layers]
+        if not all(each.usable for each in weights):
+            raise ValueError("fused decoding runs the GEMMs on the layers' weights, and a layer's projections are not "
+                             "plain weights (LoRA, quantized or hooked layers, autocast): decode with fused=False")
         norms = [norm.weight for layer in layers for norm in (layer.block.attn_norm, layer.block.mlp_norm)]
         scales = torch._foreach_add(norms, 1)  # (one op for all of them)
-        return cls(list(zip(scales[::2], scales[1::2])), [expert_sampling_weights(layer.block) for layer in layers],
-                   [each[:, 0] for each in keys], [each[:, 0] for each in values], layers[0].block.attn_norm.eps)
+        return cls(list(zip(scales[::2], scales[1::2])), weights, [each[:, 0] for each in keys],
+                   [each[:, 0] for each in values], layers[0].block.attn_norm.eps)
 
     def tensors(self) -> list[torch.Tensor]:
         """The tensors made here (the norm scales), not views of the model's or the cache's."""

@@ -20,8 +20,8 @@ What triton's `run` does per call and a direct launch does not: run the kernel's
 launches through triton's `run`), check that the globals a kernel reads are unchanged, and re-read the debug and instrumentation
 knobs (set while a process runs, they reach only kernels compiled after). Launch hooks (profilers such as proton) are
 passed on as triton passes them, except that an empty chain of hooks (triton's default since 3.5: a `HookChain` with
-nothing in it, which the launcher would call for nothing) is passed as None, and so no launch metadata is made for it
-(about 1.6 µs a launch on the development CPU). `PI0_TORCH_TRITON_LAUNCH=triton` in the environment keeps triton's
+nothing in it, which the launcher would call for nothing) is passed as None, and where both are, no launch metadata
+is made for them (about 1.6 µs a launch on the development CPU). `PI0_TORCH_TRITON_LAUNCH=triton` in the environment keeps triton's
 own launch throughout, as do triton versions outside those whose `run` launches as above (3.5 to 3.9;
 `DIRECT_REASON` says why).
 """
@@ -97,7 +97,7 @@ class DirectLaunch:
         values = (*args, *[kwargs[name] for name in keywords])
         grid_x, grid_y, grid_z = (*grid, 1, 1)[:3]
         enter_hook, exit_hook = _hook(knobs.runtime.launch_enter_hook), _hook(knobs.runtime.launch_exit_hook)
-        metadata = None if enter_hook is None else compiled.launch_metadata(grid, stream, *values)
+        metadata = None if enter_hook is exit_hook is None else compiled.launch_metadata(grid, stream, *values)
         compiled.run(grid_x, grid_y, grid_z, stream, compiled.function, compiled.packed_metadata, metadata, enter_hook,
                      exit_hook, *values)
         return compiled

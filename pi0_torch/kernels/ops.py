@@ -79,7 +79,7 @@ def runner(device: torch.device) -> Callable[..., Any]:
     Triton implementation or the reference, the GPU to make current) is decided once, here; each call still looks
     its implementation up by name. About 2 of a fused op call's 12 µs of host time on the development CPU."""
     if torch.compiler.is_compiling() or _get_current_dispatch_mode() is not None:
-        return lambda name, *args: globals()[name](*args)
+        return lambda name, *args: getattr(sys.modules[__name__], name)(*args)  # (the custom op; dynamo traces this)
     if device.type == "cuda" and device.index != torch.cuda.current_device():
         return _run  # (makes the tensors' GPU current for each launch)
     kernels, layers = (sys.modules[TRITON_KERNELS], sys.modules[PERSISTENT]) if triton_reason(device) is None else (
