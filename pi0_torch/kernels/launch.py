@@ -21,8 +21,8 @@ launches through triton's `run`), check that the globals a kernel reads are unch
 knobs (set while a process runs, they reach only kernels compiled after). Launch hooks (profilers such as proton) are
 passed on as triton passes them, except that an empty chain of hooks (triton's default since 3.5: a `HookChain` with
 nothing in it, which the launcher would call for nothing) is passed as None, and where both are, no launch metadata
-is made for them (about 1.6 µs a launch on the development CPU). `PI0_TORCH_TRITON_LAUNCH=triton` in the environment keeps triton's
-own launch throughout, as do triton versions outside those whose `run` launches as above (3.5 to 3.9;
+is made for them (about 1.6 µs a launch on the development CPU). `PI0_TORCH_TRITON_LAUNCH=triton` in the environment
+keeps triton's own launch throughout, as do triton versions outside those whose `run` launches as above (3.5 to 3.9;
 `DIRECT_REASON` says why).
 """
 
