@@ -16,6 +16,7 @@ import importlib.util
 import logging
 import os
 import sys
+from types import ModuleType
 from typing import Any, Callable, List, Optional
 
 import torch
@@ -47,10 +48,22 @@ def triton_reason(device: torch.device) -> Optional[str]:
     return _triton_import_error()
 
 
+def _module(name: str, triton: bool) -> ModuleType:
+    """The module of op `name`'s implementation: its Triton kernels' where `triton` (`triton_reason` found nothing
+    against them, so `_triton_import_error` imported them: no import statement per call), else the references."""
+    if not triton:
+        return reference
+    return sys.modules[PERSISTENT if name == "expert_layers_" else TRITON_KERNELS]
+
+
 def _implementation(name: str, device: torch.device) -> Callable[..., Any]:
-    if triton_reason(device) is None:  # (so `_triton_import_error` imported them: no import statement per call)
-        return getattr(sys.modules[PERSISTENT if name == "expert_layers_" else TRITON_KERNELS], name)
-    return getattr(reference, name)
+    return getattr(_module(name, triton_reason(device) is None), name)
+
+
+def _dispatched() -> bool:
+    """Whether the custom ops themselves must run (through the dispatcher): a dispatch mode (the op counter,
+    FakeTensor) or the compiler has to see them."""
+    return torch.compiler.is_compiling() or _get_current_dispatch_mode() is not None
 
 
 def _run(name: str, *args: Any) -> Any:
@@ -68,7 +81,7 @@ def _run(name: str, *args: Any) -> Any:
 def call(op: Any, *args: Any) -> Any:
     """Run the custom op `op` (e.g. `norm_qkv_rope`): straight into its implementation, or through the dispatcher
     where a dispatch mode or the compiler has to see it (see the module docstring)."""
-    if torch.compiler.is_compiling() or _get_current_dispatch_mode() is not None:
+    if _dispatched():
         return op(*args)
     return _run(op._name.split("::")[-1], *args)
 
@@ -78,13 +91,12 @@ def runner(device: torch.device) -> Callable[..., Any]:
     sampling step's layers): `runner(device)(name, *args)`. What `call` decides per call (the dispatcher or not, the
     Triton implementation or the reference, the GPU to make current) is decided once, here; each call still looks
     its implementation up by name. About 2 of a fused op call's 12 µs of host time on the development CPU."""
-    if torch.compiler.is_compiling() or _get_current_dispatch_mode() is not None:
+    if _dispatched():
         return lambda name, *args: getattr(sys.modules[__name__], name)(*args)  # (the custom op; dynamo traces this)
     if device.type == "cuda" and device.index != torch.cuda.current_device():
         return _run  # (makes the tensors' GPU current for each launch)
-    kernels, layers = (sys.modules[TRITON_KERNELS], sys.modules[PERSISTENT]) if triton_reason(device) is None else (
-        reference, reference)
-    return lambda name, *args: getattr(layers if name == "expert_layers_" else kernels, name)(*args)
+    triton = triton_reason(device) is None
+    return lambda name, *args: getattr(_module(name, triton), name)(*args)
 
 
 @torch.library.custom_op("pi0_torch::embed_actions", mutates_args=())

@@ -60,6 +60,7 @@ from pi0_torch.kernels.triton_kernels import (  # noqa: E402
     _sum_splits,
     cdiv,
     dot_dtype,
+    split_workspace,
     zeroed_counters,
 )
 
@@ -397,7 +398,7 @@ def expert_layers_(
     hidden = x.new_empty(rows, mlp_width)
     partial = x.new_empty(tiling.key_parts, rows * heads, head_dim, dtype=torch.float32)
     stats = x.new_empty(2, tiling.key_parts, rows * heads, dtype=torch.float32)
-    o_parts, down_parts = (split_workspace(x, tiling.m, columns, splits)
+    o_parts, down_parts = (phase_workspace(x, tiling.m, columns, splits)
                            for columns, splits in ((tiling.o, tiling.o_splits), (tiling.down, tiling.down_splits)))
     if watch is not None and (watch.shape != (2,) or watch.dtype != torch.int32 or watch.device != x.device):
         raise ValueError(f"expert_layers_: a watch is int32 [2] on {x.device}; got {watch.dtype} {tuple(watch.shape)} on "
@@ -531,10 +532,7 @@ def phase_tiles(rows: int, tokens: int, heads: int, head_dim: int, width: int, m
             row_blocks * cdiv(width, tiling.down) * tiling.down_splits]
 
 
-def split_workspace(x: torch.Tensor, rows: int, columns: int, splits: int) -> torch.Tensor:
-    """float32 room for the split-K parts of a phase's output tiles (`rows` x `columns` each, `_sum_splits`' layout;
-    one launch's layers take turns in it), or `x` where the phase is not split (never read)."""
-    if splits == 1:
-        return x
-    tiles = cdiv(x.shape[0], rows) * cdiv(x.shape[1], columns)
-    return x.new_empty(tiles * splits * (2 * rows * columns + rows), dtype=torch.float32)
+def phase_workspace(x: torch.Tensor, rows: int, columns: int, splits: int) -> torch.Tensor:
+    """The split-K workspace of a phase whose output tiles are `rows` x `columns` of `x` (`split_workspace`; one
+    launch's layers take turns in it), or `x` where the phase is not split (never read)."""
+    return x if splits == 1 else split_workspace(x, cdiv(x.shape[0], rows) * cdiv(x.shape[1], columns), rows, columns, splits)

@@ -619,8 +619,14 @@ def split_k(x: torch.Tensor, tile: Blocks, tiles: int, depth: int) -> tuple[Bloc
     zeroes them again before each replay."""
     if tile.splits == 1 or tiles > COUNTER_SLOTS:
         return tile._replace(splits=1), x, x, depth
-    workspace = x.new_empty(tiles * tile.splits * (2 * tile.m * tile.n + tile.m), dtype=torch.float32)
+    workspace = split_workspace(x, tiles, tile.m, tile.n, tile.splits)
     return tile, workspace, arrival_counters(x.device), cdiv(cdiv(depth, tile.splits), tile.k) * tile.k
+
+
+def split_workspace(x: torch.Tensor, tiles: int, rows: int, columns: int, splits: int) -> torch.Tensor:
+    """float32 room on `x`'s device for the `splits` parts of `tiles` output tiles of `rows` x `columns` each, as
+    `_sum_splits` lays them out (per part: two accumulators and the rows' sums of squares)."""
+    return x.new_empty(tiles * splits * (2 * rows * columns + rows), dtype=torch.float32)
 
 
 def arrival_counters(device: torch.device) -> torch.Tensor:
