@@ -28,8 +28,6 @@ from pi0_torch.runtime.observation_formats import ObservationError
 from pi0_torch.runtime.policy import PI0Policy
 from pi0_torch.runtime.serving import PolicyServer, pack_message, unpack_message
 
-pytestmark = pytest.mark.filterwarnings("ignore:connect\\(\\) must be used as a context manager:DeprecationWarning")
-
 OBSERVATION = {"images": {"base_0_rgb": np.zeros((32, 32, 3), np.uint8)}, "state": np.ones(3), "prompt": "reach"}
 PREVIOUS = np.linspace(-1, 1, HORIZON * 3, dtype=np.float32).reshape(HORIZON, 3)
 CONTINUATION = {"previous_actions": PREVIOUS, "execution_horizon": 2, "inference_delay": 2}

@@ -17,10 +17,8 @@ import pytest
 from websockets.sync.server import ServerConnection, serve
 
 from pi0_torch.cli import main
-from pi0_torch.runtime.rollout import EvalSettings, LocalPolicy, ScriptedPolicy, evaluate
+from pi0_torch.runtime.rollout import EvalSettings, LocalPolicy, RemotePolicy, ScriptedPolicy, evaluate
 from pi0_torch.runtime.serving import pack_message, unpack_message
-
-pytestmark = pytest.mark.filterwarnings("ignore:connect\\(\\) must be used as a context manager:DeprecationWarning")
 
 HORIZON = 4
 METADATA = {"policy": "fake", "action_horizon": HORIZON, "action_dim": 3, "state_dim": 3,
@@ -28,10 +26,10 @@ METADATA = {"policy": "fake", "action_horizon": HORIZON, "action_dim": 3, "state
 
 
 @contextlib.contextmanager
-def fake_server(mode: str, serve_first: int = 0) -> Iterator[str]:
+def fake_server(mode: str, serve_first: int = 0, closed: threading.Semaphore | None = None) -> Iterator[str]:
     """An openpi-protocol server that answers `serve_first` requests with a still chunk, then misbehaves per `mode`:
     "drop" closes every connection, "silent" never replies, "no actions" replies without them, "bad metadata"
-    sends metadata without an action horizon."""
+    sends metadata without an action horizon. `closed` is released once per connection its client closed."""
     served = [0]
     lock = threading.Lock()
     release = threading.Event()
@@ -53,6 +51,8 @@ def fake_server(mode: str, serve_first: int = 0) -> Iterator[str]:
                 return
             else:
                 ws.send(pack_message({"policy_timing": {"infer_ms": 1.0}}))
+        if closed is not None:
+            closed.release()
 
     with serve(handle, "127.0.0.1", 0) as server:
         thread = threading.Thread(target=server.serve_forever, daemon=True)
@@ -99,6 +99,16 @@ def test_a_misbehaving_server_is_one_line(mode: str, message: str, tmp_path: Pat
                                "--output-dir", str(tmp_path / "out"))
     assert status == 2 and err.startswith("pi0-torch eval: error: ") and message in err and "\n" not in err, err
     assert not (tmp_path / "out").exists()  # no episode finished: nothing to write
+
+
+def test_a_refused_server_is_left_with_no_connection_open() -> None:
+    """A server whose metadata is refused has every connection closed by the client at once (they stayed open until
+    the process ended)."""
+    closed = threading.Semaphore(0)
+    with fake_server("bad metadata", closed=closed) as url:
+        with pytest.raises(ValueError, match="lacks 'action_horizon'"):
+            RemotePolicy(url, connections=2, timeout=5)
+        assert closed.acquire(timeout=10) and closed.acquire(timeout=10)
 
 
 @pytest.mark.parametrize(("args", "message"), [

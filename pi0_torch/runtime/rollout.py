@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import concurrent.futures
+import contextlib
 import importlib
 import json
 import logging
@@ -151,13 +152,21 @@ class RemotePolicy:
         self.timeout = check_float("--timeout", timeout, minimum=0.0, exclusive_minimum=True)
         self._pack, self._unpack = pack_message, unpack_message
         headers = {"Authorization": f"Api-Key {api_key}"} if api_key else None
+        # (each connection entered as the context manager websockets asks for: a plain `connect()` warns since
+        # websockets 17.1, which is to return a reconnecting iterator there instead; `close` leaves them)
+        self._connections = contextlib.ExitStack()
         try:
-            self.sockets = [connect(url, max_size=None, additional_headers=headers, open_timeout=timeout)
-                            for _ in range(connections)]
-            metadata = [self._unpack(socket.recv(timeout)) for socket in self.sockets][0]
-        except (OSError, WebSocketException) as error:  # refused, unreachable, a rejected handshake, no metadata
-            raise ConnectionError(f"cannot reach the policy server at {url}: {first_line(error) or type(error).__name__}") from None
-        self.metadata = _checked_metadata(metadata, url)
+            try:
+                self.sockets = [self._connections.enter_context(connect(url, max_size=None, additional_headers=headers,
+                                                                        open_timeout=timeout))
+                                for _ in range(connections)]
+                metadata = [self._unpack(socket.recv(timeout)) for socket in self.sockets][0]
+            except (OSError, WebSocketException) as error:  # refused, unreachable, a rejected handshake, no metadata
+                raise ConnectionError(f"cannot reach the policy server at {url}: {first_line(error) or type(error).__name__}") from None
+            self.metadata = _checked_metadata(metadata, url)
+        except BaseException:
+            self._connections.close()  # (the connections already open)
+            raise
         self.recommended_replan_steps: int | None = self.metadata.get("replan_steps")  # (the served policy's)
         self.pool = concurrent.futures.ThreadPoolExecutor(max_workers=connections)
 
@@ -201,8 +210,7 @@ class RemotePolicy:
         return [future.result() for future in futures]
 
     def close(self) -> None:
-        for socket in self.sockets:
-            socket.close()
+        self._connections.close()
         self.pool.shutdown()
 
 
