@@ -65,6 +65,13 @@ class OpenpiReference:
         )
 
 
+def enable_checkpointing(model: torch.nn.Module) -> None:
+    """Activation checkpointing on: transformers >= 5.23 names it `activation_checkpointing_enable` (the old
+    `gradient_checkpointing_enable` warns there)."""
+    enable = getattr(model, "activation_checkpointing_enable", None) or model.gradient_checkpointing_enable
+    enable()
+
+
 def relative_error(ours: torch.Tensor | np.ndarray, reference: np.ndarray) -> float:
     """max|ours - ref| / max|ref|."""
     ours_np = ours.detach().float().cpu().numpy() if isinstance(ours, torch.Tensor) else np.asarray(ours)

@@ -13,7 +13,7 @@ from transformers import AutoConfig, AutoModel
 
 from pi0_torch import PI0Config, PI0ForActionGeneration
 
-from conftest import OpenpiReference
+from conftest import OpenpiReference, enable_checkpointing
 
 
 def small_batch(config: PI0Config, batch: int = 2, seed: int = 0) -> dict[str, torch.Tensor]:
@@ -171,7 +171,7 @@ def test_gradient_checkpointing_gives_the_same_gradients(references: dict[str, O
     for checkpointing in (False, True):
         model = ref.model().train()
         if checkpointing:
-            model.gradient_checkpointing_enable()
+            enable_checkpointing(model)
             assert all(layer.gradient_checkpointing for layer in model.layers)
             assert all(layer.gradient_checkpointing for layer in model.vision_tower.encoder.layers)
         model(**inputs).loss.backward()

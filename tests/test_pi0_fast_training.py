@@ -16,6 +16,7 @@ from pi0_torch.training.settings import TrainSettings
 from pi0_torch.training.trainable import apply_lora, merge_lora
 from pi0_torch.training.trainer import train_policy
 
+from conftest import enable_checkpointing
 from test_training import dataset_root, one_thread  # noqa: F401  (fixtures: a tiny synthetic LeRobot dataset)
 
 TINY_FAST = dict(
@@ -91,7 +92,7 @@ def test_gradient_checkpointing_gives_the_same_gradients() -> None:
         return {name: p.grad.clone() for name, p in model.named_parameters() if p.grad is not None}
 
     plain = gradients()
-    model.gradient_checkpointing_enable()
+    enable_checkpointing(model)
     assert all(layer.gradient_checkpointing for layer in model.layers)
     assert all(layer.gradient_checkpointing for layer in model.vision_tower.encoder.layers)
     checkpointed = gradients()

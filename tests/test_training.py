@@ -16,7 +16,7 @@ import pytest
 import torch
 from safetensors.torch import load_file
 
-from conftest import HANG_S
+from conftest import HANG_S, enable_checkpointing
 from pi0_torch import PI0Config, PI0ForActionGeneration
 from pi0_torch.data.lerobot_dataset import LeRobotEpisodeDataset
 from pi0_torch.processing.normalization import NormStats, save_openpi_norm_stats
@@ -400,7 +400,7 @@ def test_gradient_checkpointing_gives_the_same_gradients() -> None:
     for checkpointing in (False, True):
         model = tiny_model().train()
         if checkpointing:
-            model.gradient_checkpointing_enable()
+            enable_checkpointing(model)
         loss = model(**batch).loss
         loss.backward()
         grads.append({n: p.grad.clone() for n, p in model.named_parameters() if p.grad is not None})
