@@ -21,7 +21,7 @@ import numpy as np
 import torch
 
 from pi0_torch.conversion.openpi_weights import check_openpi_shapes, config_from_openpi_shapes, is_openpi_fast_tree, iter_openpi_state_dict
-from pi0_torch.conversion.orbax_reader import LeafInfo, OrbaxCheckpoint, first_line
+from pi0_torch.conversion.orbax_reader import LeafInfo, OrbaxCheckpoint, first_line, streaming_reason
 from pi0_torch.conversion.output_folder import (
     DEFAULT_MAX_SHARD_BYTES,
     ConversionError,
@@ -78,6 +78,9 @@ def convert_openpi_checkpoint(
     torch_dtype, max_shard_bytes, output_dir = checked_arguments(dtype, max_shard_bytes, checkpoint_dir, output_dir, overwrite)
     checkpoint = OrbaxCheckpoint(checkpoint_dir)
     check_output(checkpoint.step_dir, output_dir, overwrite)  # the assets beside params/ are input too
+    if (reason := streaming_reason()) is not None:
+        logger.warning(f"{reason}: each stored chunk is decoded whole, so memory peaks at about twice the largest one "
+                       "(10 GB for a single-device float32 π0)")
     shapes = checkpoint.shapes()
     action_tokenizer = _load_fast_tokenizer(fast_tokenizer)
     if is_openpi_fast_tree(shapes) and action_tokenizer is not None:

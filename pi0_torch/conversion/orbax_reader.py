@@ -22,6 +22,7 @@ Leaf paths are reported the way openpi names parameters: tree keys joined by "/"
 from __future__ import annotations
 
 import ast
+import functools
 import json
 import math
 import os
@@ -48,6 +49,26 @@ _STREAM_READ_BYTES = 16 << 20  # compressed bytes fetched per read when a chunk 
 VALUE_SUFFIX = "value"
 # orbax value types that hold an array (other entries, e.g. empty nodes, carry no data)
 _ARRAY_VALUE_TYPES = frozenset({"jax.Array", "np.ndarray", "scalar"})
+
+
+def streaming_reason() -> str | None:
+    """Why zstd chunks are decoded whole by tensorstore here instead of decompressed as streams (None: they are
+    streamed, see `OrbaxCheckpoint.iter_rows`)."""
+    if zstandard is None:
+        return "zstandard is not installed"
+    if not _reads_byte_ranges():
+        return "tensorstore reads byte ranges of a stored value from 0.1.81 on (Python 3.10's last is 0.1.78)"
+    return None
+
+
+@functools.lru_cache(maxsize=None)
+def _reads_byte_ranges() -> bool:
+    """Whether this tensorstore's `KvStore.read` takes a `byte_range` (asked once, of an in-memory store)."""
+    try:
+        ts.KvStore.open({"driver": "memory"}).result().read("probe", byte_range=slice(0, 0)).result()
+    except TypeError:
+        return False
+    return True
 
 
 class CheckpointError(ValueError):
@@ -166,8 +187,9 @@ class OrbaxCheckpoint:
 
         orbax stores an array saved from one device as a single zstd-compressed chunk; decoding it whole takes
         twice its size in memory (4.8 GB for π0's largest leaf). When the array is chunked along axis 0 only and
-        compressed with zstd (what orbax writes) and `zstandard` is installed, each chunk is decompressed as a
-        stream instead, so only about one row is held at a time. Otherwise the chunks are decoded by tensorstore.
+        compressed with zstd (what orbax writes), each chunk is decompressed as a stream instead, so only about one
+        row is held at a time, where `streaming_reason` finds nothing against it (`zstandard` installed, a tensorstore
+        that reads byte ranges). Otherwise the chunks are decoded by tensorstore.
         """
         info = self.info(path)
         stop = info.shape[0] if stop is None else stop
@@ -204,8 +226,9 @@ class OrbaxCheckpoint:
 
     def _chunk_source(self, info: LeafInfo, chunk: int) -> _KvStoreValueReader | None:
         """The stored bytes of chunk `chunk` along axis 0, when it can be decompressed as a zstd stream: zarr v2,
-        zstd without filters, C order, little-endian, chunked along axis 0 only, chunk present."""
-        if zstandard is None or not info.shape or info.chunks[1:] != info.shape[1:] or info.dtype.byteorder not in ("<", "=", "|"):
+        zstd without filters, C order, little-endian, chunked along axis 0 only, chunk present (and nothing in
+        `streaming_reason`)."""
+        if streaming_reason() is not None or not info.shape or info.chunks[1:] != info.shape[1:] or info.dtype.byteorder not in ("<", "=", "|"):
             return None
         try:
             zarray = self._zarr_metadata(info.key)
