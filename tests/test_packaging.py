@@ -10,10 +10,14 @@ import importlib
 import re
 import subprocess
 import sys
-import tomllib
 from pathlib import Path
 
 import pytest
+
+try:
+    import tomllib
+except ModuleNotFoundError:  # Python 3.10: the same parser as pytest's own dependency there
+    import tomli as tomllib
 
 from pi0_torch.cli import COMMANDS, main
 from pi0_torch.utils.extras import DISTRIBUTIONS as EXTRA_DISTRIBUTIONS
