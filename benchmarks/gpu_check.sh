@@ -9,16 +9,17 @@
 #     SKIP= OUT=/tmp/gpu benchmarks/gpu_check.sh    # everything, the kernels' tilings too (about 10.5 minutes)
 #
 # Timings run alone on the GPU; the checks run side by side (correctness does not mind sharing the GPU):
-# 1. alone: the benchmark, fused steps against the torch path, eager and graph, π0 and π0.5, batch 1, 4 and 8, with each
-#    row's GPU activities, GPU time and its 30 longest kinds of kernel;
+# 1. alone: the benchmark, "auto" against the torch path, eager and graph, π0 and π0.5, batch 1, 2 and 8 (eager "auto"
+#    runs the persistent launch at batch 1 and 2, five fused launches per layer elsewhere), with each row's GPU
+#    activities, GPU time and its 30 longest kinds of kernel;
 # 2. together: doctor (every sampling path at full size against its reference, sampling_kernels="persistent" too),
 #    the GPU tests (tests/test_cuda.py), the fused kernels' tests on real kernels (tests/test_kernels.py, the persistent
 #    launch's sampling included), and issue 37's persistent experiments against their references (which compiles what
 #    step 3 times into triton's disk cache; with tilings, every tiling too);
 # 3. alone: the step GEMMs against cuBLAS (GB/s); an Euler step's 18 layers as one persistent launch against today's
 #    90 (benchmarks/persistent_layers.py: its tilings, then where one launch's time went, phase by phase, from the
-#    timeline its tiles stamp); the benchmark again with sampling_kernels="persistent" (whole
-#    chunks, eager and graph, batch 1 and 8: compare with step 1's "fused" rows, same machine; the MLP half alone,
+#    timeline its tiles stamp); the benchmark again with sampling_kernels="triton" (five launches per layer, eager and
+#    graph, batch 1 and 2: what "auto" runs eagerly there is step 1's, same machine; the MLP half alone,
 #    benchmarks/persistent_mlp.py, is left out); with tilings, the kernels' tilings (benchmarks/kernel_sweep.py: every
 #    candidate timed and checked against the reference, the fastest written to $OUT/tilings.json, then π0 and π0.5
 #    sampled with them; measured on an H200 on 2026-11-27); and π0-FAST's decoding, fused against the modules,
@@ -50,7 +51,7 @@ show() {  # show NAME: the end of its log
 } 2>&1 | tee "$OUT/bench.log"  # (the versions head the benchmark's log: 8 files come back, no more)
 
 # 1. alone
-step bench 150 "$PY" -m pi0_torch.cli bench --device cuda --presets pi0,pi05 --dtypes bfloat16 --cameras 3 --batches 1,4,8 \
+step bench 150 "$PY" -m pi0_torch.cli bench --device cuda --presets pi0,pi05 --dtypes bfloat16 --cameras 3 --batches 1,2,8 \
     --kernels auto,torch --repeats 10 --kernel-table 30
 [ -f "$OUT/bench.log" ] && grep -v '^      ' "$OUT/bench.log" | tail -n 25
 
@@ -75,13 +76,13 @@ grep -h "against the reference\|outputs NaN\|^exit" "$OUT/persistent-check.log"
 # 3. alone
 step sweep 20 "$PY" -m pi0_torch.cli bench --device cuda --skip-generate --gemms --presets pi0 --batches 1,8 --repeats 10
 step sweep 50 "$PY" benchmarks/persistent_layers.py --bench
-step bench 75 "$PY" -m pi0_torch.cli bench --device cuda --presets pi0,pi05 --dtypes bfloat16 --cameras 3 --batches 1,8 \
-    --kernels persistent --repeats 10 --kernel-table 15
+step bench 75 "$PY" -m pi0_torch.cli bench --device cuda --presets pi0,pi05 --dtypes bfloat16 --cameras 3 --batches 1,2 \
+    --kernels triton --repeats 10 --kernel-table 15
 step tilings 100 "$PY" benchmarks/kernel_sweep.py --write "$OUT/tilings.json" --bench
 step fast-bench 45 "$PY" -m pi0_torch.cli bench --device cuda --skip-generate --fast --fast-presets pi0_fast \
     --dtypes bfloat16 --batches 1 --kernels auto,torch --repeats 3
 TAIL=70 show sweep
-printf '\n---- bench, sampling_kernels="persistent"\n'
+printf '\n---- bench, sampling_kernels="triton"\n'
 grep -v '^      ' "$OUT/bench.log" | tail -n 12
 TAIL=40 show tilings
 TAIL=8 show fast-bench

@@ -462,8 +462,17 @@ def print_timeline(shape: Shape, tiling: Tiling, timeline: torch.Tensor, program
               f"{float(work[at].median()):8.2f} {float(torch.tensor(spans).median()):13.2f}", flush=True)
 
 
-TILINGS = [Tiling(), Tiling(o_splits=2, down_splits=2), Tiling(o_splits=2, down_splits=4), Tiling(k=128),
-           Tiling(prefetch=False), Tiling(qkv=32, o=32, gate_up=64, down=32), Tiling(key_parts=2), Tiling(per_sm=2)]
+# The default first (the fastest of 15 on an H200: benchmarks/results/gpu_h200_2026-11-28.md), then its runners-up
+# and what each lever alone did: µs per Euler step of π0 at batch 1 (two calls, two machines; today's 90 launches
+# took 979 and 980 µs on them)
+TILINGS = [Tiling(),  # 1091
+           Tiling(o=32, down=32, o_splits=4, down_splits=4),  # 1093
+           Tiling(stages=4, o_splits=1, down_splits=1),  # 1191
+           Tiling(o_splits=1, down_splits=1),  # 1197 (k=128 alone)
+           Tiling(warps=8, o_splits=1, down_splits=1),  # 1349 (no spills, slower)
+           Tiling(k=64, o_splits=1, down_splits=1),  # 1422 (the first default)
+           Tiling(k=64, o_splits=1, down_splits=1, prefetch=False),  # 1577
+           Tiling(k=64, o_splits=1, down_splits=1, per_sm=2)]  # 1799 (batch 8's fastest, 4.7 ms against 1.5)
 
 
 def main() -> int:

@@ -340,15 +340,19 @@ def bench_generate(args: argparse.Namespace, device: torch.device) -> None:
 
 
 def steps_path(model: PI0ForActionGeneration, device: torch.device, method: str | None, batch: int, cameras: int) -> str:
-    """What ran a row's Euler steps: "fused", "persist." (fused, each step's decoder layers in one launch), "torch", or
-    "refused" (fused, but its first call's verification against the unfused path refused this batch size and camera
-    count: they ran unfused)."""
+    """What ran a row's Euler steps: "fused" (five launches per decoder layer), "persist." (fused, each step's decoder
+    layers in one launch: `runs_persistent`), "torch", or "refused" (fused, but its first call's verification against
+    the unfused path refused this batch size and camera count: they ran unfused; under "auto" a refused persistent
+    plan ran five launches per layer)."""
     if model.fused_steps_reason(device, model.dtype, method) is not None:
         return "torch"
-    images = [signature[0][0][:2] for signature in (key[1] for key, why in model._fused_refusals.items() if why is not None)]
-    if (batch, cameras) in images:
+    refused = {(plan.persistent, signature[0][0][:2])
+               for (plan, signature), why in model._fused_refusals.items() if why is not None}
+    replayed = device.type == "cuda" and model.replays_graphs(method)
+    persistent = model.runs_persistent(batch, replayed) and (True, (batch, cameras)) not in refused
+    if (persistent, (batch, cameras)) in refused:
         return "refused"
-    return "persist." if model.sampling_kernels == "persistent" else "fused"
+    return "persist." if persistent else "fused"
 
 
 def bench_op_counts(args: argparse.Namespace) -> None:
@@ -711,7 +715,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "compiled inside the CUDA graph); on CUDA the hand-captured graph is always timed")
     parser.add_argument("--kernels", type=_csv(str), default="auto", help="comma list of sampling_kernels to time: "
                         "auto (the fused kernels on CUDA in bf16 where they pass their check), torch, triton, "
-                        "persistent (each step's decoder layers in one launch; experimental)")
+                        "persistent (each step's decoder layers in one launch, as auto runs eager calls of 1-2 samples)")
     parser.add_argument("--gemms", action="store_true", help="also time the sampling steps' GEMM shapes (CUDA): cuBLAS "
                         "against the fused kernels, microseconds and GB/s of weights read")
     parser.add_argument("--rtc", type=_csv(str), default="", help="also time chunks continued by real-time chunking "

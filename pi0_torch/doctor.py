@@ -168,6 +168,21 @@ class Doctor:
 
         self.row(f"{name} fused kernels", torch.bfloat16, fused, needs_cuda=True)
 
+        def auto_eager() -> tuple[float, float, str]:  # (what a notebook's eager call runs on CUDA)
+            model.sampling_kernels = "auto"
+            try:
+                got = sample(model)
+                why_not = model.fused_steps_reason(device, model.dtype)
+                refusals = [why for why in model._fused_refusals.values() if why is not None]
+                persistent = model.runs_persistent(len(noise), replayed=False)
+            finally:
+                model.sampling_kernels = "torch"
+            note = (f"torch path: {why_not}" if why_not else f"refused at first call: {refusals[0]}" if refusals
+                    else "persistent layers" if persistent else "five launches per layer")
+            return against(got, reference, BF16_BOUND, note)
+
+        self.row(f"{name} auto kernels, eager", torch.bfloat16, auto_eager, needs_cuda=True)
+
         def graph(method: str | None, want: torch.Tensor, guidance: bool = False,
                   kernels: str = "auto") -> Callable[[], tuple[float, float, str]]:
             def check() -> tuple[float, float, str]:
@@ -190,7 +205,7 @@ class Doctor:
             return check
 
         self.row(f"{name} CUDA graph", torch.bfloat16, graph(None, reference), needs_cuda=True)
-        # (experimental: each step's decoder layers in one launch, verified eagerly on its first call)
+        # (each step's decoder layers in one launch, verified eagerly on its first call; "auto" keeps it out of graphs)
         self.row(f"{name} persistent layers, CUDA graph", torch.bfloat16, graph(None, reference, kernels="persistent"),
                  needs_cuda=True)
         self.row(f"{name} RTC conditioning, CUDA graph", torch.bfloat16, graph("conditioning", conditioned32), needs_cuda=True)

@@ -217,8 +217,9 @@ def test_fused_steps_hold_at_full_width_for_every_batch_class(preset: str, setti
     """Full-size widths (two decoder layers, random weights), bf16, "auto" and "persistent": at batch 1 (one-row state token, key
     parts), 3 (64-row attention blocks) and 8 (row counts divisible by 16; 400 rows: the GEMM ops run cuBLAS's GEMM
     with the epilogue kernels, `CUBLAS_ROWS`) each call's first-use verification keeps the fused steps, and they give
-    the unfused path's actions within bf16's bound. "persistent" (each step's layers in one launch) also replays its
-    CUDA graph alike twice, near what it samples eagerly (the graph's prefix slots are bucketed: another rounding)."""
+    the unfused path's actions within bf16's bound. Eagerly "auto" runs each step's layers in one persistent launch at
+    batch 1, five launches per layer at 3 and 8 (`runs_persistent`). "persistent" also replays its CUDA graph alike
+    twice, near what it samples eagerly (the graph's prefix slots are bucketed: another rounding)."""
     from pi0_torch import PI0Config, PI0ForActionGeneration
     from pi0_torch.benchmark import example_batch
 
@@ -234,6 +235,8 @@ def test_fused_steps_hold_at_full_width_for_every_batch_class(preset: str, setti
         model.sampling_kernels = setting
         fused = model.generate_actions(**inputs, noise=noise)
         assert list(model._fused_refusals.values()) == [None], model._fused_refusals
+        persistent = setting == "persistent" or batch <= model.PERSISTENT_EAGER_BATCH
+        assert [plan.persistent for plan, _ in model._fused_refusals] == [persistent]
         if setting == "persistent":
             model.capture_sampling()
             replayed = [model.generate_actions(**inputs, noise=noise) for _ in range(2)]

@@ -29,7 +29,7 @@ def test_doctor_passes_at_the_small_size_on_this_machine(capsys: pytest.CaptureF
     assert re.search(r"^\d+ passed, 0 failed, \d+ skipped$", out, re.MULTILINE), out
     for path in ("eager", "RTC guidance, eager", "RTC conditioning, eager", "training forward vs reference step",
                  "training step, bf16 autocast", "LoRA (adapters, merged)", "CUDA graph", "fused kernels",
-                 "persistent layers, CUDA graph"):
+                 "auto kernels, eager", "persistent layers, CUDA graph"):
         assert re.search(rf"^π0\.5 {re.escape(path)}\s", out, re.MULTILINE), path
     assert re.search(r"^π0-FAST decoding, 60 new tokens\s+cpu\s+bfloat16", out, re.MULTILINE), out
 

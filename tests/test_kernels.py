@@ -323,6 +323,7 @@ def test_each_fused_plan_is_verified_against_the_unfused_path_on_its_first_call(
 
     model.sampling_kernels = "auto"  # (as on CUDA in bf16, where "auto" fuses)
     monkeypatch.setattr(model, "fused_steps_reason", lambda *args: None)
+    monkeypatch.setattr(model, "PERSISTENT_EAGER_BATCH", 0)  # (five launches per layer; persistent ones: the next test)
     del samplings[:]
     with caplog.at_level("WARNING", logger="pi0_torch.inference.sampling"):
         refused = model.generate_actions(**inputs, num_steps=2)
@@ -340,6 +341,59 @@ def test_each_fused_plan_is_verified_against_the_unfused_path_on_its_first_call(
         assert model.generate_actions(**inputs, num_steps=2).equal(unfused)
     assert list(model._fused_refusals.values()) == [
         "it failed (RuntimeError: out of resource: shared memory, Required: 102400, Hardware limit: 101376)"]
+
+
+def test_auto_runs_the_persistent_launch_in_eager_calls_of_few_samples(monkeypatch: pytest.MonkeyPatch,
+                                                                        caplog: pytest.LogCaptureFixture) -> None:
+    """Under "auto" where the fused steps apply (as on CUDA in bf16), an eager call of at most
+    `PERSISTENT_EAGER_BATCH` samples runs each step's decoder layers in one persistent launch, a larger batch and a
+    CUDA graph's replay five launches per layer (measured faster there); "triton" never, "persistent" always. A
+    persistent plan refused on its first call falls back to five launches per layer, verified in their turn, with a
+    warning."""
+    from pi0_torch.kernels import persistent
+
+    torch.manual_seed(0)
+    model = PI0ForActionGeneration(tiny_config(num_hidden_layers=1)).eval().to(DEVICE)
+    inputs = {name: value.to(DEVICE) for name, value in sampling_inputs(model.config, 3, seed=4).items()}
+    assert model.sampling_kernels == "auto" and model.PERSISTENT_EAGER_BATCH == 2
+    assert [model.runs_persistent(batch, replayed=False) for batch in (1, 2, 3, 8)] == [True, True, False, False]
+    assert not model.runs_persistent(1, replayed=True)
+    model.sampling_kernels = "triton"
+    assert not model.runs_persistent(1, replayed=False)
+    model.sampling_kernels = "persistent"
+    assert model.runs_persistent(8, replayed=True)
+
+    model.sampling_kernels = "torch"
+    unfused = model.generate_actions(**inputs, num_steps=2)
+    model.sampling_kernels = "auto"
+    monkeypatch.setattr(model, "fused_steps_reason", lambda *args: None)
+    samplings: list[tuple[bool, bool]] = []  # (plan.fused, plan.persistent) of each `_sample`
+    sample = model._sample
+    monkeypatch.setattr(model, "_sample", lambda inputs, plan: samplings.append((plan.fused, plan.persistent))
+                        or sample(inputs, plan))
+    first = {name: value[:1] for name, value in inputs.items()}
+    one = model.generate_actions(**first, num_steps=2)
+    assert samplings == [(False, False), (True, True)]  # verified: unfused, then in persistent launches
+    assert relative(one, unfused[:1]) <= 1e-5
+    del samplings[:]
+    assert relative(model.generate_actions(**inputs, num_steps=2), unfused) <= 1e-5
+    assert samplings == [(False, False), (True, False)]  # batch 3: five launches per layer
+
+    def fails(*args):
+        raise RuntimeError("out of resource: shared memory")
+
+    monkeypatch.setattr(persistent, "expert_layers_", fails)
+    model.sampling_kernels = "auto"  # (clears the verdicts)
+    del samplings[:]
+    with caplog.at_level("WARNING", logger="pi0_torch.inference.sampling"):
+        refused = model.generate_actions(**first, num_steps=2)
+        assert model.generate_actions(**first, num_steps=2).equal(refused)
+    assert samplings == [(False, False), (True, True), (False, False), (True, False), (True, False)]
+    assert relative(refused, unfused[:1]) <= 1e-5
+    assert [record.getMessage() for record in caplog.records] == [
+        "the fused kernels were refused for sampling (batch 1, 2 steps, 19 prefix slots, fused steps in persistent "
+        "launches): it failed (RuntimeError: out of resource: shared memory); it runs five launches per decoder layer "
+        "from now on"], caplog.text
 
 
 def test_the_fused_steps_run_few_kernels_per_layer_and_step() -> None:

@@ -107,6 +107,9 @@ class ActionSampling:
     RECOMPILE_LIMIT = 64
 
     SAMPLING_KERNELS = ("auto", "torch", "triton", "persistent")
+    # "auto" runs each step's decoder layers in one persistent launch in eager calls of at most this many samples
+    # (`runs_persistent`)
+    PERSISTENT_EAGER_BATCH = 2
 
     _attention_kernel: str = "auto"
     _sampling_kernels: str = "auto"
@@ -135,9 +138,9 @@ class ActionSampling:
         on that device; else "torch"), "torch" (the layers' GEMMs and ATen ops; the CPU's path), "triton" (the fused
         kernels wherever triton runs them, `TRITON_INTERPRET=1` included, or a `ValueError` naming why not) or
         "persistent" (as "triton", with every decoder layer of a step in one persistent launch instead of five
-        launches per layer, and π0's state token's layers in one: `pi0_torch.kernels.persistent`; experimental, see
-        docs/gpu.md). Real-time chunking's steps always run "torch"; each fused plan is checked against it on its first
-        call."""
+        launches per layer, and π0's state token's layers in one: `pi0_torch.kernels.persistent`; "auto" does so
+        where it pays, see `runs_persistent`). Real-time chunking's steps always run "torch"; each fused plan is checked
+        against it on its first call."""
         return self._sampling_kernels
 
     @sampling_kernels.setter
@@ -148,6 +151,19 @@ class ActionSampling:
         self._fused_refusals.clear()
         if self._graphs is not None:
             self._graphs.clear()
+
+    def runs_persistent(self, batch: int, replayed: bool) -> bool:
+        """Whether fused Euler steps of `batch` samples run each step's decoder layers in one persistent launch rather
+        than five launches per layer: always under `sampling_kernels="persistent"`; under "auto" in an eager call
+        (`replayed`: a CUDA graph of `capture_sampling` replays it) of at most `PERSISTENT_EAGER_BATCH` samples.
+
+        Measured on an H200 (full-size π0 and π0.5, bf16, 3 cameras; docs/gpu.md): eagerly the host's launches bound a
+        chunk, and one launch per step instead of 90 took batch 1 from 45-90 ms to 32-47 ms and batch 2 from 101-105
+        ms to 48-56 ms; at batch 4 it was once faster and once slower, at batch 8 slower (133 against 74 ms). Inside a
+        CUDA graph launches cost little and the five launches per layer are faster (21.3 against 22.7 ms at batch 1)."""
+        if self._sampling_kernels == "persistent":
+            return True
+        return self._sampling_kernels == "auto" and not replayed and batch <= self.PERSISTENT_EAGER_BATCH
 
     def fused_steps_reason(self, device: torch.device, dtype: torch.dtype, rtc_method: str | None = None) -> str | None:
         """Why plain sampling's steps on `device` in `dtype` do not run the fused kernels (None: they do); see
@@ -167,7 +183,8 @@ class ActionSampling:
         """The fused `plan`, or it unfused where its fused steps are refused for these input shapes; and, on the first
         call of each plan and input shapes, that call's actions. The verdict is taken on that first call
         (`fused_pass.verify_fused_sampling`: unfused against fused, eagerly) and kept; a refusal is logged once, or
-        raised (`ValueError`) where `sampling_kernels` asks for them by name ("triton", "persistent")."""
+        raised (`ValueError`) where `sampling_kernels` asks for them by name ("triton", "persistent"). Under "auto" a
+        refused persistent plan falls back to five launches per layer, verified in their turn."""
         key = (plan, input_signature(inputs))
         sampled = None
         if key not in self._fused_refusals:
@@ -176,9 +193,14 @@ class ActionSampling:
                 described = describe_plan(plan, inputs.noise.shape[0])
                 if self._sampling_kernels != "auto":
                     raise ValueError(f"sampling_kernels={self._sampling_kernels!r} cannot run {described}: {refusal}")
-                logger.warning("the fused kernels were refused for %s: %s; it runs the torch path from now on", described, refusal)
+                instead = "five launches per decoder layer" if plan.persistent else "the torch path"
+                logger.warning("the fused kernels were refused for %s: %s; it runs %s from now on", described, refusal, instead)
             self._fused_refusals[key] = refusal
-        return (plan if self._fused_refusals[key] is None else replace(plan, fused=False)), sampled
+        if self._fused_refusals[key] is None:
+            return plan, sampled
+        if plan.persistent:  # (a refusal is kept under "auto" only: a named setting raised)
+            return self._verified_plan(inputs, replace(plan, persistent=False))
+        return replace(plan, fused=False), sampled
 
     def attention_kernel_for(self, device: torch.device, dtype: torch.dtype, differentiable: bool) -> str:
         """The attention kernel of a pass: SDPA where gradients flow through attention (training, RTC guidance; the
@@ -250,7 +272,7 @@ class ActionSampling:
         )
         fused = self.fused_steps_reason(pixel_values.device, self.dtype, method) is None
         plan = SamplingPlan(layout, times, method, float(rtc_max_guidance) if method == "guidance" else 0.0, fused,
-                            persistent=fused and self._sampling_kernels == "persistent")
+                            persistent=fused and self.runs_persistent(batch, graphs is not None))
         if plan.fused:
             plan, sampled = self._verified_plan(inputs, plan)
             if sampled is not None and graphs is None:
