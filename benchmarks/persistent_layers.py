@@ -150,10 +150,17 @@ def expected_counts(shape: Shape, tiling: Tiling, programs: int) -> torch.Tensor
     row_blocks = cdiv(rows, tiling.m)
     attention_blocks = shape.batch * cdiv(shape.tokens * shape.heads, tiling.attention_m)
     per_row_block = [cdiv(shape.width, tiling.o), cdiv(shape.mlp_width, tiling.gate_up), cdiv(shape.width, tiling.down)]
+    qkv_tiles = row_blocks * cdiv((shape.heads + 2) * shape.head_dim // 2, tiling.qkv)
     tiles = tiles_per_phase(shape, tiling)
-    layer = [tiles[0], attention_blocks] + [each for each in per_row_block for _ in range(row_blocks)]
-    layer += [0] * (attention_blocks + row_blocks * (per_row_block[0] + per_row_block[2]))
+    layer = [qkv_tiles, attention_blocks] + [each for each in per_row_block for _ in range(row_blocks)]
+    layer += [0] * (attention_blocks + row_blocks * sum(per_row_block) + qkv_tiles)
     return torch.tensor([shape.depth * sum(tiles) + programs, programs] + layer * shape.depth, dtype=torch.int32)
+
+
+def launch_state_size(shape: Shape, tiling: Tiling) -> int:
+    """`persistent.state_size` of `shape`: the counters of a launch."""
+    return state_size(shape.depth, shape.batch * shape.tokens, shape.tokens, shape.heads, shape.head_dim, shape.width,
+                      shape.mlp_width, tiling)
 
 
 def tiles_per_phase(shape: Shape, tiling: Tiling) -> list[int]:
@@ -230,7 +237,7 @@ def check(device: torch.device, dtype: torch.dtype, shapes: list[Shape], toleran
         for launch in (1, 2, 3):  # (1: counters kept and compared; 2 and 3 on those left at 0)
             got_step = step.fresh()
             programs = default_programs(device, tiling)
-            size = state_size(shape.depth, shape.batch * shape.tokens, shape.tokens, shape.heads, shape.width, tiling)
+            size = launch_state_size(shape, tiling)
             state = torch.zeros(size, dtype=torch.int32, device=device) if launch == 1 else None
             got = persistent_layers_(x.clone(), got_step, 1e-6, tiling, programs, state=state)
             error = deviation(got, got_step, want, wanted)
@@ -296,7 +303,7 @@ def check_abandoned(device: torch.device, dtype: torch.dtype, shape: Shape, tili
     watch set; a second launch on that watch, with counters that would serve it, gives up its waits at once and
     returns NaN too."""
     x, step = operands(shape, dtype, device)
-    size = state_size(shape.depth, shape.batch * shape.tokens, shape.tokens, shape.heads, shape.width, tiling)
+    size = launch_state_size(shape, tiling)
     watch = torch.tensor([0, 64], dtype=torch.int32, device=device)
     failures = 0
     for launch, first_counters in ((1, -1), (2, 0)):
@@ -348,7 +355,7 @@ def check_orders(shape: Shape, tiling: Tiling, tolerance: float) -> int:
     x, step = operands(shape, torch.float32, device)
     wanted = step.fresh()
     want = reference_layers_(x.clone(), wanted, 1e-6)
-    size = state_size(shape.depth, shape.batch * shape.tokens, shape.tokens, shape.heads, shape.width, tiling)
+    size = launch_state_size(shape, tiling)
 
     def launch(order: torch.Tensor | None = None) -> float:
         got_step = step.fresh()
@@ -462,17 +469,17 @@ def print_timeline(shape: Shape, tiling: Tiling, timeline: torch.Tensor, program
               f"{float(work[at].median()):8.2f} {float(torch.tensor(spans).median()):13.2f}", flush=True)
 
 
-# The default first (the fastest of 15 on an H200: benchmarks/results/gpu_h200_2026-11-28.md), then its runners-up
-# and what each lever alone did: µs per Euler step of π0 at batch 1 (two calls, two machines; today's 90 launches
-# took 979 and 980 µs on them)
+# The default first (the fastest of 15 on an H200: benchmarks/results/gpu_h200_2026-11-28.md), then q/k/v's and
+# gate/up's reductions split too (not yet timed on a GPU), then the default's runners-up and what each lever alone
+# did: µs per Euler step of π0 at batch 1 (two calls, two machines; today's 90 launches took 979 and 980 µs on them)
 TILINGS = [Tiling(),  # 1091
+           Tiling(qkv_splits=2, gate_up_splits=2),
+           Tiling(qkv_splits=2),
+           Tiling(gate_up_splits=2),
+           Tiling(qkv_splits=4, gate_up_splits=2, o_splits=4, down_splits=4),
            Tiling(o=32, down=32, o_splits=4, down_splits=4),  # 1093
-           Tiling(stages=4, o_splits=1, down_splits=1),  # 1191
            Tiling(o_splits=1, down_splits=1),  # 1197 (k=128 alone)
-           Tiling(warps=8, o_splits=1, down_splits=1),  # 1349 (no spills, slower)
-           Tiling(k=64, o_splits=1, down_splits=1),  # 1422 (the first default)
-           Tiling(k=64, o_splits=1, down_splits=1, prefetch=False),  # 1577
-           Tiling(k=64, o_splits=1, down_splits=1, per_sm=2)]  # 1799 (batch 8's fastest, 4.7 ms against 1.5)
+           Tiling(k=64, o_splits=1, down_splits=1)]  # 1422 (the first default)
 
 
 def main() -> int:
@@ -484,9 +491,10 @@ def main() -> int:
                     + check(device, torch.bfloat16, [FULL._replace(depth=2, adarms=True)], bound, TILINGS[:1]))
         # (the interpreter: small, float32; one and three samples, partial row and attention blocks; π0.5)
         shapes = [Shape(2, 1, 5, 7, 32, 2, 16, 48), Shape(2, 3, 6, 9, 48, 2, 16, 40, adarms=True)]
-        # (the first with the o- and down-projections split: 2 and 3 parts, the last part shallower than the others)
+        # (the first with every projection split: q/k/v, o and gate/up in 2 parts, down in 3; the last part
+        # shallower than the others)
         tilings = [Tiling(qkv=8, o=16, gate_up=16, down=16, k=16, m=16, attention_m=16, attention_n=16, key_parts=2,
-                          o_splits=2, down_splits=3),
+                          o_splits=2, down_splits=3, qkv_splits=2, gate_up_splits=2),
                    Tiling(qkv=16, o=32, gate_up=32, down=32, k=32, m=32, attention_m=32, attention_n=16, key_parts=1)]
         return (check(torch.device("cpu"), torch.float32, shapes, 1e-5, tilings)
                 + sum(check_orders(shape, tilings[0], 1e-5) for shape in shapes)

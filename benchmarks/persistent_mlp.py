@@ -92,8 +92,8 @@ def _persistent_mlp_kernel(
                            DOT, False, False, True)  # (waits for nothing)
         elif ticket < gate_up_end:
             _gate_up_tile(ticket - o_end, x_ptr, scale_ptr, gate_up_ptr, gate_up_ptr, hidden_ptr, o_counters,
-                          gate_up_counters, watch_ptr, M, D, F, stride_xm, stride_gk, stride_gn, eps, BLOCK_M, N_O,
-                          N_GATE_UP, BLOCK_K, DOT, PREFETCH, False)
+                          gate_up_counters, watch_ptr, x_ptr, x_ptr, M, D, F, stride_xm, stride_gk, stride_gn, eps,
+                          BLOCK_M, N_O, N_GATE_UP, BLOCK_K, 1, DOT, PREFETCH, False)  # (unsplit)
         else:
             _residual_tile(ticket - gate_up_end, x_ptr, hidden_ptr, F, down_ptr, stride_dk, stride_dn, down_ptr,
                            gate_up_counters, 1, tl.cdiv(F, N_GATE_UP), gate_up_counters, watch_ptr, x_ptr, x_ptr, M, D,

@@ -71,13 +71,16 @@ class Tiling(NamedTuple):
     """Output columns per tile of each GEMM phase (q/k/v in column pairs, o-projection, gate/up, down-projection), the
     GEMMs' reduction block and rows per tile, the attention's folded query rows and keys per block and its key parts,
     warps, pipeline stages, whether a waiting tile prefetches its weights (never in the interpreter), programs per
-    multiprocessor, and the parts the o- and down-projections' reductions (2,048 and 4,096 deep in π0's expert) are
-    split into (split-K: more tiles, each a part as deep, summed by the last part to arrive).
+    multiprocessor, and the parts the o- and down-projections' reductions (2,048 and 4,096 deep in π0's expert) and
+    q/k/v's and gate/up's (1,024 deep, the norm's sums of squares with them) are split into (split-K: more tiles,
+    each a part as deep, summed by the last part to arrive).
 
     The defaults were the fastest of 15 tilings timed on an H200 (`benchmarks/persistent_layers.py --bench`, π0,
     batch 1: 1.09 ms a step, against 1.42 ms with 64-deep blocks and no split; 8 warps, 4 stages or wider tiles were
     slower). A tile's GEMM is bound by its loads' latency, so a deeper reduction block (fewer, larger loads) and
-    splitting the two deep reductions (each tile reads a part of the activations as well as of the weights) pay."""
+    splitting the two deep reductions (each tile reads a part of the activations as well as of the weights) pay.
+    Splitting q/k/v's and gate/up's is not timed on a GPU yet (`benchmarks/persistent_layers.py --bench` does), so
+    they stay whole by default."""
 
     qkv: int = 16
     o: int = 16
@@ -94,6 +97,8 @@ class Tiling(NamedTuple):
     per_sm: int = 1
     o_splits: int = 2
     down_splits: int = 2
+    qkv_splits: int = 1
+    gate_up_splits: int = 1
 
 
 # -- tiles ----------------------------------------------------------------------------------------------------------
@@ -147,6 +152,15 @@ def _add_to_residual(x_ptr, stride_xm, rows, columns, M, N, acc, gate_ptr, HAS_G
 
 
 @triton.jit
+def _part_range(part, K, SPLITS: tl.constexpr, BLOCK_K: tl.constexpr):
+    """The reduction range `[start, stop)` of part `part` of `SPLITS` (a whole number of BLOCK_K each; the last may be
+    shallower, or empty)."""
+    depth = tl.cdiv(tl.cdiv(K, SPLITS), BLOCK_K) * BLOCK_K
+    start = part * depth
+    return start, tl.minimum(start + depth, K)
+
+
+@triton.jit
 def _tile_at(tile, N, BLOCK_M: tl.constexpr, BLOCK_N: tl.constexpr):
     """Output tile `tile` of a phase whose tiles go row block by row block, `cdiv(N, BLOCK_N)` column blocks each:
     its row block, rows and columns."""
@@ -170,9 +184,7 @@ def _residual_tile(tile, x_ptr, a_ptr, stride_am, w_ptr, stride_wk, stride_wn, g
     barrier took 80 KiB more shared memory than sm_90 has.)"""
     output = tile // SPLITS
     block, rows, columns = _tile_at(output, D, BLOCK_M, BLOCK_N)
-    k_split = tl.cdiv(tl.cdiv(K, SPLITS), BLOCK_K) * BLOCK_K
-    k_start = tile % SPLITS * k_split
-    k_stop = tl.minimum(k_start + k_split, K)
+    k_start, k_stop = _part_range(tile % SPLITS, K, SPLITS, BLOCK_K)
     _prefetch_weights(w_ptr, stride_wk, stride_wn, columns, k_start, k_stop, D, BLOCK_K, PREFETCH)
     _wait_for(wait_ptr + block * wait_stride, need, watch_ptr)
     acc, unused, no_squares = _matmul_tiles(a_ptr, stride_am, a_ptr, w_ptr, stride_wk, stride_wn, rows, columns, 0, M,
@@ -190,44 +202,66 @@ def _residual_tile(tile, x_ptr, a_ptr, stride_am, w_ptr, stride_wk, stride_wn, g
 
 
 @triton.jit
-def _gate_up_tile(tile, x_ptr, scale_ptr, gate_up_ptr, bias_ptr, hidden_ptr, o_counters_ptr, counters_ptr, watch_ptr, M,
-                  D, F, stride_xm, stride_gk, stride_gn, eps, BLOCK_M: tl.constexpr, N_O: tl.constexpr,
-                  N_GATE_UP: tl.constexpr, BLOCK_K: tl.constexpr, DOT: tl.constexpr, PREFETCH: tl.constexpr,
-                  HAS_BIAS: tl.constexpr):
+def _gate_up_tile(tile, x_ptr, scale_ptr, gate_up_ptr, bias_ptr, hidden_ptr, o_counters_ptr, counters_ptr, watch_ptr,
+                  workspace_ptr, arrivals_ptr, M, D, F, stride_xm, stride_gk, stride_gn, eps, BLOCK_M: tl.constexpr,
+                  N_O: tl.constexpr, N_GATE_UP: tl.constexpr, BLOCK_K: tl.constexpr, SPLITS: tl.constexpr,
+                  DOT: tl.constexpr, PREFETCH: tl.constexpr, HAS_BIAS: tl.constexpr):
     """`hidden[r, f] = gelu_tanh(norm(x[r]) @ gate[:, f]) * (norm(x[r]) @ up[:, f])` (adaRMS: plus `bias[f]` and
-    `bias[F + f]` before the GeGLU), once every o-projection tile of row block r is in (`o_counters[r]`); then counted
-    in for r (`counters[r]`)."""
-    block, rows, columns = _tile_at(tile, F, BLOCK_M, N_GATE_UP)
-    _prefetch_weights(gate_up_ptr, stride_gk, stride_gn, columns, 0, D, F, BLOCK_K, PREFETCH)
-    _prefetch_weights(gate_up_ptr + F * stride_gn, stride_gk, stride_gn, columns, 0, D, F, BLOCK_K, PREFETCH)
+    `bias[F + f]` before the GeGLU) for output tile `tile // SPLITS`, once every o-projection tile of row block r is
+    in (`o_counters[r]`); then counted in for r (`counters[r]`). With SPLITS > 1 this is part `tile % SPLITS` of the
+    reduction, as `_residual_tile`'s: the last part to arrive sums the parts (and their sums of squares) and stores."""
+    output = tile // SPLITS
+    block, rows, columns = _tile_at(output, F, BLOCK_M, N_GATE_UP)
+    k_start, k_stop = _part_range(tile % SPLITS, D, SPLITS, BLOCK_K)
+    _prefetch_weights(gate_up_ptr, stride_gk, stride_gn, columns, k_start, k_stop, F, BLOCK_K, PREFETCH)
+    _prefetch_weights(gate_up_ptr + F * stride_gn, stride_gk, stride_gn, columns, k_start, k_stop, F, BLOCK_K, PREFETCH)
     _wait_for(o_counters_ptr + block, tl.cdiv(D, N_O), watch_ptr)
     gate, up, squares = _matmul_tiles(x_ptr, stride_xm, scale_ptr, gate_up_ptr, stride_gk, stride_gn, rows, columns, F,
-                                      M, 0, D, F, BLOCK_M, N_GATE_UP, BLOCK_K, True, True, DOT, ".cg")
-    _geglu_store(gate, up, squares, rows, columns, columns < F, bias_ptr, hidden_ptr, M, D, F, eps, HAS_BIAS)
-    _count_in(counters_ptr + block, 1)
+                                      M, k_start, k_stop, F, BLOCK_M, N_GATE_UP, BLOCK_K, True, True, DOT, ".cg")
+    if SPLITS > 1:
+        gate, up, squares, last = _sum_splits(gate, up, squares, workspace_ptr, arrivals_ptr, output, tile % SPLITS,
+                                              SPLITS, BLOCK_M, N_GATE_UP, True, True)
+        _geglu_store(gate, up, squares, rows, columns, columns < tl.where(last, F, 0), bias_ptr, hidden_ptr, M, D, F,
+                     eps, HAS_BIAS)
+        _count_in(counters_ptr + block, tl.where(last, 1, 0))
+    else:
+        _geglu_store(gate, up, squares, rows, columns, columns < F, bias_ptr, hidden_ptr, M, D, F, eps, HAS_BIAS)
+        _count_in(counters_ptr + block, 1)
 
 
 @triton.jit
 def _qkv_tile(tile, x_ptr, scale_ptr, w_ptr, bias_ptr, cos_ptr, sin_ptr, q_ptr, key_ptr, value_ptr, wait_ptr, need,
-              counter_ptr, watch_ptr, M, D, tokens, first_slot, slots, stride_xm, stride_wk, stride_wn, stride_cos_b,
-              stride_cos_t, eps, HEADS: tl.constexpr, HEAD_DIM: tl.constexpr, BLOCK_M: tl.constexpr, N_QKV: tl.constexpr,
-              BLOCK_K: tl.constexpr, DOT: tl.constexpr, PREFETCH: tl.constexpr, HAS_BIAS: tl.constexpr):
-    """Column pairs `(c, c + H/2)` of q/k/v for row block r: RMSNorm, the projection (adaRMS: plus `bias`), RoPE; q into
-    `q`, k and v into the layer's cache (`_rope_store`), once `wait[r]` reaches `need` (the previous layer's
-    down-projection of r); then counted in (`counter`)."""
+              counter_ptr, watch_ptr, workspace_ptr, arrivals_ptr, M, D, tokens, first_slot, slots, stride_xm, stride_wk,
+              stride_wn, stride_cos_b, stride_cos_t, eps, HEADS: tl.constexpr, HEAD_DIM: tl.constexpr,
+              BLOCK_M: tl.constexpr, N_QKV: tl.constexpr, BLOCK_K: tl.constexpr, SPLITS: tl.constexpr,
+              DOT: tl.constexpr, PREFETCH: tl.constexpr, HAS_BIAS: tl.constexpr):
+    """Column pairs `(c, c + H/2)` of q/k/v for row block r (output tile `tile // SPLITS`): RMSNorm, the projection
+    (adaRMS: plus `bias`), RoPE; q into `q`, k and v into the layer's cache (`_rope_store`), once `wait[r]` reaches
+    `need` (the previous layer's down-projection of r); then counted in (`counter`). With SPLITS > 1 this is part
+    `tile % SPLITS` of the reduction, as `_gate_up_tile`'s."""
     half: tl.constexpr = HEAD_DIM // 2
-    block, rows, pairs = _tile_at(tile, (HEADS + 2) * half, BLOCK_M, N_QKV)
+    output = tile // SPLITS
+    block, rows, pairs = _tile_at(output, (HEADS + 2) * half, BLOCK_M, N_QKV)
     first_half = pairs // half * HEAD_DIM + pairs % half
     width = (HEADS + 2) * HEAD_DIM
-    _prefetch_weights(w_ptr, stride_wk, stride_wn, first_half, 0, D, width, BLOCK_K, PREFETCH)
-    _prefetch_weights(w_ptr, stride_wk, stride_wn, first_half + half, 0, D, width, BLOCK_K, PREFETCH)
+    k_start, k_stop = _part_range(tile % SPLITS, D, SPLITS, BLOCK_K)
+    _prefetch_weights(w_ptr, stride_wk, stride_wn, first_half, k_start, k_stop, width, BLOCK_K, PREFETCH)
+    _prefetch_weights(w_ptr, stride_wk, stride_wn, first_half + half, k_start, k_stop, width, BLOCK_K, PREFETCH)
     _wait_for(wait_ptr + block, need, watch_ptr)
     acc1, acc2, squares = _matmul_tiles(x_ptr, stride_xm, scale_ptr, w_ptr, stride_wk, stride_wn, rows, first_half, half,
-                                        M, 0, D, width, BLOCK_M, N_QKV, BLOCK_K, True, True, DOT, ".cg")
-    _rope_store(acc1, acc2, squares, rows, pairs, pairs < (HEADS + 2) * half, bias_ptr, cos_ptr, sin_ptr, q_ptr,
-                key_ptr, value_ptr, M, D, tokens, first_slot, slots, stride_cos_b, stride_cos_t, eps, HEADS, HEAD_DIM,
-                HAS_BIAS)
-    _count_in(counter_ptr, 1)
+                                        M, k_start, k_stop, width, BLOCK_M, N_QKV, BLOCK_K, True, True, DOT, ".cg")
+    if SPLITS > 1:
+        acc1, acc2, squares, last = _sum_splits(acc1, acc2, squares, workspace_ptr, arrivals_ptr, output, tile % SPLITS,
+                                                SPLITS, BLOCK_M, N_QKV, True, True)
+        _rope_store(acc1, acc2, squares, rows, pairs, pairs < tl.where(last, (HEADS + 2) * half, 0), bias_ptr, cos_ptr,
+                    sin_ptr, q_ptr, key_ptr, value_ptr, M, D, tokens, first_slot, slots, stride_cos_b, stride_cos_t, eps,
+                    HEADS, HEAD_DIM, HAS_BIAS)
+        _count_in(counter_ptr, tl.where(last, 1, 0))
+    else:
+        _rope_store(acc1, acc2, squares, rows, pairs, pairs < (HEADS + 2) * half, bias_ptr, cos_ptr, sin_ptr, q_ptr,
+                    key_ptr, value_ptr, M, D, tokens, first_slot, slots, stride_cos_b, stride_cos_t, eps, HEADS,
+                    HEAD_DIM, HAS_BIAS)
+        _count_in(counter_ptr, 1)
 
 
 @triton.jit
@@ -258,30 +292,34 @@ def _attention_tile(tile, q_ptr, key_ptr, value_ptr, first_ptr, row_ends_ptr, ou
 def _expert_layers_kernel(
     x_ptr, attention_scale_ptr, qkv_ptr, o_ptr, mlp_scale_ptr, gate_up_ptr, down_ptr, offsets_ptr, cos_ptr, sin_ptr, key_ptr,
     value_ptr, first_ptr, row_ends_ptr, qkv_bias_ptr, o_gate_ptr, gate_up_bias_ptr, down_gate_ptr, q_ptr, attended_ptr,
-    hidden_ptr, partial_ptr, stats_ptr, o_parts_ptr, down_parts_ptr, state_ptr, watch_ptr, order_ptr, timeline_ptr,
+    hidden_ptr, partial_ptr, stats_ptr, qkv_parts_ptr, o_parts_ptr, gate_up_parts_ptr, down_parts_ptr, state_ptr,
+    watch_ptr, order_ptr, timeline_ptr,
     layers, M, D, F, tokens, first_slot, slots, eps, scale, key_parts, stride_xm, stride_cos_b, stride_cos_t, stride_qk,
     stride_qn, stride_ok, stride_on, stride_gk, stride_gn, stride_dk, stride_dn, layer_cache, reset,
     HEADS: tl.constexpr, HEAD_DIM: tl.constexpr, BLOCK_M: tl.constexpr, N_QKV: tl.constexpr, N_O: tl.constexpr,
     N_GATE_UP: tl.constexpr, N_DOWN: tl.constexpr, BLOCK_K: tl.constexpr, ATTENTION_M: tl.constexpr,
     ATTENTION_N: tl.constexpr, DIM_CHUNK: tl.constexpr, DOT: tl.constexpr, PREFETCH: tl.constexpr,
-    O_SPLITS: tl.constexpr, DOWN_SPLITS: tl.constexpr, ADARMS: tl.constexpr, ORDERED: tl.constexpr,
+    QKV_SPLITS: tl.constexpr, O_SPLITS: tl.constexpr, GATE_UP_SPLITS: tl.constexpr, DOWN_SPLITS: tl.constexpr,
+    ADARMS: tl.constexpr, ORDERED: tl.constexpr,
     ALIGN: tl.constexpr, TIMELINE: tl.constexpr,
 ):
     half: tl.constexpr = HEAD_DIM // 2
     batch = M // tokens
     row_blocks = tl.cdiv(M, BLOCK_M)
     attention_blocks = batch * tl.cdiv(tokens * HEADS, ATTENTION_M)
-    qkv_end = row_blocks * tl.cdiv((HEADS + 2) * half, N_QKV)
-    attention_end = qkv_end + attention_blocks * key_parts
-    o_tiles = row_blocks * tl.cdiv(D, N_O)  # (output tiles; with O_SPLITS parts each)
+    qkv_tiles = row_blocks * tl.cdiv((HEADS + 2) * half, N_QKV)  # (output tiles; with QKV_SPLITS parts each, ...)
+    o_tiles = row_blocks * tl.cdiv(D, N_O)
+    gate_up_tiles = row_blocks * tl.cdiv(F, N_GATE_UP)
     down_tiles = row_blocks * tl.cdiv(D, N_DOWN)
+    qkv_end = qkv_tiles * QKV_SPLITS
+    attention_end = qkv_end + attention_blocks * key_parts
     o_end = attention_end + o_tiles * O_SPLITS
-    gate_up_end = o_end + row_blocks * tl.cdiv(F, N_GATE_UP)
+    gate_up_end = o_end + gate_up_tiles * GATE_UP_SPLITS
     per_layer = gate_up_end + down_tiles * DOWN_SPLITS
     # state: [0] the next ticket, [1] programs finished, then per layer: [0] q/k/v tiles done, [1] attention blocks
     # done, o-projection / gate-up / down-projection tiles done per row block, key parts arrived per attention block,
-    # split-K parts arrived per o-projection and per down-projection tile
-    layer_state = 2 + 3 * row_blocks + attention_blocks + o_tiles + down_tiles
+    # split-K parts arrived per o-projection, down-projection, q/k/v and gate/up tile
+    layer_state = 2 + 3 * row_blocks + attention_blocks + o_tiles + down_tiles + qkv_tiles + gate_up_tiles
     ticket = tl.atomic_add(state_ptr, 1)
     while ticket < layers * per_layer:
         if ORDERED:  # (`--check`: the tiles in another order its waits allow, `order[ticket]`)
@@ -297,6 +335,7 @@ def _expert_layers_kernel(
         gate_up_done = o_done + row_blocks
         down_done = gate_up_done + row_blocks
         o_arrivals = down_done + row_blocks + attention_blocks
+        qkv_arrivals = o_arrivals + o_tiles + down_tiles
         offsets_at = offsets_ptr + layer * 4  # (its q/k/v, o, gate/up and down weights' from layer 0's)
         if tile < qkv_end:  # (layer 0 waits for nothing: its own down-projection counters, need 0)
             previous = down_done - tl.where(layer > 0, layer_state, 0)
@@ -304,13 +343,13 @@ def _expert_layers_kernel(
                       qkv_ptr + tl.multiple_of(tl.load(offsets_at), ALIGN),
                       qkv_bias_ptr + layer * (HEADS + 2) * HEAD_DIM, cos_ptr, sin_ptr, q_ptr,
                       key_ptr + layer * layer_cache, value_ptr + layer * layer_cache, previous,
-                      tl.where(layer > 0, tl.cdiv(D, N_DOWN), 0), counters, watch_ptr, M, D, tokens, first_slot, slots,
-                      stride_xm, stride_qk, stride_qn, stride_cos_b, stride_cos_t, eps, HEADS, HEAD_DIM, BLOCK_M,
-                      N_QKV, BLOCK_K, DOT, PREFETCH, ADARMS)
+                      tl.where(layer > 0, tl.cdiv(D, N_DOWN), 0), counters, watch_ptr, qkv_parts_ptr, qkv_arrivals, M,
+                      D, tokens, first_slot, slots, stride_xm, stride_qk, stride_qn, stride_cos_b, stride_cos_t, eps,
+                      HEADS, HEAD_DIM, BLOCK_M, N_QKV, BLOCK_K, QKV_SPLITS, DOT, PREFETCH, ADARMS)
         elif tile < attention_end:
             _attention_tile(tile - qkv_end, q_ptr, key_ptr + layer * layer_cache, value_ptr + layer * layer_cache,
                             first_ptr, row_ends_ptr, attended_ptr, partial_ptr, stats_ptr, down_done + row_blocks,
-                            counters, qkv_end, counters + 1, watch_ptr, batch, tokens, slots, scale, key_parts, HEADS,
+                            counters, qkv_tiles, counters + 1, watch_ptr, batch, tokens, slots, scale, key_parts, HEADS,
                             HEAD_DIM, ATTENTION_M, ATTENTION_N, DIM_CHUNK, DOT)
         elif tile < o_end:
             _residual_tile(tile - attention_end, x_ptr, attended_ptr, HEADS * HEAD_DIM,
@@ -321,8 +360,9 @@ def _expert_layers_kernel(
         elif tile < gate_up_end:
             _gate_up_tile(tile - o_end, x_ptr, mlp_scale_ptr + layer * D,
                           gate_up_ptr + tl.multiple_of(tl.load(offsets_at + 2), ALIGN),
-                          gate_up_bias_ptr + layer * 2 * F, hidden_ptr, o_done, gate_up_done, watch_ptr, M, D, F,
-                          stride_xm, stride_gk, stride_gn, eps, BLOCK_M, N_O, N_GATE_UP, BLOCK_K, DOT, PREFETCH, ADARMS)
+                          gate_up_bias_ptr + layer * 2 * F, hidden_ptr, o_done, gate_up_done, watch_ptr,
+                          gate_up_parts_ptr, qkv_arrivals + qkv_tiles, M, D, F, stride_xm, stride_gk, stride_gn, eps,
+                          BLOCK_M, N_O, N_GATE_UP, BLOCK_K, GATE_UP_SPLITS, DOT, PREFETCH, ADARMS)
         else:
             _residual_tile(tile - gate_up_end, x_ptr, hidden_ptr, F,
                            down_ptr + tl.multiple_of(tl.load(offsets_at + 3), ALIGN), stride_dk, stride_dn,
@@ -405,8 +445,12 @@ def expert_layers_(
     hidden = x.new_empty(rows, mlp_width)
     partial = x.new_empty(tiling.key_parts, rows * heads, head_dim, dtype=torch.float32)
     stats = x.new_empty(2, tiling.key_parts, rows * heads, dtype=torch.float32)
-    o_parts, down_parts = (phase_workspace(x, tiling.m, columns, splits)
-                           for columns, splits in ((tiling.o, tiling.o_splits), (tiling.down, tiling.down_splits)))
+    qkv_parts, o_parts, gate_up_parts, down_parts = (
+        phase_workspace(x, outputs, tiling.m, columns, splits)
+        for outputs, columns, splits in (((heads + 2) * head_dim // 2, tiling.qkv, tiling.qkv_splits),
+                                         (width, tiling.o, tiling.o_splits),
+                                         (mlp_width, tiling.gate_up, tiling.gate_up_splits),
+                                         (width, tiling.down, tiling.down_splits)))
     if watch is not None and (watch.shape != (2,) or watch.dtype != torch.int32 or watch.device != x.device):
         raise ValueError(f"expert_layers_: a watch is int32 [2] on {x.device}; got {watch.dtype} {tuple(watch.shape)} on "
                          f"{watch.device}")
@@ -417,14 +461,14 @@ def expert_layers_(
                              f"triton's interpreter); got {timeline.dtype} {tuple(timeline.shape)} on {timeline.device}")
     reset = state is None
     if state is None:
-        state = zeroed_counters(x.device, state_size(depth, rows, tokens, heads, width, tiling))
+        state = zeroed_counters(x.device, state_size(depth, rows, tokens, heads, head_dim, width, mlp_width, tiling))
     programs = programs or default_programs(x.device, tiling)
     attention_scales, mlp_scales = attention_scales.contiguous(), mlp_scales.contiguous()  # (layer l's at l * D)
     adarms = [x] * 4 if qkv_bias is None else [t.contiguous() for t in (qkv_bias, o_gate, gate_up_bias, down_gate)]
     arguments = (
         x, attention_scales, qkv[0], o[0], mlp_scales, gate_up[0], down[0], weight_offsets((qkv, o, gate_up, down), x.device),
-        cos, sin, key_cache, value_cache, first, row_ends, *adarms, q, attended, hidden, partial, stats, o_parts,
-        down_parts, state, watchdog(x.device) if watch is None else watch, state if order is None else order,
+        cos, sin, key_cache, value_cache, first, row_ends, *adarms, q, attended, hidden, partial, stats, qkv_parts,
+        o_parts, gate_up_parts, down_parts, state, watchdog(x.device) if watch is None else watch, state if order is None else order,
         state if timeline is None else timeline, depth, rows, width, mlp_width, tokens, first_slot, slots, eps,
         head_dim**-0.5, tiling.key_parts, x.stride(0), cos.stride(0) if cos.shape[0] > 1 else 0, cos.stride(1),
         *qkv[0].stride(), *o[0].stride(), *gate_up[0].stride(), *down[0].stride(), key_cache.stride(0), int(reset),
@@ -434,7 +478,8 @@ def expert_layers_(
                "ATTENTION_M": tiling.attention_m, "ATTENTION_N": tiling.attention_n,
                "DIM_CHUNK": min(head_dim, 4096 // tiling.attention_m), "DOT": dot_dtype(o[0].dtype),
                "PREFETCH": tiling.prefetch and not INTERPRETING, "ADARMS": qkv_bias is not None,
-               "O_SPLITS": tiling.o_splits, "DOWN_SPLITS": tiling.down_splits, "ORDERED": order is not None,
+               "QKV_SPLITS": tiling.qkv_splits, "O_SPLITS": tiling.o_splits,
+               "GATE_UP_SPLITS": tiling.gate_up_splits, "DOWN_SPLITS": tiling.down_splits, "ORDERED": order is not None,
                "TIMELINE": timeline is not None, "ALIGN": WEIGHT_ALIGNMENT // o[0].element_size(),
                "num_warps": tiling.warps, "num_stages": tiling.stages}
     if launch is not None:
@@ -515,14 +560,16 @@ def default_programs(device: torch.device, tiling: Tiling) -> int:
     return tiling.per_sm * torch.cuda.get_device_properties(device).multi_processor_count if device.type == "cuda" else 4
 
 
-def state_size(depth: int, rows: int, tokens: int, heads: int, width: int, tiling: Tiling) -> int:
+def state_size(depth: int, rows: int, tokens: int, heads: int, head_dim: int, width: int, mlp_width: int,
+               tiling: Tiling) -> int:
     """The counters of a launch: the next ticket, the programs finished, and per layer the q/k/v tiles and attention
     blocks done, the o-projection, gate/up and down-projection tiles done per row block, the key parts arrived per
-    attention block, and the split-K parts arrived per o- and down-projection tile (`_expert_layers_kernel`'s
-    layout)."""
+    attention block, and the split-K parts arrived per o-projection, down-projection, q/k/v and gate/up tile
+    (`_expert_layers_kernel`'s layout)."""
     row_blocks = cdiv(rows, tiling.m)
     attention_blocks = rows // tokens * cdiv(tokens * heads, tiling.attention_m)
-    split_tiles = row_blocks * (cdiv(width, tiling.o) + cdiv(width, tiling.down))
+    split_tiles = row_blocks * (cdiv(width, tiling.o) + cdiv(width, tiling.down) + cdiv((heads + 2) * head_dim // 2, tiling.qkv)
+                                + cdiv(mlp_width, tiling.gate_up))
     return 2 + depth * (2 + 3 * row_blocks + attention_blocks + split_tiles)
 
 
@@ -533,13 +580,15 @@ def phase_tiles(rows: int, tokens: int, heads: int, head_dim: int, width: int, m
     """The tiles of each phase of a layer (`PHASES`), in the order a launch hands them out (`_expert_layers_kernel`'s
     tickets; the attention's: its blocks' key parts, split projections': their parts)."""
     row_blocks = cdiv(rows, tiling.m)
-    return [row_blocks * cdiv((heads + 2) * head_dim // 2, tiling.qkv),
+    return [row_blocks * cdiv((heads + 2) * head_dim // 2, tiling.qkv) * tiling.qkv_splits,
             rows // tokens * cdiv(tokens * heads, tiling.attention_m) * tiling.key_parts,
-            row_blocks * cdiv(width, tiling.o) * tiling.o_splits, row_blocks * cdiv(mlp_width, tiling.gate_up),
+            row_blocks * cdiv(width, tiling.o) * tiling.o_splits,
+            row_blocks * cdiv(mlp_width, tiling.gate_up) * tiling.gate_up_splits,
             row_blocks * cdiv(width, tiling.down) * tiling.down_splits]
 
 
-def phase_workspace(x: torch.Tensor, rows: int, columns: int, splits: int) -> torch.Tensor:
-    """The split-K workspace of a phase whose output tiles are `rows` x `columns` of `x` (`split_workspace`; one
-    launch's layers take turns in it), or `x` where the phase is not split (never read)."""
-    return x if splits == 1 else split_workspace(x, cdiv(x.shape[0], rows) * cdiv(x.shape[1], columns), rows, columns, splits)
+def phase_workspace(x: torch.Tensor, outputs: int, rows: int, columns: int, splits: int) -> torch.Tensor:
+    """The split-K workspace of a phase with `outputs` output columns (q/k/v: column pairs) for each of `x`'s rows, in
+    tiles of `rows` x `columns` (`split_workspace`; one launch's layers take turns in it), or `x` where the phase is
+    not split (never read)."""
+    return x if splits == 1 else split_workspace(x, cdiv(x.shape[0], rows) * cdiv(outputs, columns), rows, columns, splits)
