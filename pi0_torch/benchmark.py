@@ -349,7 +349,7 @@ def steps_path(model: PI0ForActionGeneration, device: torch.device, method: str 
     refused = {(plan.persistent, signature[0][0][:2])
                for (plan, signature), why in model._fused_refusals.items() if why is not None}
     replayed = device.type == "cuda" and model.replays_graphs(method)
-    persistent = model.runs_persistent(batch, replayed) and (True, (batch, cameras)) not in refused
+    persistent = model.runs_persistent(batch, replayed, device) and (True, (batch, cameras)) not in refused
     if (persistent, (batch, cameras)) in refused:
         return "refused"
     return "persist." if persistent else "fused"

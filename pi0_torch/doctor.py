@@ -173,12 +173,16 @@ class Doctor:
             try:
                 got = sample(model)
                 why_not = model.fused_steps_reason(device, model.dtype)
-                refusals = [why for why in model._fused_refusals.values() if why is not None]
-                persistent = model.runs_persistent(len(noise), replayed=False)
+                refused = {plan.persistent: why for (plan, _), why in model._fused_refusals.items() if why is not None}
+                persistent = model.runs_persistent(len(noise), False, device)
             finally:
                 model.sampling_kernels = "torch"
-            note = (f"torch path: {why_not}" if why_not else f"refused at first call: {refusals[0]}" if refusals
-                    else "persistent layers" if persistent else "five launches per layer")
+            if why_not or False in refused:  # (the five launches per layer refused too: the torch path ran)
+                note = f"torch path: {why_not or refused[False]}"
+            elif True in refused:
+                note = f"five launches per layer (the persistent launch refused: {refused[True]})"
+            else:
+                note = "persistent layers" if persistent else "five launches per layer"
             return against(got, reference, BF16_BOUND, note)
 
         self.row(f"{name} auto kernels, eager", torch.bfloat16, auto_eager, needs_cuda=True)

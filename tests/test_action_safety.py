@@ -171,6 +171,45 @@ def test_a_persistent_launch_that_abandoned_a_wait_is_named_and_its_chunk_withhe
         policy.model.generate_actions(**policy._batch([policy.prepare(OBSERVATION)]), num_steps=3)  # (a new plan)
 
 
+@pytest.mark.skipif(ops.triton_reason(torch.device("cpu")) is not None, reason="the persistent launch runs in triton's "
+                    "interpreter here (TRITON_INTERPRET=1, the repository's conftest.py) and needs triton")
+def test_auto_leaves_a_persistent_launch_that_abandoned_a_wait(monkeypatch: pytest.MonkeyPatch,
+                                                               caplog: pytest.LogCaptureFixture) -> None:
+    """Under "auto" where the fused kernels apply (as on CUDA in bf16), an eager chunk of one sample takes the
+    persistent launch. The chunk in which a launch abandons a wait is withheld, naming the launch; from the next chunk
+    on "auto" samples with five launches per decoder layer there (logged once), and the chunks are fine again."""
+    from pi0_torch.inference import fused_pass
+    from pi0_torch.kernels import persistent
+
+    monkeypatch.setattr(persistent, "_watches", {})  # (this test's watch, not the process's)
+    monkeypatch.setattr(fused_pass, "_AVOIDED", set())
+    policy = tiny_policy(rtc_max_delay=0)
+    model = policy.model
+    assert model.sampling_kernels == "auto"
+    monkeypatch.setattr(model, "fused_steps_reason", lambda *args: None)
+    assert np.isfinite(policy.infer(OBSERVATION)["actions"]).all()
+    assert [plan.persistent for plan, _ in model._fused_refusals] == [True]  # (verified, then kept)
+
+    launch = persistent.expert_layers_
+
+    def gives_up(x: torch.Tensor, *args: Any, **options: Any) -> None:  # (a fault on the GPU: its waits give up)
+        persistent.watchdog(x.device)[0] = 1
+        launch(x, *args, **options)
+
+    monkeypatch.setattr(persistent, "expert_layers_", gives_up)
+    with pytest.raises(UnsafeActionsError, match=r"withheld; cause: persistent launch abandoned a wait that did not end "
+                                                 r".*\(sampling_kernels='auto' samples without it from the next chunk\)"):
+        policy.infer(OBSERVATION)
+    with caplog.at_level("WARNING", logger="pi0_torch.inference.fused_pass"):
+        for _ in range(2):
+            assert np.isfinite(policy.infer(OBSERVATION)["actions"]).all()
+    assert [plan.persistent for plan, _ in model._fused_refusals] == [True, False]  # (five launches, verified)
+    assert [record.getMessage() for record in caplog.records] == [
+        "a persistent launch on cpu abandoned a wait that did not end (a synchronization fault of "
+        "pi0_torch.kernels.persistent on this GPU: please report it); sampling_kernels='auto' runs five launches per "
+        "decoder layer there from now on"]
+
+
 def test_a_batch_keeps_the_chunks_that_are_fine(monkeypatch: pytest.MonkeyPatch) -> None:
     """One observation whose chunk is non-finite fails alone: the others of its batch get exactly the actions they
     get on their own."""

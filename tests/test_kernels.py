@@ -356,12 +356,12 @@ def test_auto_runs_the_persistent_launch_in_eager_calls_of_few_samples(monkeypat
     model = PI0ForActionGeneration(tiny_config(num_hidden_layers=1)).eval().to(DEVICE)
     inputs = {name: value.to(DEVICE) for name, value in sampling_inputs(model.config, 3, seed=4).items()}
     assert model.sampling_kernels == "auto" and model.PERSISTENT_EAGER_BATCH == 2
-    assert [model.runs_persistent(batch, replayed=False) for batch in (1, 2, 3, 8)] == [True, True, False, False]
-    assert not model.runs_persistent(1, replayed=True)
+    assert [model.runs_persistent(batch, False, DEVICE) for batch in (1, 2, 3, 8)] == [True, True, False, False]
+    assert not model.runs_persistent(1, True, DEVICE)
     model.sampling_kernels = "triton"
-    assert not model.runs_persistent(1, replayed=False)
+    assert not model.runs_persistent(1, False, DEVICE)
     model.sampling_kernels = "persistent"
-    assert model.runs_persistent(8, replayed=True)
+    assert model.runs_persistent(8, True, DEVICE)
 
     model.sampling_kernels = "torch"
     unfused = model.generate_actions(**inputs, num_steps=2)

@@ -19,7 +19,8 @@ Triton compiles a kernel anew for each class of its arguments (block sizes chose
 1 or divisible by 16), so the batch sizes and prompt lengths of real calls launch variants no fixed self-check runs.
 Each plan and input shapes is therefore verified once, on its first call: `verify_fused_sampling` runs the call
 unfused and fused and compares the actions (`FUSED_TOLERANCE`); under "auto" a plan that fails or deviates samples
-unfused from then on, and a setting that names its kernels ("triton", "persistent") raises instead.
+unfused from then on (a persistent one first falls back to five launches per layer, verified in turn), and a setting
+that names its kernels ("triton", "persistent") raises instead.
 """
 
 from __future__ import annotations
@@ -141,6 +142,23 @@ def persistent_abandoned(device: torch.device) -> bool:
     from pi0_torch.kernels import persistent
 
     return persistent.abandoned(device)
+
+
+_AVOIDED: set[torch.device] = set()  # devices whose abandoned persistent launch `auto_avoids_persistent` logged
+
+
+def auto_avoids_persistent(device: torch.device) -> bool:
+    """Whether "auto" leaves the persistent launch on `device` from now on: a persistent launch there abandoned a wait
+    (`persistent_abandoned`, which reads the GPU once a persistent launch has run there), so every later one returns
+    NaN. Logged once per device."""
+    if not persistent_abandoned(device):
+        return False
+    if device not in _AVOIDED:
+        _AVOIDED.add(device)
+        logger.warning("a persistent launch on %s abandoned a wait that did not end (a synchronization fault of "
+                       "pi0_torch.kernels.persistent on this GPU: please report it); sampling_kernels='auto' runs five "
+                       "launches per decoder layer there from now on", device)
+    return True
 
 
 def kernels_reason(device: torch.device, dtype: torch.dtype, cases: Callable[[], list[tuple[str, Callable[[], tuple]]]],

@@ -77,8 +77,8 @@ def input_signature(inputs: SamplingInputs) -> tuple[Any, ...]:
 def describe_plan(plan: SamplingPlan, batch: int) -> str:
     """`sampling with RTC guidance (batch 1, 10 steps, 800 prefix slots, fused steps)`: a plan in a log line."""
     what = "sampling" if plan.rtc_method is None else f"sampling with RTC {plan.rtc_method}"
-    return (f"{what} (batch {batch}, {len(plan.times)} steps, {plan.layout.length} prefix slots"
-            f"{', fused steps' if plan.fused else ''}{' in persistent launches' if plan.fused and plan.persistent else ''})")
+    steps = (", fused steps in persistent launches" if plan.persistent else ", fused steps") if plan.fused else ""
+    return f"{what} (batch {batch}, {len(plan.times)} steps, {plan.layout.length} prefix slots{steps})"
 
 
 def relative_deviation(got: torch.Tensor, want: torch.Tensor) -> float:

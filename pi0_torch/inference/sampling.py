@@ -22,8 +22,8 @@ import torch
 
 from pi0_torch.inference.attention import KERNELS, choose_kernel
 from pi0_torch.inference import fused_pass, vision_pass
-from pi0_torch.inference.fused_pass import (FusedSteps, fused_kernels_reason, kernels_setting_reason, structural_reason,
-                                            verify_fused_sampling)
+from pi0_torch.inference.fused_pass import (FusedSteps, auto_avoids_persistent, fused_kernels_reason, kernels_setting_reason,
+                                            structural_reason, verify_fused_sampling)
 from pi0_torch.inference.graphs import describe_plan, input_signature
 from pi0_torch.inference.layer_pass import CALL_MODULES, SamplingWeights, layer_sampling_weights, sampling_layer_pass
 from pi0_torch.inference.layout import PrefixLayout, camera_inputs, compact_prefix, prefix_stream, rope_tables, suffix_stream
@@ -133,14 +133,14 @@ class ActionSampling:
 
     @property
     def sampling_kernels(self) -> str:
-        """What runs the Euler steps of plain sampling: "auto" (the fused Triton kernels of `pi0_torch.kernels`, five
-        launches per decoder layer, on CUDA in bf16 / fp16 where they passed their check against the torch references
-        on that device; else "torch"), "torch" (the layers' GEMMs and ATen ops; the CPU's path), "triton" (the fused
-        kernels wherever triton runs them, `TRITON_INTERPRET=1` included, or a `ValueError` naming why not) or
-        "persistent" (as "triton", with every decoder layer of a step in one persistent launch instead of five
-        launches per layer, and π0's state token's layers in one: `pi0_torch.kernels.persistent`; "auto" does so
-        where it pays, see `runs_persistent`). Real-time chunking's steps always run "torch"; each fused plan is checked
-        against it on its first call."""
+        """What runs the Euler steps of plain sampling: "auto" (the fused Triton kernels of `pi0_torch.kernels` on CUDA
+        in bf16 / fp16 where they passed their check against the torch references on that device: five launches per
+        decoder layer, or one per step in eager calls of one or two samples, `runs_persistent`; else "torch"), "torch"
+        (the layers' GEMMs and ATen ops; the CPU's path), "triton" (five launches per decoder layer wherever triton
+        runs them, `TRITON_INTERPRET=1` included, or a `ValueError` naming why not) or "persistent" (every decoder
+        layer of a step in one persistent launch, and π0's state token's layers in one: `pi0_torch.kernels.persistent`;
+        or a `ValueError`). Real-time chunking's steps always run "torch"; each fused plan is checked against it on its
+        first call."""
         return self._sampling_kernels
 
     @sampling_kernels.setter
@@ -152,10 +152,12 @@ class ActionSampling:
         if self._graphs is not None:
             self._graphs.clear()
 
-    def runs_persistent(self, batch: int, replayed: bool) -> bool:
-        """Whether fused Euler steps of `batch` samples run each step's decoder layers in one persistent launch rather
-        than five launches per layer: always under `sampling_kernels="persistent"`; under "auto" in an eager call
-        (`replayed`: a CUDA graph of `capture_sampling` replays it) of at most `PERSISTENT_EAGER_BATCH` samples.
+    def runs_persistent(self, batch: int, replayed: bool, device: torch.device) -> bool:
+        """Whether fused Euler steps of `batch` samples on `device` run each step's decoder layers in one persistent
+        launch rather than five launches per layer: always under `sampling_kernels="persistent"`; under "auto" in an
+        eager call (`replayed`: a CUDA graph of `capture_sampling` replays it) of at most `PERSISTENT_EAGER_BATCH`
+        samples, unless a persistent launch on `device` has abandoned a wait (`fused_pass.auto_avoids_persistent`:
+        every later one returns NaN; the chunk it happened in is NaN, the next ones take five launches per layer).
 
         Measured on an H200 (full-size π0 and π0.5, bf16, 3 cameras; docs/gpu.md): eagerly the host's launches bound a
         chunk, and one launch per step instead of 90 took batch 1 from 45-90 ms to 32-47 ms and batch 2 from 101-105
@@ -163,7 +165,8 @@ class ActionSampling:
         CUDA graph launches cost little and the five launches per layer are faster (21.3 against 22.7 ms at batch 1)."""
         if self._sampling_kernels == "persistent":
             return True
-        return self._sampling_kernels == "auto" and not replayed and batch <= self.PERSISTENT_EAGER_BATCH
+        return (self._sampling_kernels == "auto" and not replayed and batch <= self.PERSISTENT_EAGER_BATCH
+                and not auto_avoids_persistent(device))
 
     def fused_steps_reason(self, device: torch.device, dtype: torch.dtype, rtc_method: str | None = None) -> str | None:
         """Why plain sampling's steps on `device` in `dtype` do not run the fused kernels (None: they do); see
@@ -194,7 +197,8 @@ class ActionSampling:
                 if self._sampling_kernels != "auto":
                     raise ValueError(f"sampling_kernels={self._sampling_kernels!r} cannot run {described}: {refusal}")
                 instead = "five launches per decoder layer" if plan.persistent else "the torch path"
-                logger.warning("the fused kernels were refused for %s: %s; it runs %s from now on", described, refusal, instead)
+                logger.warning("the fused kernels were refused for %s: %s; it runs %s from now on", described, refusal,
+                               instead)
             self._fused_refusals[key] = refusal
         if self._fused_refusals[key] is None:
             return plan, sampled
@@ -272,7 +276,7 @@ class ActionSampling:
         )
         fused = self.fused_steps_reason(pixel_values.device, self.dtype, method) is None
         plan = SamplingPlan(layout, times, method, float(rtc_max_guidance) if method == "guidance" else 0.0, fused,
-                            persistent=fused and self.runs_persistent(batch, graphs is not None))
+                            persistent=fused and self.runs_persistent(batch, graphs is not None, pixel_values.device))
         if plan.fused:
             plan, sampled = self._verified_plan(inputs, plan)
             if sampled is not None and graphs is None:

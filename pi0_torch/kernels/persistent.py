@@ -468,8 +468,8 @@ def expert_layers_(
     arguments = (
         x, attention_scales, qkv[0], o[0], mlp_scales, gate_up[0], down[0], weight_offsets((qkv, o, gate_up, down), x.device),
         cos, sin, key_cache, value_cache, first, row_ends, *adarms, q, attended, hidden, partial, stats, qkv_parts,
-        o_parts, gate_up_parts, down_parts, state, watchdog(x.device) if watch is None else watch, state if order is None else order,
-        state if timeline is None else timeline, depth, rows, width, mlp_width, tokens, first_slot, slots, eps,
+        o_parts, gate_up_parts, down_parts, state, watchdog(x.device) if watch is None else watch,
+        state if order is None else order, state if timeline is None else timeline, depth, rows, width, mlp_width, tokens, first_slot, slots, eps,
         head_dim**-0.5, tiling.key_parts, x.stride(0), cos.stride(0) if cos.shape[0] > 1 else 0, cos.stride(1),
         *qkv[0].stride(), *o[0].stride(), *gate_up[0].stride(), *down[0].stride(), key_cache.stride(0), int(reset),
     )
@@ -568,8 +568,8 @@ def state_size(depth: int, rows: int, tokens: int, heads: int, head_dim: int, wi
     (`_expert_layers_kernel`'s layout)."""
     row_blocks = cdiv(rows, tiling.m)
     attention_blocks = rows // tokens * cdiv(tokens * heads, tiling.attention_m)
-    split_tiles = row_blocks * (cdiv(width, tiling.o) + cdiv(width, tiling.down) + cdiv((heads + 2) * head_dim // 2, tiling.qkv)
-                                + cdiv(mlp_width, tiling.gate_up))
+    split_tiles = row_blocks * (cdiv(width, tiling.o) + cdiv(width, tiling.down)
+                                + cdiv((heads + 2) * head_dim // 2, tiling.qkv) + cdiv(mlp_width, tiling.gate_up))
     return 2 + depth * (2 + 3 * row_blocks + attention_blocks + split_tiles)
 
 
@@ -591,4 +591,5 @@ def phase_workspace(x: torch.Tensor, outputs: int, rows: int, columns: int, spli
     """The split-K workspace of a phase with `outputs` output columns (q/k/v: column pairs) for each of `x`'s rows, in
     tiles of `rows` x `columns` (`split_workspace`; one launch's layers take turns in it), or `x` where the phase is
     not split (never read)."""
-    return x if splits == 1 else split_workspace(x, cdiv(x.shape[0], rows) * cdiv(outputs, columns), rows, columns, splits)
+    tiles = cdiv(x.shape[0], rows) * cdiv(outputs, columns)
+    return x if splits == 1 else split_workspace(x, tiles, rows, columns, splits)

@@ -282,8 +282,10 @@ class PI0Policy(BasePolicy):
         if continuation is not None and continuation.method == "guidance":
             return (f"real-time chunking guidance diverged (rtc_max_guidance {self.rtc_max_guidance:g}, previous_actions "
                     f"up to {float(continuation.previous_actions.abs().max()):.3g} in model space)")
-        if self.model.sampling_kernels == "persistent" and persistent_abandoned(self.model.device):
-            return f"{PERSISTENT_ABANDONED.removeprefix('its ')} (sampling_kernels='auto' samples without it)"
+        kernels = self.model.sampling_kernels
+        if kernels in ("auto", "persistent") and persistent_abandoned(self.model.device):  # ("auto": at batch 1-2)
+            instead = "samples without it" if kernels == "persistent" else "samples without it from the next chunk"
+            return f"{PERSISTENT_ABANDONED.removeprefix('its ')} (sampling_kernels='auto' {instead})"
         return (f"the model returned NaN/inf from finite inputs ({self._dtype_name} weights, noise_scale "
                 f"{self.noise_scale:g})")
 
