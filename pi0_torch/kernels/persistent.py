@@ -189,16 +189,14 @@ def _residual_tile(tile, x_ptr, a_ptr, stride_am, w_ptr, stride_wk, stride_wn, g
     _wait_for(wait_ptr + block * wait_stride, need, watch_ptr)
     acc, unused, no_squares = _matmul_tiles(a_ptr, stride_am, a_ptr, w_ptr, stride_wk, stride_wn, rows, columns, 0, M,
                                             k_start, k_stop, D, BLOCK_M, BLOCK_N, BLOCK_K, False, False, DOT, ".cg")
-    if SPLITS > 1:
+    written, count = D, 1
+    if SPLITS > 1:  # (only the last part to arrive writes, and counts in)
         acc, unused, no_squares, last = _sum_splits(acc, unused, no_squares, workspace_ptr, arrivals_ptr, output,
                                                     tile % SPLITS, SPLITS, BLOCK_M, BLOCK_N, False, False)
-        _add_to_residual(x_ptr, stride_xm, rows, columns, M, tl.where(last, D, 0), acc, gate_ptr, HAS_GATE)
-        if COUNT:
-            _count_in(counters_ptr + block, tl.where(last, 1, 0))
-    else:
-        _add_to_residual(x_ptr, stride_xm, rows, columns, M, D, acc, gate_ptr, HAS_GATE)
-        if COUNT:
-            _count_in(counters_ptr + block, 1)
+        written, count = tl.where(last, D, 0), tl.where(last, 1, 0)
+    _add_to_residual(x_ptr, stride_xm, rows, columns, M, written, acc, gate_ptr, HAS_GATE)
+    if COUNT:
+        _count_in(counters_ptr + block, count)
 
 
 @triton.jit
@@ -218,15 +216,13 @@ def _gate_up_tile(tile, x_ptr, scale_ptr, gate_up_ptr, bias_ptr, hidden_ptr, o_c
     _wait_for(o_counters_ptr + block, tl.cdiv(D, N_O), watch_ptr)
     gate, up, squares = _matmul_tiles(x_ptr, stride_xm, scale_ptr, gate_up_ptr, stride_gk, stride_gn, rows, columns, F,
                                       M, k_start, k_stop, F, BLOCK_M, N_GATE_UP, BLOCK_K, True, True, DOT, ".cg")
-    if SPLITS > 1:
+    written, count = F, 1
+    if SPLITS > 1:  # (only the last part to arrive writes, and counts in)
         gate, up, squares, last = _sum_splits(gate, up, squares, workspace_ptr, arrivals_ptr, output, tile % SPLITS,
                                               SPLITS, BLOCK_M, N_GATE_UP, True, True)
-        _geglu_store(gate, up, squares, rows, columns, columns < tl.where(last, F, 0), bias_ptr, hidden_ptr, M, D, F,
-                     eps, HAS_BIAS)
-        _count_in(counters_ptr + block, tl.where(last, 1, 0))
-    else:
-        _geglu_store(gate, up, squares, rows, columns, columns < F, bias_ptr, hidden_ptr, M, D, F, eps, HAS_BIAS)
-        _count_in(counters_ptr + block, 1)
+        written, count = tl.where(last, F, 0), tl.where(last, 1, 0)
+    _geglu_store(gate, up, squares, rows, columns, columns < written, bias_ptr, hidden_ptr, M, D, F, eps, HAS_BIAS)
+    _count_in(counters_ptr + block, count)
 
 
 @triton.jit
@@ -250,18 +246,14 @@ def _qkv_tile(tile, x_ptr, scale_ptr, w_ptr, bias_ptr, cos_ptr, sin_ptr, q_ptr, 
     _wait_for(wait_ptr + block, need, watch_ptr)
     acc1, acc2, squares = _matmul_tiles(x_ptr, stride_xm, scale_ptr, w_ptr, stride_wk, stride_wn, rows, first_half, half,
                                         M, k_start, k_stop, width, BLOCK_M, N_QKV, BLOCK_K, True, True, DOT, ".cg")
-    if SPLITS > 1:
+    written, count = (HEADS + 2) * half, 1
+    if SPLITS > 1:  # (only the last part to arrive writes, and counts in)
         acc1, acc2, squares, last = _sum_splits(acc1, acc2, squares, workspace_ptr, arrivals_ptr, output, tile % SPLITS,
                                                 SPLITS, BLOCK_M, N_QKV, True, True)
-        _rope_store(acc1, acc2, squares, rows, pairs, pairs < tl.where(last, (HEADS + 2) * half, 0), bias_ptr, cos_ptr,
-                    sin_ptr, q_ptr, key_ptr, value_ptr, M, D, tokens, first_slot, slots, stride_cos_b, stride_cos_t, eps,
-                    HEADS, HEAD_DIM, HAS_BIAS)
-        _count_in(counter_ptr, tl.where(last, 1, 0))
-    else:
-        _rope_store(acc1, acc2, squares, rows, pairs, pairs < (HEADS + 2) * half, bias_ptr, cos_ptr, sin_ptr, q_ptr,
-                    key_ptr, value_ptr, M, D, tokens, first_slot, slots, stride_cos_b, stride_cos_t, eps, HEADS,
-                    HEAD_DIM, HAS_BIAS)
-        _count_in(counter_ptr, 1)
+        written, count = tl.where(last, written, 0), tl.where(last, 1, 0)
+    _rope_store(acc1, acc2, squares, rows, pairs, pairs < written, bias_ptr, cos_ptr, sin_ptr, q_ptr, key_ptr, value_ptr,
+                M, D, tokens, first_slot, slots, stride_cos_b, stride_cos_t, eps, HEADS, HEAD_DIM, HAS_BIAS)
+    _count_in(counter_ptr, count)
 
 
 @triton.jit
