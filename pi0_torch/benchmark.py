@@ -48,7 +48,7 @@ from pi0_torch.models.flow_matching import euler_times
 from pi0_torch.models.layers import rope_cos_sin
 from pi0_torch.inference.graphs import relative_deviation
 from pi0_torch.inference.layout import InputFacts
-from pi0_torch.inference.sampling import SamplingInputs, SamplingPlan
+from pi0_torch.inference.sampling import SamplingInputs, SamplingPlan, SamplingRoute
 from pi0_torch.models.modeling_pi0 import PI0ForActionGeneration
 from pi0_torch.models.modeling_pi0_fast import PI0FastForActionGeneration
 from pi0_torch.models.rtc import DEFAULT_MAX_GUIDANCE, METHODS
@@ -331,7 +331,7 @@ def bench_generate(args: argparse.Namespace, device: torch.device) -> None:
                                 work = f" {activities:7d} {gpu_seconds * 1e3:7.1f}"
                             refused = method == "guidance" and model.sampling_captured and not model.replays_graphs(method)
                             label = "guid. eager" if refused else method or "-"  # (guided chunks replay no graph)
-                            fused = steps_path(model, device, method, batch, cameras)
+                            fused = steps_label(model.last_sampling_route)
                             print(f"{preset:12s} {dtype_name:9s} {mode:14s} {fused:8s} {label:12s} {cameras:4d} {batch:5d} "
                                   f"{setup:8.1f} {timing.row()} {rate}{work}")
                             print_kernel_table(table, args.kernel_table)
@@ -339,20 +339,14 @@ def bench_generate(args: argparse.Namespace, device: torch.device) -> None:
             gc.collect()
 
 
-def steps_path(model: PI0ForActionGeneration, device: torch.device, method: str | None, batch: int, cameras: int) -> str:
-    """What ran a row's Euler steps: "fused" (five launches per decoder layer), "persist." (fused, each step's decoder
-    layers in one launch: `runs_persistent`), "torch", or "refused" (fused, but its first call's verification against
-    the unfused path refused this batch size and camera count: they ran unfused; under "auto" a refused persistent
-    plan ran five launches per layer)."""
-    if model.fused_steps_reason(device, model.dtype, method) is not None:
-        return "torch"
-    refused = {(plan.persistent, signature[0][0][:2])
-               for (plan, signature), why in model._fused_refusals.items() if why is not None}
-    replayed = device.type == "cuda" and model.replays_graphs(method)
-    persistent = model.runs_persistent(batch, replayed, device) and (True, (batch, cameras)) not in refused
-    if (persistent, (batch, cameras)) in refused:
+def steps_label(route: SamplingRoute) -> str:
+    """What ran a row's Euler steps (its last call's `SamplingRoute`): "fused" (five launches per decoder layer),
+    "persist." (fused, each step's decoder layers in one launch), "torch", or "refused" (a first call's verification
+    refused the fused steps for this batch size and camera count, or under "auto" the persistent launch: the row ran
+    unfused, or five launches per layer)."""
+    if any(not refusal.startswith("CUDA graph") for refusal in route.refusals):
         return "refused"
-    return "persist." if persistent else "fused"
+    return {"triton": "fused", "persistent": "persist."}.get(route.steps, route.steps)
 
 
 def bench_op_counts(args: argparse.Namespace) -> None:

@@ -172,17 +172,14 @@ class Doctor:
             model.sampling_kernels = "auto"
             try:
                 got = sample(model)
-                why_not = model.fused_steps_reason(device, model.dtype)
-                refused = {plan.persistent: why for (plan, _), why in model._fused_refusals.items() if why is not None}
-                persistent = model.runs_persistent(len(noise), False, device)
+                route = model.last_sampling_route
             finally:
                 model.sampling_kernels = "torch"
-            if why_not or False in refused:  # (the five launches per layer refused too: the torch path ran)
-                note = f"torch path: {why_not or refused[False]}"
-            elif True in refused:
-                note = f"five launches per layer (the persistent launch refused: {refused[True]})"
+            if route.steps == "torch":
+                note = f"torch path: {route.why_unfused}"
             else:
-                note = "persistent layers" if persistent else "five launches per layer"
+                note = "persistent layers" if route.steps == "persistent" else "five launches per layer"
+                note += f" ({'; '.join(route.refusals)})" if route.refusals else ""
             return against(got, reference, BF16_BOUND, note)
 
         self.row(f"{name} auto kernels, eager", torch.bfloat16, auto_eager, needs_cuda=True)
@@ -195,17 +192,17 @@ class Doctor:
                 try:  # ("persistent" raises where its first call's verification refuses it)
                     options = {} if method is None else dict(rtc, rtc_method=method)
                     replays = [sample(model, **options) for _ in range(2)]
-                    refused = list(model._graphs.refused.values())
-                    unfused = [why for why in model._fused_refusals.values() if why is not None]
+                    route = model.last_sampling_route
                 finally:
                     model.capture_sampling(disable=True)
                     model.sampling_kernels = "torch"
                 deviation = max(relative_deviation(replay, want) for replay in replays)
-                if refused and method == "guidance":  # (not yet proven on a GPU: refused means eager, correct)
-                    return deviation, BF16_BOUND, f"graph refused at capture, guided chunks sample eagerly ({refused[0]})"
-                if refused:
-                    return float("inf"), BF16_BOUND, f"graph refused at capture: {refused[0]}"
-                return deviation, BF16_BOUND, f"fused steps refused at first call, unfused graph ({unfused[0]})" if unfused else ""
+                refusals = "; ".join(route.refusals)
+                if not route.graph and method == "guidance":  # (not yet proven on a GPU: refused means eager, correct)
+                    return deviation, BF16_BOUND, f"no graph, guided chunks sample eagerly ({refusals or 'CUDA refused the capture'})"
+                if not route.graph:
+                    return float("inf"), BF16_BOUND, f"graph refused at capture ({refusals})"
+                return deviation, BF16_BOUND, f"refused at first call, graph of {route.steps} steps ({refusals})" if refusals else ""
             return check
 
         self.row(f"{name} CUDA graph", torch.bfloat16, graph(None, reference), needs_cuda=True)

@@ -222,6 +222,7 @@ def test_fused_steps_hold_at_full_width_for_every_batch_class(preset: str, setti
     twice, near what it samples eagerly (the graph's prefix slots are bucketed: another rounding)."""
     from pi0_torch import PI0Config, PI0ForActionGeneration
     from pi0_torch.benchmark import example_batch
+    from pi0_torch.inference.sampling import SamplingRoute
 
     torch.manual_seed(0)
     config = PI0Config.from_preset(preset, num_hidden_layers=2, vision_num_layers=2)
@@ -237,9 +238,11 @@ def test_fused_steps_hold_at_full_width_for_every_batch_class(preset: str, setti
         assert list(model._fused_refusals.values()) == [None], model._fused_refusals
         persistent = setting == "persistent" or batch <= model.PERSISTENT_EAGER_BATCH
         assert [plan.persistent for plan, _ in model._fused_refusals] == [persistent]
+        assert model.last_sampling_route == SamplingRoute("persistent" if persistent else "triton", graph=False)
         if setting == "persistent":
             model.capture_sampling()
             replayed = [model.generate_actions(**inputs, noise=noise) for _ in range(2)]
+            assert model.last_sampling_route == SamplingRoute("persistent", graph=True)
             model.capture_sampling(disable=True)
             print(f"{preset} batch {batch}: persistent graph against eager {relative(replayed[1], fused):.2e}")
             assert relative(replayed[1], replayed[0]) <= 1e-3 and relative(replayed[1], fused) <= 2e-2

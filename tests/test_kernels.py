@@ -21,6 +21,7 @@ from pi0_torch import PI0Config, PI0ForActionGeneration
 from pi0_torch.benchmark import sample_on_meta
 from pi0_torch.inference import fused_pass, vision_pass
 from pi0_torch.inference.layout import InputFacts
+from pi0_torch.inference.sampling import SamplingRoute
 from pi0_torch.kernels import ops, reference
 from pi0_torch.models.layers import rope_cos_sin
 from pi0_torch.utils.op_count import AtenOpCounter
@@ -308,6 +309,7 @@ def test_each_fused_plan_is_verified_against_the_unfused_path_on_its_first_call(
     model.sampling_kernels = "triton"
     first = model.generate_actions(**inputs, num_steps=2)
     assert samplings == [False, True]  # verified: unfused, then fused (the call's actions)
+    assert model.last_sampling_route == SamplingRoute("triton", graph=False)
     assert model.generate_actions(**inputs, num_steps=2).equal(first) and samplings[2:] == [True]
     assert relative(first, unfused) <= 1e-5 and list(model._fused_refusals.values()) == [None]
     model.generate_actions(**{name: value[:1] for name, value in inputs.items()}, num_steps=2)  # batch 1: verified anew
@@ -329,6 +331,10 @@ def test_each_fused_plan_is_verified_against_the_unfused_path_on_its_first_call(
         refused = model.generate_actions(**inputs, num_steps=2)
         assert model.generate_actions(**inputs, num_steps=2).equal(refused)
     assert refused.equal(unfused) and samplings == [False, True, False]
+    route = model.last_sampling_route
+    assert route.steps == "torch" and not route.graph and len(route.refusals) == 1, route
+    assert route.refusals[0].startswith("fused steps: its actions deviate from the unfused path's by ")
+    assert route.why_unfused == f"the fused steps were refused: {route.refusals[0].removeprefix('fused steps: ')}"
     assert [record.getMessage().split(":")[0] for record in caplog.records] == [
         "the fused kernels were refused for sampling (batch 2, 2 steps, 19 prefix slots, fused steps)"], caplog.text
 
@@ -348,8 +354,8 @@ def test_auto_runs_the_persistent_launch_in_eager_calls_of_few_samples(monkeypat
     """Under "auto" where the fused steps apply (as on CUDA in bf16), an eager call of at most
     `PERSISTENT_EAGER_BATCH` samples runs each step's decoder layers in one persistent launch, a larger batch and a
     CUDA graph's replay five launches per layer (measured faster there); "triton" never, "persistent" always. A
-    persistent plan refused on its first call falls back to five launches per layer, verified in their turn, with a
-    warning."""
+    persistent plan refused on its first call falls back to five launches per layer, verified in their turn against
+    the unfused actions its own verification sampled, with a warning; `last_sampling_route` says what ran."""
     from pi0_torch.kernels import persistent
 
     torch.manual_seed(0)
@@ -374,10 +380,11 @@ def test_auto_runs_the_persistent_launch_in_eager_calls_of_few_samples(monkeypat
     first = {name: value[:1] for name, value in inputs.items()}
     one = model.generate_actions(**first, num_steps=2)
     assert samplings == [(False, False), (True, True)]  # verified: unfused, then in persistent launches
-    assert relative(one, unfused[:1]) <= 1e-5
+    assert relative(one, unfused[:1]) <= 1e-5 and model.last_sampling_route == SamplingRoute("persistent", False)
     del samplings[:]
     assert relative(model.generate_actions(**inputs, num_steps=2), unfused) <= 1e-5
     assert samplings == [(False, False), (True, False)]  # batch 3: five launches per layer
+    assert model.last_sampling_route == SamplingRoute("triton", False)
 
     def fails(*args):
         raise RuntimeError("out of resource: shared memory")
@@ -388,8 +395,11 @@ def test_auto_runs_the_persistent_launch_in_eager_calls_of_few_samples(monkeypat
     with caplog.at_level("WARNING", logger="pi0_torch.inference.sampling"):
         refused = model.generate_actions(**first, num_steps=2)
         assert model.generate_actions(**first, num_steps=2).equal(refused)
-    assert samplings == [(False, False), (True, True), (False, False), (True, False), (True, False)]
+    # (unfused once: the persistent plan's verification, whose unfused actions the five launches are checked against)
+    assert samplings == [(False, False), (True, True), (True, False), (True, False)]
     assert relative(refused, unfused[:1]) <= 1e-5
+    assert model.last_sampling_route == SamplingRoute(
+        "triton", False, refusals=("persistent launch: it failed (RuntimeError: out of resource: shared memory)",))
     assert [record.getMessage() for record in caplog.records] == [
         "the fused kernels were refused for sampling (batch 1, 2 steps, 19 prefix slots, fused steps in persistent "
         "launches): it failed (RuntimeError: out of resource: shared memory); it runs five launches per decoder layer "

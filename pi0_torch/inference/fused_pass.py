@@ -109,13 +109,16 @@ def fused_kernels_reason(device: torch.device, dtype: torch.dtype, width: int, h
     return kernels_reason(device, dtype, cases, "sampling runs the unfused torch path")
 
 
-def verify_fused_sampling(model: PI0ForActionGeneration, inputs: SamplingInputs, plan: SamplingPlan) -> tuple[str | None, torch.Tensor]:
-    """Sample `inputs` with `plan`'s fused steps and unfused, eagerly: why the fused sampling is refused for inputs
-    of these shapes (None: it may run), and the actions to return (the fused ones where it may, else the unfused).
+def verify_fused_sampling(model: PI0ForActionGeneration, inputs: SamplingInputs, plan: SamplingPlan,
+                          unfused: torch.Tensor | None = None) -> tuple[str | None, torch.Tensor]:
+    """Sample `inputs` with `plan`'s fused steps and unfused (unless `unfused` holds those actions already: the
+    verification of a refused persistent plan sampled them), eagerly: why the fused sampling is refused for inputs of
+    these shapes (None: it may run), and the actions to return (the fused ones where it may, else the unfused).
     Refused where it raises (a kernel variant that does not compile or does not fit the device), where a persistent
     launch abandoned a wait (`kernels.persistent.watchdog`), or where its actions deviate from the unfused ones by
     more than `FUSED_TOLERANCE` (a non-finite action deviates infinitely)."""
-    unfused = model._sample(inputs, replace(plan, fused=False, persistent=False))
+    if unfused is None:
+        unfused = model._sample(inputs, replace(plan, fused=False, persistent=False))
     try:
         fused = model._sample(inputs, plan)
     except Exception as error:  # (the inputs were checked and the unfused path ran them: what fails is the kernels)

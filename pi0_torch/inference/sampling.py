@@ -24,7 +24,7 @@ from pi0_torch.inference.attention import KERNELS, choose_kernel
 from pi0_torch.inference import fused_pass, vision_pass
 from pi0_torch.inference.fused_pass import (FusedSteps, auto_avoids_persistent, fused_kernels_reason, kernels_setting_reason,
                                             structural_reason, verify_fused_sampling)
-from pi0_torch.inference.graphs import describe_plan, input_signature
+from pi0_torch.inference.graphs import SamplingGraphs, describe_plan, input_signature
 from pi0_torch.inference.layer_pass import CALL_MODULES, SamplingWeights, layer_sampling_weights, sampling_layer_pass
 from pi0_torch.inference.layout import PrefixLayout, camera_inputs, compact_prefix, prefix_stream, rope_tables, suffix_stream
 from pi0_torch.masks import aligned_key_count
@@ -94,6 +94,19 @@ class SamplingPlan:
     persistent: bool = False  # (fused) each step's decoder layers in one launch (`pi0_torch.kernels.persistent`)
 
 
+@dataclass(frozen=True)
+class SamplingRoute:
+    """What ran a `generate_actions` call (`model.last_sampling_route`): the kernels of its Euler steps, whether it
+    replayed a CUDA graph, and why it ran slower than the model's settings ask for."""
+
+    steps: str  # "torch" (the layers' GEMMs and ATen ops), "triton" (the fused kernels, five launches per decoder layer)
+    # or "persistent" (the fused kernels, each step's decoder layers in one launch)
+    graph: bool  # it replayed a CUDA graph (`capture_sampling`)
+    why_unfused: str | None = None  # why the steps ran "torch" (None where they ran fused)
+    refusals: tuple[str, ...] = ()  # what a check refused for this call's plan and shapes, and why: its persistent
+    # launch or its fused steps (first call's verification), its graph (first replay's); each made it run the next path
+
+
 class ActionSampling:
     """`generate_actions` and its fast paths for `PI0ForActionGeneration` (which provides the layers, the embeddings,
     `conditioning` and the input checks)."""
@@ -116,6 +129,16 @@ class ActionSampling:
     _graphs: Any = None  # `SamplingGraphs` once `capture_sampling` is called
     _device_times: dict[tuple[tuple[float, ...], torch.device], torch.Tensor]
     _fused_refusals: dict[tuple[Any, ...], str | None]  # (plan, input signature) -> why its fused steps were refused
+    _last_route: SamplingRoute | None = None
+
+    @property
+    def last_sampling_route(self) -> SamplingRoute | None:
+        """What ran the last `generate_actions` call that returned actions (None before the first): the kernels of its
+        Euler steps ("torch", "triton" or "persistent"), whether it replayed a CUDA graph, why its steps ran unfused,
+        and what a check refused for its plan (see "Correct first" in docs/gpu.md). An eager call of one sample on an
+        H100 in bf16 says `SamplingRoute(steps='persistent', graph=False, why_unfused=None, refusals=())`; one on a CPU
+        `SamplingRoute(steps='torch', graph=False, why_unfused="the fused kernels run on CUDA in bf16 / fp16 ...")`."""
+        return self._last_route
 
     @property
     def attention_kernel(self) -> str:
@@ -182,16 +205,18 @@ class ActionSampling:
         unsupported = None if rtc_method is None else f"real-time chunking ({rtc_method}) steps run unfused"
         return kernels_setting_reason(self._sampling_kernels, "sampling_kernels", device, dtype, check, unsupported)
 
-    def _verified_plan(self, inputs: SamplingInputs, plan: SamplingPlan) -> tuple[SamplingPlan, torch.Tensor | None]:
+    def _verified_plan(self, inputs: SamplingInputs, plan: SamplingPlan,
+                       unfused: torch.Tensor | None = None) -> tuple[SamplingPlan, torch.Tensor | None]:
         """The fused `plan`, or it unfused where its fused steps are refused for these input shapes; and, on the first
         call of each plan and input shapes, that call's actions. The verdict is taken on that first call
         (`fused_pass.verify_fused_sampling`: unfused against fused, eagerly) and kept; a refusal is logged once, or
         raised (`ValueError`) where `sampling_kernels` asks for them by name ("triton", "persistent"). Under "auto" a
-        refused persistent plan falls back to five launches per layer, verified in their turn."""
+        refused persistent plan falls back to five launches per layer, verified in their turn against the unfused
+        actions its own verification sampled (`unfused`)."""
         key = (plan, input_signature(inputs))
         sampled = None
         if key not in self._fused_refusals:
-            refusal, sampled = verify_fused_sampling(self, inputs, plan)
+            refusal, sampled = verify_fused_sampling(self, inputs, plan, unfused)
             if refusal is not None:
                 described = describe_plan(plan, inputs.noise.shape[0])
                 if self._sampling_kernels != "auto":
@@ -202,8 +227,8 @@ class ActionSampling:
             self._fused_refusals[key] = refusal
         if self._fused_refusals[key] is None:
             return plan, sampled
-        if plan.persistent:  # (a refusal is kept under "auto" only: a named setting raised)
-            return self._verified_plan(inputs, replace(plan, persistent=False))
+        if plan.persistent:  # (a refusal is kept under "auto" only: a named setting raised; `sampled` is unfused)
+            return self._verified_plan(inputs, replace(plan, persistent=False), sampled)
         return replace(plan, fused=False), sampled
 
     def attention_kernel_for(self, device: torch.device, dtype: torch.dtype, differentiable: bool) -> str:
@@ -274,16 +299,31 @@ class ActionSampling:
             weights=prefix.weights if method == "guidance" else None,
             committed=prefix.committed if method == "conditioning" else None,
         )
-        fused = self.fused_steps_reason(pixel_values.device, self.dtype, method) is None
-        plan = SamplingPlan(layout, times, method, float(rtc_max_guidance) if method == "guidance" else 0.0, fused,
-                            persistent=fused and self.runs_persistent(batch, graphs is not None, pixel_values.device))
-        if plan.fused:
-            plan, sampled = self._verified_plan(inputs, plan)
-            if sampled is not None and graphs is None:
-                return sampled  # (the first call's, from its verification)
-        if self.sampling_compiled:
-            allow_recompiles(self.RECOMPILE_LIMIT)
-        return self._sample(inputs, plan) if graphs is None else graphs.run(inputs, plan)
+        why_unfused = self.fused_steps_reason(pixel_values.device, self.dtype, method)
+        fused = why_unfused is None
+        requested = SamplingPlan(layout, times, method, float(rtc_max_guidance) if method == "guidance" else 0.0, fused,
+                                 persistent=fused and self.runs_persistent(batch, graphs is not None, pixel_values.device))
+        plan, sampled = self._verified_plan(inputs, requested) if fused else (requested, None)
+        if sampled is None or graphs is not None:  # (else the first call's actions, from its verification)
+            if self.sampling_compiled:
+                allow_recompiles(self.RECOMPILE_LIMIT)
+            sampled = self._sample(inputs, plan) if graphs is None else graphs.run(inputs, plan)
+        self._last_route = self._route(requested, plan, input_signature(inputs), graphs, why_unfused)
+        return sampled
+
+    def _route(self, requested: SamplingPlan, plan: SamplingPlan, signature: tuple[Any, ...],
+               graphs: SamplingGraphs | None, why_unfused: str | None) -> SamplingRoute:
+        """The `SamplingRoute` of a call that planned `requested` and ran `plan` (`graphs`: its captured graphs)."""
+        refused = {tried.persistent: why for tried in dict.fromkeys((requested, replace(requested, persistent=False)))
+                   if tried.fused and (why := self._fused_refusals.get((tried, signature))) is not None}
+        refusals = [f"{'persistent launch' if persistent else 'fused steps'}: {why}" for persistent, why in refused.items()]
+        replayed = graphs is not None and (plan, signature) in graphs.graphs
+        if graphs is not None and (plan, signature) in graphs.refused:
+            refusals.append(f"CUDA graph: {graphs.refused[plan, signature]}")
+        if why_unfused is None and not plan.fused:  # (its first call's verification refused them)
+            why_unfused = f"the fused steps were refused: {refused[False]}"
+        steps = "torch" if not plan.fused else "persistent" if plan.persistent else "triton"
+        return SamplingRoute(steps, replayed, why_unfused, tuple(refusals))
 
     def _sample(self, inputs: SamplingInputs, plan: SamplingPlan) -> torch.Tensor:
         """The sampling of `generate_actions` on checked inputs: no host reads, so it can be captured as a CUDA graph.
@@ -586,8 +626,6 @@ class ActionSampling:
         guidance: a warning, and guided chunks sample eagerly from then on. `capture_sampling(disable=True)` goes back
         to eager.
         """
-        from pi0_torch.inference.graphs import SamplingGraphs
-
         sizes = None if batch_sizes is None else tuple(check_int("batch_sizes", size, minimum=1) for size in batch_sizes)
         self._graphs = None if disable else SamplingGraphs(self, sizes, guidance, verify)
 
