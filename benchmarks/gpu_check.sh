@@ -18,8 +18,9 @@
 #    step 3 times into triton's disk cache; with tilings, every tiling too);
 # 3. alone: the step GEMMs against cuBLAS (GB/s); an Euler step's 18 layers as one persistent launch against today's
 #    90 (benchmarks/persistent_layers.py: its tilings, then where one launch's time went, phase by phase, from the
-#    timeline its tiles stamp); the benchmark again with sampling_kernels="triton" (five launches per layer, eager and
-#    graph, batch 1 and 2: what "auto" runs eagerly there is step 1's, same machine; the MLP half alone,
+#    timeline its tiles stamp); π0's benchmark again with sampling_kernels="triton" and "persistent" (five launches per
+#    layer against one per step, eager and graph, batch 1, 2 and 3: "auto" takes the persistent launch eagerly up to
+#    PERSISTENT_EAGER_BATCH = 2, and batch 3 says whether that cut is right; the MLP half alone,
 #    benchmarks/persistent_mlp.py, is left out); with tilings, the kernels' tilings (benchmarks/kernel_sweep.py: every
 #    candidate timed and checked against the reference, the fastest written to $OUT/tilings.json, then π0 and π0.5
 #    sampled with them; measured on an H200 on 2026-11-27); and π0-FAST's decoding, fused against the modules,
@@ -76,14 +77,14 @@ grep -h "against the reference\|outputs NaN\|^exit" "$OUT/persistent-check.log"
 # 3. alone
 step sweep 20 "$PY" -m pi0_torch.cli bench --device cuda --skip-generate --gemms --presets pi0 --batches 1,8 --repeats 10
 step sweep 50 "$PY" benchmarks/persistent_layers.py --bench
-step bench 75 "$PY" -m pi0_torch.cli bench --device cuda --presets pi0,pi05 --dtypes bfloat16 --cameras 3 --batches 1,2 \
-    --kernels triton --repeats 10 --kernel-table 15
+step bench 75 "$PY" -m pi0_torch.cli bench --device cuda --presets pi0 --dtypes bfloat16 --cameras 3 --batches 1,2,3 \
+    --kernels triton,persistent --repeats 10 --kernel-table 15
 step tilings 100 "$PY" benchmarks/kernel_sweep.py --write "$OUT/tilings.json" --bench
 step fast-bench 45 "$PY" -m pi0_torch.cli bench --device cuda --skip-generate --fast --fast-presets pi0_fast \
     --dtypes bfloat16 --batches 1 --kernels auto,torch --repeats 3
 TAIL=70 show sweep
-printf '\n---- bench, sampling_kernels="triton"\n'
-grep -v '^      ' "$OUT/bench.log" | tail -n 12
+printf '\n---- bench, sampling_kernels="triton" and "persistent"\n'
+grep -v '^      ' "$OUT/bench.log" | tail -n 14
 TAIL=40 show tilings
 TAIL=8 show fast-bench
 printf '\nlogs in %s\n' "$OUT"

@@ -253,6 +253,41 @@ def test_fused_steps_hold_at_full_width_for_every_batch_class(preset: str, setti
 
 
 @torch.no_grad()
+def test_auto_leaves_the_persistent_launch_once_one_gave_up_a_wait_on_this_gpu(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Under "auto" an eager chunk of one sample takes the persistent launch. A launch that gives up its waits (the
+    watchdog set, as the kernel sets it after `SPINS` spins) returns NaN: that chunk is lost. The next chunk reads the
+    watchdog and samples with five launches per decoder layer, verified on its first call, and is fine again."""
+    from pi0_torch import PI0Config, PI0ForActionGeneration
+    from pi0_torch.benchmark import example_batch
+    from pi0_torch.inference import fused_pass
+    from pi0_torch.inference.sampling import SamplingRoute
+    from pi0_torch.kernels import persistent
+
+    monkeypatch.setattr(persistent, "_watches", {})  # (this test's watchdog, not the process's)
+    monkeypatch.setattr(fused_pass, "_AVOIDED", set())
+    torch.manual_seed(0)
+    config = PI0Config.from_preset("pi0", num_hidden_layers=2, vision_num_layers=2)
+    with CUDA:
+        model = PI0ForActionGeneration(config).to(torch.bfloat16).eval()
+    inputs = example_batch(config, 3, 1, CUDA)
+    noise = torch.randn(1, config.action_horizon, config.action_dim, device=CUDA)
+    first = model.generate_actions(**inputs, noise=noise)
+    assert model.last_sampling_route == SamplingRoute("persistent", graph=False)
+    launch = persistent.expert_layers_
+
+    def gives_up(x: torch.Tensor, *args, **options) -> None:  # (a fault: every wait of this launch is given up)
+        persistent.watchdog(x.device)[0] = 1
+        launch(x, *args, **options)
+
+    monkeypatch.setattr(persistent, "expert_layers_", gives_up)
+    assert not bool(torch.isfinite(model.generate_actions(**inputs, noise=noise)).all())  # (the chunk it happened in)
+    monkeypatch.setattr(persistent, "expert_layers_", launch)
+    after = [model.generate_actions(**inputs, noise=noise) for _ in range(2)]
+    assert model.last_sampling_route == SamplingRoute("triton", graph=False)
+    assert all(bool(torch.isfinite(chunk).all()) and relative(chunk, first) <= 2e-2 for chunk in after)
+
+
+@torch.no_grad()
 def test_direct_launches_sample_what_tritons_own_launches_sample() -> None:
     """The fused kernels launched directly (`pi0_torch.kernels.launch`: every launch of a class after its first) give
     bit for bit the actions that triton's own launches give: full width, two layers, bf16, batch 1 (key parts,
