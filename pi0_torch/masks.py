@@ -150,7 +150,9 @@ def dense_mask_mod(mask: torch.Tensor) -> MaskMod:
     per_batch, per_head = table.shape[0] > 1, table.shape[1] > 1  # a size-1 dim serves every batch / head
 
     def lookup(b: torch.Tensor, h: torch.Tensor, q_idx: torch.Tensor, kv_idx: torch.Tensor) -> torch.Tensor:
-        return table[b if per_batch else 0, h if per_head else 0, q_idx, kv_idx]
+        # (a size-1 dim is indexed by a zero tensor, not 0: torch 2.10's vmap in `create_mask` refuses a Python int
+        # beside tensor indices, "calling .item() on a Tensor")
+        return table[b if per_batch else b * 0, h if per_head else h * 0, q_idx, kv_idx]
 
     return lookup
 

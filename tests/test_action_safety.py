@@ -150,8 +150,12 @@ def test_non_finite_actions_are_withheld_naming_the_cause(cause: str, monkeypatc
     assert "\n" not in str(withheld.value)
 
 
-@pytest.mark.skipif(ops.triton_reason(torch.device("cpu")) is not None, reason="the persistent launch runs in triton's "
-                    "interpreter here (TRITON_INTERPRET=1, the repository's conftest.py) and needs triton")
+# (the persistent launch runs in triton's interpreter here: TRITON_INTERPRET=1, the repository's conftest.py)
+needs_interpreted_kernels = pytest.mark.skipif(ops.triton_reason(torch.device("cpu")) is not None,
+                                               reason=str(ops.triton_reason(torch.device("cpu"))))
+
+
+@needs_interpreted_kernels
 def test_a_persistent_launch_that_abandoned_a_wait_is_named_and_its_chunk_withheld(monkeypatch: pytest.MonkeyPatch) -> None:
     """`sampling_kernels="persistent"`: a launch that waited too long (a synchronization fault on a GPU) returns NaN
     rather than hang, and so does every later one in the process (`kernels.persistent.watchdog`): a plan verified
@@ -171,8 +175,7 @@ def test_a_persistent_launch_that_abandoned_a_wait_is_named_and_its_chunk_withhe
         policy.model.generate_actions(**policy._batch([policy.prepare(OBSERVATION)]), num_steps=3)  # (a new plan)
 
 
-@pytest.mark.skipif(ops.triton_reason(torch.device("cpu")) is not None, reason="the persistent launch runs in triton's "
-                    "interpreter here (TRITON_INTERPRET=1, the repository's conftest.py) and needs triton")
+@needs_interpreted_kernels
 def test_auto_leaves_a_persistent_launch_that_abandoned_a_wait(monkeypatch: pytest.MonkeyPatch,
                                                                caplog: pytest.LogCaptureFixture) -> None:
     """Under "auto" where the fused kernels apply (as on CUDA in bf16), an eager chunk of one sample takes the

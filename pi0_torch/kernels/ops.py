@@ -40,12 +40,36 @@ def _triton_import_error() -> Optional[str]:
     return None
 
 
+@functools.lru_cache(maxsize=None)
+def _interpreter_error() -> Optional[str]:
+    """Why triton's interpreter cannot run the kernels here (None: it can), found by running one of them: triton
+    3.6's interpreter turns a loop's tensor bound into a Python int with `int(array)`, which numpy 2.4 refuses for
+    the one-element arrays it holds (triton 3.9's squeezes the array first)."""
+    from pi0_torch.kernels import triton_kernels
+
+    residual = torch.zeros(2, 16)
+    try:
+        triton_kernels.matmul_residual_(residual, torch.ones(2, 16), torch.ones(16, 16), None)
+    except Exception as error:
+        import numpy
+        import triton
+
+        return (f"triton {triton.__version__}'s interpreter cannot run the kernels with numpy {numpy.__version__} "
+                f"({type(error).__name__}: {str(error)[:200]})")
+    if not bool((residual == 16).all()):
+        return "triton's interpreter computed a 16-deep sum of ones wrong"
+    return None
+
+
 def triton_reason(device: torch.device) -> Optional[str]:
     """Why the Triton kernels cannot run on `device` (None: they can): a CUDA device and an importable triton, or
-    any device under `TRITON_INTERPRET=1` (triton's interpreter, for tests on the CPU)."""
-    if device.type != "cuda" and os.environ.get("TRITON_INTERPRET") != "1":
+    any device under `TRITON_INTERPRET=1` (triton's interpreter, for tests on the CPU) where the interpreter runs
+    them (`_interpreter_error`)."""
+    if device.type == "cuda":
+        return _triton_import_error()
+    if os.environ.get("TRITON_INTERPRET") != "1":
         return f"the fused kernels are written for CUDA, not {device.type}"
-    return _triton_import_error()
+    return _triton_import_error() or _interpreter_error()
 
 
 def _module(name: str, triton: bool) -> ModuleType:
