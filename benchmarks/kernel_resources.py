@@ -111,7 +111,7 @@ def compile_launches(arch: int, batches: list[int]) -> dict[str, tuple[str, Any]
             for batch in batches:
                 facts = InputFacts(((True,) * config.num_cameras,) * batch, (TEXT_TOKENS,) * batch, TEXT_TOKENS)
                 sample_on_meta(config, facts, config.num_inference_steps, torch.bfloat16, fused=True, count=False)
-        # the persistent launch (what "auto" runs eagerly at batch 1-2): π0 at batch 1, its steps and state token
+        # the persistent launch (what "auto" runs eagerly at batch 1-2): π0 at batch 1 (its first step with the state token)
         config = PI0Config.from_preset("pi0")
         facts = InputFacts(((True,) * config.num_cameras,), (TEXT_TOKENS,), TEXT_TOKENS)
         sample_on_meta(config, facts, 1, torch.bfloat16, fused=True, count=False, persistent=True)

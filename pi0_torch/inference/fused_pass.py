@@ -6,9 +6,9 @@
   step in one persistent launch, `kernels.persistent.expert_layers_`), then the final norm, `action_out_proj` and the
   Euler update in one.
 - The prefix pass (`prefix_layer`): the VLM's GEMMs stay cuBLAS's (compute-bound at 800+ rows) with RoPE and the cache
-  write, and the GeGLU, fused around them (nine launches per layer instead of fifteen); π0's state token, one row,
-  goes through the action expert's fused ops (five instead of fifteen; "persistent": all its layers in one launch
-  after the prefix's, `state_layers_`). SigLIP runs `vision_pass` (nine launches per encoder layer instead of twelve).
+  write, and the GeGLU, fused around them (nine launches per layer instead of fifteen). π0's state token, one row
+  that sees the prefix and itself, runs with the first step's action tokens (`FusedSteps`). SigLIP runs
+  `vision_pass` (nine launches per encoder layer instead of twelve).
 
 It computes what `ActionSampling.denoise_step` followed by `x_t += dt * velocity` computes, with fewer roundings in
 bf16 (the fused epilogues round once). Used for plain sampling on CUDA in bf16 / fp16 (`ActionSampling.sampling_kernels`,
@@ -37,7 +37,7 @@ from pi0_torch.inference.attention import attend
 from pi0_torch.inference.graphs import relative_deviation
 from pi0_torch.inference.layer_pass import plain_linear, runs_extra_code, runs_its_weights
 from pi0_torch.kernels import ops, reference
-from pi0_torch.models.layers import JointDecoderLayer, NormParams, StepConditioning, StreamPass, rms_norm, rope_cos_sin
+from pi0_torch.models.layers import NormParams, StepConditioning, StreamPass, rms_norm, rope_cos_sin
 
 if TYPE_CHECKING:
     from pi0_torch.inference.layer_pass import SamplingWeights
@@ -261,11 +261,17 @@ class FusedSteps:
     lists of each layer's views for five launches per layer), whether a step's layers run as one persistent launch,
     the action embedding's weights and each step's bias (π0: action_in_proj folded into the action half of
     action_time_mlp_in, the step's time half in the bias), and the final norm's scale and bias of each step
-    (`action_out_proj`'s bias, plus π0.5's final adaRMS shift through it)."""
+    (`action_out_proj`'s bias, plus π0.5's final adaRMS shift through it).
+
+    π0's state token (`PrefixCache.state`) runs with the first step's action tokens, ahead of them in its slot: it
+    sees the prefix and itself, they see it too, and its keys and values stay in the caches for the other steps. So
+    the action expert's weights are read once less per chunk than with a pass of its own (as openpi's suffix computes
+    it, where every step recomputes it)."""
 
     model: PI0ForActionGeneration
     persistent: bool
-    layer_arguments: list[tuple[Any, ...]]  # per step
+    layer_arguments: list[tuple[Any, ...]]  # per step (π0: the first step's with the state token ahead of its tokens)
+    state: torch.Tensor | None  # π0: the state token [B, D1], run by the first step
     in_weight: torch.Tensor  # [A, D1]
     in_biases: torch.Tensor  # [steps or 1, D1]
     mlp_out: tuple[torch.Tensor, torch.Tensor] | None  # π0: action_time_mlp_out's weight [D1, D1] (transposed), bias
@@ -292,10 +298,18 @@ class FusedSteps:
             per_step = [[[getattr(pair[index], name) for pair in layer_norms] for index, name in names]
                         for layer_norms in step_norms]
         qkv, o, gate_up, down = projection_lists(actions.expert_weights)
-        row_ends = torch.full((stream.tokens,), cache.slots, device=cache.first.device)
-        layer_arguments = [(scales, qkv, o, mlp_scales, gate_up, down, stream.cos[:, :, 0], stream.sin[:, :, 0], keys,
-                            values, cache.first, row_ends, stream.first_slot, config.rms_norm_eps, *(adarms or (None,) * 4))
-                           for scales, mlp_scales, *adarms in per_step]
+        device = cache.first.device
+        first_slot = stream.first_slot
+        slotted = [((stream.cos[:, :, 0], stream.sin[:, :, 0]), torch.full((stream.tokens,), cache.slots, device=device),
+                    first_slot)] * steps  # per step: the RoPE tables, each token's key end, the first slot
+        if cache.state is not None:  # (the state token's slot, then the action tokens': it sees only up to itself)
+            first_slot -= 1
+            joint_ends = torch.full((1 + stream.tokens,), cache.slots, device=device)
+            joint_ends[0] = first_slot + 1
+            slotted[0] = (tuple(table[:, first_slot : cache.slots] for table in cache.rope), joint_ends, first_slot)
+        layer_arguments = [(scales, qkv, o, mlp_scales, gate_up, down, *tables, keys, values, cache.first, ends, slot,
+                            config.rms_norm_eps, *(adarms or (None,) * 4))
+                           for (scales, mlp_scales, *adarms), (tables, ends, slot) in zip(per_step, slotted)]
         out_weight = model.action_out_proj.weight.t()
         final: NormParams = conditioning.final_norm if config.pi05 else actions.final_norm
         final_biases = model.action_out_proj.bias[None]
@@ -306,40 +320,26 @@ class FusedSteps:
             in_biases = torch.addmm(conditioning.condition, in_biases.expand(steps, -1), actions.action_weight)  # [steps, D1]
             in_weight = torch.mm(in_weight, actions.action_weight)
             mlp_out = (model.action_time_mlp_out.weight.t(), model.action_time_mlp_out.bias)
-        return cls(model, persistent, layer_arguments, in_weight, in_biases, mlp_out, out_weight,
+        return cls(model, persistent, layer_arguments, cache.state, in_weight, in_biases, mlp_out, out_weight,
                    final.scale.view(-1, final.scale.shape[-1]), final_biases)
 
     def step_(self, x_t: torch.Tensor, index: int, dt: float) -> None:
         """The `index`-th Euler step of the call at `x_t` (float32 `[B, horizon, A]`, updated in place)."""
         row = index if self.in_biases.shape[0] > 1 else 0  # (π0: a time half per step)
         tokens = ops.call(ops.embed_actions, x_t, self.in_weight, self.in_biases[row], *(self.mlp_out or (None, None)))  # [B * T, D1]
+        joint = tokens
+        if index == 0 and self.state is not None:  # [B * (1 + T), D1]: each sample's state token, then its action tokens
+            batch, width = self.state.shape
+            joint = torch.cat((self.state[:, None], tokens.view(batch, -1, width)), dim=1).view(-1, width)
         if self.persistent:
-            ops.call(ops.expert_layers_, tokens, *self.layer_arguments[index])
+            ops.call(ops.expert_layers_, joint, *self.layer_arguments[index])
         else:
-            reference.layer_by_layer_(ops.runner(tokens.device), tokens, *self.layer_arguments[index])
+            reference.layer_by_layer_(ops.runner(joint.device), joint, *self.layer_arguments[index])
+        if joint is not tokens:  # (a view at batch 1, a copy else)
+            tokens = joint.view(batch, -1, width)[:, 1:].reshape(-1, width)
         row = index if self.final_scales.shape[0] > 1 else 0  # (π0.5: a final norm per step)
         ops.call(ops.norm_linear_euler_, x_t, tokens, self.final_scales[row], self.final_biases[row], self.out_weight, dt,
                  self.model.config.rms_norm_eps)
-
-
-def state_layers_(
-    state: torch.Tensor,  # π0: [B, D1], updated in place
-    scales: list[tuple[torch.Tensor, torch.Tensor]],  # per layer: the expert's attention and MLP norm scales
-    weights: list[SamplingWeights],  # per layer: the expert's
-    stream: StreamPass,  # the state token's
-    buffers: tuple[torch.Tensor, torch.Tensor],  # every layer's keys, values [L, B, 1, S, H], the prefix's written
-    first: torch.Tensor,
-    ends: torch.Tensor,  # long [1]: where the state token's keys end (it sees the prefix and itself)
-    eps: float,
-) -> None:
-    """π0's state token through every decoder layer of the action expert in one persistent launch (`expert_layers_`),
-    once the prefix has written its keys (which is all the state token reads): what `prefix_layer` computes for it
-    layer by layer (the last layer's attention and MLP too, whose output nobody reads), its k/v into the caches."""
-    attention_scales, mlp_scales = (torch.stack(each) for each in zip(*scales))  # [L, D1]
-    keys, values = (buffer[:, :, 0] for buffer in buffers)  # [L, B, S, H]
-    qkv, o, gate_up, down = projection_lists(weights)
-    ops.call(ops.expert_layers_, state, attention_scales, qkv, o, mlp_scales, gate_up, down, stream.cos[:, :, 0],
-             stream.sin[:, :, 0], keys, values, first, ends, stream.first_slot, eps, None, None, None, None)
 
 
 def projection_lists(weights: list[SamplingWeights]) -> tuple[list[torch.Tensor], ...]:
@@ -348,35 +348,23 @@ def projection_lists(weights: list[SamplingWeights]) -> tuple[list[torch.Tensor]
 
 
 def prefix_layer(
-    layer: JointDecoderLayer,
     prefix: torch.Tensor,  # [B * P, D0], updated in place
-    state: torch.Tensor | None,  # π0: [B, D1], updated in place
-    streams: tuple[StreamPass, StreamPass | None],
+    stream: StreamPass,  # the prefix's
     cache: tuple[torch.Tensor, torch.Tensor],  # [B, 1, S, H]
-    scales: tuple[torch.Tensor, ...],  # the layer's norm scales (1 + weight): VLM attention, MLP; π0: the expert's too
-    weights: tuple[SamplingWeights, SamplingWeights],
-    first: torch.Tensor,
-    state_ends: torch.Tensor | None,  # π0: long [1], where the state token's keys end (it sees the prefix and itself)
+    scales: list[torch.Tensor],  # the VLM's attention and MLP norm scales (1 + weight)
+    weights: SamplingWeights,  # the VLM's
     eps: float,
     keys_only: bool,
-) -> tuple[torch.Tensor | None, torch.Tensor | None]:
-    """`sampling_layer_pass` of the prefix pass (π0: with the state token) in the fused ops; returns (prefix, state)."""
-    (vlm, expert), (prefix_pass, state_pass) = weights, streams
+) -> torch.Tensor | None:
+    """`sampling_layer_pass` of the prefix in the fused ops around cuBLAS's GEMMs; returns the prefix (None with
+    `keys_only`: the last layer writes its keys and values, and nothing reads its output)."""
     keys, values = cache[0][:, 0], cache[1][:, 0]  # [B, S, H]
     batch, head_dim = keys.shape[0], keys.shape[-1]
-    qkv = torch.mm(rms_norm(prefix, eps, scales[0]), vlm.qkv)
-    q = ops.call(ops.rope_cache_write, qkv, prefix_pass.cos[:, :, 0], prefix_pass.sin[:, :, 0], keys, values, 0)
-    if state is not None:
-        state_q = ops.call(ops.norm_qkv_rope, state, scales[2], None, expert.qkv, state_pass.cos[:, :, 0],
-                           state_pass.sin[:, :, 0], keys, values, state_pass.first_slot, eps)
+    qkv = torch.mm(rms_norm(prefix, eps, scales[0]), weights.qkv)
+    q = ops.call(ops.rope_cache_write, qkv, stream.cos[:, :, 0], stream.sin[:, :, 0], keys, values, 0)
     if keys_only:
-        return None, None
-    attended = attend(q.view(batch, prefix_pass.tokens, -1, head_dim), cache[0], cache[1], prefix_pass.attention)
-    prefix.addmm_(attended, vlm.o)
-    prefix.addmm_(ops.call(ops.geglu, torch.mm(rms_norm(prefix, eps, scales[1]), vlm.gate_up)), vlm.down)
-    if state is not None:
-        attended = ops.call(ops.range_attention, state_q.view(batch, 1, -1, head_dim), keys, values, first, state_ends)
-        ops.call(ops.matmul_residual_, state, attended, expert.o, None)
-        ops.call(ops.matmul_residual_, state, ops.call(ops.norm_gate_up_geglu, state, scales[3], None, expert.gate_up, eps),
-                 expert.down, None)
-    return prefix, state
+        return None
+    attended = attend(q.view(batch, stream.tokens, -1, head_dim), cache[0], cache[1], stream.attention)
+    prefix.addmm_(attended, weights.o)
+    prefix.addmm_(ops.call(ops.geglu, torch.mm(rms_norm(prefix, eps, scales[1]), weights.gate_up)), weights.down)
+    return prefix

@@ -50,6 +50,7 @@ class PrefixCache:
     slots: int  # the prefix's and the suffix's; the buffers may hold more (zeros: `cache_prefix`)
     rope: tuple[torch.Tensor, torch.Tensor]  # `rope_tables` of every slot `[B, slots, H]`, shared by the passes
     buffers: tuple[torch.Tensor, torch.Tensor]  # every layer's keys, values: [L, B, K, slots or more, H]
+    state: torch.Tensor | None = None  # π0, fused: the state token `[B, D1]` the first step runs (its k/v not written yet)
 
 
 @dataclass
@@ -161,9 +162,9 @@ class ActionSampling:
         decoder layer, or one per step in eager calls of one or two samples, `runs_persistent`; else "torch"), "torch"
         (the layers' GEMMs and ATen ops; the CPU's path), "triton" (five launches per decoder layer wherever triton
         runs them, `TRITON_INTERPRET=1` included, or a `ValueError` naming why not) or "persistent" (every decoder
-        layer of a step in one persistent launch, and π0's state token's layers in one: `pi0_torch.kernels.persistent`;
-        or a `ValueError`). Real-time chunking's steps always run "torch"; each fused plan is checked against it on its
-        first call."""
+        layer of a step in one persistent launch: `pi0_torch.kernels.persistent`; or a `ValueError`). Fused, π0's state
+        token runs with the first step's action tokens. Real-time chunking's steps always run "torch"; each fused plan
+        is checked against it on its first call."""
         return self._sampling_kernels
 
     @sampling_kernels.setter
@@ -335,8 +336,7 @@ class ActionSampling:
         if guided and torch.is_inference_mode_enabled():
             with torch.inference_mode(False), torch.no_grad():
                 return self._sample(inputs, plan)
-        cache = self.cache_prefix(inputs, plan.layout, differentiable_steps=guided, fused=plan.fused,
-                                  persistent=plan.persistent)
+        cache = self.cache_prefix(inputs, plan.layout, differentiable_steps=guided, fused=plan.fused)
         actions = self.action_pass(cache, differentiable=guided)
         committed = inputs.committed
         conditioning = self.step_conditioning(inputs.times, actions.expert_weights if committed is None else None)
@@ -379,7 +379,6 @@ class ActionSampling:
 
     def cache_prefix(
         self, inputs: SamplingInputs, layout: PrefixLayout, differentiable_steps: bool = False, fused: bool = False,
-        persistent: bool = False,
     ) -> PrefixCache:
         """Run the prefix once (π0: with the state token) and keep every layer's post-RoPE k/v.
 
@@ -387,8 +386,9 @@ class ActionSampling:
         and itself, so neither changes with the noisy actions or the flow time. The buffers have room for the action
         tokens, whose k/v each denoising step writes in place (no per-step copy of the prefix). `differentiable_steps`:
         the steps will attend through SDPA's mask (RTC guidance), so the buffers are laid out for it. `fused`: the
-        layers run `fused_pass.prefix_layer` (the fused kernels around cuBLAS's GEMMs), SigLIP `vision_pass`; with
-        `persistent` π0's state token then runs every layer in one launch after them (`fused_pass.state_layers_`).
+        layers run `fused_pass.prefix_layer` (the fused kernels around cuBLAS's GEMMs), SigLIP `vision_pass`, and π0's
+        state token is left to the first fused step, which runs it beside the action tokens on the same pass over the
+        action expert's weights (`PrefixCache.state`, `fused_pass.FusedSteps`).
         """
         config = self.config
         vision = vision_pass.tower_pass(self.vision_tower) if fused else None  # (None: the tower's modules run)
@@ -408,32 +408,23 @@ class ActionSampling:
         rope = rope_tables(config, first, slots)  # (one table for every stream of the call)
         streams = (
             prefix_stream(config, first, layout, kernel, shape[2], self.dtype, rope),
-            None if config.pi05 else suffix_stream(config, first, layout, layout.length, (1,), kernel, shape[2], self.dtype, rope),
+            None if config.pi05 or fused else suffix_stream(config, first, layout, layout.length, (1,), kernel, shape[2],
+                                                            self.dtype, rope),
         )
         x, state = prefix, None if config.pi05 else self.embed_state(inputs.state)
-        norms = [norm for layer in self.layers for norm in (layer.vlm.attn_norm, layer.vlm.mlp_norm)
-                 + (() if config.pi05 else (layer.expert.attn_norm, layer.expert.mlp_norm))] if fused else []
-        scales = iter(norm.scale for norm in rms_norm_params(norms))  # (fused: 2 or 4 per layer, in order)
-        state_ends = streams[1].slots[:1] + 1 if fused and streams[1] is not None else None  # (the prefix and itself)
+        later, state = (state, None) if fused else (None, state)  # (fused: the first step runs the state token)
+        scales = [norm.scale for norm in rms_norm_params(  # (fused: the VLM's attention and MLP norms of each layer)
+            [norm for layer in self.layers for norm in (layer.vlm.attn_norm, layer.vlm.mlp_norm)] if fused else [])]
         weights = [layer_sampling_weights(layer, vlm=True, expert=state is not None) for layer in self.layers]
-        # (the state token only reads the prefix's keys: with `persistent` it runs after them, where every layer is fused)
-        state_later = fused and persistent and state is not None and all(vlm.usable and own.usable for vlm, own in weights)
-        later, state = (state, None) if state_later else (None, state)
-        state_scales = []
         for index, (layer, layer_keys, layer_values, layer_weights) in enumerate(zip(self.layers, keys, values, weights)):
             last = index == len(self.layers) - 1
-            layer_scales = tuple(next(scales) for _ in range(2 if config.pi05 else 4)) if fused else ()
-            state_scales.append(layer_scales[2:])
-            if fused and all(own.usable for own, x in zip(layer_weights, (x, state)) if x is not None):
-                x, state = fused_pass.prefix_layer(layer, x, state, streams, (layer_keys, layer_values), layer_scales,
-                                                   layer_weights, first, state_ends, config.rms_norm_eps, keys_only=last)
+            if fused and layer_weights[0].usable:
+                x = fused_pass.prefix_layer(x, streams[0], (layer_keys, layer_values), scales[2 * index : 2 * index + 2],
+                                            layer_weights[0], config.rms_norm_eps, keys_only=last)
             else:
                 x, state = self._layer_pass(layer, x, state, streams, (layer_keys, layer_values), None, layer_weights,
                                             keys_only=last)
-        if later is not None:
-            fused_pass.state_layers_(later, state_scales, [own for _, own in weights], streams[1], buffers, first,
-                                     state_ends, config.rms_norm_eps)
-        return PrefixCache(keys, values, first, layout, slots, rope, buffers)
+        return PrefixCache(keys, values, first, layout, slots, rope, buffers, later)
 
     def action_pass(self, cache: PrefixCache, differentiable: bool = False) -> ActionPass:
         """What every sampling step shares (see `ActionPass`), computed once per call; `differentiable` for steps that
