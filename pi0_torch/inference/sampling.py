@@ -412,7 +412,7 @@ class ActionSampling:
                                                             self.dtype, rope),
         )
         x, state = prefix, None if config.pi05 else self.embed_state(inputs.state)
-        later, state = (state, None) if fused else (None, state)  # (fused: the first step runs the state token)
+        first_step_state, state = (state, None) if fused else (None, state)  # (fused: the first step runs it)
         scales = [norm.scale for norm in rms_norm_params(  # (fused: the VLM's attention and MLP norms of each layer)
             [norm for layer in self.layers for norm in (layer.vlm.attn_norm, layer.vlm.mlp_norm)] if fused else [])]
         weights = [layer_sampling_weights(layer, vlm=True, expert=state is not None) for layer in self.layers]
@@ -424,7 +424,7 @@ class ActionSampling:
             else:
                 x, state = self._layer_pass(layer, x, state, streams, (layer_keys, layer_values), None, layer_weights,
                                             keys_only=last)
-        return PrefixCache(keys, values, first, layout, slots, rope, buffers, later)
+        return PrefixCache(keys, values, first, layout, slots, rope, buffers, first_step_state)
 
     def action_pass(self, cache: PrefixCache, differentiable: bool = False) -> ActionPass:
         """What every sampling step shares (see `ActionPass`), computed once per call; `differentiable` for steps that
