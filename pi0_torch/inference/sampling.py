@@ -206,15 +206,15 @@ class ActionSampling:
         unsupported = None if rtc_method is None else f"real-time chunking ({rtc_method}) steps run unfused"
         return kernels_setting_reason(self._sampling_kernels, "sampling_kernels", device, dtype, check, unsupported)
 
-    def _verified_plan(self, inputs: SamplingInputs, plan: SamplingPlan,
+    def _verified_plan(self, inputs: SamplingInputs, plan: SamplingPlan, signature: tuple[Any, ...],
                        unfused: torch.Tensor | None = None) -> tuple[SamplingPlan, torch.Tensor | None]:
-        """The fused `plan`, or it unfused where its fused steps are refused for these input shapes; and, on the first
-        call of each plan and input shapes, that call's actions. The verdict is taken on that first call
-        (`fused_pass.verify_fused_sampling`: unfused against fused, eagerly) and kept; a refusal is logged once, or
-        raised (`ValueError`) where `sampling_kernels` asks for them by name ("triton", "persistent"). Under "auto" a
-        refused persistent plan falls back to five launches per layer, verified in their turn against the unfused
-        actions its own verification sampled (`unfused`)."""
-        key = (plan, input_signature(inputs))
+        """The fused `plan`, or it unfused where its fused steps are refused for these input shapes (`signature`:
+        `input_signature(inputs)`); and, on the first call of each plan and input shapes, that call's actions. The
+        verdict is taken on that first call (`fused_pass.verify_fused_sampling`: unfused against fused, eagerly) and
+        kept; a refusal is logged once, or raised (`ValueError`) where `sampling_kernels` asks for them by name
+        ("triton", "persistent"). Under "auto" a refused persistent plan falls back to five launches per layer,
+        verified in their turn against the unfused actions its own verification sampled (`unfused`)."""
+        key = (plan, signature)
         sampled = None
         if key not in self._fused_refusals:
             refusal, sampled = verify_fused_sampling(self, inputs, plan, unfused)
@@ -229,7 +229,7 @@ class ActionSampling:
         if self._fused_refusals[key] is None:
             return plan, sampled
         if plan.persistent:  # (a refusal is kept under "auto" only: a named setting raised; `sampled` is unfused)
-            return self._verified_plan(inputs, replace(plan, persistent=False), sampled)
+            return self._verified_plan(inputs, replace(plan, persistent=False), signature, sampled)
         return replace(plan, fused=False), sampled
 
     def attention_kernel_for(self, device: torch.device, dtype: torch.dtype, differentiable: bool) -> str:
@@ -304,12 +304,13 @@ class ActionSampling:
         fused = why_unfused is None
         requested = SamplingPlan(layout, times, method, float(rtc_max_guidance) if method == "guidance" else 0.0, fused,
                                  persistent=fused and self.runs_persistent(batch, graphs is not None, pixel_values.device))
-        plan, sampled = self._verified_plan(inputs, requested) if fused else (requested, None)
+        signature = input_signature(inputs)
+        plan, sampled = self._verified_plan(inputs, requested, signature) if fused else (requested, None)
         if sampled is None or graphs is not None:  # (else the first call's actions, from its verification)
             if self.sampling_compiled:
                 allow_recompiles(self.RECOMPILE_LIMIT)
             sampled = self._sample(inputs, plan) if graphs is None else graphs.run(inputs, plan)
-        self._last_route = self._route(requested, plan, input_signature(inputs), graphs, why_unfused)
+        self._last_route = self._route(requested, plan, signature, graphs, why_unfused)
         return sampled
 
     def _route(self, requested: SamplingPlan, plan: SamplingPlan, signature: tuple[Any, ...],
