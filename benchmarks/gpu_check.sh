@@ -11,7 +11,8 @@
 # Timings run alone on the GPU; the checks run side by side (correctness does not mind sharing the GPU):
 # 1. alone: the benchmark, "auto" against the torch path, eager and graph, π0 and π0.5, batch 1, 2 and 8 (eager "auto"
 #    runs the persistent launch at batch 1 and 2, five fused launches per layer elsewhere), with each row's GPU
-#    activities, GPU time and its 30 longest kinds of kernel;
+#    activities, GPU time and its 30 longest kinds of kernel, and the host's side of it (its time to the last launch
+#    and its waits on the device before that: where eager's host time goes);
 # 2. together: doctor (every sampling path at full size against its reference, sampling_kernels="persistent" too),
 #    the GPU tests (tests/test_cuda.py), the fused kernels' tests on real kernels (tests/test_kernels.py, the persistent
 #    launch's sampling included), and issue 37's persistent experiments against their references (which compiles what

@@ -8,7 +8,8 @@ CUDA allocator's peak on GPU, the process's peak resident set size (sampled ever
     pi0-torch bench --presets pi0 --dtypes bfloat16 --cameras 3 --batches 1   # full size
     pi0-torch bench --presets pi0,pi05 --dtypes bfloat16 --compile --device cuda
                                                         # GPU: eager, graph, compiled, compiled+graph rows, set-up,
-                                                        # and each row's GPU work (profiler: activities, GPU ms)
+                                                        # and each row's GPU work (profiler: activities, GPU ms,
+                                                        # the host's time to its last launch and its waits)
     pi0-torch bench --rtc guidance,conditioning         # also chunks continued by real-time chunking
     pi0-torch bench --ops                               # ATen ops of one generate_actions (a launch-count proxy)
     pi0-torch bench --device cuda --kernels auto,torch --gemms   # fused kernels against the torch path, per GEMM too
@@ -125,11 +126,31 @@ def time_call(fn: Callable[[], object], device: torch.device, repeats: int, warm
     return Timing(statistics.median(durations), min(durations), max(durations), peak[0])
 
 
-def gpu_work(fn: Callable[[], object], device: torch.device) -> tuple[int, float, list[tuple[str, int, float]]]:
-    """What one call of `fn` runs on a CUDA `device`, by the profiler (CUPTI): the number of GPU activities (kernels,
-    copies, memsets), their summed GPU time in seconds, and per activity name its count and GPU seconds, longest
-    first. Against the call's wall time it tells a launch-bound call (wall time far above the GPU time) from a
-    GPU-bound one."""
+@dataclass(frozen=True)
+class GpuWork:
+    """What one call ran on a CUDA device, by the profiler (CUPTI): its GPU activities (kernels, copies, memsets), their
+    summed GPU time, per activity name its count and GPU seconds (longest first), and the host's side of the call:
+    `issue_seconds`, from the call's start to the end of its last launch (kernel, graph, copy or memset), and
+    `wait_seconds`, what the host spent before that in copies and synchronizing calls (a read of a device value waits
+    there for the device), or None where the profile has no launch events. Against the call's wall time they tell a call
+    bound by the host's launches (issue near the wall time) from a GPU-bound one (GPU time near it) and from one
+    that waits on the device mid-call. The profiler's own work per op makes the host's numbers a little high."""
+
+    activities: int
+    gpu_seconds: float
+    table: list[tuple[str, int, float]]
+    issue_seconds: float | None
+    wait_seconds: float | None
+
+
+# the CUDA runtime and driver calls the profiler records on the host (`cuLaunchKernel*`: triton's launches)
+LAUNCH_CALLS = ("cudaLaunchKernel", "cuLaunchKernel", "cudaGraphLaunch", "cudaMemcpyAsync", "cudaMemsetAsync")
+WAITING_CALLS = ("cudaStreamSynchronize", "cudaDeviceSynchronize", "cudaEventSynchronize", "cuStreamSynchronize",
+                 "cuCtxSynchronize", "cudaMemcpy")  # (a copy to the host waits inside `cudaMemcpyAsync`)
+
+
+def gpu_work(fn: Callable[[], object], device: torch.device) -> GpuWork:
+    """What one call of `fn` runs on a CUDA `device`, by the profiler: see `GpuWork`."""
     from torch.profiler import ProfilerActivity, profile
 
     torch.cuda.synchronize(device)
@@ -137,14 +158,28 @@ def gpu_work(fn: Callable[[], object], device: torch.device) -> tuple[int, float
         warnings.filterwarnings("ignore", message=".*Profiler clears events")
         with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as profiler:
             fn()
-            torch.cuda.synchronize(device)
-    work = [event for event in profiler.events()  # (not the GPU copies of annotated ranges: compiled code's calls)
+            torch.cuda.synchronize(device)  # (its wait comes after the last launch: not counted as the call's)
+    events = profiler.events()
+    work = [event for event in events  # (not the GPU copies of annotated ranges: compiled code's calls)
             if event.device_type == torch.autograd.DeviceType.CUDA and not getattr(event, "is_user_annotation", False)]
     by_name: dict[str, list[float]] = {}
     for event in work:
         by_name.setdefault(event.name, []).append(event.time_range.elapsed_us() / 1e6)
     table = sorted(((name, len(times), sum(times)) for name, times in by_name.items()), key=lambda row: -row[2])
-    return len(work), sum(event.time_range.elapsed_us() for event in work) / 1e6, table
+    return GpuWork(len(work), sum(event.time_range.elapsed_us() for event in work) / 1e6, table, *host_side(events))
+
+
+def host_side(events: Sequence[Any]) -> tuple[float | None, float | None]:
+    """`GpuWork.issue_seconds` and `wait_seconds` from a profile's events (None, None: no launch among them)."""
+    host = [event for event in events if event.device_type == torch.autograd.DeviceType.CPU]
+    launches = [event for event in host if event.name.startswith(LAUNCH_CALLS)]
+    if not launches:
+        return None, None
+    start = min(event.time_range.start for event in host)
+    issued = max(event.time_range.end for event in launches)
+    waits = sum(event.time_range.elapsed_us() for event in host
+                if event.name.startswith(WAITING_CALLS) and event.time_range.end <= issued)
+    return (issued - start) / 1e6, waits / 1e6
 
 
 def print_kernel_table(table: list[tuple[str, int, float]], limit: int) -> None:
@@ -302,7 +337,7 @@ def bench_generate(args: argparse.Namespace, device: torch.device) -> None:
         print(f"fused kernels: {reason}")
     print(f"{'preset':12s} {'dtype':9s} {'mode':14s} {'steps':8s} {'rtc':12s} {'cams':>4s} {'batch':>5s} {'set-up s':>8s} {'median ms':>10s} "
           f"{'min ms':>10s} {'max ms':>10s} {'peak MiB':>10s} {'GFLOP/s':>8s} {'% peak':>6s}"
-          + (f" {'GPU ops':>7s} {'GPU ms':>7s}" if cuda else ""))
+          + (f" {'GPU ops':>7s} {'GPU ms':>7s} {'host ms':>7s} {'waits':>7s}" if cuda else ""))
     for preset in args.presets:
         config = PI0Config.from_preset(preset, rtc_max_delay=RTC_DELAY if "conditioning" in args.rtc else 0)
         for dtype_name in args.dtypes:
@@ -324,11 +359,13 @@ def bench_generate(args: argparse.Namespace, device: torch.device) -> None:
                             timing = time_call(call, device, args.repeats)
                             achieved = generate_flops(config, cameras, batch) / timing.median
                             rate = f"{achieved / 1e9:8.0f} {100 * achieved / peaks[dtype_name]:6.0f}" if method is None else f"{'-':>8s} {'-':>6s}"
-                            work = ""
-                            table = []
+                            work, table = "", []
                             if cuda:
-                                activities, gpu_seconds, table = gpu_work(call, device)
-                                work = f" {activities:7d} {gpu_seconds * 1e3:7.1f}"
+                                profiled = gpu_work(call, device)
+                                table = profiled.table
+                                work = f" {profiled.activities:7d} {profiled.gpu_seconds * 1e3:7.1f} " + " ".join(
+                                    "      -" if host is None else f"{host * 1e3:7.1f}"
+                                    for host in (profiled.issue_seconds, profiled.wait_seconds))
                             refused = method == "guidance" and model.sampling_captured and not model.replays_graphs(method)
                             label = "guid. eager" if refused else method or "-"  # (guided chunks replay no graph)
                             fused = steps_label(model.last_sampling_route)

@@ -107,3 +107,24 @@ def test_native_bfloat16_is_read_from_the_cpu_flags(monkeypatch: pytest.MonkeyPa
         monkeypatch.delattr(hardware.torch.cpu, "_is_avx512_bf16_supported", raising=False)
         assert hardware.cpu_has_native_bf16() is native, (machine, flags)
     hardware.cpu_has_native_bf16.cache_clear()
+
+
+def test_host_side_of_a_profiled_call() -> None:
+    """The host's columns of a CUDA row (`benchmark.host_side`), from a profile's events: the time from the call's
+    first host event to the end of its last launch, and the copies and synchronizations before that (not the
+    benchmark's own synchronization after the last launch). The events' names are the CUDA calls' that the profiler
+    records; `tests/test_cuda.py` finds them in a real profile."""
+    from torch.autograd import DeviceType
+    from torch.autograd.profiler_util import FunctionEvent
+
+    def event(name: str, start: int, end: int, device: DeviceType = DeviceType.CPU) -> FunctionEvent:
+        return FunctionEvent(0, name, 0, start, end, device_type=device)
+
+    events = [
+        event("aten::mm", 100, 130), event("cudaLaunchKernel", 110, 120),
+        event("cudaMemcpyAsync", 140, 400), event("cudaStreamSynchronize", 400, 900),  # (a read of a device value)
+        event("cuLaunchKernelEx", 1000, 1010), event("sm90_gemm", 1200, 5000, DeviceType.CUDA),
+        event("cudaDeviceSynchronize", 1010, 6000),  # (the benchmark's, after the last launch)
+    ]
+    assert benchmark.host_side(events) == pytest.approx((910e-6, 760e-6))
+    assert benchmark.host_side([event("aten::mm", 0, 10)]) == (None, None)

@@ -351,20 +351,24 @@ def test_compiled_sampling_replays_as_one_graph(reference: OpenpiReference) -> N
 
 
 def test_bench_counts_the_gpu_work_of_a_call(reference: OpenpiReference) -> None:
-    """`pi0-torch bench` on CUDA adds each row's GPU work (activities and GPU time, by the profiler). A graph replay
-    runs the eager call's kernels (plus its input copies) and no more; the numbers are printed for the notes."""
+    """`pi0-torch bench` on CUDA adds each row's GPU work (activities and GPU time, by the profiler) and the host's
+    side of it (time to the last launch, waits before it). A graph replay runs the eager call's kernels (plus its
+    input copies) and no more; the numbers are printed for the notes."""
     from pi0_torch.benchmark import gpu_work
 
     model, inputs, noise = on_cuda(reference, torch.bfloat16)
-    eager_ops, eager_seconds, eager_table = gpu_work(lambda: model.generate_actions(**inputs, noise=noise), CUDA)
+    eager = gpu_work(lambda: model.generate_actions(**inputs, noise=noise), CUDA)
     model.capture_sampling()
     model.generate_actions(**inputs, noise=noise)  # (captured here)
-    graph_ops, graph_seconds, _ = gpu_work(lambda: model.generate_actions(**inputs, noise=noise), CUDA)
-    print(f"GPU work of one call: eager {eager_ops} activities, {eager_seconds * 1e3:.2f} ms; "
-          f"graph {graph_ops} activities, {graph_seconds * 1e3:.2f} ms")
-    assert eager_ops > 0 and eager_seconds > 0 and graph_seconds > 0
-    assert sum(count for _, count, _ in eager_table) == eager_ops
-    assert graph_ops <= eager_ops + 16
+    graph = gpu_work(lambda: model.generate_actions(**inputs, noise=noise), CUDA)
+    for name, work in (("eager", eager), ("graph", graph)):
+        assert work.issue_seconds is not None, f"no launch among the host's events of the {name} call"
+        print(f"GPU work of one {name} call: {work.activities} activities, {work.gpu_seconds * 1e3:.2f} GPU ms; host "
+              f"{work.issue_seconds * 1e3:.2f} ms to its last launch, {work.wait_seconds * 1e3:.2f} ms of it waiting")
+        assert work.activities > 0 and work.gpu_seconds > 0
+        assert 0 <= work.wait_seconds < work.issue_seconds  # (the launches were found among the host's events)
+    assert sum(count for _, count, _ in eager.table) == eager.activities
+    assert graph.activities <= eager.activities + 16
 
 
 @torch.no_grad()
