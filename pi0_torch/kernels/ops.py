@@ -44,8 +44,9 @@ def _triton_import_error() -> Optional[str]:
 def _interpreter_error() -> Optional[str]:
     """Why triton's interpreter cannot run the kernels here (None: it can), found by running one of them: triton
     3.6's interpreter turns a loop's tensor bound into a Python int with `int(array)`, which numpy 2.4 refuses for
-    the one-element arrays it holds (triton 3.9's squeezes the array first). Nothing to find where the kernels were
-    compiled rather than interpreted (TRITON_INTERPRET set after their import: `benchmarks/kernel_resources.py`)."""
+    the one-element arrays it holds (numpy 2.3 and older only warn; triton 3.9's squeezes the array first). Nothing
+    to find where the kernels were compiled rather than interpreted (TRITON_INTERPRET set after their import:
+    `benchmarks/kernel_resources.py`)."""
     from pi0_torch.kernels import triton_kernels
 
     if not triton_kernels.INTERPRETING:
@@ -57,7 +58,7 @@ def _interpreter_error() -> Optional[str]:
         import triton
 
         return (f"triton {triton.__version__}'s interpreter cannot run the kernels with numpy {numpy.__version__} "
-                f"({type(error).__name__}: {str(error)[:200]})")
+                f"({type(error).__name__}: {str(error)[:200]}; triton 3.6's runs them with numpy < 2.4)")
     return None
 
 
