@@ -37,6 +37,7 @@ class SamplingWeights:
 
 
 CALL_MODULES = SamplingWeights(None, None, None, None)
+PROJECTIONS = ("qkv_proj", "o_proj", "gate_up_proj", "down_proj")  # an expert's, in `SamplingWeights`' order
 
 
 def expert_sampling_weights(expert: ExpertLayer) -> SamplingWeights:
@@ -44,7 +45,7 @@ def expert_sampling_weights(expert: ExpertLayer) -> SamplingWeights:
     calling the modules does (see `runs_its_weights`)."""
     if not runs_its_weights(expert):
         return CALL_MODULES
-    return SamplingWeights(*(p.weight.t() for p in (expert.qkv_proj, expert.o_proj, expert.gate_up_proj, expert.down_proj)))
+    return SamplingWeights(*(expert._modules[name]._parameters["weight"].t() for name in PROJECTIONS))
 
 
 def runs_its_weights(expert: ExpertLayer) -> bool:
@@ -52,12 +53,12 @@ def runs_its_weights(expert: ExpertLayer) -> bool:
     that is not a bias-free `nn.Linear` itself (LoRA, quantized layers) or whose weight is not a plain parameter (a
     tensor subclass: quantized weights, FSDP2's DTensor shards), a hook or a replaced `forward` on a projection or norm
     (offloading, pruning, a user's hooks), or autocast."""
-    projections = (expert.qkv_proj, expert.o_proj, expert.gate_up_proj, expert.down_proj)
-    if not all(plain_linear(p, bias=False) for p in projections):
+    modules = expert._modules  # (checked on every eager call: no `nn.Module.__getattr__`, about a microsecond each)
+    if not all(plain_linear(modules.get(name), bias=False) for name in PROJECTIONS):
         return False
-    if any(runs_extra_code(module) for module in (expert.attn_norm, expert.mlp_norm)):
+    if runs_extra_code(modules["attn_norm"]) or runs_extra_code(modules["mlp_norm"]):
         return False
-    device = expert.qkv_proj.weight.device.type
+    device = modules["qkv_proj"]._parameters["weight"].device.type
     return not (torch.amp.is_autocast_available(device) and torch.is_autocast_enabled(device))
 
 
@@ -67,17 +68,21 @@ def layer_sampling_weights(layer: JointDecoderLayer, vlm: bool, expert: bool) ->
     hook, after this is called; a hook that keeps the layer's outputs must not see them updated in place)."""
     if runs_extra_code(layer):
         return CALL_MODULES, CALL_MODULES
-    return (expert_sampling_weights(layer.vlm) if vlm else CALL_MODULES,
-            expert_sampling_weights(layer.expert) if expert else CALL_MODULES)
+    experts = layer._modules
+    return (expert_sampling_weights(experts["vlm"]) if vlm else CALL_MODULES,
+            expert_sampling_weights(experts["expert"]) if expert else CALL_MODULES)
 
 
-def plain_linear(module: nn.Module, bias: bool) -> bool:
+def plain_linear(module: nn.Module | None, bias: bool) -> bool:
     """Whether calling `module` is `F.linear` on its own plain parameters (with a bias or without one, as `bias` says):
     an `nn.Linear` itself (not LoRA or a quantized layer) whose parameters are not tensor subclasses (quantized weights,
     FSDP2's DTensor shards), with no hooks and no replaced `forward`."""
-    if type(module) is not nn.Linear or type(module.weight) is not nn.Parameter or runs_extra_code(module):
+    if type(module) is not nn.Linear or runs_extra_code(module):
         return False
-    return type(module.bias) is nn.Parameter if bias else module.bias is None
+    parameters = module._parameters  # (not `module.weight`: `nn.Module.__getattr__` costs more than this whole check)
+    if type(parameters.get("weight")) is not nn.Parameter:
+        return False
+    return type(parameters.get("bias")) is nn.Parameter if bias else parameters.get("bias") is None
 
 
 def runs_extra_code(module: nn.Module) -> bool:
@@ -86,6 +91,21 @@ def runs_extra_code(module: nn.Module) -> bool:
     if module._forward_hooks or module._forward_pre_hooks or "forward" in module.__dict__:
         return True
     return bool(_global_forward_hooks or _global_forward_pre_hooks)  # (nn.Module's registries, mutated in place)
+
+
+def any_runs_extra_code(module: nn.Module) -> bool:
+    """`runs_extra_code` of `module` or of any module inside it. (Walked with a stack: checked on every eager call,
+    and `nn.Module.modules()` takes over twice as long, a generator per level.)"""
+    stack, seen = [module], {id(module)}
+    while stack:
+        current = stack.pop()
+        if runs_extra_code(current):
+            return True
+        for child in current._modules.values():
+            if child is not None and id(child) not in seen:
+                seen.add(id(child))
+                stack.append(child)
+    return False
 
 
 def project_normed(norm: nn.Module, x: torch.Tensor, params: NormParams | None, weight: torch.Tensor) -> torch.Tensor:

@@ -22,7 +22,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from pi0_torch.inference.layer_pass import plain_linear, runs_extra_code
+from pi0_torch.inference.layer_pass import any_runs_extra_code, plain_linear
 from pi0_torch.kernels import ops
 
 
@@ -38,14 +38,15 @@ def tower_pass(tower: nn.Module) -> Callable[[torch.Tensor], torch.Tensor] | Non
         return None
     if type(embeddings.patch_embedding) is not nn.Conv2d or type(embeddings.position_embedding) is not nn.Embedding:
         return None
-    if any(runs_extra_code(module) for module in tower.modules()):
+    if any_runs_extra_code(tower):
         return None
-    for layer in layers:
-        attention, mlp = layer.self_attn, layer.mlp
-        linears = (attention.q_proj, attention.k_proj, attention.v_proj, attention.out_proj, mlp.fc1, mlp.fc2)
+    for layer in layers:  # (by `_modules`, not `nn.Module.__getattr__`: every eager call checks 27 layers)
+        modules = layer._modules
+        attention, mlp = modules["self_attn"]._modules, modules["mlp"]._modules
+        linears = [attention[name] for name in ("q_proj", "k_proj", "v_proj", "out_proj")] + [mlp["fc1"], mlp["fc2"]]
         if not all(plain_linear(linear, bias=True) for linear in linears):
             return None
-        if not all(type(norm) is nn.LayerNorm for norm in (layer.layer_norm1, layer.layer_norm2)):
+        if type(modules["layer_norm1"]) is not nn.LayerNorm or type(modules["layer_norm2"]) is not nn.LayerNorm:
             return None
     return functools.partial(vision_tokens, tower)
 
