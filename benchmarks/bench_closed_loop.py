@@ -36,7 +36,7 @@ import torch
 
 from pi0_torch.demo import DEMO_NOISE_SCALE
 from pi0_torch.runtime.chunking import EXECUTION_MODES
-from pi0_torch.models.rtc import SCHEDULES
+from pi0_torch.inference.rtc import SCHEDULES
 from pi0_torch.runtime.policy import PI0Policy
 from pi0_torch.runtime.rollout import EvalSettings, LocalPolicy, RemotePolicy, evaluate
 

@@ -57,7 +57,7 @@ from pi0_torch.kernels.persistent import (
     state_size,
 )
 from pi0_torch.kernels.triton_kernels import cdiv
-from pi0_torch.models.layers import rope_cos_sin
+from pi0_torch.kernels.reference import rope_cos_sin
 
 
 class Layers(NamedTuple):

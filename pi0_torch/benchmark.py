@@ -45,14 +45,14 @@ import torch
 
 from pi0_torch.models.configuration_pi0 import PI0Config, preset_names
 from pi0_torch.models.configuration_pi0_fast import PI0FastConfig, fast_preset_names
-from pi0_torch.models.flow_matching import euler_times
-from pi0_torch.models.layers import rope_cos_sin
+from pi0_torch.inference.conditioning import euler_times
+from pi0_torch.kernels.reference import rope_cos_sin
 from pi0_torch.inference.graphs import relative_deviation
 from pi0_torch.inference.layout import InputFacts
-from pi0_torch.inference.sampling import SamplingInputs, SamplingPlan, SamplingRoute
+from pi0_torch.inference.plan import SamplingInputs, SamplingPlan, SamplingRoute
 from pi0_torch.models.modeling_pi0 import PI0ForActionGeneration
 from pi0_torch.models.modeling_pi0_fast import PI0FastForActionGeneration
-from pi0_torch.models.rtc import DEFAULT_MAX_GUIDANCE, METHODS
+from pi0_torch.inference.rtc import DEFAULT_MAX_GUIDANCE, METHODS
 from pi0_torch.utils import hardware
 from pi0_torch.utils.op_count import AtenOpCounter
 
@@ -519,7 +519,7 @@ def sample_on_meta(
     config: PI0Config, facts: InputFacts, steps: int, dtype: torch.dtype = torch.float32, rtc_method: str | None = None,
     fused: bool = False, count: bool = True, persistent: bool = False,
 ) -> tuple[torch.Tensor, AtenOpCounter | None]:
-    """Run `generate_actions`' sampling region (`_sample`: everything after the input checks, what `capture_sampling`
+    """Run `generate_actions`' sampling region (`sample_planned`: everything after the input checks, what `capture_sampling`
     records) for a model built on the meta device, with inputs laid out as `facts` says: the actions (shapes only)
     and the ops it ran (`fused`: the steps in the fused kernels, as on CUDA in bf16, each kernel one op, with
     `persistent` each step's decoder layers in one, as `sampling_kernels="persistent"` runs them; `count=False`:
@@ -547,7 +547,7 @@ def sample_on_meta(
     max_guidance = DEFAULT_MAX_GUIDANCE if rtc_method == "guidance" else 0.0
     with torch.no_grad(), (AtenOpCounter() if count else contextlib.nullcontext()) as counter:
         plan = SamplingPlan(layout, tuple(euler_times(steps)), rtc_method, max_guidance, fused, fused and persistent)
-        sampled = model._sample(inputs, plan)
+        sampled = model.sample_planned(inputs, plan)
     return sampled, counter
 
 

@@ -42,10 +42,10 @@ from pi0_torch.inference.graphs import VERIFY_TOLERANCE, relative_deviation
 from pi0_torch.kernels import ops
 from pi0_torch.models.configuration_pi0 import PI0Config
 from pi0_torch.models.configuration_pi0_fast import PI0FastConfig
-from pi0_torch.models.flow_matching import euler_times
+from pi0_torch.inference.conditioning import euler_times
 from pi0_torch.models.modeling_pi0 import PI0ForActionGeneration
 from pi0_torch.models.modeling_pi0_fast import PI0FastForActionGeneration
-from pi0_torch.models.rtc import chunk_prefix, guidance_weight
+from pi0_torch.inference.rtc import chunk_prefix, guidance_weight
 from pi0_torch.utils.hardware import usable_device
 
 FLOAT32_BOUND, BF16_BOUND = 1e-4, 3e-2  # tests/test_parity.py: FLOAT32_TOLERANCE, BF16_TOLERANCE

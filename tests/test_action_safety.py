@@ -21,7 +21,7 @@ import websockets.sync.client
 from conftest import HORIZON, tiny_policy
 
 from pi0_torch.kernels import ops
-from pi0_torch.models.rtc import MAX_GUIDANCE, MAX_PREVIOUS_ACTION
+from pi0_torch.inference.rtc import MAX_GUIDANCE, MAX_PREVIOUS_ACTION
 from pi0_torch.processing.normalization import NormStats
 from pi0_torch.runtime.action_safety import UnsafeActionsError
 from pi0_torch.runtime.observation_formats import ObservationError

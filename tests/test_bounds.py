@@ -19,7 +19,7 @@ from pi0_torch.cli import main
 from pi0_torch.models.configuration_base import SIZE_LIMITS
 from pi0_torch.models.configuration_pi0 import PI0Config
 from pi0_torch.models.configuration_pi0_fast import PI0FastConfig
-from pi0_torch.models.flow_matching import euler_times
+from pi0_torch.inference.conditioning import euler_times
 from pi0_torch.runtime.policy import PI0Policy
 from pi0_torch.training.settings import TrainSettings
 from pi0_torch.training.trainer import train_policy

@@ -24,8 +24,9 @@ from pi0_torch.inference.attention import KeyRanges, attend, plan_attention
 from pi0_torch.inference.graphs import CapturedSampling, SamplingCaptureError, SamplingGraphs, input_signature
 from pi0_torch.inference.layer_pass import CALL_MODULES, add_projection, expert_sampling_weights, layer_sampling_weights
 from pi0_torch.inference.layout import InputFacts, camera_inputs, compact_prefix, prefix_stream, rope_tables, suffix_stream
-from pi0_torch.inference.sampling import SamplingInputs, SamplingPlan
-from pi0_torch.models.layers import AdaRMSNorm, JointDecoderLayer, NormParams
+from pi0_torch.inference.plan import SamplingInputs, SamplingPlan
+from pi0_torch.inference.conditioning import NormParams
+from pi0_torch.models.layers import AdaRMSNorm, JointDecoderLayer
 from pi0_torch.utils.op_count import AtenOpCounter
 
 # unseen sizes: a shorter prompt limit, 2 kv heads (query heads not folded), head size 16, 3-step horizon
@@ -382,12 +383,12 @@ def test_regional_compilation_compiles_each_layer_kind_once() -> None:
 def test_compiled_calls_raise_the_recompile_limit_in_their_own_thread(monkeypatch: pytest.MonkeyPatch) -> None:
     """torch keeps Dynamo settings per thread: the limit `compile_sampling` raised in the caller's thread did not reach
     a server's model thread, whose warm-up (plain and real-time chunking passes at each batch size) then failed past
-    8 graphs. A compiled model's calls raise it in whatever thread runs them (no compiling here: `_sample` is
+    8 graphs. A compiled model's calls raise it in whatever thread runs them (no compiling here: `sample_planned` is
     replaced)."""
     limit = "recompile_limit" if hasattr(torch._dynamo.config, "recompile_limit") else "cache_size_limit"
     model = PI0ForActionGeneration(PI0Config.from_preset("pi0_small", num_hidden_layers=1)).eval()
     model.compile_sampling()
-    monkeypatch.setattr(model, "_sample", lambda inputs, plan: inputs.noise)
+    monkeypatch.setattr(model, "sample_planned", lambda inputs, plan: inputs.noise)
     batch = dict(pixel_values=torch.zeros(1, 3, 3, 224, 224), image_masks=torch.ones(1, 3, dtype=torch.bool),
                  input_ids=torch.ones(1, 8, dtype=torch.long), attention_mask=torch.ones(1, 8, dtype=torch.bool),
                  state=torch.zeros(1, 32))
@@ -486,10 +487,10 @@ def one_observation_two_steps() -> dict[str, Any]:
 
 
 def record_sampling_calls(model: PI0ForActionGeneration, monkeypatch: pytest.MonkeyPatch) -> list[tuple[SamplingInputs, SamplingPlan]]:
-    """The (inputs, plan) of every `_sample` call `model` makes from now on, in order."""
+    """The (inputs, plan) of every `sample_planned` call `model` makes from now on, in order."""
     calls: list[tuple[SamplingInputs, SamplingPlan]] = []
-    sample = model._sample
-    monkeypatch.setattr(model, "_sample", lambda inputs, plan: calls.append((inputs, plan)) or sample(inputs, plan))
+    sample = model.sample_planned
+    monkeypatch.setattr(model, "sample_planned", lambda inputs, plan: calls.append((inputs, plan)) or sample(inputs, plan))
     return calls
 
 
@@ -539,7 +540,7 @@ def test_a_graph_whose_first_replay_differs_from_eager_is_refused_and_its_plan_s
     torch.manual_seed(0)
     model = PI0ForActionGeneration(PI0Config.from_preset("pi0_small", rtc_max_delay=4)).eval()
     batch = one_observation_two_steps()
-    sample = model._sample  # (unrecorded: the fake capture's eager run)
+    sample = model.sample_planned  # (unrecorded: the fake capture's eager run)
     calls = record_sampling_calls(model, monkeypatch)
     plain = model.generate_actions(**batch)
     conditioned = model.generate_actions(**batch, previous_actions=torch.randn(1, 50, 32), inference_delay=2,

@@ -1,7 +1,8 @@
-"""No import circle inside the package: the graph of which `pi0_torch` module imports which -- at module level and
-inside functions alike (an import moved into a function still runs; it only hides a circle) -- has no cycle, but for
-the exceptions listed in `ALLOWED`, each with its reason. `TYPE_CHECKING` imports never run and are left out; a
-package is imported before its modules by Python itself, which is not an edge here either."""
+"""No import circle inside the package, and one direction between its layers: the graph of which `pi0_torch` module
+imports which -- at module level and inside functions alike (an import moved into a function still runs; it only hides
+a circle) -- has no cycle, but for the exceptions listed in `ALLOWED` (the registration ring inside `models/`), each
+with its reason; and the engine's folders import only downward (`LAYERS`). `TYPE_CHECKING` imports never run and are
+left out; a package is imported before its modules by Python itself, which is not an edge here either."""
 
 from __future__ import annotations
 
@@ -19,6 +20,15 @@ ALLOWED: dict[tuple[str, str], str] = {
     for model in ("pi0_torch.models.configuration_pi0", "pi0_torch.models.configuration_pi0_fast",
                   "pi0_torch.models.modeling_pi0", "pi0_torch.models.modeling_pi0_fast")
 }
+
+
+# The engine's layers, top to bottom: a module of one may import its own folder and the folders after it, nothing else
+# of the package (the models import the engine, the engine never the models: it is handed them).
+LAYERS: tuple[tuple[str, ...], ...] = (
+    ("pi0_torch.inference",),
+    ("pi0_torch.kernels",),
+    ("pi0_torch.utils", "pi0_torch.masks"),
+)
 
 
 def _module_name(path: Path) -> str:
@@ -99,3 +109,45 @@ def test_the_graph_sees_function_level_imports() -> None:
     assert graph["pi0_torch.runtime.rollout"]["pi0_torch.runtime.serving"] == "function"  # (websockets: an extra)
     assert graph["pi0_torch.runtime.policy"]["pi0_torch.runtime.policy_fast"] == "module"
     assert find_cycle({"a": {"b": "module"}, "b": {"c": "function"}, "c": {"a": "module"}}) == ["a", "b", "c", "a"]
+
+
+def _layer_of(module: str) -> int | None:
+    for index, prefixes in enumerate(LAYERS):
+        if any(module == prefix or module.startswith(prefix + ".") for prefix in prefixes):
+            return index
+    return None
+
+
+def _is_upward(module: str, layer: int) -> bool:
+    """Whether an import of `module` from `layer` goes up: `module` lies outside that layer and the ones below it."""
+    own = _layer_of(module)
+    return own is None or own < layer
+
+
+def test_the_engine_imports_only_downward() -> None:
+    """`inference/` imports nothing of `models/` (or anything above it), `kernels/` nothing of `inference/`, `utils/`
+    and `masks.py` nothing else of the package: at module level or deferred."""
+    graph = import_graph()
+    upward = sorted(
+        f"{importer} -> {imported} ({kind}-level)"
+        for importer, edges in graph.items() if (layer := _layer_of(importer)) is not None
+        for imported, kind in edges.items() if imported != "pi0_torch" and _is_upward(imported, layer)
+    )
+    assert upward == []
+
+
+def test_the_only_circle_is_the_registration_ring_inside_models() -> None:
+    """Every module on a cycle of the whole graph (allowed edges included) lies in `models/`."""
+    graph = import_graph()
+    on_cycles = set()
+    for start in graph:  # (small graph: a search from each module)
+        stack, seen = [start], set()
+        while stack:
+            node = stack.pop()
+            for nxt in graph.get(node, {}):
+                if nxt == start:
+                    on_cycles.add(start)
+                elif nxt not in seen:
+                    seen.add(nxt)
+                    stack.append(nxt)
+    assert on_cycles and all(name.startswith("pi0_torch.models.") for name in on_cycles), sorted(on_cycles)

@@ -21,9 +21,9 @@ from pi0_torch import PI0Config, PI0ForActionGeneration
 from pi0_torch.benchmark import sample_on_meta
 from pi0_torch.inference import fused_pass, vision_pass
 from pi0_torch.inference.layout import InputFacts
-from pi0_torch.inference.sampling import SamplingRoute
+from pi0_torch.inference.plan import SamplingRoute
 from pi0_torch.kernels import ops, reference
-from pi0_torch.models.layers import rope_cos_sin
+from pi0_torch.kernels.reference import rope_cos_sin
 from pi0_torch.utils.op_count import AtenOpCounter
 
 TRITON_REASON = ops.triton_reason(torch.device("cuda" if torch.cuda.is_available() else "cpu"))
@@ -302,9 +302,9 @@ def test_each_fused_plan_is_verified_against_the_unfused_path_on_its_first_call(
     inputs = {name: value.to(DEVICE) for name, value in sampling_inputs(model.config, 2, seed=4).items()}
     model.sampling_kernels = "torch"
     unfused = model.generate_actions(**inputs, num_steps=2)
-    samplings: list[bool] = []  # plan.fused of each `_sample`
-    sample = model._sample
-    monkeypatch.setattr(model, "_sample", lambda inputs, plan: samplings.append(plan.fused) or sample(inputs, plan))
+    samplings: list[bool] = []  # plan.fused of each `sample_planned`
+    sample = model.sample_planned
+    monkeypatch.setattr(model, "sample_planned", lambda inputs, plan: samplings.append(plan.fused) or sample(inputs, plan))
 
     model.sampling_kernels = "triton"
     first = model.generate_actions(**inputs, num_steps=2)
@@ -373,9 +373,9 @@ def test_auto_runs_the_persistent_launch_in_eager_calls_of_few_samples(monkeypat
     unfused = model.generate_actions(**inputs, num_steps=2)
     model.sampling_kernels = "auto"
     monkeypatch.setattr(model, "fused_steps_reason", lambda *args: None)
-    samplings: list[tuple[bool, bool]] = []  # (plan.fused, plan.persistent) of each `_sample`
-    sample = model._sample
-    monkeypatch.setattr(model, "_sample", lambda inputs, plan: samplings.append((plan.fused, plan.persistent))
+    samplings: list[tuple[bool, bool]] = []  # (plan.fused, plan.persistent) of each `sample_planned`
+    sample = model.sample_planned
+    monkeypatch.setattr(model, "sample_planned", lambda inputs, plan: samplings.append((plan.fused, plan.persistent))
                         or sample(inputs, plan))
     first = {name: value[:1] for name, value in inputs.items()}
     one = model.generate_actions(**first, num_steps=2)

@@ -8,8 +8,8 @@ import torch
 from test_modeling import small_batch
 
 from pi0_torch import PI0Config, PI0ForActionGeneration
-from pi0_torch.models.flow_matching import euler_times
-from pi0_torch.models.rtc import chunk_prefix, guidance_weight
+from pi0_torch.inference.conditioning import euler_times
+from pi0_torch.inference.rtc import chunk_prefix, guidance_weight
 
 HORIZON, ACTION_DIM = 16, 8
 SMALL = dict(image_size=28, max_token_len=12, action_horizon=HORIZON, action_dim=ACTION_DIM)

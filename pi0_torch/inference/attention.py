@@ -181,8 +181,8 @@ def attend(query: torch.Tensor, key: torch.Tensor, value: torch.Tensor, plan: At
     else:
         mask = plan.mask if plan.mask.dtype == query.dtype else plan.mask.to(query.dtype)  # (autocast)
         attended = sdpa_with_mask(query, key, value, mask, enable_gqa=not plan.fold_heads)
-    if plan.fold_heads:
-        return attended.view(batch * tokens, heads * head_dim)
+    if plan.fold_heads:  # (a reshape: a decomposed SDPA, as exported, may return other strides)
+        return attended.reshape(batch * tokens, heads * head_dim)
     return attended.transpose(1, 2).reshape(batch * tokens, heads * head_dim)
 
 

@@ -27,7 +27,7 @@ import torch
 from pi0_torch.inference.fused_pass import attention_shape_reason, kernels_reason, seeded_random
 from pi0_torch.inference.layer_pass import SamplingWeights, expert_sampling_weights, runs_extra_code, runs_its_weights
 from pi0_torch.kernels import ops
-from pi0_torch.models.layers import rms_norm, rope_cos_sin
+from pi0_torch.kernels.reference import rms_norm, rope_cos_sin
 
 if TYPE_CHECKING:
     from pi0_torch.models.modeling_pi0_fast import FastDecoderLayer

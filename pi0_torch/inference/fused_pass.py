@@ -37,11 +37,14 @@ from pi0_torch.inference.attention import attend
 from pi0_torch.inference.graphs import relative_deviation
 from pi0_torch.inference.layer_pass import plain_linear, runs_extra_code, runs_its_weights
 from pi0_torch.kernels import ops, reference
-from pi0_torch.models.layers import NormParams, StepConditioning, StreamPass, rms_norm, rope_cos_sin
+from pi0_torch.inference.conditioning import NormParams, StepConditioning
+from pi0_torch.kernels.reference import rms_norm, rope_cos_sin
 
 if TYPE_CHECKING:
     from pi0_torch.inference.layer_pass import SamplingWeights
-    from pi0_torch.inference.sampling import ActionPass, SamplingInputs, SamplingPlan
+    from pi0_torch.inference.layout import StreamPass
+    from pi0_torch.inference.plan import SamplingInputs, SamplingPlan
+    from pi0_torch.inference.sampling import ActionPass
     from pi0_torch.models.modeling_pi0 import PI0ForActionGeneration
 
 logger = logging.getLogger(__name__)
@@ -118,9 +121,9 @@ def verify_fused_sampling(model: PI0ForActionGeneration, inputs: SamplingInputs,
     launch abandoned a wait (`kernels.persistent.watchdog`), or where its actions deviate from the unfused ones by
     more than `FUSED_TOLERANCE` (a non-finite action deviates infinitely)."""
     if unfused is None:
-        unfused = model._sample(inputs, replace(plan, fused=False, persistent=False))
+        unfused = model.sample_planned(inputs, replace(plan, fused=False, persistent=False))
     try:
-        fused = model._sample(inputs, plan)
+        fused = model.sample_planned(inputs, plan)
     except Exception as error:  # (the inputs were checked and the unfused path ran them: what fails is the kernels)
         return f"it failed ({type(error).__name__}: {str(error)[:300]})", unfused
     if plan.persistent and persistent_abandoned(fused.device):

@@ -2,7 +2,7 @@
 
 Eager sampling of a full-size π0 launches thousands of small kernels per chunk, and the CPU that launches them, not
 the GPU, sets the pace. A CUDA graph records those launches once and replays them with one call. The sampling after
-the input checks never reads the device from the host (`ActionSampling._sample`), so it records as is.
+the input checks never reads the device from the host (`ActionSampling.sample_planned`), so it records as is.
 
 One graph per `SamplingPlan` (prefix layout, Euler times, real-time chunking method, fused steps) and input shapes /
 dtypes: the first call of each records it (two warm-up runs on a side stream, then the capture, on the model's own
@@ -36,7 +36,7 @@ from typing import TYPE_CHECKING, Any
 import torch
 
 if TYPE_CHECKING:
-    from pi0_torch.inference.sampling import SamplingInputs, SamplingPlan
+    from pi0_torch.inference.plan import SamplingInputs, SamplingPlan
     from pi0_torch.models.modeling_pi0 import PI0ForActionGeneration
 
 logger = logging.getLogger(__name__)
@@ -124,7 +124,7 @@ class SamplingGraphs:
                              "(model.capture_sampling(batch_sizes=...))")
         key = (plan, input_signature(inputs))
         if key in self.refused:
-            return self.model._sample(inputs, plan)
+            return self.model.sample_planned(inputs, plan)
         captured = self.graphs.get(key)
         if captured is None:
             eager = None
@@ -136,7 +136,7 @@ class SamplingGraphs:
                 logger.warning("%s; chunks guided by real-time chunking sample eagerly from now on", error)
                 self.guidance = False
             if captured is None:  # (outside the `except`: its traceback holds the failed capture's tensors)
-                return self.model._sample(inputs, plan)
+                return self.model.sample_planned(inputs, plan)
             refusal = self._verify(captured, eager, plan) if self.verify else None
             if refusal is not None:
                 self.refused[key] = refusal
@@ -173,7 +173,7 @@ class SamplingGraphs:
                 self.stream, self.warmup_stream = capture_streams(device)
             pool = self.pools[guided] if guided in self.pools else torch.cuda.graph_pool_handle()
             try:
-                graph, output, eager = record_graph(lambda: self.model._sample(static, plan), device, self.stream,
+                graph, output, eager = record_graph(lambda: self.model.sample_planned(static, plan), device, self.stream,
                                                     self.warmup_stream, pool)
             except GraphCaptureError as error:
                 self.pools.pop(guided, None)  # (never captured into again)

@@ -11,13 +11,19 @@ projection after its norm as the GEMM's bias (`project_normed`). Where that is n
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import torch
 from torch import nn
 from torch.nn.modules.module import _global_forward_hooks, _global_forward_pre_hooks
 
 from pi0_torch.inference.attention import attend
-from pi0_torch.models.layers import ExpertLayer, JointDecoderLayer, NormParams, StreamPass, apply_rope, rms_norm
+from pi0_torch.kernels.reference import apply_rope, rms_norm
+
+if TYPE_CHECKING:
+    from pi0_torch.inference.conditioning import NormParams
+    from pi0_torch.inference.layout import StreamPass
+    from pi0_torch.models.layers import ExpertLayer, JointDecoderLayer
 
 
 @dataclass(frozen=True)

@@ -16,11 +16,24 @@ from typing import TYPE_CHECKING
 
 import torch
 
-from pi0_torch.inference.attention import KeyRanges, plan_attention
-from pi0_torch.models.layers import StreamPass, rope_cos_sin
+from pi0_torch.inference.attention import AttentionPlan, KeyRanges, plan_attention
+from pi0_torch.kernels.reference import rope_cos_sin
 
 if TYPE_CHECKING:
     from pi0_torch.models.configuration_pi0 import PI0Config
+
+
+@dataclass
+class StreamPass:
+    """How one expert's tokens take part in a pass, the same in every layer: their count per sample, RoPE tables
+    `[B or 1, T, 1, H]`, what they attend to, and their k/v slots (`first_slot` on, long `slots` `[T]`)."""
+
+    tokens: int
+    cos: torch.Tensor
+    sin: torch.Tensor
+    attention: AttentionPlan
+    first_slot: int
+    slots: torch.Tensor
 
 
 @dataclass(frozen=True)
@@ -70,7 +83,13 @@ def compact_prefix(tokens: torch.Tensor, valid: torch.Tensor, layout: PrefixLayo
     batch, count = valid.shape
     if count == layout.length and not layout.padded:
         return tokens.flatten(0, 1).clone(), first
-    order = valid.to(torch.uint8).sort(dim=1, stable=True).indices[:, -layout.length :]  # invalid first, then valid in order
+    # where a stable sort of `valid` would put each token: the invalid ones first, then the valid ones, each in order
+    # (counted with cumsum and placed with a scatter rather than sorted: ONNX has no stable sort)
+    flags = valid.long()
+    invalid_count = count - flags.sum(dim=1, keepdim=True)
+    sorted_slot = torch.where(valid, invalid_count + flags.cumsum(dim=1), (1 - flags).cumsum(dim=1)) - 1
+    source = torch.arange(count, device=valid.device).expand(batch, count)
+    order = torch.zeros_like(source).scatter_(1, sorted_slot, source)[:, count - layout.length :]  # [B, length]
     rows = order + torch.arange(batch, device=order.device)[:, None] * count
     return tokens.flatten(0, 1).index_select(0, rows.flatten()), first
 

@@ -16,23 +16,29 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 
-from pi0_torch.inference.attention import KERNELS, choose_kernel
 from pi0_torch.inference import fused_pass, vision_pass
+from pi0_torch.inference.attention import KERNELS, choose_kernel
+from pi0_torch.inference.conditioning import NormParams, StepConditioning, euler_times
 from pi0_torch.inference.fused_pass import (FusedSteps, auto_avoids_persistent, fused_kernels_reason, kernels_setting_reason,
                                             structural_reason, verify_fused_sampling)
 from pi0_torch.inference.graphs import SamplingGraphs, describe_plan, input_signature
 from pi0_torch.inference.layer_pass import CALL_MODULES, SamplingWeights, layer_sampling_weights, sampling_layer_pass
-from pi0_torch.inference.layout import PrefixLayout, camera_inputs, compact_prefix, prefix_stream, rope_tables, suffix_stream
+from pi0_torch.inference.layout import (PrefixLayout, StreamPass, camera_inputs, compact_prefix, prefix_stream, rope_tables,
+                                        suffix_stream)
+from pi0_torch.inference.plan import SamplingInputs, SamplingPlan, SamplingRoute
+from pi0_torch.inference.program import SamplingProgram
+from pi0_torch.inference.rtc import DEFAULT_MAX_GUIDANCE, METHODS, ChunkPrefix, check_rtc_inputs, chunk_prefix, guidance_weight
 from pi0_torch.masks import aligned_key_count
-from pi0_torch.models.flow_matching import euler_times
-from pi0_torch.models.layers import AdaRMSNorm, NormParams, RMSNorm, StepConditioning, StreamPass
-from pi0_torch.models.rtc import DEFAULT_MAX_GUIDANCE, METHODS, ChunkPrefix, check_rtc_inputs, chunk_prefix, guidance_weight
+from pi0_torch.utils.limits import MAX_BATCH_SIZE
 from pi0_torch.utils.validation import check_int
 from pi0_torch.utils.validation import check_tensor as _check_tensor
+
+if TYPE_CHECKING:
+    from pi0_torch.models.layers import AdaRMSNorm, RMSNorm
 
 logger = logging.getLogger(__name__)
 
@@ -67,47 +73,6 @@ class ActionPass:
     final_norm: NormParams | None  # π0
 
 
-@dataclass
-class SamplingInputs:
-    """The tensors sampling reads once its inputs are checked (what a CUDA graph holds static copies of)."""
-
-    pixel_values: torch.Tensor  # [B, C', 3, H, W]: the cameras of the layout
-    image_masks: torch.Tensor  # bool [B, C']
-    input_ids: torch.Tensor  # [B, L]
-    attention_mask: torch.Tensor  # [B, L]
-    state: torch.Tensor | None  # [B, action_dim] (π0)
-    noise: torch.Tensor  # float32 [B, horizon, action_dim]
-    times: torch.Tensor  # float32 [steps]: the flow time of each Euler step
-    target: torch.Tensor | None = None  # real-time chunking: float32 [B, horizon, action_dim]
-    weights: torch.Tensor | None = None  # guidance: float32 [B, horizon]
-    committed: torch.Tensor | None = None  # conditioning: bool [B, horizon]
-
-
-@dataclass(frozen=True)
-class SamplingPlan:
-    """The host-side settings of one sampling call (a CUDA graph is captured per plan and input shapes)."""
-
-    layout: PrefixLayout
-    times: tuple[float, ...]
-    rtc_method: str | None = None  # None: plain sampling
-    max_guidance: float = 0.0
-    fused: bool = False  # the steps in the fused kernels (`pi0_torch.inference.fused_pass`)
-    persistent: bool = False  # (fused) each step's decoder layers in one launch (`pi0_torch.kernels.persistent`)
-
-
-@dataclass(frozen=True)
-class SamplingRoute:
-    """What ran a `generate_actions` call (`model.last_sampling_route`): the kernels of its Euler steps, whether it
-    replayed a CUDA graph, and why it ran slower than the model's settings ask for."""
-
-    steps: str  # "torch" (the layers' GEMMs and ATen ops), "triton" (the fused kernels, five launches per decoder layer)
-    # or "persistent" (the fused kernels, each step's decoder layers in one launch)
-    graph: bool  # it replayed a CUDA graph (`capture_sampling`)
-    why_unfused: str | None = None  # why the steps ran "torch" (None where they ran fused)
-    refusals: tuple[str, ...] = ()  # what a check refused for this call's plan and shapes, and why: its persistent
-    # launch or its fused steps (first call's verification), its graph (first replay's); each made it run the next path
-
-
 class ActionSampling:
     """`generate_actions` and its fast paths for `PI0ForActionGeneration` (which provides the layers, the embeddings,
     `conditioning` and the input checks)."""
@@ -125,12 +90,22 @@ class ActionSampling:
     # (`runs_persistent`)
     PERSISTENT_EAGER_BATCH = 2
 
+    # The engine's state: settings and what it learnt, per model (the model's `__init__` sets none of it; the
+    # dictionaries are made on first use)
     _attention_kernel: str = "auto"
     _sampling_kernels: str = "auto"
     _graphs: Any = None  # `SamplingGraphs` once `capture_sampling` is called
-    _device_times: dict[tuple[tuple[float, ...], torch.device], torch.Tensor]
-    _fused_refusals: dict[tuple[Any, ...], str | None]  # (plan, input signature) -> why its fused steps were refused
     _last_route: SamplingRoute | None = None
+
+    @property
+    def _fused_refusals(self) -> dict[tuple[Any, ...], str | None]:
+        """(plan, input signature) -> why its fused steps were refused (None: they run), as verified on its first call."""
+        return self.__dict__.setdefault("_fused_verdicts", {})
+
+    @property
+    def _device_times(self) -> dict[tuple[tuple[float, ...], torch.device], torch.Tensor]:
+        """(Euler times, device) -> those times as a float32 tensor there (made once)."""
+        return self.__dict__.setdefault("_euler_times_on", {})
 
     @property
     def last_sampling_route(self) -> SamplingRoute | None:
@@ -232,12 +207,15 @@ class ActionSampling:
             return self._verified_plan(inputs, replace(plan, persistent=False), signature, sampled)
         return replace(plan, fused=False), sampled
 
-    def attention_kernel_for(self, device: torch.device, dtype: torch.dtype, differentiable: bool) -> str:
+    def attention_kernel_for(self, device: torch.device, dtype: torch.dtype, differentiable: bool,
+                             setting: str | None = None) -> str:
         """The attention kernel of a pass: SDPA where gradients flow through attention (training, RTC guidance; the
-        varlen kernel has no backward with per-sample key counts), else `attention_kernel`'s choice."""
+        varlen kernel has no backward with per-sample key counts), else the choice of `setting` (default:
+        `attention_kernel`'s)."""
         config = self.config
-        return choose_kernel("sdpa" if differentiable else self._attention_kernel, device, dtype,
-                             config.num_key_value_heads, config.head_dim)
+        setting = self._attention_kernel if setting is None else setting
+        return choose_kernel("sdpa" if differentiable else setting, device, dtype, config.num_key_value_heads,
+                             config.head_dim)
 
     @torch.no_grad()
     def generate_actions(
@@ -264,7 +242,7 @@ class ActionSampling:
         for all steps up front. The Euler state is kept in float32 whatever the weights' dtype. The inputs are read on
         the host once, by their checks; after that nothing waits for the device (see `capture_sampling`).
 
-        Real-time chunking (see `pi0_torch.models.rtc`): with `previous_actions`, the new chunk continues the one
+        Real-time chunking (see `pi0_torch.inference.rtc`): with `previous_actions`, the new chunk continues the one
         the robot is executing. Its index 0 is the step at which this inference starts, `execution_horizon` (`s`)
         steps after the previous one started, and the robot executes `inference_delay` (`d`) more of the previous
         chunk while this one computes. `rtc_method="guidance"` (inference-time RTC) steers every Euler step toward
@@ -303,15 +281,32 @@ class ActionSampling:
         why_unfused = self.fused_steps_reason(pixel_values.device, self.dtype, method)
         fused = why_unfused is None
         requested = SamplingPlan(layout, times, method, float(rtc_max_guidance) if method == "guidance" else 0.0, fused,
-                                 persistent=fused and self.runs_persistent(batch, graphs is not None, pixel_values.device))
+                                 persistent=fused and self.runs_persistent(batch, graphs is not None, pixel_values.device),
+                                 attention=self._attention_kernel)
         signature = input_signature(inputs)
         plan, sampled = self._verified_plan(inputs, requested, signature) if fused else (requested, None)
         if sampled is None or graphs is not None:  # (else the first call's actions, from its verification)
             if self.sampling_compiled:
                 allow_recompiles(self.RECOMPILE_LIMIT)
-            sampled = self._sample(inputs, plan) if graphs is None else graphs.run(inputs, plan)
+            sampled = self.sample_planned(inputs, plan) if graphs is None else graphs.run(inputs, plan)
         self._last_route = self._route(requested, plan, signature, graphs, why_unfused)
         return sampled
+
+    def sampling_program(self, batch_size: int = 1, num_steps: int | None = None,
+                         text_length: int | None = None) -> SamplingProgram:
+        """The exportable core of `generate_actions`: its sampling after the input checks for `batch_size` samples,
+        `num_steps` Euler steps (default `config.num_inference_steps`) and prompts of `text_length` token slots
+        (default `config.max_token_len`), as a module whose `forward(pixel_values, image_masks, input_ids,
+        attention_mask, state, noise)` is a pure function of tensors (`pi0_torch.inference.program`):
+        `torch.export.export(program, program.example_inputs(), strict=False)` traces it. Its steps run the torch path
+        and its attention SDPA (what exporters take); it returns `generate_actions`' actions for the same noise."""
+        config = self.config
+        batch_size = check_int("batch_size", batch_size, minimum=1, maximum=MAX_BATCH_SIZE)
+        text_length = check_int("text_length", config.max_token_len if text_length is None else text_length, minimum=1,
+                                maximum=config.max_token_len)
+        layout = SamplingProgram.static_layout(config.num_cameras, config.tokens_per_image, text_length)
+        times = SamplingProgram.times(config.num_inference_steps if num_steps is None else num_steps)
+        return SamplingProgram(self, batch_size, SamplingPlan(layout, times, attention="sdpa"), text_length)
 
     def _route(self, requested: SamplingPlan, plan: SamplingPlan, signature: tuple[Any, ...],
                graphs: SamplingGraphs | None, why_unfused: str | None) -> SamplingRoute:
@@ -327,7 +322,7 @@ class ActionSampling:
         steps = "torch" if not plan.fused else "persistent" if plan.persistent else "triton"
         return SamplingRoute(steps, replayed, why_unfused, tuple(refusals))
 
-    def _sample(self, inputs: SamplingInputs, plan: SamplingPlan) -> torch.Tensor:
+    def sample_planned(self, inputs: SamplingInputs, plan: SamplingPlan) -> torch.Tensor:
         """The sampling of `generate_actions` on checked inputs: no host reads, so it can be captured as a CUDA graph.
 
         Guided sampling runs outside inference mode (under no_grad; functorch re-enables gradients for its vjp): before
@@ -336,9 +331,9 @@ class ActionSampling:
         guided = plan.rtc_method == "guidance"
         if guided and torch.is_inference_mode_enabled():
             with torch.inference_mode(False), torch.no_grad():
-                return self._sample(inputs, plan)
-        cache = self.cache_prefix(inputs, plan.layout, differentiable_steps=guided, fused=plan.fused)
-        actions = self.action_pass(cache, differentiable=guided)
+                return self.sample_planned(inputs, plan)
+        cache = self.cache_prefix(inputs, plan.layout, differentiable_steps=guided, fused=plan.fused, attention=plan.attention)
+        actions = self.action_pass(cache, differentiable=guided, attention=plan.attention)
         committed = inputs.committed
         conditioning = self.step_conditioning(inputs.times, actions.expert_weights if committed is None else None)
         dt = -1.0 / len(plan.times)
@@ -380,6 +375,7 @@ class ActionSampling:
 
     def cache_prefix(
         self, inputs: SamplingInputs, layout: PrefixLayout, differentiable_steps: bool = False, fused: bool = False,
+        attention: str | None = None,
     ) -> PrefixCache:
         """Run the prefix once (π0: with the state token) and keep every layer's post-RoPE k/v.
 
@@ -389,15 +385,21 @@ class ActionSampling:
         the steps will attend through SDPA's mask (RTC guidance), so the buffers are laid out for it. `fused`: the
         layers run `fused_pass.prefix_layer` (the fused kernels around cuBLAS's GEMMs), SigLIP `vision_pass`, and π0's
         state token is left to the first fused step, which runs it beside the action tokens on the same pass over the
-        action expert's weights (`PrefixCache.state`, `fused_pass.FusedSteps`).
+        action expert's weights (`PrefixCache.state`, `fused_pass.FusedSteps`). `attention`: the attention kernel
+        setting (default: `attention_kernel`).
         """
         config = self.config
-        vision = vision_pass.tower_pass(self.vision_tower) if fused else None  # (None: the tower's modules run)
-        prefix, valid = self.embed_prefix(inputs.pixel_values, inputs.image_masks, inputs.input_ids, inputs.attention_mask, vision)
+        pixel_values = inputs.pixel_values
+        vision = vision_pass.tower_pass(self.vision_tower) if fused and pixel_values.shape[1] else None
+        if vision is None:  # (the tower's modules run)
+            prefix, valid = self.embed_prefix(pixel_values, inputs.image_masks, inputs.input_ids, inputs.attention_mask)
+        else:
+            image_tokens = self.image_projection(vision(pixel_values.flatten(0, 1))).unflatten(0, pixel_values.shape[:2])
+            prefix, valid = self.join_prefix(image_tokens, inputs.image_masks, inputs.input_ids, inputs.attention_mask)
         prefix, first = compact_prefix(prefix, valid, layout)
         batch = first.shape[0]
         slots = layout.length + config.suffix_len
-        kernel = self.attention_kernel_for(prefix.device, prefix.dtype, differentiable=False)
+        kernel = self.attention_kernel_for(prefix.device, prefix.dtype, differentiable=False, setting=attention)
         # SDPA's masks (only a padded layout has any) cover a multiple of 8 keys (`pi0_torch.masks.sdpa_with_mask`), and
         # so do the buffers then: the slots past `slots` (and the suffix's, while the prefix runs) are masked out, and
         # zeros (finite) for that
@@ -427,12 +429,12 @@ class ActionSampling:
                                             keys_only=last)
         return PrefixCache(keys, values, first, layout, slots, rope, buffers, first_step_state)
 
-    def action_pass(self, cache: PrefixCache, differentiable: bool = False) -> ActionPass:
+    def action_pass(self, cache: PrefixCache, differentiable: bool = False, attention: str | None = None) -> ActionPass:
         """What every sampling step shares (see `ActionPass`), computed once per call; `differentiable` for steps that
-        are differentiated (RTC guidance)."""
+        are differentiated (RTC guidance); `attention`: the attention kernel setting (default: `attention_kernel`)."""
         config = self.config
         first_slot = cache.slots - config.action_horizon
-        kernel = self.attention_kernel_for(cache.first.device, cache.keys[0].dtype, differentiable)
+        kernel = self.attention_kernel_for(cache.first.device, cache.keys[0].dtype, differentiable, attention)
         stream = suffix_stream(config, cache.first, cache.layout, first_slot, (config.action_horizon,), kernel,
                                cache.keys[0].shape[2], self.dtype, cache.rope)
         weights = [layer_sampling_weights(layer, vlm=False, expert=not differentiable)[1] for layer in self.layers]
@@ -450,7 +452,7 @@ class ActionSampling:
         """Velocity `[B, horizon, action_dim]` (float32) at `x_t` given the cached prefix (in `actions`, from
         `action_pass`) and this step's `conditioning`. `write_cache=False` leaves the cache untouched (a pure function
         of `x_t`, to differentiate through)."""
-        tokens = self.embed_actions(x_t, conditioning.condition, actions.action_weight)
+        tokens = self.embed_actions(x_t, conditioning.condition)
         norms = conditioning.layer_norms if self.config.pi05 else actions.expert_norms
         cache = actions.cache
         for layer, keys, values, layer_norms, weights in zip(self.layers, cache.keys, cache.values, norms, actions.expert_weights):
@@ -527,7 +529,7 @@ class ActionSampling:
         rtc_schedule: str,
     ) -> ChunkPrefix:
         """Check the real-time chunking arguments of `generate_actions` (previous chunk and guidance clip within
-        `pi0_torch.models.rtc`'s bounds) and build the new chunk's prefix."""
+        `pi0_torch.inference.rtc`'s bounds) and build the new chunk's prefix."""
         config = self.config
         _check_tensor("previous_actions", previous_actions, (batch, config.action_horizon, config.action_dim), floating=True)
         if execution_horizon is None:
@@ -626,8 +628,8 @@ class ActionSampling:
         they are dropped and captured again on the next call."""
         if getattr(self, "_graphs", None) is not None:
             self._graphs.clear()
-        self._device_times = {}
-        self._fused_refusals = {}
+        self._device_times.clear()
+        self._fused_refusals.clear()
         return super()._apply(fn, *args, **kwargs)
 
 

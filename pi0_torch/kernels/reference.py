@@ -1,6 +1,7 @@
 """The fused ops of a sampling step, in plain torch: what each Triton kernel computes, the oracle it is tested against,
 and the path every device without the kernels runs (the CPU: the same ops, in the same order, as the engine's
-unfused sampling pass, so its numbers stay bit for bit what they were).
+unfused sampling pass, so its numbers stay bit for bit what they were). First the math the model's layers and the
+kernels share: Gemma's RMSNorm, RoPE and GeGLU.
 
 Shapes: M = B * T token rows (sample-major), D the expert's width, N query heads, one kv head, H head size, F the MLP
 width, S the k/v cache's slots, A the action dim. Weights are the projections' weights transposed (`[in, out]`
@@ -15,7 +16,44 @@ from typing import Any
 import torch
 import torch.nn.functional as F
 
-from pi0_torch.models.layers import ExpertLayer, apply_rope, rms_norm
+# -- the shared math: Gemma's RMSNorm, RoPE and GeGLU (`pi0_torch.models.layers` builds the layers on them) ----------
+
+_FUSED_RMS_NORM = getattr(torch.ops.aten, "_fused_rms_norm", None)  # one kernel (recent torch); else the formula
+
+
+def rms_norm(x: torch.Tensor, eps: float, weight: torch.Tensor | None = None) -> torch.Tensor:
+    """`x * rsqrt(mean(x^2) + eps)`, times `weight` if given, in float32 arithmetic; returned in `x`'s dtype."""
+    if _FUSED_RMS_NORM is not None and (weight is None or weight.dtype == x.dtype):
+        return _FUSED_RMS_NORM(x, [x.shape[-1]], weight, eps)[0]
+    x32 = x.float()
+    normed = x32 * torch.rsqrt(x32.pow(2).mean(dim=-1, keepdim=True) + eps)
+    return (normed if weight is None else normed * weight).to(x.dtype)
+
+
+def rope_cos_sin(positions: torch.Tensor, head_dim: int, theta: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """RoPE of `positions` `[B, T]` (frequencies `theta ** (-2k / H)`, angles in float32) for `apply_rope`: `cos`
+    repeated over both halves and `sin` signed `(-sin, sin)`, `[B, T, H]` each."""
+    exponents = (2.0 / head_dim) * torch.arange(head_dim // 2, dtype=torch.float32, device=positions.device)
+    angles = positions.float()[..., None] / theta**exponents  # [B, T, H/2]
+    cos, sin = torch.cos(angles), torch.sin(angles)
+    return torch.cat([cos, cos], dim=-1), torch.cat([-sin, sin], dim=-1)
+
+
+def apply_rope(x: torch.Tensor, cos: torch.Tensor, sin: torch.Tensor, out: torch.Tensor | None = None) -> torch.Tensor:
+    """Rotate `x` `[..., H]` in the split-halves layout: `[x1 cos - x2 sin, x2 cos + x1 sin]` = `x * cos + (x2, x1) *
+    (-sin, sin)` with `rope_cos_sin`'s float32 tables (broadcast against `x`). Computed in float32 (type promotion
+    reads a bf16 `x` exactly, without a separate cast) and returned in float32, for the caller to round, or rounded
+    by the last kernel itself into `out` (of `x`'s shape and the caller's dtype; no gradients flow through `out=`)."""
+    return torch.addcmul(x * cos, x.roll(x.shape[-1] // 2, dims=-1), sin, out=out)
+
+
+def geglu(gate_up: torch.Tensor) -> torch.Tensor:
+    """`gelu_tanh(gate) * up` `[M, F]` of a gate/up projection's output `[M, 2F]` (the MLP between its projections)."""
+    gate, up = gate_up.chunk(2, dim=-1)
+    return F.gelu(gate, approximate="tanh") * up
+
+
+# -- the fused ops ---------------------------------------------------------------------------------------------------
 
 
 def embed_actions(
@@ -104,11 +142,6 @@ def norm_gate_up_geglu(
 ) -> torch.Tensor:
     """RMSNorm, the gate/up projection and the GeGLU between the MLP's projections: `gelu_tanh(gate) * up` `[M, F]`."""
     return geglu(normed_projection(x, scale, bias, weight, eps))
-
-
-def geglu(gate_up: torch.Tensor) -> torch.Tensor:
-    """`gelu_tanh(gate) * up` `[M, F]` of a gate/up projection's output `[M, 2F]`."""
-    return ExpertLayer.geglu(gate_up)
 
 
 def matmul_residual_(

@@ -17,37 +17,11 @@ from typing import Any, ClassVar
 from transformers import PretrainedConfig
 
 from pi0_torch.models import auto_registration
+from pi0_torch.utils.limits import SIZE_LIMITS
 from pi0_torch.utils.validation import check_float, check_int, check_pretrained_location, hub_errors
 
 PALIGEMMA_VOCAB_SIZE = 257_152
 
-# The largest value of every size and count (π0 and π0-FAST configs): far above any released model (π0: widths up to
-# 16,384, 27 + 18 layers, 50 actions, 10 steps), low enough that a typo (`action_horizon: 100000000`,
-# `num_hidden_layers: 1e6`, `num_inference_steps: 1e9`) is refused by name before anything is allocated or run.
-SIZE_LIMITS: dict[str, int] = {
-    "image_size": 2_048,
-    "patch_size": 2_048,
-    "vision_hidden_size": 16_384,
-    "vision_intermediate_size": 65_536,
-    "vision_num_layers": 256,
-    "vision_num_heads": 256,
-    "vlm_hidden_size": 16_384,
-    "vlm_intermediate_size": 65_536,
-    "expert_hidden_size": 16_384,
-    "expert_intermediate_size": 65_536,
-    "hidden_size": 16_384,  # π0-FAST's decoder
-    "intermediate_size": 65_536,
-    "num_hidden_layers": 256,
-    "num_attention_heads": 256,
-    "num_key_value_heads": 256,
-    "head_dim": 1_024,
-    "vocab_size": 1_048_576,
-    "action_dim": 256,
-    "action_horizon": 1_024,
-    "max_token_len": 8_192,
-    "num_inference_steps": 1_000,
-    "max_decoding_steps": 8_192,
-}
 # The sizes and counts every member has: each a positive integer within `SIZE_LIMITS`.
 SHARED_SIZES = (
     "image_size", "patch_size", "vision_hidden_size", "vision_intermediate_size", "vision_num_layers", "vision_num_heads",

@@ -4,11 +4,9 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
 import torch
 
-from pi0_torch.models.configuration_pi0 import MAX_INFERENCE_STEPS
-from pi0_torch.utils.validation import check_int
+from pi0_torch.inference.conditioning import euler_times  # noqa: F401 (the sampler's; re-exported: older import path)
 
 
 def sincos_time_embedding(time: torch.Tensor, dim: int, min_period: float, max_period: float) -> torch.Tensor:
@@ -42,19 +40,3 @@ def interpolate(actions: torch.Tensor, noise: torch.Tensor, time: torch.Tensor) 
     """The noisy actions `x_t = t * noise + (1 - t) * actions` and the target velocity `u = noise - actions`."""
     t = time[:, None, None]
     return t * noise + (1 - t) * actions, noise - actions
-
-
-def euler_times(num_steps: int) -> list[float]:
-    """Flow times visited by openpi's Euler sampler: from t = 1 with dt = -1/num_steps while t >= -dt/2.
-
-    The arithmetic is float32, exactly as openpi's loop, so the times match its trajectory bit for bit.
-    `num_steps` is an integer in `[1, MAX_INFERENCE_STEPS]` (2.5 or True are refused, naming it).
-    """
-    check_int("num_steps", num_steps, minimum=1, maximum=MAX_INFERENCE_STEPS)
-    dt = np.float32(-1.0 / num_steps)
-    t = np.float32(1.0)
-    times = []
-    while t >= -dt / np.float32(2):
-        times.append(float(t))
-        t = np.float32(t + dt)
-    return times

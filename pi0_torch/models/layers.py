@@ -7,102 +7,23 @@ each expert's tokens are 2-D, `[B * T, D]`, the layout its projections take with
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
-from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import torch
-import torch.nn.functional as F
 from torch import nn
 from transformers.modeling_layers import GradientCheckpointingLayer
 
 from pi0_torch.inference.attention import attend
+from pi0_torch.inference.conditioning import NormParams, StepConditioning  # noqa: F401 (re-exported: older import path)
+from pi0_torch.inference.layout import StreamPass
+from pi0_torch.kernels.reference import apply_rope, geglu, rms_norm, rope_cos_sin  # noqa: F401 (rope_cos_sin: re-exported)
 
 if TYPE_CHECKING:
-    from pi0_torch.inference.attention import AttentionPlan
     from pi0_torch.models.configuration_pi0 import PI0Config
 
 # ----------------------------------------------------------------------------------------------------------------------
-# Normalisation and rotary position embedding
+# Normalisation (the math itself, `rms_norm`, RoPE and GeGLU, is `pi0_torch.kernels.reference`'s, shared with the kernels)
 # ----------------------------------------------------------------------------------------------------------------------
-
-_FUSED_RMS_NORM = getattr(torch.ops.aten, "_fused_rms_norm", None)  # one kernel (recent torch); else the formula
-
-
-def rms_norm(x: torch.Tensor, eps: float, weight: torch.Tensor | None = None) -> torch.Tensor:
-    """`x * rsqrt(mean(x^2) + eps)`, times `weight` if given, in float32 arithmetic; returned in `x`'s dtype."""
-    if _FUSED_RMS_NORM is not None and (weight is None or weight.dtype == x.dtype):
-        return _FUSED_RMS_NORM(x, [x.shape[-1]], weight, eps)[0]
-    x32 = x.float()
-    normed = x32 * torch.rsqrt(x32.pow(2).mean(dim=-1, keepdim=True) + eps)
-    return (normed if weight is None else normed * weight).to(x.dtype)
-
-
-@dataclass
-class NormParams:
-    """What a Gemma norm applies to the normalised tokens, `normed * scale (+ shift)`, and (adaRMS) the gate of the
-    residual that follows. Each tensor broadcasts against the tokens `[B * T, D]`: `[D]`, or `[B * T, D]` per token
-    (or has a leading time axis before `StepConditioning.steps` splits it)."""
-
-    scale: torch.Tensor  # 1 + weight (RMSNorm); 1 + the modulation's scale (adaRMS)
-    shift: torch.Tensor | None = None
-    gate: torch.Tensor | None = None
-    # the inference engine's: `shift @ W^T` of the projection after the norm, added in its GEMM (see
-    # `pi0_torch.inference.layer_pass.project_normed`)
-    shift_projected: torch.Tensor | None = None
-
-    def tensors(self) -> list[torch.Tensor]:
-        return [t for t in (self.scale, self.shift, self.gate, self.shift_projected) if t is not None]
-
-    def rebuilt(self, values: Iterator[torch.Tensor]) -> NormParams:
-        """The same structure holding the next tensors of `values` (see `StepConditioning.map`)."""
-        optional = (self.shift, self.gate, self.shift_projected)
-        return NormParams(next(values), *(None if t is None else next(values) for t in optional))
-
-
-@dataclass
-class StepConditioning:
-    """What the flow time contributes to the suffix: π0's time half of `action_time_mlp_in` (its bias included),
-    added to every action token; π0.5's adaRMS params of every expert norm (per layer: attention norm, MLP norm; then
-    the final norm).
-
-    `PI0ForActionGeneration.conditioning` builds it for T flow times at once, every tensor with the time axis first;
-    `steps()` gives one per sampling step, `per_token()` spreads per-sample values over the action tokens.
-    """
-
-    condition: torch.Tensor | None  # π0: [., D1]
-    layer_norms: tuple[tuple[NormParams, NormParams], ...] | None  # π0.5
-    final_norm: NormParams | None  # π0.5
-
-    def tensors(self) -> list[torch.Tensor]:
-        norms = [params for pair in self.layer_norms or () for params in pair] + ([self.final_norm] if self.final_norm else [])
-        return ([self.condition] if self.condition is not None else []) + [t for params in norms for t in params.tensors()]
-
-    def rebuilt(self, values: Iterator[torch.Tensor]) -> StepConditioning:
-        """The same structure holding the next tensors of `values` (in the order of `tensors()`)."""
-        condition = None if self.condition is None else next(values)
-        layer_norms = None if self.layer_norms is None else tuple((a.rebuilt(values), m.rebuilt(values)) for a, m in self.layer_norms)
-        return StepConditioning(condition, layer_norms, None if self.final_norm is None else self.final_norm.rebuilt(values))
-
-    def map(self, fn: Callable[..., torch.Tensor], *others: StepConditioning) -> StepConditioning:
-        """Apply `fn` to every tensor (with the matching tensors of `others` as further arguments)."""
-        return self.rebuilt(iter([fn(*group) for group in zip(self.tensors(), *(other.tensors() for other in others))]))
-
-    def steps(self) -> list[StepConditioning]:
-        """One conditioning per flow time (each tensor's time axis unbound once)."""
-        columns = [tensor.unbind(0) for tensor in self.tensors()]
-        return [self.rebuilt(iter(column[index] for column in columns)) for index in range(len(columns[0]))]
-
-    def per_token(self, tokens: int, committed: torch.Tensor | None = None, clean: StepConditioning | None = None) -> StepConditioning:
-        """Per sample `[B, ...]` (or one step's `[...]` with `committed`) -> per action token `[B * tokens, ...]`.
-        Tokens where `committed` `[B, tokens]` is set (real-time chunking: their actions are given) take the values of
-        `clean` (the conditioning of flow time 0, one step)."""
-        if committed is None:
-            return self.map(lambda value: value.repeat_interleave(tokens, dim=0))
-        return self.map(
-            lambda value, clean_value: torch.where(committed[..., None], clean_value, value.unsqueeze(-2)).flatten(0, 1), clean
-        )
-
 
 class RMSNorm(nn.Module):
     """Gemma RMSNorm: `normalize(x) * (1 + weight)` in float32, returned in the input dtype."""
@@ -142,23 +63,6 @@ class AdaRMSNorm(nn.Module):
         return torch.addcmul(params.shift, rms_norm(x.float(), self.eps), params.scale).to(x.dtype)
 
 
-def rope_cos_sin(positions: torch.Tensor, head_dim: int, theta: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """RoPE of `positions` `[B, T]` (frequencies `theta ** (-2k / H)`, angles in float32) for `apply_rope`: `cos`
-    repeated over both halves and `sin` signed `(-sin, sin)`, `[B, T, H]` each."""
-    exponents = (2.0 / head_dim) * torch.arange(head_dim // 2, dtype=torch.float32, device=positions.device)
-    angles = positions.float()[..., None] / theta**exponents  # [B, T, H/2]
-    cos, sin = torch.cos(angles), torch.sin(angles)
-    return torch.cat([cos, cos], dim=-1), torch.cat([-sin, sin], dim=-1)
-
-
-def apply_rope(x: torch.Tensor, cos: torch.Tensor, sin: torch.Tensor, out: torch.Tensor | None = None) -> torch.Tensor:
-    """Rotate `x` `[..., H]` in the split-halves layout: `[x1 cos - x2 sin, x2 cos + x1 sin]` = `x * cos + (x2, x1) *
-    (-sin, sin)` with `rope_cos_sin`'s float32 tables (broadcast against `x`). Computed in float32 (type promotion
-    reads a bf16 `x` exactly, without a separate cast) and returned in float32, for the caller to round, or rounded
-    by the last kernel itself into `out` (of `x`'s shape and the caller's dtype; no gradients flow through `out=`)."""
-    return torch.addcmul(x * cos, x.roll(x.shape[-1] // 2, dims=-1), sin, out=out)
-
-
 def gated_residual(residual: torch.Tensor, y: torch.Tensor, gate: torch.Tensor | None) -> torch.Tensor:
     """The residual update after attention and after the MLP: `residual + y`, or (adaRMS) `residual + y * gate`."""
     return residual + y if gate is None else torch.addcmul(residual, y, gate)
@@ -184,24 +88,7 @@ class ExpertLayer(nn.Module):
         self.down_proj = nn.Linear(mlp_width, width, bias=False)
         self.heads = (heads, kv_heads, kv_heads)  # of q, k, v
 
-    @staticmethod
-    def geglu(gate_up: torch.Tensor) -> torch.Tensor:
-        """The MLP between its projections: `gelu_tanh(gate) * up` `[..., mlp_width]` of `gate_up_proj`'s output."""
-        gate, up = gate_up.chunk(2, dim=-1)
-        return F.gelu(gate, approximate="tanh") * up
-
-
-@dataclass
-class StreamPass:
-    """How one expert's tokens take part in a pass, the same in every layer: their count per sample, RoPE tables
-    `[B or 1, T, 1, H]`, what they attend to, and their k/v slots (`first_slot` on, long `slots` `[T]`)."""
-
-    tokens: int
-    cos: torch.Tensor
-    sin: torch.Tensor
-    attention: AttentionPlan
-    first_slot: int
-    slots: torch.Tensor
+    geglu = staticmethod(geglu)  # the MLP between its projections: `gelu_tanh(gate) * up` of `gate_up_proj`'s output
 
 
 class JointDecoderLayer(GradientCheckpointingLayer):

@@ -2,7 +2,8 @@
 
 Reading order: the model's pieces (prefix and suffix embeddings, the flow-time conditioning), the training forward,
 and `sample_actions_reference`, openpi's `sample_actions` written plainly. The layers are in
-`pi0_torch.models.layers`, the vision tower in `pi0_torch.models.vision`. `generate_actions`, the fast sampling users
+`pi0_torch.models.layers`, the vision tower in `pi0_torch.models.vision`, loading and saving in
+`pi0_torch.models.pretrained`, the input checks in `pi0_torch.models.input_checks`. `generate_actions`, the fast sampling users
 call, comes from `pi0_torch.inference.sampling.ActionSampling` (the inference engine: token layouts, the prefix cache,
 fused kernels, CUDA graphs) and is tested against `sample_actions_reference` at every level.
 
@@ -15,28 +16,26 @@ from __future__ import annotations
 import functools
 import math
 from dataclasses import dataclass
-from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import torch
 import torch.nn.functional as F
 from torch import nn
-from transformers import PreTrainedModel
 from transformers.utils import ModelOutput
 
 from pi0_torch.inference.attention import AttentionPlan
-from pi0_torch.inference.layout import InputFacts, PrefixLayout, camera_inputs, compact_prefix, prefix_stream, rope_tables, suffix_stream
+from pi0_torch.inference.conditioning import StepConditioning, euler_times
+from pi0_torch.inference.layout import PrefixLayout, StreamPass, camera_inputs, compact_prefix, prefix_stream, rope_tables, suffix_stream
+from pi0_torch.inference.rtc import per_sample_steps
 from pi0_torch.inference.sampling import ActionSampling, allow_recompiles
+from pi0_torch.kernels.reference import rope_cos_sin
 from pi0_torch.masks import prefix_lm_mask, to_additive_mask
 from pi0_torch.models.configuration_pi0 import PI0Config
-from pi0_torch.models.flow_matching import euler_times, interpolate, sample_flow_time, sincos_time_embedding
-from pi0_torch.models.layers import AdaRMSNorm, JointDecoderLayer, RMSNorm, StepConditioning, StreamPass, rope_cos_sin
-from pi0_torch.models.rtc import per_sample_steps
-from pi0_torch.models.vision import SiglipImageEmbedding, is_inside_vision_tower, siglip_vision_tower
-from pi0_torch.utils import files
-from pi0_torch.utils.quiet import transformers_progress
-from pi0_torch.utils.validation import check_pretrained_location, describe, hub_errors, nonfinite_error
-from pi0_torch.utils.validation import check_tensor as _check_tensor
+from pi0_torch.models.flow_matching import interpolate, sample_flow_time, sincos_time_embedding
+from pi0_torch.models.input_checks import InputChecks
+from pi0_torch.models.layers import AdaRMSNorm, JointDecoderLayer, RMSNorm
+from pi0_torch.models.pretrained import PI0PreTrainedModel
+from pi0_torch.models.vision import SiglipImageEmbedding, siglip_vision_tower
 
 
 @dataclass
@@ -53,109 +52,7 @@ class PI0Output(ModelOutput):
     velocity: torch.Tensor | None = None
 
 
-class PI0PreTrainedModel(PreTrainedModel):
-    config_class = PI0Config
-    config: PI0Config
-    base_model_prefix = "pi0"
-    main_input_name = "pixel_values"
-    supports_gradient_checkpointing = True
-    _no_split_modules = ["JointDecoderLayer", "SiglipEncoderLayer"]
-    _supports_sdpa = True
-
-    @torch.no_grad()
-    def _init_weights(self, module: nn.Module) -> None:
-        std = 0.02
-        if isinstance(module, AdaRMSNorm):
-            # openpi initialises the adaRMS Dense to zero: unit scale, no shift, closed residual gates.
-            nn.init.zeros_(module.modulation.weight)
-            nn.init.zeros_(module.modulation.bias)
-        elif isinstance(module, RMSNorm):
-            nn.init.zeros_(module.weight)
-        elif isinstance(module, nn.Linear) and not is_inside_vision_tower(self, module):
-            nn.init.normal_(module.weight, std=std)
-            if module.bias is not None:
-                nn.init.zeros_(module.bias)
-        elif isinstance(module, nn.Embedding) and not is_inside_vision_tower(self, module):
-            nn.init.normal_(module.weight, std=std)
-        else:
-            super()._init_weights(module)
-
-    @classmethod
-    def from_pretrained(cls, pretrained_model_name_or_path: Any, *args: Any, **kwargs: Any) -> Any:
-        """`PreTrainedModel.from_pretrained` that refuses a checkpoint whose tensors do not match the model.
-
-        transformers only warns about missing or unexpected weights and initialises the missing ones randomly; a
-        policy with silently random weights is worse than no policy, so any missing, unexpected or mis-shaped
-        tensor raises `ValueError` naming them. `ignore_mismatched_sizes=True` is the explicit opt-in to
-        re-initialise mis-shaped tensors (e.g. fine-tuning with another `action_dim`). Quiet unless `verbose=True`
-        (transformers' "Loading weights" bar).
-
-        A local folder must hold `config.json` (unless a `config` is given); a path that is neither a folder nor a hub
-        id `namespace/name` is refused at once, without trying the hub (see `pi0_torch.utils.validation.is_hub_id`).
-        A weight stored as integers, booleans or 8-bit floats for a floating-point parameter is refused too, by name
-        (transformers would cast it silently).
-        """
-        config_file = None if kwargs.get("config") else f"{kwargs['subfolder']}/config.json" if kwargs.get("subfolder") else "config.json"
-        check_pretrained_location(pretrained_model_name_or_path, config_file, "model")
-        want_info = kwargs.pop("output_loading_info", False)
-        allow_mismatched = kwargs.pop("ignore_mismatched_sizes", False)  # an explicit opt-in to re-initialise them
-        with hub_errors(pretrained_model_name_or_path, "model"), transformers_progress(kwargs.pop("verbose", False)):
-            model, info = super().from_pretrained(
-                pretrained_model_name_or_path, *args, output_loading_info=True, ignore_mismatched_sizes=True, **kwargs
-            )
-        problems = {
-            "missing": sorted(info.get("missing_keys", ())),
-            "unexpected": sorted(info.get("unexpected_keys", ())),
-            "mis-shaped": [] if allow_mismatched else sorted(_describe_mismatch(item) for item in info.get("mismatched_keys", ())),
-        }
-        problems = {kind: names for kind, names in problems.items() if names}
-        wrong_kind = _non_floating_weights(pretrained_model_name_or_path, kwargs.get("subfolder"), model)
-        if wrong_kind:
-            problems["not floating-point"] = wrong_kind
-        if problems:
-            details = "; ".join(f"{kind}: {', '.join(names[:10])}{' ...' if len(names) > 10 else ''}" for kind, names in problems.items())
-            raise ValueError(f"checkpoint {pretrained_model_name_or_path} does not match {cls.__name__}({model.config.model_type}): {details}")
-        return (model, info) if want_info else model
-
-    def save_pretrained(self, save_directory: Any, *args: Any, verbose: bool = False, **kwargs: Any) -> Any:
-        """`PreTrainedModel.save_pretrained`, quiet unless `verbose=True` (transformers' "Writing model shards" bar).
-        The weight files get the permissions of the folder's other files (safetensors would write them 0600)."""
-        with transformers_progress(verbose):
-            result = super().save_pretrained(save_directory, *args, **kwargs)
-        for weights in Path(save_directory).glob("model*.safetensors"):
-            files.give_default_mode(weights)
-        return result
-
-
-def _non_floating_weights(location: Any, subfolder: str | None, model: nn.Module) -> list[str]:
-    """The tensors of a local checkpoint's safetensors files that are stored as integers, booleans or 8-bit floats
-    where the model has a floating-point parameter or buffer (`name (I32)`): transformers casts them silently (the demo
-    policy saved as int32 loaded with 560 of 272,947 parameters non-zero and returned normal-looking actions)."""
-    from safetensors import safe_open
-
-    folder = Path(str(location)) / (subfolder or "")
-    if not folder.is_dir():
-        return []
-    floating = {name for name, tensor in model.state_dict().items() if tensor.is_floating_point()}
-    found = []
-    for path in sorted(folder.glob("*.safetensors")):
-        with safe_open(str(path), "pt") as checkpoint:
-            for name in checkpoint.keys():
-                dtype = checkpoint.get_slice(name).get_dtype()
-                if name in floating and (dtype == "BOOL" or dtype[0] in "IU" or dtype.startswith("F8")):  # (not BF16)
-                    found.append(f"{name} ({dtype})")
-    return sorted(found)
-
-
-def _describe_mismatch(item: Any) -> str:
-    """transformers reports a mismatch as (name, checkpoint shape, model shape)."""
-    if isinstance(item, (tuple, list)) and len(item) == 3:
-        name, checkpoint_shape, model_shape = item
-        return f"{name} (checkpoint {tuple(checkpoint_shape)}, model {tuple(model_shape)})"
-    return str(item)
-
-
-class PI0ForActionGeneration(SiglipImageEmbedding, ActionSampling, PI0PreTrainedModel):
+class PI0ForActionGeneration(SiglipImageEmbedding, InputChecks, ActionSampling, PI0PreTrainedModel):
     """π0 / π0.5: SigLIP vision tower + VLM Gemma (expert 0) + action expert Gemma (expert 1) + action heads.
 
     ```python
@@ -196,31 +93,28 @@ class PI0ForActionGeneration(SiglipImageEmbedding, ActionSampling, PI0PreTrained
             self.state_proj = nn.Linear(config.action_dim, width)
             self.action_time_mlp_in = nn.Linear(2 * width, width)
             self.action_time_mlp_out = nn.Linear(width, width)
-        self._attention_kernel = "auto"
-        self._graphs: Any = None  # `SamplingGraphs` once `capture_sampling` is called
-        self._device_times: dict[tuple[tuple[float, ...], torch.device], torch.Tensor] = {}
-        self._fused_refusals: dict[tuple[Any, ...], str | None] = {}
         self.post_init()
 
     # -- prefix: images and text ---------------------------------------------------------------------------------------
 
     def embed_prefix(
-        self,
-        pixel_values: torch.Tensor,
-        image_masks: torch.Tensor,
-        input_ids: torch.Tensor,
-        attention_mask: torch.Tensor,
-        vision_tower: Callable[[torch.Tensor], torch.Tensor] | None = None,
+        self, pixel_values: torch.Tensor, image_masks: torch.Tensor, input_ids: torch.Tensor, attention_mask: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Prefix tokens `[B, P, D0]` (each given camera's image tokens, then the scaled text embeddings) and their
-        validity `[B, P]`. Image tokens are not scaled; text embeddings are multiplied by sqrt(D0) rounded to the
-        weights' dtype (as openpi). `vision_tower`: see `embed_images`."""
+        validity `[B, P]`."""
+        image_tokens = self.embed_images(pixel_values) if pixel_values.shape[1] else None  # [B, C, 256, D0]
+        return self.join_prefix(image_tokens, image_masks, input_ids, attention_mask)
+
+    def join_prefix(
+        self, image_tokens: torch.Tensor | None, image_masks: torch.Tensor, input_ids: torch.Tensor, attention_mask: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """The prefix of image tokens `[B, C, 256, D0]` (None: no sample shows any camera) and the prompt: image tokens
+        are not scaled; text embeddings are multiplied by sqrt(D0) rounded to the weights' dtype (as openpi)."""
         text_tokens = self.embed_tokens(input_ids)
         text_tokens = text_tokens * _rounded_sqrt(text_tokens.shape[-1], text_tokens.dtype)
         valid = attention_mask.bool()
-        if pixel_values.shape[1] == 0:  # no sample shows any camera
+        if image_tokens is None:
             return text_tokens, valid
-        image_tokens = self.embed_images(pixel_values, vision_tower)  # [B, C, 256, D0]
         image_valid = image_masks[:, :, None].expand(-1, -1, image_tokens.shape[2]).flatten(1)
         return torch.cat([image_tokens.flatten(1, 2), text_tokens], dim=1), torch.cat([image_valid, valid], dim=1)
 
@@ -254,18 +148,14 @@ class PI0ForActionGeneration(SiglipImageEmbedding, ActionSampling, PI0PreTrained
         """π0's state token `[B, D1]`."""
         return self.state_proj(state.to(self.state_proj.weight.dtype))
 
-    def embed_actions(
-        self, noisy_actions: torch.Tensor, condition: torch.Tensor | None, action_weight: torch.Tensor | None = None
-    ) -> torch.Tensor:
+    def embed_actions(self, noisy_actions: torch.Tensor, condition: torch.Tensor | None) -> torch.Tensor:
         """Action tokens `[B * horizon, D1]` of the noisy actions `[B, horizon, action_dim]`. π0 adds the flow time:
         `action_time_mlp_out(silu(action_time_mlp_in(cat(tokens, time))))` with the time half precomputed
-        (`condition` `[D1]`, or per token `[B * horizon, D1]`); `action_weight` is the action half transposed when
-        the caller has it."""
+        (`condition` `[D1]`, or per token `[B * horizon, D1]`)."""
         tokens = self.action_in_proj(noisy_actions.to(self.action_in_proj.weight.dtype).flatten(0, 1))
         if self.config.pi05:
             return tokens
-        if action_weight is None:
-            action_weight = self.action_time_mlp_in.weight[:, : self.config.expert_hidden_size].t()
+        action_weight = self.action_time_mlp_in.weight[:, : self.config.expert_hidden_size].t()
         return self.action_time_mlp_out(F.silu(torch.addmm(condition, tokens, action_weight)))
 
     def embed_suffix(self, state: torch.Tensor | None, noisy_actions: torch.Tensor, condition: torch.Tensor | None) -> torch.Tensor:
@@ -369,11 +259,10 @@ class PI0ForActionGeneration(SiglipImageEmbedding, ActionSampling, PI0PreTrained
         horizon = config.action_horizon
         slots = layout.length + config.suffix_len
         group_rows = (horizon,) if config.pi05 else (1, horizon)
-        kernel = self.attention_kernel_for(prefix.device, prefix.dtype, differentiable=True)
         rope = rope_tables(config, first, slots)
-        streams = (
-            prefix_stream(config, first, layout, kernel, slots, self.dtype, rope),
-            suffix_stream(config, first, layout, layout.length, group_rows, kernel, slots, self.dtype, rope),
+        streams = (  # (SDPA: gradients flow through attention)
+            prefix_stream(config, first, layout, "sdpa", slots, self.dtype, rope),
+            suffix_stream(config, first, layout, layout.length, group_rows, "sdpa", slots, self.dtype, rope),
         )
         norms = conditioning.layer_norms or (None,) * len(self.layers)
         for layer, layer_norms in zip(self.layers, norms):
@@ -448,111 +337,6 @@ class PI0ForActionGeneration(SiglipImageEmbedding, ActionSampling, PI0PreTrained
             velocity = self.action_out_proj(suffix[:, -horizon:]).float()
             x_t = x_t + dt * velocity
         return (x_t, cache) if return_cache else x_t
-
-    # -- input checks --------------------------------------------------------------------------------------------------
-
-    def _check_placement(self) -> None:
-        """Refuse a model that `from_pretrained(..., device_map=...)` split across devices or offloaded ("cpu" or
-        "disk" among several places): offloaded weights stay on the `meta` device until the module holding them runs,
-        and this model reads some outside their module's `forward` (the flow-time terms and the action expert's norm
-        scales it computes once for every sampling step)."""
-        places = {_place_name(place) for place in (getattr(self, "hf_device_map", None) or {}).values()}
-        if len(places) > 1 or places & {"disk", "meta"}:
-            raise ValueError(
-                f"{type(self).__name__} was loaded with a device_map placing its weights on {sorted(places)}; it runs with "
-                "every weight on one device: load it onto one (device_map=\"cuda\", or no device_map and then "
-                ".to(device); a full-size model in bf16 needs about 7 GB of GPU memory)"
-            )
-
-    def _check_inputs(
-        self,
-        pixel_values: torch.Tensor,
-        image_masks: torch.Tensor,
-        input_ids: torch.Tensor,
-        attention_mask: torch.Tensor,
-        state: torch.Tensor | None,
-        **floats: torch.Tensor | None,
-    ) -> InputFacts:
-        """Validate the model inputs and read, in one device-to-host copy, every value their checks and the prefix
-        layout need. Errors name the argument, expected and actual.
-
-        `floats` are further float tensors to check when given: `noise` / `actions` `[B, horizon, action_dim]`, `time`
-        `[B]` (all finite). Every tensor must be on the model's device.
-        """
-        config, device = self.config, self.device
-        self._check_placement()
-        if not isinstance(pixel_values, torch.Tensor) or pixel_values.dim() != 5:
-            raise ValueError(
-                f"pixel_values must be a float tensor [B, num_cameras={config.num_cameras}, 3, {config.image_size}, "
-                f"{config.image_size}], got {describe(pixel_values)}"
-            )
-        batch = pixel_values.shape[0]
-        if batch == 0:
-            raise ValueError("pixel_values: a batch of 0 samples; expected at least one")
-        image_shape = (batch, config.num_cameras, 3, config.image_size, config.image_size)
-        _check_tensor("pixel_values", pixel_values, image_shape, floating=True, finite=False, device=device)
-        _check_tensor("image_masks", image_masks, (batch, config.num_cameras), dtypes=(torch.bool,), device=device)
-        if (not isinstance(input_ids, torch.Tensor) or input_ids.dim() != 2 or input_ids.shape[0] != batch
-                or not 1 <= input_ids.shape[1] <= config.max_token_len):
-            raise ValueError(
-                f"input_ids must be a torch.Tensor [B={batch}, L] with 1 <= L <= max_token_len={config.max_token_len}, "
-                f"got {describe(input_ids)}"
-            )
-        _check_tensor("input_ids", input_ids, tuple(input_ids.shape), dtypes=(torch.long, torch.int32), device=device)
-        _check_tensor("attention_mask", attention_mask, tuple(input_ids.shape), dtypes=(torch.bool, torch.long, torch.int32), device=device)
-        if not config.pi05 or state is not None:
-            if state is None:
-                raise ValueError(f"state is required by pi0: a float tensor [B={batch}, action_dim={config.action_dim}]")
-            floats = {"state": state, **floats}
-        shapes = {"state": (batch, config.action_dim), "time": (batch,)}
-        checked = {name: value for name, value in floats.items() if value is not None}
-        for name, value in checked.items():
-            _check_tensor(name, value, shapes.get(name, (batch, config.action_horizon, config.action_dim)), floating=True, finite=False, device=device)
-
-        # the one read: pixel range, token id range, flow-time range, finiteness, cameras shown and text tokens per sample
-        time = checked.get("time")
-        ranges = torch.cat([torch.stack(pixel_values.aminmax()).float(), torch.stack(input_ids.aminmax()).float(),
-                            torch.stack(time.aminmax()).float() if time is not None else torch.zeros(2, device=pixel_values.device)])
-        finite = [torch.isfinite(value).all() for value in checked.values()]
-        read = torch.cat([
-            ranges, torch.stack(finite).float() if finite else ranges.new_empty(0), image_masks.flatten().float(),
-            attention_mask.sum(dim=1).float(),
-        ]).cpu().tolist()
-        pixel_low, pixel_high, id_low, id_high, time_low, time_high = read[:6]
-        read = read[6:]
-        if not -1.001 <= pixel_low <= pixel_high <= 1.001:  # (NaN fails every comparison)
-            raise ValueError(
-                f"pixel_values must lie in [-1, 1] (uint8 images map to x / 255 * 2 - 1), got range [{pixel_low:.4g}, {pixel_high:.4g}]"
-            )
-        if id_low < 0 or id_high >= config.vocab_size:
-            raise ValueError(
-                f"input_ids must be token ids in [0, vocab_size={config.vocab_size}), got values in "
-                f"[{int(id_low)}, {int(id_high)}] (a tokenizer larger than the model's vocabulary?)"
-            )
-        for (name, value), is_finite in zip(checked.items(), read[: len(checked)]):
-            if not is_finite:
-                raise nonfinite_error(name, value)
-        if time is not None and not 0.0 <= time_low <= time_high <= 1.0:  # (a non-finite one is named above)
-            raise ValueError(f"time: flow times must lie in [0, 1] (1 is noise, 0 the actions), got values in "
-                             f"[{time_low:.4g}, {time_high:.4g}]")
-        masks_start = len(checked)
-        cameras = config.num_cameras
-        shown = read[masks_start : masks_start + batch * cameras]
-        return InputFacts(
-            image_masks=tuple(tuple(bool(v) for v in shown[b * cameras : (b + 1) * cameras]) for b in range(batch)),
-            text_counts=tuple(int(v) for v in read[masks_start + batch * cameras :]),
-            text_length=input_ids.shape[1],
-        )
-
-
-def _place_name(place: int | str | torch.device) -> str:
-    """A device map's place as one name per device: "cuda:0" for 0 (on a CUDA machine), "cuda" and "cuda:0"; "disk"
-    as it is."""
-    try:
-        device = torch.device(place)
-    except RuntimeError:  # "disk"; an index where no accelerator is
-        return str(place)
-    return device.type if device.type in ("cpu", "meta") else f"{device.type}:{device.index or 0}"
 
 
 @functools.lru_cache(maxsize=None)

@@ -30,8 +30,9 @@ from pi0_torch.inference.fused_pass import kernels_setting_reason
 from pi0_torch.inference.graphs import relative_deviation, verify_bound
 from pi0_torch.masks import aligned_key_count, masked_attention, pad_keys, prefix_lm_mask, to_additive_mask
 from pi0_torch.models.configuration_pi0_fast import PI0FastConfig
-from pi0_torch.models.layers import ExpertLayer, RMSNorm, apply_rope, rope_cos_sin
-from pi0_torch.models.modeling_pi0 import PI0PreTrainedModel
+from pi0_torch.kernels.reference import apply_rope, rope_cos_sin
+from pi0_torch.models.layers import ExpertLayer, RMSNorm
+from pi0_torch.models.pretrained import PI0PreTrainedModel
 from pi0_torch.models.vision import SiglipImageEmbedding, siglip_vision_tower
 from pi0_torch.utils.validation import check_tensor as _check_tensor
 from pi0_torch.utils.validation import describe as _describe

@@ -4,7 +4,7 @@ linear head that turns its patch tokens into Gemma-width image tokens (not scale
 from __future__ import annotations
 
 import math
-from typing import Any, Callable
+from typing import Any
 
 import torch
 from torch import nn
@@ -60,13 +60,8 @@ class SiglipImageEmbedding:
     """Image tokens of the PaliGemma models (π0 / π0.5 and π0-FAST): `self.vision_tower` (`siglip_vision_tower`)
     followed by the linear head `self.image_projection` to the Gemma width."""
 
-    def embed_images(
-        self, pixel_values: torch.Tensor, vision_tower: Callable[[torch.Tensor], torch.Tensor] | None = None
-    ) -> torch.Tensor:
-        """SigLIP + linear head: `[B, C, 3, H, W]` in [-1, 1] -> image tokens `[B, C, tokens_per_image, D0]`.
-        `vision_tower`: what computes SigLIP's patch tokens `[B*C, tokens_per_image, D]` of the images (default: the
-        last hidden state of `self.vision_tower`; fused sampling passes `pi0_torch.inference.vision_pass`'s)."""
-        batch, cameras = pixel_values.shape[:2]
+    def embed_images(self, pixel_values: torch.Tensor) -> torch.Tensor:
+        """SigLIP + linear head: `[B, C, 3, H, W]` in [-1, 1] -> image tokens `[B, C, tokens_per_image, D0]`."""
         images = pixel_values.flatten(0, 1).to(self.image_projection.weight.dtype)  # [B*C, 3, H, W]
-        patches = self.vision_tower(pixel_values=images).last_hidden_state if vision_tower is None else vision_tower(images)
-        return self.image_projection(patches).unflatten(0, (batch, cameras))
+        patches = self.vision_tower(pixel_values=images).last_hidden_state  # [B*C, tokens_per_image, D]
+        return self.image_projection(patches).unflatten(0, pixel_values.shape[:2])

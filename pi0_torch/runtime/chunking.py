@@ -11,7 +11,7 @@ inference delay). Execution modes, as compared by Black, Galliker and Levine (20
 - `ensemble`: ACT's temporal ensembling: every step executes the weighted mean of the actions that all arrived
   chunks hold for that step, weights `exp(-m * k)` with `k = 0` for the oldest chunk (ACT's `m = 0.01`).
 - `rtc` / `rtc-trained`: as `naive`, but each request carries the executing chunk, `s` and `d`, so the new chunk
-  continues it (`pi0_torch.models.rtc`: guidance, or conditioning for a model trained with `--rtc-max-delay`).
+  continues it (`pi0_torch.inference.rtc`: guidance, or conditioning for a model trained with `--rtc-max-delay`).
 
 [`ChunkSchedule`] says when to observe and when chunks arrive in simulated time (deterministic evaluation,
 `pi0_torch.runtime.rollout`); [`ChunkStitcher`] picks each step's action; [`RealTimeExecutor`] does the same on a

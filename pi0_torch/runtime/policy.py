@@ -37,15 +37,15 @@ import torch
 from pi0_torch.inference.fused_pass import PERSISTENT_ABANDONED, persistent_abandoned
 from pi0_torch.inference.graphs import SamplingCaptureError
 from pi0_torch.models.configuration_base import PI0BaseConfig
-from pi0_torch.models.configuration_pi0 import MAX_INFERENCE_STEPS
 from pi0_torch.models.configuration_pi0_fast import PI0FastConfig
 from pi0_torch.models.modeling_pi0 import PI0ForActionGeneration
-from pi0_torch.models.rtc import DEFAULT_MAX_GUIDANCE, MAX_GUIDANCE, METHODS, SCHEDULES, check_rtc_inputs
+from pi0_torch.inference.rtc import DEFAULT_MAX_GUIDANCE, MAX_GUIDANCE, METHODS, SCHEDULES, check_rtc_inputs
 from pi0_torch.processing.processing_pi0 import PI0Processor
 from pi0_torch.runtime.observation_formats import ObservationError
 from pi0_torch.runtime.policy_base import BasePolicy, ChunkContinuation, PreparedObservation, step_count
 from pi0_torch.runtime.policy_fast import PI0FastPolicy
 from pi0_torch.shipped_policy import policy_location
+from pi0_torch.utils.limits import SIZE_LIMITS
 from pi0_torch.utils.validation import check_float
 
 logger = logging.getLogger(__name__)
@@ -104,7 +104,7 @@ class PI0Policy(BasePolicy):
     model_class = PI0ForActionGeneration
     processor_class = PI0Processor
     num_steps_setting = "num_inference_steps"
-    max_num_steps = MAX_INFERENCE_STEPS
+    max_num_steps = SIZE_LIMITS["num_inference_steps"]
     continues_chunks = True  # real-time chunking requests (see the class docstring)
     recommended_settings = ("noise_scale", "rtc_method")
 

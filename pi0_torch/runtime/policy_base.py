@@ -43,7 +43,7 @@ _MAX_NUM_STEPS = max(SIZE_LIMITS["num_inference_steps"], SIZE_LIMITS["max_decodi
 
 @dataclasses.dataclass
 class ChunkContinuation:
-    """A request to continue the chunk the robot is executing (real-time chunking, see `pi0_torch.models.rtc`)."""
+    """A request to continue the chunk the robot is executing (real-time chunking, see `pi0_torch.inference.rtc`)."""
 
     previous_actions: torch.Tensor  # [1, horizon, model action dims], the previous chunk in this observation's model space
     inference_delay: int  # d: steps of the previous chunk the robot executes while this one is computed

@@ -38,7 +38,7 @@ from pi0_torch.utils import files
 from pi0_torch.utils.validation import check_float, check_int
 
 SETTINGS_FILE = "policy_settings.json"
-RTC_METHODS = ("guidance", "conditioning")  # (pi0_torch.models.rtc.METHODS, without importing torch here)
+RTC_METHODS = ("guidance", "conditioning")  # (pi0_torch.inference.rtc.METHODS, without importing torch here)
 MAX_NOISE_SCALE = 100.0  # (the policy's own bound)
 MAX_STEPS = 8192
 

@@ -74,13 +74,13 @@ from pi0_torch.cli import json_object
 from pi0_torch.runtime.action_safety import UnsafeActionsError
 from pi0_torch.runtime.observation_formats import ObservationError, ObservationFormat
 from pi0_torch.shipped_policy import policy_location
+from pi0_torch.utils.limits import MAX_BATCH_SIZE
 from pi0_torch.utils.threads import add_threads_argument, set_threads
 from pi0_torch.utils.validation import MAX_SEED, check_float, check_int, first_line, one_line
 
 logger = logging.getLogger(__name__)
 
 API_KEY_ENV = "PI0_TORCH_API_KEY"
-MAX_BATCH_SIZE = 1_024
 MAX_MESSAGE_MIB = 4_096  # `--max-message-mib`: more than eight 4K float32 camera frames
 ALL_INTERFACES = ("0.0.0.0", "::", "")
 _ARRAY_KINDS = "biufUS"  # bool, ints, floats, strings; object/void/complex arrays are refused both ways

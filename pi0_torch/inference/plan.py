@@ -1,0 +1,53 @@
+"""What one sampling call runs, as the engine hands it around: its checked inputs (`SamplingInputs`), the host-side
+settings it was planned with (`SamplingPlan`: one CUDA graph or exported program per plan and input shapes), and what
+ran it in the end (`SamplingRoute`, `model.last_sampling_route`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from pi0_torch.inference.layout import PrefixLayout
+
+
+@dataclass
+class SamplingInputs:
+    """The tensors sampling reads once its inputs are checked (what a CUDA graph holds static copies of)."""
+
+    pixel_values: torch.Tensor  # [B, C', 3, H, W]: the cameras of the layout
+    image_masks: torch.Tensor  # bool [B, C']
+    input_ids: torch.Tensor  # [B, L]
+    attention_mask: torch.Tensor  # [B, L]
+    state: torch.Tensor | None  # [B, action_dim] (π0)
+    noise: torch.Tensor  # float32 [B, horizon, action_dim]
+    times: torch.Tensor  # float32 [steps]: the flow time of each Euler step
+    target: torch.Tensor | None = None  # real-time chunking: float32 [B, horizon, action_dim]
+    weights: torch.Tensor | None = None  # guidance: float32 [B, horizon]
+    committed: torch.Tensor | None = None  # conditioning: bool [B, horizon]
+
+
+@dataclass(frozen=True)
+class SamplingPlan:
+    """The host-side settings of one sampling call (a CUDA graph is captured per plan and input shapes)."""
+
+    layout: PrefixLayout
+    times: tuple[float, ...]
+    rtc_method: str | None = None  # None: plain sampling
+    max_guidance: float = 0.0
+    fused: bool = False  # the steps in the fused kernels (`pi0_torch.inference.fused_pass`)
+    persistent: bool = False  # (fused) each step's decoder layers in one launch (`pi0_torch.kernels.persistent`)
+    attention: str = "auto"  # the attention kernel setting of its passes (`ActionSampling.attention_kernel`)
+
+
+@dataclass(frozen=True)
+class SamplingRoute:
+    """What ran a `generate_actions` call (`model.last_sampling_route`): the kernels of its Euler steps, whether it
+    replayed a CUDA graph, and why it ran slower than the model's settings ask for."""
+
+    steps: str  # "torch" (the layers' GEMMs and ATen ops), "triton" (the fused kernels, five launches per decoder layer)
+    # or "persistent" (the fused kernels, each step's decoder layers in one launch)
+    graph: bool  # it replayed a CUDA graph (`capture_sampling`)
+    why_unfused: str | None = None  # why the steps ran "torch" (None where they ran fused)
+    refusals: tuple[str, ...] = ()  # what a check refused for this call's plan and shapes, and why: its persistent
+    # launch or its fused steps (first call's verification), its graph (first replay's); each made it run the next path

@@ -1,0 +1,120 @@
+"""How π0-family checkpoints load and save: `PI0PreTrainedModel`, transformers' `PreTrainedModel` refusing any checkpoint
+whose tensors do not match the model (never a silent random init), with openpi's weight initialisation."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import nn
+from transformers import PreTrainedModel
+
+from pi0_torch.models.configuration_pi0 import PI0Config
+from pi0_torch.models.layers import AdaRMSNorm, RMSNorm
+from pi0_torch.models.vision import is_inside_vision_tower
+from pi0_torch.utils import files
+from pi0_torch.utils.quiet import transformers_progress
+from pi0_torch.utils.validation import check_pretrained_location, hub_errors
+
+
+class PI0PreTrainedModel(PreTrainedModel):
+    config_class = PI0Config
+    config: PI0Config
+    base_model_prefix = "pi0"
+    main_input_name = "pixel_values"
+    supports_gradient_checkpointing = True
+    _no_split_modules = ["JointDecoderLayer", "SiglipEncoderLayer"]
+    _supports_sdpa = True
+
+    @torch.no_grad()
+    def _init_weights(self, module: nn.Module) -> None:
+        std = 0.02
+        if isinstance(module, AdaRMSNorm):
+            # openpi initialises the adaRMS Dense to zero: unit scale, no shift, closed residual gates.
+            nn.init.zeros_(module.modulation.weight)
+            nn.init.zeros_(module.modulation.bias)
+        elif isinstance(module, RMSNorm):
+            nn.init.zeros_(module.weight)
+        elif isinstance(module, nn.Linear) and not is_inside_vision_tower(self, module):
+            nn.init.normal_(module.weight, std=std)
+            if module.bias is not None:
+                nn.init.zeros_(module.bias)
+        elif isinstance(module, nn.Embedding) and not is_inside_vision_tower(self, module):
+            nn.init.normal_(module.weight, std=std)
+        else:
+            super()._init_weights(module)
+
+    @classmethod
+    def from_pretrained(cls, pretrained_model_name_or_path: Any, *args: Any, **kwargs: Any) -> Any:
+        """`PreTrainedModel.from_pretrained` that refuses a checkpoint whose tensors do not match the model.
+
+        transformers only warns about missing or unexpected weights and initialises the missing ones randomly; a
+        policy with silently random weights is worse than no policy, so any missing, unexpected or mis-shaped
+        tensor raises `ValueError` naming them. `ignore_mismatched_sizes=True` is the explicit opt-in to
+        re-initialise mis-shaped tensors (e.g. fine-tuning with another `action_dim`). Quiet unless `verbose=True`
+        (transformers' "Loading weights" bar).
+
+        A local folder must hold `config.json` (unless a `config` is given); a path that is neither a folder nor a hub
+        id `namespace/name` is refused at once, without trying the hub (see `pi0_torch.utils.validation.is_hub_id`).
+        A weight stored as integers, booleans or 8-bit floats for a floating-point parameter is refused too, by name
+        (transformers would cast it silently).
+        """
+        config_file = None if kwargs.get("config") else f"{kwargs['subfolder']}/config.json" if kwargs.get("subfolder") else "config.json"
+        check_pretrained_location(pretrained_model_name_or_path, config_file, "model")
+        want_info = kwargs.pop("output_loading_info", False)
+        allow_mismatched = kwargs.pop("ignore_mismatched_sizes", False)  # an explicit opt-in to re-initialise them
+        with hub_errors(pretrained_model_name_or_path, "model"), transformers_progress(kwargs.pop("verbose", False)):
+            model, info = super().from_pretrained(
+                pretrained_model_name_or_path, *args, output_loading_info=True, ignore_mismatched_sizes=True, **kwargs
+            )
+        problems = {
+            "missing": sorted(info.get("missing_keys", ())),
+            "unexpected": sorted(info.get("unexpected_keys", ())),
+            "mis-shaped": [] if allow_mismatched else sorted(_describe_mismatch(item) for item in info.get("mismatched_keys", ())),
+        }
+        problems = {kind: names for kind, names in problems.items() if names}
+        wrong_kind = _non_floating_weights(pretrained_model_name_or_path, kwargs.get("subfolder"), model)
+        if wrong_kind:
+            problems["not floating-point"] = wrong_kind
+        if problems:
+            details = "; ".join(f"{kind}: {', '.join(names[:10])}{' ...' if len(names) > 10 else ''}" for kind, names in problems.items())
+            raise ValueError(f"checkpoint {pretrained_model_name_or_path} does not match {cls.__name__}({model.config.model_type}): {details}")
+        return (model, info) if want_info else model
+
+    def save_pretrained(self, save_directory: Any, *args: Any, verbose: bool = False, **kwargs: Any) -> Any:
+        """`PreTrainedModel.save_pretrained`, quiet unless `verbose=True` (transformers' "Writing model shards" bar).
+        The weight files get the permissions of the folder's other files (safetensors would write them 0600)."""
+        with transformers_progress(verbose):
+            result = super().save_pretrained(save_directory, *args, **kwargs)
+        for weights in Path(save_directory).glob("model*.safetensors"):
+            files.give_default_mode(weights)
+        return result
+
+
+def _non_floating_weights(location: Any, subfolder: str | None, model: nn.Module) -> list[str]:
+    """The tensors of a local checkpoint's safetensors files that are stored as integers, booleans or 8-bit floats
+    where the model has a floating-point parameter or buffer (`name (I32)`): transformers casts them silently (the demo
+    policy saved as int32 loaded with 560 of 272,947 parameters non-zero and returned normal-looking actions)."""
+    from safetensors import safe_open
+
+    folder = Path(str(location)) / (subfolder or "")
+    if not folder.is_dir():
+        return []
+    floating = {name for name, tensor in model.state_dict().items() if tensor.is_floating_point()}
+    found = []
+    for path in sorted(folder.glob("*.safetensors")):
+        with safe_open(str(path), "pt") as checkpoint:
+            for name in checkpoint.keys():
+                dtype = checkpoint.get_slice(name).get_dtype()
+                if name in floating and (dtype == "BOOL" or dtype[0] in "IU" or dtype.startswith("F8")):  # (not BF16)
+                    found.append(f"{name} ({dtype})")
+    return sorted(found)
+
+
+def _describe_mismatch(item: Any) -> str:
+    """transformers reports a mismatch as (name, checkpoint shape, model shape)."""
+    if isinstance(item, (tuple, list)) and len(item) == 3:
+        name, checkpoint_shape, model_shape = item
+        return f"{name} (checkpoint {tuple(checkpoint_shape)}, model {tuple(model_shape)})"
+    return str(item)
