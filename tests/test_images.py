@@ -188,7 +188,7 @@ def test_frames_one_by_one_in_a_data_loader_worker_or_when_small(monkeypatch: py
     tiny = [(name, frame[:32, :32]) for name, frame in _camera_frames()]
     to_model_images(tiny, 28)  # 3 x 32 x 32 pixels: threads would cost more than they save
     assert threads == {threading.current_thread().name}
-    monkeypatch.setattr(images, "get_worker_info", lambda: object())  # what a DataLoader worker sees
+    monkeypatch.setattr(torch.utils.data, "get_worker_info", lambda: object())  # what a DataLoader worker sees
     to_model_images(_camera_frames(), 224)
     assert threads == {threading.current_thread().name}
 

@@ -407,7 +407,8 @@ class ActionSampling:
         shape = (batch, config.num_key_value_heads, aligned_key_count(slots) if masked else slots, config.head_dim)
         # (one buffer for every layer: one zeroing where masked, one pointer for `kernels.persistent`)
         buffers = tuple((prefix.new_zeros if masked else prefix.new_empty)(len(self.layers), *shape) for _ in range(2))
-        keys, values = (list(buffer.unbind(0)) for buffer in buffers)
+        # (each layer's a view of its own, not `unbind`'s: a traced program run with gradients on may write into these)
+        keys, values = ([buffer[layer] for layer in range(len(self.layers))] for buffer in buffers)
         rope = rope_tables(config, first, slots)  # (one table for every stream of the call)
         streams = (
             prefix_stream(config, first, layout, kernel, shape[2], self.dtype, rope),

@@ -11,9 +11,9 @@ Two moments make that work without importing transformers early:
   pi0-torch code runs, so the configs are registered as soon as that registry's module
   (`transformers.models.auto.configuration_auto`) exists: at once when it is already imported, otherwise right after
   transformers imports it ([`install`], called by `import pi0_torch`).
-- The model classes are registered when a pi0-torch config is created ([`register_models`], called by the configs'
-  `__init__`): `AutoModel.from_pretrained` and `AutoModel.from_config` both hold a config before they look a model
-  class up. Registering them together with the configs could import transformers' modeling code while transformers
+- The model classes (and `AutoProcessor`'s [`PI0Processor`]) are registered when a pi0-torch config is created
+  ([`register_models`], called by the configs' `__init__`): `AutoModel.from_pretrained`, `AutoModel.from_config` and
+  `AutoProcessor.from_pretrained` all hold a config before they look a class up. Registering them together with the configs could import transformers' modeling code while transformers
   is still importing it (its `modeling_utils` imports the config registry).
 """
 
@@ -52,21 +52,24 @@ def register_configs() -> None:
 
 def register_models() -> None:
     """`AutoModel` maps [`PI0Config`] to [`PI0ForActionGeneration`] and [`PI0FastConfig`] to
-    [`PI0FastForActionGeneration`] (once per process)."""
+    [`PI0FastForActionGeneration`], and `AutoProcessor` [`PI0Config`] to [`PI0Processor`] (once per process; the
+    processor module itself imports no transformers: it runs in a torch-free deploy install)."""
     global _models_registered
     if _models_registered:
         return
     _models_registered = True  # first: importing the model modules must not come back here
     try:
-        from transformers import AutoModel
+        from transformers import AutoModel, AutoProcessor
 
         from pi0_torch.models.configuration_pi0 import PI0Config
         from pi0_torch.models.configuration_pi0_fast import PI0FastConfig
         from pi0_torch.models.modeling_pi0 import PI0ForActionGeneration
         from pi0_torch.models.modeling_pi0_fast import PI0FastForActionGeneration
+        from pi0_torch.processing.processing_pi0 import PI0Processor
 
         AutoModel.register(PI0Config, PI0ForActionGeneration, exist_ok=True)
         AutoModel.register(PI0FastConfig, PI0FastForActionGeneration, exist_ok=True)
+        AutoProcessor.register(PI0Config, PI0Processor, exist_ok=True)
     except BaseException:
         _models_registered = False
         raise

@@ -18,11 +18,11 @@ from pi0_torch.models.configuration_base import (
     camera_list,
     vision_parameters,
 )
+from pi0_torch.models.cameras import DEFAULT_CAMERA_NAMES
 from pi0_torch.utils.validation import check_float, check_int
 
 logger = logging.getLogger(__name__)
 
-DEFAULT_CAMERA_NAMES = ("base_0_rgb", "left_wrist_0_rgb", "right_wrist_0_rgb")
 MAX_ACTION_DIM = SIZE_LIMITS["action_dim"]
 MAX_ACTION_HORIZON = SIZE_LIMITS["action_horizon"]
 MAX_INFERENCE_STEPS = SIZE_LIMITS["num_inference_steps"]

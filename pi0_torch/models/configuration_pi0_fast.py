@@ -5,10 +5,10 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any
 
+from pi0_torch.models.cameras import FAST_CAMERA_NAMES
 from pi0_torch.models.configuration_base import PALIGEMMA_VOCAB_SIZE, PI0BaseConfig, camera_list, vision_parameters
 from pi0_torch.utils.validation import check_int
 
-FAST_CAMERA_NAMES = ("base_0_rgb", "base_1_rgb", "wrist_0_rgb")  # openpi's π0-FAST camera slots, in model order
 PALIGEMMA_EOS_TOKEN = 1
 
 # Sizes of the vision tower and the Gemma decoder. "full" is openpi's `gemma_2b` with SigLIP So400m/14 (the released

@@ -42,25 +42,27 @@ from __future__ import annotations
 
 import math
 import os
+import sys
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
-from typing import Any, TypeVar, Union
+from typing import TYPE_CHECKING, Any, TypeVar, Union
 
 import numpy as np
-import torch
-import torch.nn.functional as F
-from torch.utils.data import get_worker_info
 from PIL import Image
 
+from pi0_torch.utils.optional import is_torch_tensor
 from pi0_torch.utils.validation import check_frame_size
+
+if TYPE_CHECKING:  # (imported where used: uint8 frames are resized without torch, `pi0_torch.utils.optional`)
+    import torch
 
 FLOAT_RANGES: tuple[tuple[float, float], ...] = ((0.0, 1.0), (-1.0, 1.0))
 RANGE_TOLERANCE = 1e-3
 MAX_FRAME_THREADS = 8  # threads of `to_model_images` (at most one per usable core)
 MIN_PIXELS_FOR_THREADS = 100_000  # below it (tiny simulator frames) starting the threads costs more than it saves
 
-ImageT = TypeVar("ImageT", np.ndarray, torch.Tensor)
-Frame = Union[np.ndarray, torch.Tensor, Image.Image]
+ImageT = TypeVar("ImageT", np.ndarray, "torch.Tensor")
+Frame = Union[np.ndarray, "torch.Tensor", Image.Image]
 
 
 def _resized_size(height: int, width: int, target_height: int, target_width: int) -> tuple[int, int]:
@@ -90,9 +92,9 @@ def resize_with_pad(images: ImageT, height: int, width: int) -> ImageT:
     new_height, new_width = _resized_size(cur_height, cur_width, height, width)
     top, bottom = _padding(new_height, height)
     left, right = _padding(new_width, width)
-    is_torch = isinstance(images, torch.Tensor)
+    is_torch = is_torch_tensor(images)
 
-    if images.dtype in (np.uint8, torch.uint8):
+    if images.dtype == np.uint8 or (is_torch and str(images.dtype) == "torch.uint8"):
         array = images.cpu().numpy() if is_torch else images
         flat = array.reshape(-1, *array.shape[-3:])
         out = np.zeros((flat.shape[0], height, width, flat.shape[-1]), np.uint8)
@@ -101,7 +103,14 @@ def resize_with_pad(images: ImageT, height: int, width: int) -> ImageT:
             resized = np.asarray(pil.resize((new_width, new_height), resample=Image.BILINEAR))
             out[i, top : top + new_height, left : left + new_width] = resized.reshape(new_height, new_width, -1)
         out = out.reshape(*array.shape[:-3], height, width, array.shape[-1])
-        return torch.from_numpy(out).to(images.device) if is_torch else out
+        if is_torch:
+            import torch
+
+            return torch.from_numpy(out).to(images.device)
+        return out
+
+    import torch  # (float images: resized in float32 with torch's antialiased bilinear filter)
+    import torch.nn.functional as F
 
     tensor = images if is_torch else torch.from_numpy(np.ascontiguousarray(images))
     if not tensor.is_floating_point():
@@ -125,7 +134,7 @@ def _channels_last(array: np.ndarray | torch.Tensor, name: str) -> np.ndarray | 
     if last:
         return array
     if first:
-        return array.permute(1, 2, 0) if isinstance(array, torch.Tensor) else np.moveaxis(array, 0, -1)
+        return array.permute(1, 2, 0) if is_torch_tensor(array) else np.moveaxis(array, 0, -1)
     raise ValueError(f"{name}: expected 3 color channels ([H, W, 3] or [3, H, W]), got shape {shape}")
 
 
@@ -137,43 +146,62 @@ def to_model_image(
     `size` is the model's image size (an int for square images, or `(height, width)`). `name` is used in errors.
     """
     height, width = (size, size) if isinstance(size, int) else size
+    low, _ = check_float_range(float_range)
+    frame = _checked_frame(frame, float_range, name)
+    if frame.dtype == np.uint8:
+        model = resize_with_pad(frame, height, width).astype(np.float32) / 255.0 * 2.0 - 1.0
+    else:
+        model = resize_with_pad(frame * 2.0 - 1.0 if low == 0.0 else frame, height, width)
+    return np.ascontiguousarray(np.moveaxis(model, -1, 0), dtype=np.float32)
+
+
+def to_uint8_frame(
+    frame: Frame, size: int | tuple[int, int], float_range: Sequence[float] = (0.0, 1.0), name: str = "image"
+) -> np.ndarray:
+    """One camera frame -> uint8 `[H, W, 3]` at the model's size: what an exported graph takes
+    (`pi0_torch.deploy`). A uint8 frame is resized exactly as [`to_model_image`] resizes it (so the graph's
+    `x / 255 * 2 - 1` gives its very values); a float frame is rounded to uint8 first, as openpi's policy transforms
+    do (at most half a gray level from `to_model_image`'s float path). Needs no torch."""
+    height, width = (size, size) if isinstance(size, int) else size
+    low, _ = check_float_range(float_range)
+    frame = _checked_frame(frame, float_range, name)
+    if frame.dtype != np.uint8:
+        unit = (frame + 1.0) / 2.0 if low == -1.0 else frame  # [0, 1]
+        frame = np.round(unit * 255.0).astype(np.uint8)
+    return np.ascontiguousarray(resize_with_pad(frame, height, width))
+
+
+def _checked_frame(frame: Frame, float_range: Sequence[float], name: str) -> np.ndarray:
+    """A frame as a channels-last numpy array `[h, w, 3]`: uint8, or float32 within `float_range` (clipped to it
+    after the tolerance check); `ValueError` naming `name` otherwise."""
     low, high = check_float_range(float_range)
     if isinstance(frame, Image.Image):
         frame = pil_frame(frame, name)
-    elif not isinstance(frame, (np.ndarray, torch.Tensor)):
+    elif not (isinstance(frame, np.ndarray) or is_torch_tensor(frame)):
         raise ValueError(f"{name}: expected a numpy array, torch tensor or PIL image, got {type(frame).__name__}")
     frame = _channels_last(frame, name)
     check_frame_size(name, int(frame.shape[0]), int(frame.shape[1]))
-    if isinstance(frame, torch.Tensor):
+    if is_torch_tensor(frame):
         frame = frame.detach().cpu()
-        if frame.dtype == torch.bfloat16:
+        if str(frame.dtype) == "torch.bfloat16":
             frame = frame.float()
         frame = frame.numpy()
-
     if frame.dtype == np.uint8:
-        resized = resize_with_pad(frame, height, width)
-        model = resized.astype(np.float32) / 255.0 * 2.0 - 1.0
-    elif np.issubdtype(frame.dtype, np.floating):
-        frame = frame.astype(np.float32)
-        if not np.all(np.isfinite(frame)):
-            raise ValueError(f"{name}: contains NaN or inf")
-        lo, hi = float(frame.min()), float(frame.max())
-        if lo < low - RANGE_TOLERANCE or hi > high + RANGE_TOLERANCE:
-            hint = ""
-            if hi > 1.0 + RANGE_TOLERANCE:
-                hint = " (values above 1 look like 0..255: pass a uint8 frame)"
-            elif low == 0.0 and lo >= -1.0 - RANGE_TOLERANCE:
-                hint = " (looks like a frame already in [-1, 1]: set float_image_range=(-1, 1))"
-            raise ValueError(
-                f"{name}: float frame must be in [{low:g}, {high:g}], got values in [{lo:.4g}, {hi:.4g}]{hint}"
-            )
-        frame = np.clip(frame, low, high)
-        if low == 0.0:
-            frame = frame * 2.0 - 1.0
-        model = resize_with_pad(frame, height, width)
-    else:
+        return frame
+    if not np.issubdtype(frame.dtype, np.floating):
         raise ValueError(f"{name}: expected dtype uint8 or float, got {frame.dtype}")
-    return np.ascontiguousarray(np.moveaxis(model, -1, 0), dtype=np.float32)
+    frame = frame.astype(np.float32)
+    if not np.all(np.isfinite(frame)):
+        raise ValueError(f"{name}: contains NaN or inf")
+    lo, hi = float(frame.min()), float(frame.max())
+    if lo < low - RANGE_TOLERANCE or hi > high + RANGE_TOLERANCE:
+        hint = ""
+        if hi > 1.0 + RANGE_TOLERANCE:
+            hint = " (values above 1 look like 0..255: pass a uint8 frame)"
+        elif low == 0.0 and lo >= -1.0 - RANGE_TOLERANCE:
+            hint = " (looks like a frame already in [-1, 1]: set float_image_range=(-1, 1))"
+        raise ValueError(f"{name}: float frame must be in [{low:g}, {high:g}], got values in [{lo:.4g}, {hi:.4g}]{hint}")
+    return np.clip(frame, low, high)
 
 
 def pil_frame(image: Image.Image, name: str = "image") -> np.ndarray:
@@ -206,7 +234,7 @@ def to_model_images(
 
     height, width = (size, size) if isinstance(size, int) else size
     pixels = sum(max(_pixel_count(frame), height * width) for _, frame in frames)
-    if len(frames) < 2 or pixels < MIN_PIXELS_FOR_THREADS or _usable_cores() < 2 or get_worker_info() is not None:
+    if len(frames) < 2 or pixels < MIN_PIXELS_FOR_THREADS or _usable_cores() < 2 or _in_data_loader_worker():
         return [convert(item) for item in frames]
     return list(_frame_pool().map(convert, frames))
 
@@ -216,6 +244,15 @@ def _pixel_count(frame: Any) -> int:
         return frame.width * frame.height
     shape = getattr(frame, "shape", ())
     return math.prod(shape) // 3 if len(shape) == 3 else 0  # (a bad frame: `to_model_image` says why)
+
+
+def _in_data_loader_worker() -> bool:
+    """Whether this process is a torch `DataLoader` worker (never where torch is not imported)."""
+    if "torch" not in sys.modules:
+        return False
+    from torch.utils.data import get_worker_info
+
+    return get_worker_info() is not None
 
 
 def _usable_cores() -> int:

@@ -38,13 +38,15 @@ import warnings
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal, TypeVar, Union
+from typing import TYPE_CHECKING, Any, Literal, TypeVar, Union
 
 import numpy as np
-import torch
-from tqdm.auto import tqdm
 
 from pi0_torch.utils import files
+from pi0_torch.utils.optional import is_torch_tensor
+
+if TYPE_CHECKING:  # (imported where used: the processing code runs without torch, `pi0_torch.utils.optional`)
+    import torch
 
 NormMode = Literal["zscore", "quantile", "none"]
 NORM_MODES: tuple[str, ...] = ("zscore", "quantile", "none")
@@ -53,8 +55,8 @@ OPENPI_EPSILON = 1e-6  # openpi adds this to every scale
 NUM_QUANTILE_BINS = 5000  # openpi's RunningStats histogram resolution
 DEFAULT_MAX_EXACT_ROWS = 1_000_000  # rows per key kept for exact quantiles; beyond, the histogram estimate is used
 
-ArrayT = TypeVar("ArrayT", np.ndarray, torch.Tensor)
-ArrayLike = Union[np.ndarray, torch.Tensor, Sequence[float]]
+ArrayT = TypeVar("ArrayT", np.ndarray, "torch.Tensor")
+ArrayLike = Union[np.ndarray, "torch.Tensor", Sequence[float]]
 
 
 @dataclass(frozen=True)
@@ -145,7 +147,9 @@ def _apply(x: ArrayT, stats: NormStats, mode: str, min_scale: float, inverse: bo
         raise ValueError(f"last dim of the values is {x.shape[-1]}, the norm stats have {stats.dim} dims")
     scale = _floored_scale(stats, mode, min_scale) + OPENPI_EPSILON
     offset = stats.mean if mode == "zscore" else stats.q01
-    if isinstance(x, torch.Tensor):
+    if is_torch_tensor(x):
+        import torch
+
         compute = torch.float64 if x.dtype == torch.float64 else torch.float32
         scale = torch.as_tensor(scale, dtype=compute, device=x.device)
         offset = torch.as_tensor(offset, dtype=compute, device=x.device)
@@ -350,7 +354,9 @@ class RunningStats:
 
 
 def _as_float_array(value: Any, name: str) -> np.ndarray:
-    if isinstance(value, torch.Tensor):
+    if is_torch_tensor(value):
+        import torch
+
         value = value.detach().to("cpu", torch.float64).numpy()
     array = np.asarray(value)
     if array.dtype == object or not (np.issubdtype(array.dtype, np.number) or array.dtype == np.bool_):
@@ -394,6 +400,8 @@ def compute_norm_stats(
         total = len(data)  # type: ignore[arg-type]
     running: dict[str, RunningStats] = {}
     single = False
+    from tqdm.auto import tqdm
+
     for index, item in enumerate(tqdm(data, total=total, desc="norm stats", disable=not progress)):
         if isinstance(item, Mapping):
             if single:
@@ -442,7 +450,9 @@ def apply_delta(actions: ArrayT, state: ArrayT, mask: Sequence[bool], *, inverse
         raise ValueError(
             f"delta_action_mask has {k} entries but actions have {actions.shape[-1]} dims and state {state.shape[-1]}"
         )
-    if isinstance(actions, torch.Tensor):
+    if is_torch_tensor(actions):
+        import torch
+
         m = torch.as_tensor(list(mask), dtype=torch.bool, device=actions.device)
         shift = torch.where(m, torch.as_tensor(state, device=actions.device)[..., :k].to(actions.dtype), 0.0)
         out = actions.clone()

@@ -55,13 +55,12 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-import torch
-from transformers import AutoProcessor, BatchFeature
+from typing import TYPE_CHECKING
 
-from pi0_torch.models.configuration_base import PI0BaseConfig
-from pi0_torch.models.configuration_pi0 import DEFAULT_CAMERA_NAMES, PI0Config
-from pi0_torch.processing.images import check_float_range, missing_image, to_model_images
+import numpy as np
+
+from pi0_torch.models.cameras import DEFAULT_CAMERA_NAMES
+from pi0_torch.processing.images import check_float_range, missing_image, to_model_images, to_uint8_frame
 from pi0_torch.processing.normalization import (
     DEFAULT_MIN_SCALE,
     NORM_MODES,
@@ -76,7 +75,15 @@ from pi0_torch.processing.normalization import (
 from pi0_torch.processing.robot_spaces import get_conversion
 from pi0_torch.processing.tokenization import PromptTokenizer, TokenizerSource, load_tokenizer
 from pi0_torch.utils import files
+from pi0_torch.utils.optional import is_torch_tensor
 from pi0_torch.utils.validation import check_finite, check_pretrained_location, hub_errors, is_hub_id
+
+if TYPE_CHECKING:  # (imported where used: the processor runs without torch or transformers, `pi0_torch.deploy`)
+    import torch
+    from transformers import BatchFeature
+
+    from pi0_torch.models.configuration_base import PI0BaseConfig
+    from pi0_torch.models.configuration_pi0 import PI0Config
 
 PROCESSOR_CONFIG_FILE = "processor_config.json"
 NORM_STATS_FILE = "norm_stats.json"
@@ -365,6 +372,8 @@ class PI0Processor:
         if len(with_actions) > 1:
             raise ValueError("actions: given for some observations of the batch but not for others")
         batch = {key: np.stack([e[key] for e in encoded]) for key in encoded[0]}
+        from transformers import BatchFeature
+
         return BatchFeature(batch, tensor_type=return_tensors)
 
     def _split_observations(self, observations: Any) -> list[tuple[str, dict[str, Any]]]:
@@ -436,18 +445,8 @@ class PI0Processor:
 
     def _encode(self, sample: Mapping[str, Any], where: str) -> dict[str, np.ndarray]:
         """One observation -> unbatched model arrays; `where` prefixes error messages (e.g. `"[3] "`)."""
-        state = self._model_space_state(self._check_vector(sample.get("state"), where + "state", self.state_dim))
+        state, normalized_state, input_ids, attention_mask = self.encode_state_and_prompt(sample, where)
         pixel_values, image_masks = self._encode_images(sample.get("images"), where)
-        normalized_state = self._normalized_state(state, where)
-
-        prompt = self._prompt(sample, where)
-        try:
-            input_ids, attention_mask = self.tokenizer.tokenize(
-                prompt, self.max_token_len, normalized_state if self.state_in_prompt else None, self.truncation
-            )
-        except ValueError as error:
-            raise ValueError(f"{where}{error}") from None
-
         encoded = {
             "pixel_values": pixel_values,
             "image_masks": image_masks,
@@ -459,6 +458,33 @@ class PI0Processor:
             encoded["actions"] = self._encode_actions(sample["actions"], state, f"{where}actions")
         return encoded
 
+    def encode_state_and_prompt(
+        self, sample: Mapping[str, Any], where: str = ""
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """One observation's state and prompt, checked: the state in the checkpoint's space (`value_conversion`
+        applied, not normalized) `[state_dim]`, normalized `[state_dim]`, and the prompt's `input_ids` int64 /
+        `attention_mask` bool `[max_token_len]` (π0.5: with the normalized state in it). `where` prefixes errors."""
+        state = self._model_space_state(self._check_vector(sample.get("state"), where + "state", self.state_dim))
+        normalized_state = self._normalized_state(state, where)
+        prompt = self._prompt(sample, where)
+        try:
+            input_ids, attention_mask = self.tokenizer.tokenize(
+                prompt, self.max_token_len, normalized_state if self.state_in_prompt else None, self.truncation
+            )
+        except ValueError as error:
+            raise ValueError(f"{where}{error}") from None
+        return state, normalized_state, input_ids, attention_mask
+
+    @property
+    def state_stats(self) -> NormStats | None:
+        """The state's statistics at the robot's dims (None with `norm_mode="none"`)."""
+        return self._state_stats
+
+    @property
+    def action_stats(self) -> NormStats | None:
+        """The actions' statistics at the robot's dims (None with `norm_mode="none"`)."""
+        return self._action_stats
+
     def _prompt(self, sample: Mapping[str, Any], where: str) -> str:
         """The observation's prompt, or the processor's `default_prompt` when it has none."""
         prompt = sample.get("prompt")
@@ -469,6 +495,26 @@ class PI0Processor:
         return prompt
 
     def _encode_images(self, images: Any, where: str) -> tuple[np.ndarray, np.ndarray]:
+        present, named_frames = self._shown_frames(images, where)
+        shown = dict(zip(present, to_model_images(named_frames, self.image_size, self.float_image_range)))
+        frames = [shown[name] if name in shown else missing_image(self.image_size) for name in self.camera_names]
+        masks = [name in shown for name in self.camera_names]
+        return np.stack(frames), np.asarray(masks, bool)  # [C, 3, H, W], [C]
+
+    def encode_uint8_images(self, images: Any, where: str = "") -> tuple[np.ndarray, np.ndarray]:
+        """One observation's frames `{camera name: frame}`, checked as for the model, as an exported graph takes them:
+        uint8 `[C, H, W, 3]` at the model's size (zeros for an absent camera) and the masks bool `[C]`
+        (`pi0_torch.processing.images.to_uint8_frame`: uint8 frames resized exactly as for the model)."""
+        present, named_frames = self._shown_frames(images, where)
+        shown = {name: to_uint8_frame(frame, self.image_size, self.float_image_range, label)
+                 for name, (label, frame) in zip(present, named_frames)}
+        blank = np.zeros((self.image_size, self.image_size, 3), np.uint8)
+        return (np.stack([shown.get(name, blank) for name in self.camera_names]),
+                np.asarray([name in shown for name in self.camera_names], bool))
+
+    def _shown_frames(self, images: Any, where: str) -> tuple[list[str], list[tuple[str, Any]]]:
+        """The cameras an observation shows, in model order, and their `(error name, frame)`; refuses unknown cameras,
+        missing required ones, and no camera at all."""
         if images is None:
             images = {}
         if not isinstance(images, Mapping):
@@ -484,11 +530,7 @@ class PI0Processor:
             raise ValueError(f"{where}images: required cameras {missing_required} are missing; got {present}")
         if not present:
             raise ValueError(f"{where}images: no camera frame given; expected at least one of {self.camera_names}")
-        named_frames = [(f"{where}images[{name!r}]", images[name]) for name in present]
-        shown = dict(zip(present, to_model_images(named_frames, self.image_size, self.float_image_range)))
-        frames = [shown[name] if name in shown else missing_image(self.image_size) for name in self.camera_names]
-        masks = [name in shown for name in self.camera_names]
-        return np.stack(frames), np.asarray(masks, bool)  # [C, 3, H, W], [C]
+        return present, [(f"{where}images[{name!r}]", images[name]) for name in present]
 
     def encode_actions(self, actions: Any, state: Any, name: str = "actions") -> np.ndarray:
         """One chunk of robot actions `[horizon, action_dim_robot]` -> model space `[horizon, model_action_dim]`
@@ -562,14 +604,14 @@ class PI0Processor:
         `value_conversion` converts the result to the robot's units. numpy in -> numpy out; torch in -> torch out
         on the same device.
         """
-        if not isinstance(actions, (np.ndarray, torch.Tensor)):
+        is_torch = is_torch_tensor(actions)
+        if not (is_torch or isinstance(actions, np.ndarray)):
             raise ValueError(f"actions: expected a numpy array or torch tensor, got {type(actions).__name__}")
         if actions.ndim not in (2, 3) or actions.shape[-1] < self.action_dim_robot:
             raise ValueError(
                 f"actions: expected [horizon, D] or [B, horizon, D] with D >= action_dim_robot="
                 f"{self.action_dim_robot}, got shape {tuple(actions.shape)}"
             )
-        is_torch = isinstance(actions, torch.Tensor)
         if not (actions.is_floating_point() if is_torch else np.issubdtype(actions.dtype, np.floating)):
             raise ValueError(f"actions: expected a float array, got dtype {actions.dtype}")
         robot = actions[..., : self.action_dim_robot]
@@ -588,11 +630,17 @@ class PI0Processor:
                 )
             state_values = self._model_space_state(raw_state).astype(np.float32)
             if is_torch:
+                import torch
+
                 state_values = torch.as_tensor(state_values, device=robot.device)
             robot = apply_delta(robot, state_values, self.delta_action_mask, inverse=True)
         if self._conversion is not None:
             converted = self._conversion.actions_to_robot(robot.cpu().numpy() if is_torch else robot)
-            robot = torch.as_tensor(converted, device=robot.device) if is_torch else converted
+            if is_torch:
+                import torch
+
+                converted = torch.as_tensor(converted, device=robot.device)
+            robot = converted
         return robot.float() if is_torch else robot.astype(np.float32)
 
 
@@ -647,7 +695,9 @@ def _download_processor(repo_id: str, hub_options: dict[str, Any]) -> Path:
 
 def _as_numeric(value: Any, name: str) -> np.ndarray:
     """A float64 numpy copy of a numeric array-like (numpy, torch, lists); `ValueError` for other dtypes."""
-    if isinstance(value, torch.Tensor):
+    if is_torch_tensor(value):
+        import torch
+
         if value.dtype == torch.bool or value.is_complex():
             raise ValueError(f"{name}: expected real numbers, got dtype {value.dtype}")
         return value.detach().to("cpu", torch.float64).numpy()
@@ -661,4 +711,3 @@ def _as_numeric(value: Any, name: str) -> np.ndarray:
     return array.astype(np.float64)
 
 
-AutoProcessor.register(PI0Config, PI0Processor, exist_ok=True)

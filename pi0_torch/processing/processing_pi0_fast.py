@@ -56,7 +56,8 @@ import numpy as np
 import torch
 from transformers import AutoProcessor
 
-from pi0_torch.models.configuration_pi0_fast import FAST_CAMERA_NAMES, PI0FastConfig
+from pi0_torch.models.cameras import FAST_CAMERA_NAMES
+from pi0_torch.models.configuration_pi0_fast import PI0FastConfig
 from pi0_torch.processing.fast_tokenizer import FASTActionTokenizer
 from pi0_torch.processing.normalization import NormStats
 from pi0_torch.processing.processing_pi0 import PI0Processor, config_settings

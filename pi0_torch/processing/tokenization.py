@@ -30,11 +30,15 @@ import itertools
 import warnings
 from collections.abc import Iterable
 from pathlib import Path
-from typing import Any, Literal, Union
+from typing import TYPE_CHECKING, Any, Literal, Union
 
 import numpy as np
 import sentencepiece
-from transformers import AutoTokenizer, PreTrainedTokenizerBase
+
+from pi0_torch.utils.optional import is_transformers_tokenizer
+
+if TYPE_CHECKING:  # (imported where used: the processing code runs without transformers, `pi0_torch.utils.optional`)
+    from transformers import PreTrainedTokenizerBase
 
 SENTENCEPIECE_FILE = "tokenizer.model"
 NUM_STATE_BINS = 256
@@ -42,7 +46,7 @@ MIN_TEST_VOCAB = 320
 TEST_TOKENIZER = "test"  # what `pi0-torch train` / `convert --tokenizer` accept for [`build_test_tokenizer`]
 TEST_TOKENIZER_VOCAB = 512  # its vocabulary there (at most the model's)
 Truncation = Literal["warn", "error"]
-TokenizerSource = Union["PromptTokenizer", sentencepiece.SentencePieceProcessor, PreTrainedTokenizerBase, str, Path]
+TokenizerSource = Union["PromptTokenizer", sentencepiece.SentencePieceProcessor, "PreTrainedTokenizerBase", str, Path]
 
 
 def clean_prompt(prompt: str) -> str:
@@ -78,7 +82,7 @@ class PromptTokenizer:
             self.kind = "sentencepiece"
             bos, pad, eos = backend.bos_id(), backend.pad_id(), backend.eos_id()
             self.vocab_size = int(backend.get_piece_size())
-        elif isinstance(backend, PreTrainedTokenizerBase):
+        elif is_transformers_tokenizer(backend):
             self.kind = "transformers"
             bos, pad, eos = backend.bos_token_id, backend.pad_token_id, backend.eos_token_id
             self.vocab_size = len(backend)
@@ -166,7 +170,7 @@ class PromptTokenizer:
         if kind == "sentencepiece":
             return cls(_load_sentencepiece(directory / SENTENCEPIECE_FILE))
         if kind == "transformers":
-            return cls(AutoTokenizer.from_pretrained(str(directory), local_files_only=True))
+            return cls(_load_transformers(directory))
         raise ValueError(f"unknown tokenizer kind {kind!r}; expected 'sentencepiece' or 'transformers'")
 
 
@@ -181,6 +185,12 @@ def _load_sentencepiece(path: Path) -> sentencepiece.SentencePieceProcessor:
     return processor
 
 
+def _load_transformers(directory: Path) -> PreTrainedTokenizerBase:
+    from transformers import AutoTokenizer
+
+    return AutoTokenizer.from_pretrained(str(directory), local_files_only=True)
+
+
 def load_tokenizer(source: TokenizerSource) -> PromptTokenizer:
     """A [`PromptTokenizer`] from: itself; a `SentencePieceProcessor`; a transformers tokenizer; a path to a
     SentencePiece `.model` file (e.g. PaliGemma's `paligemma_tokenizer.model`); or a local folder holding
@@ -188,7 +198,7 @@ def load_tokenizer(source: TokenizerSource) -> PromptTokenizer:
     """
     if isinstance(source, PromptTokenizer):
         return source
-    if isinstance(source, (sentencepiece.SentencePieceProcessor, PreTrainedTokenizerBase)):
+    if isinstance(source, sentencepiece.SentencePieceProcessor) or is_transformers_tokenizer(source):
         return PromptTokenizer(source)
     if not isinstance(source, (str, Path)):
         raise TypeError(f"cannot build a tokenizer from {type(source).__name__}")
@@ -198,7 +208,7 @@ def load_tokenizer(source: TokenizerSource) -> PromptTokenizer:
     if path.is_dir():
         if (path / SENTENCEPIECE_FILE).is_file() and not (path / "tokenizer_config.json").is_file():
             return PromptTokenizer(_load_sentencepiece(path / SENTENCEPIECE_FILE))
-        return PromptTokenizer(AutoTokenizer.from_pretrained(str(path), local_files_only=True))
+        return PromptTokenizer(_load_transformers(path))
     raise FileNotFoundError(f"tokenizer not found: {path} (expected a SentencePiece .model file or a local folder)")
 
 

@@ -60,6 +60,8 @@ from typing import Any, Union
 
 import numpy as np
 
+from pi0_torch.utils.validation import check_int
+
 CHUNK_FIELDS = ("previous_actions", "inference_delay", "execution_horizon", "rtc_method", "noise_seed")
 Source = Union[str, tuple[str, ...]]  # a top-level key, or a path of keys into nested dicts
 
@@ -240,6 +242,37 @@ class ObservationFormat:
         if not isinstance(value, str):
             raise ObservationError(f"prompt {_name(self.prompt)!r} must be a string, got {type(value).__name__}")
         return value
+
+
+def default_layout_sample(observation: Any, state_dim: int,
+                          no_continuation: str | None = None) -> tuple[dict[str, Any], int | None]:
+    """The checks every policy makes of a default-layout observation before its processor sees it: a dict, a state
+    vector (not a batch), no chunk-continuation fields where the policy does not continue chunks (`no_continuation`
+    says why: "this pi0_fast policy decodes tokens"), a `noise_seed` in `[0, 2**63 - 1]`. Returns the processor's
+    sample (`images`, `state`, `prompt`) and the noise seed (or None); raises [`ObservationError`] naming the
+    field."""
+    if not isinstance(observation, Mapping):
+        raise ObservationError(f"observation must be a dict, got {type(observation).__name__}")
+    state = observation.get("state")
+    if state is not None and np.ndim(state) != 1:  # a 2-D state would mean a batch to the processor
+        raise ObservationError(f"observation.state: expected shape [{state_dim}], got {list(np.shape(state))}")
+    chunk_fields = [name for name in CHUNK_FIELDS if name != "noise_seed" and observation.get(name) is not None]
+    if chunk_fields and no_continuation is not None:
+        raise ObservationError(f"{', '.join(chunk_fields)}: {no_continuation}; it does not continue chunks")
+    seed = observation.get("noise_seed")
+    if seed is not None:
+        seed = step_count(seed, "noise_seed", 0, 2**63 - 1)
+    return {"images": observation.get("images"), "state": state, "prompt": observation.get("prompt")}, seed
+
+
+def step_count(value: Any, name: str, low: int, high: int) -> int:
+    """An integer field of an observation in `[low, high]` (a 0-d array too), or an `ObservationError` naming it."""
+    if isinstance(value, np.ndarray) and value.ndim == 0:
+        value = value.item()
+    try:
+        return check_int(name, value, low, high)
+    except ValueError as error:
+        raise ObservationError(str(error)) from None
 
 
 class _Missing:

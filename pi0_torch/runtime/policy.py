@@ -41,8 +41,9 @@ from pi0_torch.models.configuration_pi0_fast import PI0FastConfig
 from pi0_torch.models.modeling_pi0 import PI0ForActionGeneration
 from pi0_torch.inference.rtc import DEFAULT_MAX_GUIDANCE, MAX_GUIDANCE, METHODS, SCHEDULES, check_rtc_inputs
 from pi0_torch.processing.processing_pi0 import PI0Processor
-from pi0_torch.runtime.observation_formats import ObservationError
-from pi0_torch.runtime.policy_base import BasePolicy, ChunkContinuation, PreparedObservation, step_count
+from pi0_torch.runtime.observation_formats import ObservationError, step_count
+from pi0_torch.runtime.policy_base import BasePolicy, ChunkContinuation, PreparedObservation
+from pi0_torch.runtime.policy_settings import MAX_NOISE_SCALE
 from pi0_torch.runtime.policy_fast import PI0FastPolicy
 from pi0_torch.shipped_policy import policy_location
 from pi0_torch.utils.limits import SIZE_LIMITS
@@ -50,7 +51,6 @@ from pi0_torch.utils.validation import check_float
 
 logger = logging.getLogger(__name__)
 
-MAX_NOISE_SCALE = 10.0  # ten times the training noise; 1e30 gave NaN actions
 
 
 class PI0Policy(BasePolicy):

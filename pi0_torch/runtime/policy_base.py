@@ -26,7 +26,7 @@ from safetensors import SafetensorError
 from pi0_torch import __version__
 from pi0_torch.models.configuration_base import SIZE_LIMITS
 from pi0_torch.runtime.action_safety import UnsafeActionsError, non_finite_count
-from pi0_torch.runtime.observation_formats import CHUNK_FIELDS, ObservationError
+from pi0_torch.runtime.observation_formats import ObservationError, default_layout_sample
 from pi0_torch.runtime.policy_settings import SETTINGS_FILE, PolicySettings
 from pi0_torch.shipped_policy import policy_location
 from pi0_torch.utils.hardware import usable_device
@@ -213,25 +213,13 @@ class BasePolicy(abc.ABC):
         The processor checks every field (cameras, frame shapes and ranges, state length, NaN/inf, prompt) and its
         message names the field, what was expected and what came.
         """
-        if not isinstance(observation, Mapping):
-            raise ObservationError(f"observation must be a dict, got {type(observation).__name__}")
-        state = observation.get("state")
-        if state is not None and np.ndim(state) != 1:  # a 2-D state would mean a batch to the processor
-            raise ObservationError(f"observation.state: expected shape [{self.processor.state_dim}], "
-                                   f"got {list(np.shape(state))}")
-        chunk_fields = [name for name in CHUNK_FIELDS if name != "noise_seed" and observation.get(name) is not None]
-        if chunk_fields and not self.continues_chunks:
-            raise ObservationError(f"{', '.join(chunk_fields)}: this {self.model_type} policy decodes tokens; it does "
-                                   "not continue chunks")
-        sample = {"images": observation.get("images"), "state": state, "prompt": observation.get("prompt")}
+        refusal = None if self.continues_chunks else f"this {self.model_type} policy decodes tokens"
+        sample, seed = default_layout_sample(observation, self.processor.state_dim, refusal)
         try:
             inputs = dict(self.processor(sample, return_tensors="pt"))
-            raw_state = np.asarray(state, dtype=np.float32)
+            raw_state = np.asarray(sample["state"], dtype=np.float32)
         except (ValueError, TypeError) as error:
             raise ObservationError(str(error)) from None
-        seed = observation.get("noise_seed")
-        if seed is not None:
-            seed = step_count(seed, "noise_seed", 0, 2**63 - 1)
         return PreparedObservation(inputs=inputs, state=raw_state, noise_seed=seed)
 
     @torch.inference_mode()
@@ -321,13 +309,3 @@ class BasePolicy(abc.ABC):
     @property
     def _dtype_name(self) -> str:
         return str(self.model.dtype).removeprefix("torch.")
-
-
-def step_count(value: Any, name: str, low: int, high: int) -> int:
-    """An integer field of an observation in `[low, high]` (a 0-d array too), or an `ObservationError` naming it."""
-    if isinstance(value, np.ndarray) and value.ndim == 0:
-        value = value.item()
-    try:
-        return check_int(name, value, low, high)
-    except ValueError as error:
-        raise ObservationError(str(error)) from None

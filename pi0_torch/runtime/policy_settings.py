@@ -39,7 +39,7 @@ from pi0_torch.utils.validation import check_float, check_int
 
 SETTINGS_FILE = "policy_settings.json"
 RTC_METHODS = ("guidance", "conditioning")  # (pi0_torch.inference.rtc.METHODS, without importing torch here)
-MAX_NOISE_SCALE = 100.0  # (the policy's own bound)
+MAX_NOISE_SCALE = 10.0  # every policy's bound: ten times the training noise (1e30 gave NaN actions)
 MAX_STEPS = 8192
 
 

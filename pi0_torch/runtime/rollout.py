@@ -697,18 +697,30 @@ def _even(frame: np.ndarray) -> np.ndarray:
 
 def load_policy(spec: str, connections: int, api_key: str | None = None, device: str | None = None,
                 num_steps: int | None = None, noise_scale: float | None = None, rtc_schedule: str = "exp",
-                timeout: float = DEFAULT_TIMEOUT_S) -> ChunkPolicy:
-    """A folder (loaded here; `demo`: the demo policy shipped with the package), `ws://host:port` (a running server;
-    `timeout`: seconds to wait for each reply), or `expert` / `random` ([`ScriptedPolicy`]). `device`, `num_steps`,
-    `noise_scale` and `rtc_schedule` apply to a folder (a server samples with its own settings); None takes the
-    folder's recommended setting (`policy_settings.json`)."""
+                timeout: float = DEFAULT_TIMEOUT_S, threads: int | None = None) -> ChunkPolicy:
+    """A folder (loaded here; `demo`: the demo policy shipped with the package; an exported folder of `pi0-torch
+    export` runs its graph), `ws://host:port` (a running server; `timeout`: seconds to wait for each reply), or
+    `expert` / `random` ([`ScriptedPolicy`]). `device`, `num_steps`, `noise_scale` and `rtc_schedule` apply to a
+    folder (a server samples with its own settings); None takes the folder's recommended setting
+    (`policy_settings.json`). `threads`: an exported folder's runtime threads (a model folder's are set by the
+    caller, `set_threads`)."""
     if spec.startswith(("ws://", "wss://")):
         return RemotePolicy(spec, connections, api_key=api_key, timeout=timeout)
     if spec in ("expert", "random"):
         return ScriptedPolicy(spec)
+    folder = policy_location(spec)
+    from pi0_torch.deploy.policy import ExportedPolicy, is_export_folder
+
+    if is_export_folder(folder):  # (`pi0-torch export`: its graph fixes the steps; no real-time chunking)
+        if rtc_schedule != "exp":
+            raise ValueError(f"--rtc-schedule: {folder} is an exported policy, which takes no real-time chunking")
+        policy = ExportedPolicy.from_folder(folder, provider=device or "cpu", threads=threads, noise_scale=noise_scale)
+        if num_steps is not None and num_steps != policy.num_steps:
+            raise ValueError(f"--num-steps {num_steps}: {folder} is exported with {policy.num_steps} steps, fixed in its "
+                             "graph (export it again with --num-steps)")
+        return LocalPolicy(policy, source=folder)
     from pi0_torch.runtime.policy import PI0Policy
 
-    folder = policy_location(spec)
     return LocalPolicy(PI0Policy.from_pretrained(folder, device=device, num_steps=num_steps, noise_scale=noise_scale,
                                                    rtc_schedule=rtc_schedule), source=folder)
 
@@ -720,8 +732,8 @@ def load_policy(spec: str, connections: int, api_key: str | None = None, device:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of `pi0-torch eval`."""
-    parser.add_argument("--policy", required=True, help="a model folder, demo (the policy shipped with the package), "
-                        "ws://HOST:PORT of pi0-torch serve, or 'expert' / 'random' (references: the env's scripted "
+    parser.add_argument("--policy", required=True, help="a model folder, an exported folder (pi0-torch export), demo "
+                        "(the policy shipped with the package), ws://HOST:PORT of pi0-torch serve, or 'expert' / 'random' (references: the env's scripted "
                         "expert, uniform random actions)")
     parser.add_argument("--env", required=True, help="gymnasium id, e.g. pi0_torch/PickPlace-v0 or gym_pusht/PushT-v0, "
                         "or a public benchmark: metaworld/<task>-v3, aloha/AlohaTransferCube-v0, libero/libero_spatial "
@@ -775,8 +787,8 @@ def run(args: argparse.Namespace) -> int:
         protocol_replan_steps = getattr(probe.unwrapped, "replan_steps", None)  # a benchmark's published protocol
         probe.close()
         policy = load_policy(args.policy, min(args.num_envs, args.episodes), args.api_key, args.device, args.num_steps,
-                             args.noise_scale, args.rtc_schedule, args.timeout)
-        if isinstance(policy, LocalPolicy):
+                             args.noise_scale, args.rtc_schedule, args.timeout, args.threads)
+        if isinstance(policy, LocalPolicy) and hasattr(policy.policy, "model"):  # (an exported policy chose its own)
             set_threads(args.threads, policy.policy.model)
         recommended = policy.recommended_replan_steps
         if settings.replan_steps is None and protocol_replan_steps is not None:

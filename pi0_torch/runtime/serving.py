@@ -783,7 +783,8 @@ def _peer(connection: ServerConnection) -> str:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--model", required=True, help="folder written by save_pretrained / the converter "
-                        "(model weights, config and processor files), or demo (the policy shipped with the package)")
+                        "(model weights, config and processor files), an exported folder (pi0-torch export: its graph "
+                        "runs on --device cpu or cuda), or demo (the policy shipped with the package)")
     parser.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1; 0.0.0.0 for all)")
     parser.add_argument("--port", type=int, default=8000, help="TCP port (default 8000; 0 picks a free one)")
     parser.add_argument("--device", default=None, help="torch device (default: cuda if available, else cpu)")
@@ -877,22 +878,42 @@ def _cuda_graph(args: argparse.Namespace) -> bool:
     return device.type == "cuda"
 
 
+def _load(args: argparse.Namespace) -> ServedPolicy:
+    """The policy of `--model`: a model folder (`PI0Policy`, torch) or an exported one (`ExportedPolicy`, its graph's
+    runtime; `pi0-torch export`)."""
+    folder = policy_location(args.model)
+    from pi0_torch.deploy.policy import ExportedPolicy, is_export_folder
+
+    if is_export_folder(folder):
+        given = [flag for flag, value in (("--compile", args.compile), ("--cuda-graph", args.cuda_graph), ("--dtype", args.dtype),
+                                          ("--num-steps", args.num_steps), ("--rtc-schedule", args.rtc_schedule != "exp"))
+                 if value]
+        if given:
+            raise ValueError(f"{', '.join(given)}: {folder} is an exported policy, whose graph fixes these (export it again)")
+        policy = ExportedPolicy.from_folder(folder, provider=args.device or "cpu", threads=args.threads, seed=args.seed,
+                                            noise_scale=args.noise_scale, default_prompt=args.default_prompt)
+        logger.info("exported %s graph on %s", policy.spec["artifact"]["format"], policy.provider)
+        return policy
+    from pi0_torch.runtime.policy import PI0Policy  # imports torch: only when the command runs
+
+    policy = PI0Policy.from_pretrained(
+        folder, device=args.device, dtype=args.dtype, num_steps=args.num_steps, seed=args.seed,
+        default_prompt=args.default_prompt, compile=args.compile, noise_scale=args.noise_scale,
+        rtc_schedule=args.rtc_schedule, cuda_graph=_cuda_graph(args),
+    )
+    logger.info("torch uses %d CPU threads (--threads)", set_threads(args.threads, policy.model))
+    return policy
+
+
 def run(args: argparse.Namespace) -> int:
     logging.basicConfig(level=args.log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     logging.getLogger("websockets").setLevel(max(logging.WARNING, logging.getLevelName(args.log_level)))  # we log connections
-    from pi0_torch.runtime.policy import PI0Policy  # imports torch: only when the command runs
-
     try:
         limits = _server_limits(args)
         if args.seed is not None:
             check_int("--seed", args.seed, 0, MAX_SEED)
         logger.info("loading %s", args.model)
-        policy = PI0Policy.from_pretrained(
-            policy_location(args.model), device=args.device, dtype=args.dtype, num_steps=args.num_steps, seed=args.seed,
-            default_prompt=args.default_prompt, compile=args.compile, noise_scale=args.noise_scale,
-            rtc_schedule=args.rtc_schedule, cuda_graph=_cuda_graph(args),
-        )
-        logger.info("torch uses %d CPU threads (--threads)", set_threads(args.threads, policy.model))
+        policy = _load(args)
         server = PolicyServer(
             policy,
             host=args.host,

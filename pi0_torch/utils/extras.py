@@ -9,6 +9,8 @@
 | `envs` | the tabletop envs, `pi0-torch eval` / `demo` (and their videos) | gymnasium, av |
 | `train` | `pi0-torch train`, LeRobot datasets (`demos` writes them) | datasets, pyarrow, pandas, av, peft, accelerate, matplotlib |
 | `kernels` | the fused Triton kernels of sampling on CUDA (torch's CUDA wheels already bring triton) | triton |
+| `deploy` | running an exported ONNX policy (`pi0_torch.deploy.ExportedPolicy`; needs no torch) | onnxruntime |
+| `export` | `pi0-torch export --format onnx` (and checking the result) | onnx, onnxscript, onnxruntime |
 | `metaworld` | `pi0-torch eval --env metaworld/...` (and `demos`): Meta-World's tasks and scripted experts | envs, metaworld (MuJoCo) |
 | `aloha` | `pi0-torch eval --env aloha/...`: ALOHA sim (transfer cube, insertion) as openpi evaluates it | envs, gym-aloha (MuJoCo) |
 | `libero` | `pi0-torch eval --env libero/...`: the LIBERO suites as openpi evaluates them | envs, hf-libero (robosuite) |
@@ -37,6 +39,8 @@ EXTRAS: dict[str, tuple[str, ...]] = {
     "envs": ("gymnasium", "av"),
     "train": ("datasets", "pyarrow", "pandas", "av", "peft", "accelerate", "matplotlib"),
     "kernels": ("triton",),
+    "deploy": ("onnxruntime",),
+    "export": ("onnx", "onnxscript", "onnxruntime"),
     "metaworld": ("metaworld", "mujoco"),  # (each benchmark's extra also brings envs)
     "aloha": ("gym_aloha", "mujoco"),
     "libero": ("libero", "mujoco", "yaml"),

@@ -54,7 +54,6 @@ from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-import psutil
 
 logger = logging.getLogger(__name__)
 
@@ -235,6 +234,8 @@ def sync_folder(folder: Path) -> None:
 
 def claim(folder: Path) -> None:
     """Write the owner file of a partial folder: this host, this process and its start time."""
+    import psutil  # (imported where used: a torch-free deploy install may lack it)
+
     me = psutil.Process()
     owner = {"host": socket.gethostname(), "pid": me.pid, "started": me.create_time()}
     (folder / OWNER_FILE).write_text(json.dumps(owner))
@@ -249,6 +250,8 @@ def _owner_is_dead(folder: Path) -> bool:
         return False  # not ours, or being written right now: leave it
     if host != socket.gethostname():
         return False
+    import psutil
+
     try:
         return abs(psutil.Process(pid).create_time() - started) > 1.0  # a recycled pid belongs to another process
     except psutil.NoSuchProcess:

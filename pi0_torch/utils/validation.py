@@ -24,11 +24,14 @@ import math
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import torch
-from huggingface_hub.utils import HFValidationError, validate_repo_id
+
+from pi0_torch.utils.optional import is_torch_tensor
+
+if TYPE_CHECKING:  # (imported where used: the processing code runs without torch, `pi0_torch.utils.optional`)
+    import torch
 
 FLOAT32_MAX = float(np.finfo(np.float32).max)
 MAX_ERROR_CHARS = 500
@@ -53,7 +56,7 @@ def one_line(text: str, limit: int = MAX_ERROR_CHARS) -> str:
 
 def describe(value: Any) -> str:
     """A short description of a value for error messages: shape and dtype of tensors and arrays, else the type."""
-    if isinstance(value, (torch.Tensor, np.ndarray)):
+    if isinstance(value, np.ndarray) or is_torch_tensor(value):
         return f"shape {tuple(value.shape)} dtype {value.dtype}"
     return type(value).__name__
 
@@ -115,6 +118,8 @@ def check_tensor(
 ) -> None:
     """A torch tensor of exactly `shape`; floating point if `floating` (and then finite unless `finite=False`);
     with a dtype in `dtypes` when given; on `device` (the model's) when given."""
+    import torch
+
     if not isinstance(value, torch.Tensor):
         raise ValueError(f"{name} must be a torch.Tensor of shape {tuple(shape)}, got {describe(value)}")
     if tuple(value.shape) != tuple(shape):
@@ -132,6 +137,8 @@ def check_tensor(
 
 def nonfinite_error(name: str, value: torch.Tensor) -> ValueError:
     """The error for a tensor with NaN/inf values: how many, and the index of the first."""
+    import torch
+
     bad = (~torch.isfinite(value)).nonzero()
     count = bad.shape[0]
     return ValueError(f"{name} must be finite, got {count} NaN/inf value{'s' if count > 1 else ''} "
@@ -182,6 +189,10 @@ def is_hub_id(name_or_path: Any) -> bool:
     ```
     """
     if not isinstance(name_or_path, str) or name_or_path.count("/") != 1:
+        return False
+    try:
+        from huggingface_hub.utils import HFValidationError, validate_repo_id
+    except ImportError:  # (a torch-free deploy install: no hub to load from, every location is local)
         return False
     try:
         validate_repo_id(name_or_path)
