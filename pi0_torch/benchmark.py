@@ -16,6 +16,7 @@ CUDA allocator's peak on GPU, the process's peak resident set size (sampled ever
     pi0-torch bench --side-by-side                      # against transformers' PI0, identical weights
     pi0-torch bench --loading                           # peak RSS of from_pretrained on a full-size bf16 checkpoint
     pi0-torch bench --fast --compile                    # π0-FAST decoding (tokens/s, ms per chunk) after π0's rows
+    pi0-torch bench --export                            # the exported sampling: eager against onnxruntime and AOTInductor
 
 bfloat16 rows are skipped, with a note, on a device without bfloat16 instructions (`pi0_torch.utils.hardware`, read
 from the device's capabilities): there bfloat16 is emulated, many times slower than float32, and its rows would time
@@ -44,6 +45,7 @@ import psutil
 import torch
 
 from pi0_torch.models.configuration_pi0 import PI0Config, preset_names
+from pi0_torch.utils.timing import seconds, time_alternating
 from pi0_torch.models.configuration_pi0_fast import PI0FastConfig, fast_preset_names
 from pi0_torch.inference.conditioning import euler_times
 from pi0_torch.kernels.reference import rope_cos_sin
@@ -57,6 +59,7 @@ from pi0_torch.utils import hardware
 from pi0_torch.utils.op_count import AtenOpCounter
 
 TEXT_TOKENS = 48
+DEFAULT_PRESETS, DEFAULT_CAMERAS = ["pi0_small", "pi0_medium"], [1, 3]
 RTC_DELAY, RTC_EXECUTED = 3, 5  # --rtc rows: the continued chunk's inference delay and the steps executed before it
 
 
@@ -105,17 +108,6 @@ def peak_memory(device: torch.device) -> Iterator[list[int]]:
         done.set()
         sampler.join()
         result[0] = max(peak, process.memory_info().rss)
-
-
-def seconds(fn: Callable[[], object], device: torch.device) -> float:
-    """Wall time of one call of `fn`, with the device's queued work finished before and after."""
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
-    start = time.perf_counter()
-    fn()
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
-    return time.perf_counter() - start
 
 
 def time_call(fn: Callable[[], object], device: torch.device, repeats: int, warmup: int = 1) -> Timing:
@@ -213,19 +205,6 @@ def graph_time(fn: Callable[[], object], device: torch.device, calls: int = 50, 
         end.synchronize()
         durations.append(start.elapsed_time(end) / 1e3 / calls)
     return statistics.median(durations)
-
-
-def time_alternating(fns: Sequence[Callable[[], object]], device: torch.device, repeats: int) -> list[list[float]]:
-    """Seconds of each of `fns` over `repeats` rounds, run in turn (order reversed every other round) so that a
-    slower or faster stretch of a shared machine falls on all of them alike."""
-    for fn in fns:
-        fn()
-    durations: list[list[float]] = [[] for _ in fns]
-    for round_ in range(repeats):
-        order = range(len(fns)) if round_ % 2 == 0 else reversed(range(len(fns)))
-        for index in order:
-            durations[index].append(seconds(fns[index], device))
-    return durations
 
 
 def matmul_throughput(device: torch.device, dtype: torch.dtype, size: int | None = None, repeats: int = 5) -> float:
@@ -734,11 +713,11 @@ def _csv(kind: Callable[[str], object]) -> Callable[[str], list]:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.formatter_class = argparse.ArgumentDefaultsHelpFormatter  # --help shows every default
-    parser.add_argument("--presets", type=_csv(str), default="pi0_small,pi0_medium", help=f"comma list of {preset_names()}")
+    parser.add_argument("--presets", type=_csv(str), default=",".join(DEFAULT_PRESETS), help=f"comma list of {preset_names()}")
     parser.add_argument("--dtypes", type=_csv(str), default="float32,bfloat16",
                         help="comma list of float32, bfloat16 (bfloat16 is skipped, with a note, where the device "
                              "has no bfloat16 instructions)")
-    parser.add_argument("--cameras", type=_csv(int), default="1,3", help="comma list of camera counts")
+    parser.add_argument("--cameras", type=_csv(int), default=",".join(map(str, DEFAULT_CAMERAS)), help="comma list of camera counts")
     parser.add_argument("--batches", type=_csv(int), default="1,8", help="comma list of batch sizes")
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu", help="torch device")
     parser.add_argument("--repeats", type=int, default=5, help="timed runs per row, after warm-up")
@@ -761,6 +740,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--loading-preset", default="pi0", help="preset of --loading")
     parser.add_argument("--tmp-dir", default=None, help="where --loading writes its checkpoint")
     parser.add_argument("--skip-generate", action="store_true", help="leave out the generate_actions table")
+    parser.add_argument("--export", action="store_true", help="only the exported sampling: the eager engine against "
+                        "onnxruntime and AOTInductor on the same inputs (default presets pi0_medium,pi05_medium, 3 "
+                        "cameras, 2 threads, float32, batch 1; pi0_torch.deploy.benchmark)")
+    parser.add_argument("--threads", type=int, default=None, help="--export: CPU threads of every runtime (default 2)")
     parser.add_argument("--fast", action="store_true", help="also time π0-FAST decoding (generate_tokens)")
     parser.add_argument("--fast-presets", type=_csv(str), default="pi0_fast_small,pi0_fast_medium",
                         help=f"comma list of {fast_preset_names()}")
@@ -791,6 +774,15 @@ def run(args: argparse.Namespace) -> int:
     if args.bf16_note:
         print(f"bfloat16 rows skipped: {args.bf16_note}")
         args.dtypes = [dtype for dtype in args.dtypes if dtype != "bfloat16"]
+    if args.export:
+        from pi0_torch.deploy.benchmark import bench_export
+
+        if args.presets == DEFAULT_PRESETS:
+            args.presets = ["pi0_medium", "pi05_medium"]
+        if args.cameras == DEFAULT_CAMERAS:
+            args.cameras = [3]
+        bench_export(args, device)
+        return 0
     with torch.inference_mode(False):
         if not args.skip_generate:
             bench_generate(args, device)

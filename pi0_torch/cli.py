@@ -1,4 +1,4 @@
-"""The `pi0-torch` console command: `pi0-torch {convert,consolidate,demo,demos,eval,serve,train,bench,export,doctor} ...`.
+"""The `pi0-torch` console command: `pi0-torch {convert,consolidate,demo,demos,eval,serve,train,bench,export,quantize,doctor} ...`.
 
 Each subcommand lives in its own module, which defines `add_arguments(parser)` and `run(args) -> int`; the module is
 imported only when its subcommand runs, so `pi0-torch --help` stays fast (it imports neither torch nor transformers).
@@ -25,6 +25,7 @@ COMMANDS: dict[str, tuple[str, str, tuple[str, ...]]] = {
     "consolidate": ("pi0_torch.training.fsdp", "Turn a sharded checkpoint of `train --fsdp` into a model folder (one process).", ("train",)),
     "serve": ("pi0_torch.runtime.serving", "Serve a policy over openpi's websocket protocol (openpi-client compatible).", ("serve",)),
     "bench": ("pi0_torch.benchmark", "Time generate_actions, a training step and loading; compare with transformers' PI0.", ()),
+    "quantize": ("pi0_torch.conversion.quantize", "Quantize a model folder with torchao (int8, int4, fp8): a folder from_pretrained loads quantized.", ("quant",)),
     "export": ("pi0_torch.deploy.export", "Export a π0 / π0.5 model as one verified graph (ONNX or an AOTInductor package) that runs without the model classes.", ()),
     "doctor": ("pi0_torch.doctor", "Check every sampling path of this install on this machine against its reference: one table, pass or FAIL.", ()),
     "demos": ("pi0_torch.envs.demos", "Record scripted-expert demonstrations of a tabletop env as a LeRobot v3.0 dataset.", ("train", "envs")),

@@ -131,7 +131,8 @@ import sys, numpy as np, torch
 compiled = torch._inductor.aoti_load_package({str(pt2_folder / 'model.pt2')!r})
 reference = np.load({str(pt2_folder / 'reference.npz')!r})
 names = {list(INPUT_NAMES)!r}
-actions = compiled(*(torch.from_numpy(reference[name]) for name in names))[0].numpy()
+outputs = compiled(*(torch.from_numpy(reference[name]) for name in names))
+actions = (outputs[0] if isinstance(outputs, (list, tuple)) else outputs).numpy()
 print(float(np.abs(actions - reference["actions"]).max()), any(name.startswith("pi0_torch") for name in sys.modules))
 """
     result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, cwd="/", timeout=300)
@@ -224,3 +225,41 @@ def test_an_export_that_fails_leaves_nothing(tmp_path: Path, monkeypatch: pytest
     with pytest.raises(OSError, match="No space left"):
         export_model("demo", tmp_path / "out", "onnx", num_steps=1, progress=False)
     assert list(tmp_path.iterdir()) == []
+
+
+def test_the_cpp_example_runs_a_pt2_package(pt2_folder: Path, tmp_path: Path) -> None:
+    """examples/cpp builds against the torch wheel's C++ library and prints the package's actions for its stand-in
+    inputs (black frames, every camera shown, the prompt `bos "\\n"`, zero state and noise): those of the package run
+    from Python on the same inputs."""
+    tools = [tool for tool in ("cmake", "c++") if shutil.which(tool) is None]
+    headers = Path(torch.__file__).parent / "include" / "torch" / "csrc" / "inductor" / "aoti_package" / "model_package_loader.h"
+    if tools or not headers.is_file():
+        pytest.skip(f"needs {' and '.join(tools) or 'the torch wheel’s C++ headers'} to build examples/cpp")
+    prefix = f"-DCMAKE_PREFIX_PATH={torch.utils.cmake_prefix_path}"
+    for command in (["cmake", "-S", str(REPO / "examples" / "cpp"), "-B", str(tmp_path), prefix],
+                    ["cmake", "--build", str(tmp_path), "-j", "2"]):
+        built = subprocess.run(command, capture_output=True, text=True, timeout=600)
+        assert built.returncode == 0, built.stdout[-2000:] + built.stderr[-2000:]
+    result = subprocess.run([str(tmp_path / "run_policy"), str(pt2_folder / "model.pt2")], capture_output=True,
+                            text=True, timeout=300)
+    assert result.returncode == 0, result.stderr
+    printed = np.array([[float(v) for v in line.split()] for line in result.stdout.splitlines()[1:17]])
+
+    reference = np.load(pt2_folder / "reference.npz")
+    inputs = [np.zeros_like(reference[name]) for name in INPUT_NAMES]
+    inputs[1][:] = True
+    inputs[2][:, :2], inputs[3][:, :2] = (2, 108), True
+    compiled = torch._inductor.aoti_load_package(str(pt2_folder / "model.pt2"))
+    outputs = compiled(*(torch.from_numpy(value) for value in inputs))
+    expected = (outputs[0] if isinstance(outputs, (list, tuple)) else outputs)[0].numpy()  # [horizon, dims]
+    assert printed.shape == expected.shape == (16, 3)
+    assert np.abs(printed - expected).max() <= 1e-3  # (printed with 4 decimals)
+
+
+def test_a_bfloat16_onnx_export_is_verified_by_its_program_and_refused_on_the_cpu_provider(tmp_path: Path) -> None:
+    folder = export_model("demo", tmp_path / "bf16", "onnx", dtype="bfloat16", num_steps=1, progress=False,
+                          optimize=False)
+    spec = read_deploy(folder)
+    assert spec["artifact"]["dtype"] == "bfloat16" and spec["artifact"]["verified_by"].startswith("the traced program")
+    with pytest.raises(ExportFolderError, match="bfloat16 ONNX graph, which onnxruntime runs on its 'cuda' and 'tensorrt'"):
+        ExportedPolicy.from_folder(folder)

@@ -358,3 +358,27 @@ def test_broken_dataset_files_are_named(dataset: Path, tmp_path: Path, capsys: p
     err = capsys.readouterr().err
     assert err.startswith(f"error: {data_file} is not a readable parquet file (") and err.count("\n") == 1
     assert "Traceback" not in err
+
+
+def test_a_folder_of_pickled_weights_is_refused_in_one_line(saved: Path, tmp_path: Path) -> None:
+    """Never torch's traceback recommending `weights_only=False`: pickled weights are refused before anything loads."""
+    pickled = tmp_path / "pickled"
+    pickled.mkdir()
+    shutil.copy(saved / "config.json", pickled / "config.json")
+    (pickled / "pytorch_model.bin").write_bytes(b"not even a pickle")
+    with pytest.raises(ValueError, match=r"holds only pickled weights \(pytorch_model.bin\); pickled weights are not "
+                                         r"loaded") as error:
+        PI0ForActionGeneration.from_pretrained(pickled)
+    assert "weights_only=False" not in str(error.value)
+
+
+def test_train_takes_demo_as_eval_and_serve_do() -> None:
+    import argparse
+
+    from pi0_torch.shipped_policy import demo_policy_dir
+    from pi0_torch.training.trainer import add_arguments, settings_from_args
+
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    args = parser.parse_args(["--model", "demo", "--dataset", "data", "--output-dir", "out"])
+    assert settings_from_args(args).model == str(demo_policy_dir())

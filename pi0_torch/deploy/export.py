@@ -14,7 +14,7 @@ unmerged LoRA adapter, a device or dtype a format cannot take, an opset below 18
 ```python
 >>> import tempfile
 >>> from pi0_torch.deploy.export import export_model
->>> folder = export_model("demo", tempfile.mkdtemp() + "/demo_onnx", "onnx", progress=False)  # (about 20 s)
+>>> folder = export_model("demo", tempfile.mkdtemp() + "/demo_onnx", "onnx", num_steps=2, progress=False, optimize=False)
 >>> sorted(p.name for p in folder.iterdir() if not p.name.startswith("."))
 ['deploy.json', 'model.onnx', 'norm_stats.json', 'policy_settings.json', 'processor_config.json', 'reference.npz', 'tokenizer.model']
 
@@ -135,7 +135,8 @@ def export_model(
     """Export the model and processor of `model_dir` (`"demo"`: the shipped demo policy) into `output_dir` as `fmt`
     ("onnx" or "pt2"), for `batch_size` samples, `num_steps` Euler steps (default: the folder's recommended, else the
     config's) and prompts of `text_length` tokens (default `max_token_len`), weights in `dtype` on `device` (ONNX:
-    `optimize` runs onnxscript's optimizer, see `write_onnx`). Returns the folder. Raises [`ExportError`] (a `ValueError`) naming what cannot be exported or did not verify."""
+    `optimize` runs onnxscript's optimizer, see `write_onnx`). Returns the folder. Raises [`ExportError`] (a
+    `ValueError`) naming what cannot be exported or did not verify."""
     started = time.monotonic()
     say = logger.info if progress else logger.debug
     model_dir = Path(policy_location(model_dir))
@@ -171,7 +172,8 @@ def export_model(
     # (traced with autograd on, as a deployment may call it: the program's own no_grad region is then recorded)
     exported = torch.export.export(graph, inputs, strict=False)
     bound = EXPORT_TOLERANCE[DTYPES[dtype]]
-    _verify("the traced program", exported.module()(*inputs), expected, bound)
+    traced = exported.module()(*inputs)
+    _verify("the traced program", traced, expected, bound)
 
     with files.atomic_output_dir(output_dir, overwrite) as staging:
         artifact = staging / FORMATS[fmt]
@@ -180,16 +182,22 @@ def export_model(
             external = write_onnx(exported, inputs, artifact, opset, optimize=optimize)
         else:
             say("compiling with AOTInductor for %s (minutes at full size)", device)
-            _write_pt2(exported, artifact)
+            _write_pt2(exported, inputs, artifact)
             external = []
-        produced = _run_artifact(artifact, fmt, device, reference)
-        _verify(f"the {fmt} artifact", torch.from_numpy(produced), expected.cpu(), bound)
+        if fmt == "onnx" and dtype != "float32":  # (onnxruntime's CPU provider has no bfloat16 / float16 kernels)
+            verified_by = "the traced program (onnxruntime runs a bfloat16 / float16 graph on its CUDA providers only)"
+            produced = traced.detach().float().cpu().numpy()
+        else:
+            verified_by = f"the {fmt} artifact itself ({'onnxruntime' if fmt == 'onnx' else 'AOTInductor'}, {device})"
+            produced = _run_artifact(artifact, fmt, device, reference)
+            _verify(f"the {fmt} artifact", torch.from_numpy(produced), expected.cpu(), bound)
         np.savez(staging / REFERENCE_FILE, **dict(zip(INPUT_NAMES, reference)), actions=produced)
         processor.save_pretrained(staging)
         if (model_dir / SETTINGS_FILE).is_file():
             settings.save(staging)
         spec = _deploy_spec(model_dir, staging, model, processor, fmt, dtype, device, batch_size, num_steps,
                             text_length, opset, artifact, external, settings)
+        spec["artifact"]["verified_by"] = verified_by
         files.write_text_atomically(staging / DEPLOY_FILE, json.dumps(spec, indent=2, ensure_ascii=False) + "\n")
     output_dir = Path(output_dir).expanduser().absolute()
     size = sum(path.stat().st_size for path in output_dir.iterdir() if path.is_file())
@@ -212,6 +220,9 @@ def _check_exportable(model_dir: Path, fmt: str, dtype: str, device: str) -> Non
                           "π0.5, which sample a fixed number of flow steps, are); serve it with pi0-torch serve")
     if model_type != "pi0_torch":
         raise ExportError(f"{config_path}: model_type {model_type!r}; pi0-torch export takes π0 / π0.5 folders ('pi0_torch')")
+    if json.loads(config_path.read_text()).get("quantization_config"):
+        raise ExportError(f"{model_dir} is quantized (torchao): export the float model it came from; an engine quantizes "
+                          "for its hardware (TensorRT: NVIDIA ModelOpt's INT8 / FP8, docs/deploy.md)")
     if (model_dir / "adapter_config.json").is_file():
         raise ExportError(f"{model_dir} holds a LoRA adapter that is not merged into the weights: merge it first "
                           "(peft's merge_and_unload, then save_pretrained; pi0-torch train saves merged policies)")
@@ -256,8 +267,11 @@ def _verify(what: str, got: torch.Tensor, want: torch.Tensor, bound: float) -> N
 
 
 def _decompositions() -> dict[Any, Callable[..., Any]]:
-    """Core ATen, plus what ONNX has no op for: the engine's `_foreach_add` (several norm scales in one op on CUDA)."""
-    table = torch.export.default_decompositions()
+    """Rewrites before the exporter's own decompositions: the engine's `_foreach_add` (several norm scales in one op on
+    CUDA), which ONNX has no op for, and the cache writes' `index_copy` into core ATen's `index_put` (ONNX ScatterND;
+    translated directly, it is ScatterElements, 20x slower in onnxruntime). Everything else is the exporter's: SDPA
+    decomposed to core ATen first made onnxruntime 4x slower (its masked softmax)."""
+    table = {op: rule for op, rule in torch.export.default_decompositions().items() if op in (torch.ops.aten.index_copy.default,)}
     table[torch.ops.aten._foreach_add.Scalar] = lambda tensors, value: [tensor + value for tensor in tensors]
     return table
 
@@ -280,8 +294,15 @@ def write_onnx(exported: torch.export.ExportedProgram, inputs: tuple[torch.Tenso
     return sorted(p.name for p in path.parent.iterdir() if p.name.startswith(path.name + ".")) if external else []
 
 
-def _write_pt2(exported: torch.export.ExportedProgram, path: Path) -> None:
-    torch._inductor.aoti_compile_and_package(exported, package_path=str(path))
+def _write_pt2(exported: torch.export.ExportedProgram, inputs: tuple[torch.Tensor, ...], path: Path) -> None:
+    """The program compiled by AOTInductor into a package at `path`, its inputs' names, dtypes and shapes in the
+    package's metadata (what a C++ runtime reads with `AOTIModelPackageLoader::get_metadata`, examples/cpp)."""
+    metadata = {"pi0_torch": __version__, "inputs": ",".join(INPUT_NAMES), "device": inputs[0].device.type}
+    for name, tensor in zip(INPUT_NAMES, inputs):
+        metadata[f"{name}.dtype"] = str(tensor.dtype).removeprefix("torch.")
+        metadata[f"{name}.shape"] = ",".join(str(size) for size in tensor.shape)
+    torch._inductor.aoti_compile_and_package(exported, package_path=str(path),
+                                             inductor_configs={"aot_inductor.metadata": metadata})
 
 
 def _run_artifact(path: Path, fmt: str, device: str, reference: tuple[np.ndarray, ...]) -> np.ndarray:
@@ -374,6 +395,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "recommended, else the config's)")
     parser.add_argument("--text-length", type=int, help="prompt token slots (default: the config's max_token_len)")
     parser.add_argument("--opset", type=int, default=MIN_OPSET, help=f"ONNX opset (at least {MIN_OPSET})")
+    parser.add_argument("--no-optimize", dest="optimize", action="store_false", help="ONNX: skip onnxscript's "
+                        "optimizer (about half the file and a tenth faster in onnxruntime, for minutes at full size)")
     parser.add_argument("--overwrite", action="store_true", help="replace a non-empty --output-dir written by pi0-torch")
 
 
@@ -381,7 +404,7 @@ def run(args: argparse.Namespace) -> int:
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     try:
         export_model(args.model, args.output_dir, args.format, args.batch, args.dtype, args.device, args.num_steps,
-                     args.text_length, args.opset, args.overwrite)
+                     args.text_length, args.opset, args.overwrite, optimize=args.optimize)
     except (ValueError, OSError) as error:
         logger.error("pi0-torch export: %s", first_line(error))
         return 1

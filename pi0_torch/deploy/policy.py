@@ -91,6 +91,10 @@ class ExportedPolicy:
         artifact = spec["artifact"]
         if artifact["format"] == "onnx" and provider not in ONNX_PROVIDERS:
             raise ExportFolderError(f"provider must be one of {sorted(ONNX_PROVIDERS)}, got {provider!r}")
+        if artifact["format"] == "onnx" and provider == "cpu" and artifact["dtype"] != "float32":
+            raise ExportFolderError(f"{directory} holds a {artifact['dtype']} ONNX graph, which onnxruntime runs on its "
+                                    "'cuda' and 'tensorrt' providers only (its CPU provider has no such kernels): export "
+                                    "with --dtype float32 for a CPU")
         if artifact["format"] == "pt2" and provider != artifact["device"]:
             raise ExportFolderError(f"{directory} is an AOTInductor package compiled for {artifact['device']}; it runs "
                                     f"there only (provider {artifact['device']!r}), not on {provider!r}")

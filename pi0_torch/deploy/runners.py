@@ -19,15 +19,17 @@ ONNX_PROVIDERS = {
 }
 
 
-def load_runner(path: Path, fmt: str, provider: str = "cpu", threads: int | None = None) -> Runner:
+def load_runner(path: Path, fmt: str, provider: str = "cpu", threads: int | None = None,
+                input_names: Sequence[str] = INPUT_NAMES) -> Runner:
     """A callable running the graph at `path` (`fmt` "onnx" or "pt2") on `provider` ("cpu", "cuda", or for ONNX
-    "tensorrt"); `threads`: intra-op threads (None: the runtime's default)."""
+    "tensorrt"); `threads`: intra-op threads (None: the runtime's default); `input_names`: the graph's inputs, in the
+    order the callable takes them."""
     if fmt == "onnx":
-        return _onnx_runner(path, provider, threads)
+        return _onnx_runner(path, provider, threads, tuple(input_names))
     return _pt2_runner(path, provider, threads)
 
 
-def _onnx_runner(path: Path, provider: str, threads: int | None) -> Runner:
+def _onnx_runner(path: Path, provider: str, threads: int | None, input_names: tuple[str, ...]) -> Runner:
     if importlib.util.find_spec("onnxruntime") is None:
         raise ExportFolderError(f"{path.name} needs onnxruntime: pip install 'pi0-torch[deploy]' (or onnxruntime-gpu for "
                                 "the CUDA and TensorRT providers)")
@@ -50,13 +52,11 @@ def _onnx_runner(path: Path, provider: str, threads: int | None) -> Runner:
         raise ExportFolderError(f"onnxruntime {onnxruntime.__version__} cannot load {path}: {text} (a newer onnxruntime, "
                                 "or export again with an --opset it takes)") from None
     names = [item.name for item in session.get_inputs()]
-    if names != list(INPUT_NAMES):  # (an input the graph never reads is left out by the exporter: fed by name)
-        missing = sorted(set(names) - set(INPUT_NAMES))
-        if missing:
-            raise ExportFolderError(f"{path}: the graph takes inputs {names}; expected {list(INPUT_NAMES)}")
+    if set(names) - set(input_names):  # (fed by name: an exporter may drop an input the graph never reads)
+        raise ExportFolderError(f"{path}: the graph takes inputs {names}; expected {list(input_names)}")
 
     def run(inputs: Sequence[np.ndarray]) -> np.ndarray:
-        feed = {name: value for name, value in zip(INPUT_NAMES, inputs) if name in names}
+        feed = {name: value for name, value in zip(input_names, inputs) if name in names}
         return np.asarray(session.run(None, feed)[0], np.float32)
 
     return run

@@ -91,6 +91,18 @@ def plain_linear(module: nn.Module | None, bias: bool) -> bool:
     return type(parameters.get("bias")) is nn.Parameter if bias else parameters.get("bias") is None
 
 
+def activation_quantized(model: nn.Module, prefix: str = "") -> str | None:
+    """The name of a linear layer of `model` (under `prefix`, e.g. "layers.0.expert") whose weight quantizes its input
+    activations in each call (torchao's int8-dynamic or float8 schemes: a tensor subclass with activation quantization
+    settings), or None. Such a linear has no functorch rules (RTC guidance's vector-Jacobian product) and synchronizes
+    with the GPU in every matmul (pytorch/ao#4872: CUDA graph capture fails)."""
+    for name, module in model.named_modules(prefix=prefix):
+        weight = module._parameters.get("weight") if isinstance(module, nn.Linear) else None
+        if weight is not None and getattr(weight, "act_quant_kwargs", None) is not None:
+            return name
+    return None
+
+
 def runs_extra_code(module: nn.Module) -> bool:
     """Whether calling `module` runs more than its own class's `forward`: hooks (its own or global) or a `forward`
     replaced on the instance."""

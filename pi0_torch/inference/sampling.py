@@ -26,7 +26,8 @@ from pi0_torch.inference.conditioning import NormParams, StepConditioning, euler
 from pi0_torch.inference.fused_pass import (FusedSteps, auto_avoids_persistent, fused_kernels_reason, kernels_setting_reason,
                                             structural_reason, verify_fused_sampling)
 from pi0_torch.inference.graphs import SamplingGraphs, describe_plan, input_signature
-from pi0_torch.inference.layer_pass import CALL_MODULES, SamplingWeights, layer_sampling_weights, sampling_layer_pass
+from pi0_torch.inference.layer_pass import (CALL_MODULES, SamplingWeights, activation_quantized, layer_sampling_weights,
+                                            sampling_layer_pass)
 from pi0_torch.inference.layout import (PrefixLayout, StreamPass, camera_inputs, compact_prefix, prefix_stream, rope_tables,
                                         suffix_stream)
 from pi0_torch.inference.plan import SamplingInputs, SamplingPlan, SamplingRoute
@@ -49,13 +50,13 @@ class PrefixCache:
     `[B, K, slots, H]` whose last `action_horizon` slots each step's action tokens fill, each sample's first valid
     slot `[B]` (its valid prefix tokens end at `layout.length`), and the RoPE tables of every slot."""
 
-    keys: list[torch.Tensor]  # per layer: views of `buffers[0]`
+    keys: list[torch.Tensor]  # per layer [B, K, slots or more, H] (fused: views of `buffers[0]`)
     values: list[torch.Tensor]
     first: torch.Tensor
     layout: PrefixLayout
     slots: int  # the prefix's and the suffix's; the buffers may hold more (zeros: `cache_prefix`)
     rope: tuple[torch.Tensor, torch.Tensor]  # `rope_tables` of every slot `[B, slots, H]`, shared by the passes
-    buffers: tuple[torch.Tensor, torch.Tensor]  # every layer's keys, values: [L, B, K, slots or more, H]
+    buffers: tuple[torch.Tensor, torch.Tensor] | None  # fused: every layer's keys, values [L, B, K, slots or more, H]
     state: torch.Tensor | None = None  # π0, fused: the state token `[B, D1]` the first step runs (its k/v not written yet)
 
 
@@ -269,6 +270,8 @@ class ActionSampling:
         if previous_actions is not None:
             prefix = self._chunk_prefix(batch, previous_actions, inference_delay, execution_horizon, rtc_method, rtc_max_guidance, rtc_schedule)
         method = None if prefix is None or (rtc_method == "guidance" and rtc_max_guidance == 0) else rtc_method
+        if method == "guidance":
+            self._check_differentiable_steps()
         graphs = self._graphs if pixel_values.is_cuda and self.replays_graphs(method) else None
         layout = facts.layout(config.tokens_per_image, self.GRAPH_PREFIX_BUCKET if graphs is not None else 1)
         pixel_values, image_masks = camera_inputs(pixel_values, image_masks, layout)
@@ -307,6 +310,16 @@ class ActionSampling:
         layout = SamplingProgram.static_layout(config.num_cameras, config.tokens_per_image, text_length)
         times = SamplingProgram.times(config.num_inference_steps if num_steps is None else num_steps)
         return SamplingProgram(self, batch_size, SamplingPlan(layout, times, attention="sdpa"), text_length)
+
+    def _check_differentiable_steps(self) -> None:
+        """RTC guidance differentiates the action expert's layers (a vector-Jacobian product per step): refuse, by
+        name, an activation-quantized linear there (`layer_pass.activation_quantized`), which has no rule for it."""
+        for index, layer in enumerate(self.layers):
+            if (quantized := activation_quantized(layer.expert, f"layers.{index}.expert")) is not None:
+                raise ValueError(f"rtc_method='guidance' differentiates every step (a vector-Jacobian product), which "
+                                 f"{quantized}'s activation-quantized linear (torchao int8-dynamic / fp8) has no rule "
+                                 "for: use rtc_method='conditioning' with a model trained for it, or weight-only "
+                                 "quantization")
 
     def _route(self, requested: SamplingPlan, plan: SamplingPlan, signature: tuple[Any, ...],
                graphs: SamplingGraphs | None, why_unfused: str | None) -> SamplingRoute:
@@ -405,10 +418,13 @@ class ActionSampling:
         # zeros (finite) for that
         masked = layout.padded and (kernel == "sdpa" or differentiable_steps)
         shape = (batch, config.num_key_value_heads, aligned_key_count(slots) if masked else slots, config.head_dim)
-        # (one buffer for every layer: one zeroing where masked, one pointer for `kernels.persistent`)
-        buffers = tuple((prefix.new_zeros if masked else prefix.new_empty)(len(self.layers), *shape) for _ in range(2))
-        # (each layer's a view of its own, not `unbind`'s: a traced program run with gradients on may write into these)
-        keys, values = ([buffer[layer] for layer in range(len(self.layers))] for buffer in buffers)
+        make = prefix.new_zeros if masked else prefix.new_empty
+        buffers = None
+        if fused:  # (one buffer for every layer: one zeroing where masked, one pointer for `kernels.persistent`)
+            buffers = tuple(make(len(self.layers), *shape) for _ in range(2))
+            keys, values = ([buffer[layer] for layer in range(len(self.layers))] for buffer in buffers)
+        else:  # (a tensor per layer: an exported program's cache writes then stay within their layer's tensor)
+            keys, values = ([make(shape) for _ in self.layers] for _ in range(2))
         rope = rope_tables(config, first, slots)  # (one table for every stream of the call)
         streams = (
             prefix_stream(config, first, layout, kernel, shape[2], self.dtype, rope),
@@ -622,6 +638,10 @@ class ActionSampling:
         to eager.
         """
         sizes = None if batch_sizes is None else tuple(check_int("batch_sizes", size, minimum=1) for size in batch_sizes)
+        if not disable and (quantized := activation_quantized(self)) is not None:
+            raise ValueError(f"capture_sampling: {quantized} quantizes its activations in each call (torchao int8-dynamic "
+                             "/ fp8), which synchronizes with the GPU in every matmul and cannot be captured "
+                             "(pytorch/ao#4872): sample eagerly, or quantize weight-only (int8, int4, fp8-weight)")
         self._graphs = None if disable else SamplingGraphs(self, sizes, guidance, verify)
 
     def _apply(self, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:

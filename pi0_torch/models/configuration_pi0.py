@@ -237,6 +237,7 @@ CONFIG_FIELDS: tuple[str, ...] = tuple(
 _TRANSFORMERS_KEYS = {field.name for field in dataclasses.fields(PretrainedConfig)} | {
     "model_type", "transformers_version", "name_or_path", "_name_or_path", "_commit_hash", "torch_dtype",
     "attn_implementation", "experts_implementation", "output_attentions", "num_labels", "auto_map", "use_cache",
+    "quantization_config",
 }
 
 

@@ -3,6 +3,7 @@ whose tensors do not match the model (never a silent random init), with openpi's
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import Any
 
@@ -62,6 +63,8 @@ class PI0PreTrainedModel(PreTrainedModel):
         """
         config_file = None if kwargs.get("config") else f"{kwargs['subfolder']}/config.json" if kwargs.get("subfolder") else "config.json"
         check_pretrained_location(pretrained_model_name_or_path, config_file, "model")
+        _refuse_pickled_weights(pretrained_model_name_or_path, kwargs.get("subfolder"))
+        _check_quantization(pretrained_model_name_or_path, kwargs.get("subfolder"), kwargs.get("quantization_config"))
         want_info = kwargs.pop("output_loading_info", False)
         allow_mismatched = kwargs.pop("ignore_mismatched_sizes", False)  # an explicit opt-in to re-initialise them
         with hub_errors(pretrained_model_name_or_path, "model"), transformers_progress(kwargs.pop("verbose", False)):
@@ -110,6 +113,43 @@ def _non_floating_weights(location: Any, subfolder: str | None, model: nn.Module
                 if name in floating and (dtype == "BOOL" or dtype[0] in "IU" or dtype.startswith("F8")):  # (not BF16)
                     found.append(f"{name} ({dtype})")
     return sorted(found)
+
+
+def _refuse_pickled_weights(location: Any, subfolder: str | None) -> None:
+    """A local folder whose weights are only pickled (`pytorch_model.bin`, `*.pt`): unpickling runs arbitrary code, and
+    torch's refusal recommends exactly that (`weights_only=False`), so it is refused first, in one line."""
+    folder = Path(str(location)) / (subfolder or "")
+    if not folder.is_dir() or any(folder.glob("*.safetensors")):
+        return
+    pickled = sorted(path.name for pattern in ("*.bin", "*.pt", "*.pth", "*.ckpt") for path in folder.glob(pattern))
+    if pickled:
+        raise ValueError(f"{folder} holds only pickled weights ({', '.join(pickled[:3])}); pickled weights are not loaded "
+                         "(unpickling can run any code): convert them to safetensors where you trust the file, e.g. "
+                         "safetensors.torch.save_file(torch.load(path, weights_only=True), 'model.safetensors')")
+
+
+def is_quantized(directory: str | Path) -> bool:
+    """Whether a model folder's `config.json` records a quantization (written by `save_pretrained` of a quantized
+    model)."""
+    path = Path(directory) / "config.json"
+    try:
+        return bool(json.loads(path.read_text()).get("quantization_config"))
+    except (OSError, ValueError, AttributeError, RecursionError):
+        return False
+
+
+def _check_quantization(location: Any, subfolder: str | None, asked: Any) -> None:
+    """A quantized folder (its `config.json` records a `quantization_config`) loads with torchao installed; quantizing
+    it again is refused. Both in one line, before transformers tries."""
+    from pi0_torch.utils.extras import require_extra
+
+    folder = Path(str(location)) / (subfolder or "")
+    if not folder.is_dir() or not is_quantized(folder):
+        return
+    if asked is not None:
+        raise ValueError(f"{folder} is quantized already (its config.json records a quantization_config); load it as it "
+                         "is, or quantize the float model it came from")
+    require_extra("quant", f"{folder} (a quantized model)", modules=("torchao",))
 
 
 def _describe_mismatch(item: Any) -> str:

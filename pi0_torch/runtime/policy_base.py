@@ -25,6 +25,7 @@ from safetensors import SafetensorError
 
 from pi0_torch import __version__
 from pi0_torch.models.configuration_base import SIZE_LIMITS
+from pi0_torch.models.pretrained import is_quantized
 from pi0_torch.runtime.action_safety import UnsafeActionsError, non_finite_count
 from pi0_torch.runtime.observation_formats import ObservationError, default_layout_sample
 from pi0_torch.runtime.policy_settings import SETTINGS_FILE, PolicySettings
@@ -134,9 +135,11 @@ class BasePolicy(abc.ABC):
             check_int("threads", threads, minimum=1, maximum=MAX_THREADS)
         settings = PolicySettings.load(directory)
         device = usable_device(device)
-        if dtype is None:
+        if dtype is None and is_quantized(directory):
+            dtype = "auto"  # (a quantized model runs in the dtype it was quantized in: its kernels take that one)
+        elif dtype is None:
             dtype = torch.bfloat16 if device.type == "cuda" else torch.float32
-        elif isinstance(dtype, str):
+        elif isinstance(dtype, str) and dtype != "auto":
             if dtype not in _DTYPES:
                 raise ValueError(f"dtype must be one of {', '.join(_DTYPES)}, got {dtype!r}")
             dtype = _DTYPES[dtype]

@@ -4,6 +4,7 @@ the callbacks a run adds to it.
 - [`PI0Trainer`]: a `Trainer` whose flow-matching noise and time are drawn per sample from a generator keyed by
   (seed, optimizer step, position of the sample in the global batch) (`pi0_torch.training.batches.flow_draws`), so a
   run gives the same losses on one process or several with the same global batch, and after a resume; whose
+  training images get openpi's augmentation, drawn the same way (`pi0_torch.training.augmentation`); whose
   learning-rate schedule is openpi's ([`openpi_learning_rate`]); whose checkpoints appear whole: each is written
   aside and renamed into place once complete ([`PI0Trainer._save_checkpoint`]); and which, resuming, trains with its
   own schedule, optimizer settings and intervals rather than the checkpoint's ([`PI0Trainer._prepare_for_training`]).
@@ -40,6 +41,7 @@ from transformers.trainer_utils import PREFIX_CHECKPOINT_DIR, rotate_checkpoints
 
 from pi0_torch.models.configuration_pi0 import PI0Config
 from pi0_torch.processing.processing_pi0 import PI0Processor
+from pi0_torch.training.augmentation import augment_images, check_augmentable, draw_augmentation
 from pi0_torch.training.batches import flow_draws
 from pi0_torch.training.checkpoints import TRAIN_SETTINGS_FILE, save_failed
 from pi0_torch.training.settings import OPENPI_EMA_DECAY
@@ -74,8 +76,11 @@ class PI0Trainer(Trainer):
     index, so every evaluation of a checkpoint sees the same noise.
     """
 
-    def __init__(self, *args: Any, lr_schedule: dict[str, float] | None = None, **kwargs: Any) -> None:
+    def __init__(self, *args: Any, lr_schedule: dict[str, float] | None = None, augment: bool = False,
+                 **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
+        self.augment = augment  # openpi's image augmentation of training batches (`pi0_torch.training.augmentation`)
+        self._augmented_once = False
         for plain, numeric in ((ProgressCallback, NumericProgressCallback), (PrinterCallback, NumericPrinterCallback)):
             if self.pop_callback(plain) is not None:
                 self.add_callback(numeric)
@@ -206,12 +211,22 @@ class PI0Trainer(Trainer):
         inputs = dict(inputs)
         sample_index = inputs.pop("sample_index", None)
         config = self.accelerator.unwrap_model(model).config
-        if "noise" not in inputs and sample_index is not None and isinstance(config, PI0Config):  # π0-FAST draws nothing
-            noise, time, delay = flow_draws(config, self._flow_keys({**inputs, "sample_index": sample_index}, model.training))
-            device = inputs["input_ids"].device
+        draws = "noise" not in inputs and sample_index is not None and isinstance(config, PI0Config)  # (π0-FAST: none)
+        augment = self.augment and model.training and sample_index is not None
+        keys = self._flow_keys({**inputs, "sample_index": sample_index}, model.training) if draws or augment else []
+        device = inputs["input_ids"].device
+        if draws:
+            noise, time, delay = flow_draws(config, keys)
             inputs["noise"], inputs["time"] = noise.to(device), time.to(device)
             if delay is not None:
                 inputs["inference_delay"] = delay.to(device)
+        if augment:  # (keyed apart from the flow draws: (seed, 2, step, position))
+            pixel_values = inputs["pixel_values"]
+            if not self._augmented_once:  # (one host read, on the first batch: what the processor gives, or refused)
+                check_augmentable(pixel_values)
+                self._augmented_once = True
+            draws_of_images = draw_augmentation([(key[0], 2, *key[2:]) for key in keys], *pixel_values.shape[-2:])
+            inputs["pixel_values"] = augment_images(pixel_values, config.camera_names, draws_of_images)
         outputs = model(**inputs)
         return (outputs.loss, outputs) if return_outputs else outputs.loss
 

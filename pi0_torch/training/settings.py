@@ -66,6 +66,7 @@ class TrainSettings:
     lora_rank_expert: int = LORA_RANK_EXPERT
     freeze: list[str] = field(default_factory=list)
     bf16: bool = False
+    augment: bool = True  # openpi's image augmentation of every training sample (`pi0_torch.training.augmentation`)
     gradient_checkpointing: bool = False
     fsdp: bool = False
     seed: int = 42
@@ -100,6 +101,8 @@ RESUME_REFUSED = (
     "rtc_max_delay",
     # what trains: the parameters the checkpoint's optimizer state belongs to
     "lora", "lora_rank_vlm", "lora_rank_expert", "freeze", "fsdp",
+    # what every step sees of its images
+    "augment",
     # the batches and flow draws of every step (keyed by the seed and the position in the global batch)
     "batch_size", "seed",
 )

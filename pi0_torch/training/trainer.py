@@ -42,6 +42,7 @@ from pi0_torch.models.configuration_pi0 import preset_names
 from pi0_torch.models.configuration_pi0_fast import PI0FastConfig, fast_preset_names
 from pi0_torch.processing.robot_spaces import CONVERSIONS
 from pi0_torch.runtime.policy_settings import PolicySettings
+from pi0_torch.shipped_policy import policy_location
 from pi0_torch.training import fsdp as sharding
 from pi0_torch.training.batches import PI0DataCollator, default_camera_map
 from pi0_torch.training.checkpoints import (
@@ -233,6 +234,7 @@ def train_policy(settings: TrainSettings) -> dict[str, Any]:
         data_collator=PI0DataCollator(processor, camera_map),
         callbacks=callbacks,
         lr_schedule=dict(warmup_steps=settings.warmup_steps, decay_steps=settings.decay_steps, end_lr=settings.end_learning_rate),
+        augment=settings.augment,
     )
     if trainer.args.should_save:
         if settings.overwrite and not _continues_in_place(settings):
@@ -333,7 +335,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     data.add_argument("--num-workers", type=int, default=0, help="DataLoader workers per process")
 
     model = parser.add_argument_group("model")
-    model.add_argument("--model", required=True, help=f"checkpoint folder, or a preset: {', '.join(preset_names() + fast_preset_names())}")
+    model.add_argument("--model", required=True, help="checkpoint folder, demo (the policy shipped with the package), or "
+                       f"a preset: {', '.join(preset_names() + fast_preset_names())}")
     model.add_argument("--config-overrides", type=json_object, default={}, metavar="JSON",
                        help='preset overrides, e.g. \'{"image_size": 56, "action_horizon": 8}\'')
     model.add_argument("--tokenizer", help="PaliGemma SentencePiece model (file/folder); 'test' trains a tiny one (demos)")
@@ -366,6 +369,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     recipe.add_argument("--freeze", action="append", choices=FREEZE_GROUPS, default=[],
                         help="freeze the vision tower, or the whole VLM side (vision + Gemma 2B); repeatable")
     recipe.add_argument("--bf16", action="store_true", help="bf16 mixed precision (autocast)")
+    recipe.add_argument("--no-augment", dest="augment", action="store_false", help="train on the images as they are "
+                        "(default: openpi's augmentation of every sample: non-wrist cameras cropped to 95%%, resized "
+                        "back and rotated up to 5 degrees; brightness, contrast and hue jittered)")
     recipe.add_argument("--gradient-checkpointing", action="store_true")
     recipe.add_argument("--fsdp", action="store_true", help="shard parameters, gradients and optimizer state over the "
                         "processes (PyTorch FSDP2; under torchrun / accelerate launch); checkpoints are sharded")
@@ -392,6 +398,7 @@ def settings_from_args(args: argparse.Namespace) -> TrainSettings:
     names = {f for f in TrainSettings.__dataclass_fields__}
     values = {name: getattr(args, name) for name in names if hasattr(args, name)}
     values["camera_map"] = dict(args.camera)
+    values["model"] = str(policy_location(args.model))  # `demo`: the shipped policy, as eval and serve take it
     values["progress"] = True  # long command-line work keeps its progress bar
     return TrainSettings(**values)
 

@@ -11,6 +11,7 @@
 | `kernels` | the fused Triton kernels of sampling on CUDA (torch's CUDA wheels already bring triton) | triton |
 | `deploy` | running an exported ONNX policy (`pi0_torch.deploy.ExportedPolicy`; needs no torch) | onnxruntime |
 | `export` | `pi0-torch export --format onnx` (and checking the result) | onnx, onnxscript, onnxruntime |
+| `quant` | quantized models (`pi0-torch quantize`, `from_pretrained(..., quantization_config=...)`) | torchao |
 | `metaworld` | `pi0-torch eval --env metaworld/...` (and `demos`): Meta-World's tasks and scripted experts | envs, metaworld (MuJoCo) |
 | `aloha` | `pi0-torch eval --env aloha/...`: ALOHA sim (transfer cube, insertion) as openpi evaluates it | envs, gym-aloha (MuJoCo) |
 | `libero` | `pi0-torch eval --env libero/...`: the LIBERO suites as openpi evaluates them | envs, hf-libero (robosuite) |
@@ -41,6 +42,7 @@ EXTRAS: dict[str, tuple[str, ...]] = {
     "kernels": ("triton",),
     "deploy": ("onnxruntime",),
     "export": ("onnx", "onnxscript", "onnxruntime"),
+    "quant": ("torchao",),
     "metaworld": ("metaworld", "mujoco"),  # (each benchmark's extra also brings envs)
     "aloha": ("gym_aloha", "mujoco"),
     "libero": ("libero", "mujoco", "yaml"),

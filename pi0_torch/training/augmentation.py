@@ -1,0 +1,146 @@
+"""openpi's training-time image augmentation, as torch ops on a batch (on the GPU when training there).
+
+openpi augments every training sample (`models/model.py`, `preprocess_observation(train=True)`, with augmax 0.4.1):
+each camera's image goes to [0, 1]; a camera whose name has no "wrist" is cropped to 95% of its size at a random
+sub-pixel offset, resized back and rotated by up to 5 degrees, all in one bilinear resampling (augmax composes the
+three into one coordinate map; outside the image is black); then every camera gets augmax's ColorJitter (brightness
+0.3, contrast 0.4, hue 0.1, applied to half the images); then back to [-1, 1]. Here the same math, checked against
+augmax's own outputs (`tests/fixtures/augmax`, within 1e-5 on float images):
+
+- the warp: output pixel (i, j) samples the input at
+  `(y, x) = T S R (i - (H/2 - 0.5), j - (W/2 - 0.5)) + (H/2 - 0.5, W/2 - 0.5)` with `R` the rotation by `theta`
+  (counter-clockwise as displayed, y down), `S = diag(ch / H, cw / W)` (crop 95%: `ch = int(0.95 H)`) and `T` the
+  crop centre's offset `(cy, cx)`, uniform within the crop's slack; bilinear, zero outside (`grid_sample`);
+- the colour jitter, in HSV: value `v` brightened (`v (1 + b)` for `b < 0`, else `v (1 - b) + b`), then through
+  contrast's S-curve around 0.5 (`slant = tan((c + 1) pi / 4)`), the hue turned by `h`; saturation is drawn by augmax
+  but has no effect there (augmax 0.4.1 discards it), and so here; no clipping.
+
+Draws (`draw_augmentation`): per sample, from a numpy generator keyed by the sample's key (the trainer's `(seed,
+step, position in the global batch)`), so runs are reproducible with `--seed` and independent across data-loader
+workers and processes. As in openpi, every non-wrist camera of a sample gets the same crop, angle and jitter, and
+every wrist camera the same jitter of its own (openpi reuses one key per sample for all cameras). A masked (absent)
+camera is augmented like the others, as openpi does: it is black, and stays nearly so.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+CROP_FRACTION = 0.95
+MAX_ANGLE_DEGREES = 5.0
+BRIGHTNESS, CONTRAST, HUE = 0.3, 0.4, 0.1  # ColorJitter's amounts (openpi's brightness and contrast, augmax's hue)
+JITTER_PROBABILITY = 0.5  # augmax's default p, which openpi keeps
+
+
+@dataclass
+class AugmentationDraws:
+    """One batch's random draws, per sample `[B]`: the warp of non-wrist cameras and a colour jitter for each kind of
+    camera (index 0: non-wrist, 1: wrist)."""
+
+    crop_offset: torch.Tensor  # float32 [B, 2]: (cy, cx), the crop centre's offset from the image centre, pixels
+    angle: torch.Tensor  # float32 [B]: radians
+    brightness: torch.Tensor  # float32 [B, 2]
+    contrast: torch.Tensor  # float32 [B, 2]
+    hue: torch.Tensor  # float32 [B, 2], in turns
+    apply_jitter: torch.Tensor  # bool [B, 2]
+
+
+def draw_augmentation(keys: Sequence[Sequence[int]], height: int, width: int) -> AugmentationDraws:
+    """The draws of a batch, one numpy generator per sample seeded with its key (a tuple of ints)."""
+    slack = np.array([(height - int(CROP_FRACTION * height)) / 2, (width - int(CROP_FRACTION * width)) / 2])
+    limit = math.radians(MAX_ANGLE_DEGREES)
+    rows = []
+    for key in keys:
+        rng = np.random.default_rng([int(k) for k in key])
+        offset = rng.uniform(-slack, slack)
+        angle = rng.uniform(-limit, limit)
+        jitter = rng.uniform([-BRIGHTNESS, -CONTRAST, -HUE], [BRIGHTNESS, CONTRAST, HUE], size=(2, 3))
+        apply = rng.random(2) < JITTER_PROBABILITY
+        rows.append((offset, angle, jitter, apply))
+    offsets, angles, jitters, applies = (np.stack(column) for column in zip(*rows))
+    as_float = lambda array: torch.as_tensor(array, dtype=torch.float32)  # noqa: E731
+    return AugmentationDraws(as_float(offsets), as_float(angles), as_float(jitters[..., 0]), as_float(jitters[..., 1]),
+                             as_float(jitters[..., 2]), torch.as_tensor(applies))
+
+
+def warp(images: torch.Tensor, crop_offset: torch.Tensor, angle: torch.Tensor) -> torch.Tensor:
+    """Crop to 95%, resize back and rotate, as one bilinear resampling: `images` `[N, 3, H, W]` in [0, 1], per image
+    `crop_offset` `[N, 2]` (cy, cx) and `angle` `[N]` (radians). Outside the image counts as black."""
+    count, _, height, width = images.shape
+    scale = images.new_tensor([int(CROP_FRACTION * height) / height, int(CROP_FRACTION * width) / width])
+    cos, sin = torch.cos(angle.float()), torch.sin(angle.float())
+    rotation = torch.stack([torch.stack([cos, sin], -1), torch.stack([-sin, cos], -1)], -2)  # [N, 2, 2], on (y, x)
+    matrix = scale[None, :, None] * rotation  # S R
+    center = images.new_tensor([height / 2 - 0.5, width / 2 - 0.5])
+    rows = torch.arange(height, dtype=torch.float32, device=images.device) - center[0]
+    columns = torch.arange(width, dtype=torch.float32, device=images.device) - center[1]
+    grid = torch.stack(torch.meshgrid(rows, columns, indexing="ij"), -1)  # [H, W, 2]: centred (y, x)
+    source = torch.einsum("nab,hwb->nhwa", matrix, grid) + crop_offset[:, None, None, :].float() + center  # [N, H, W, 2]
+    size = images.new_tensor([height, width])
+    normalized = (2 * source + 1) / size - 1  # grid_sample's [-1, 1] (align_corners=False), still (y, x)
+    return F.grid_sample(images, normalized.flip(-1), mode="bilinear", padding_mode="zeros", align_corners=False)
+
+
+def color_jitter(images: torch.Tensor, brightness: torch.Tensor, contrast: torch.Tensor, hue: torch.Tensor,
+                 apply: torch.Tensor) -> torch.Tensor:
+    """augmax's ColorJitter on `images` `[N, 3, H, W]` in [0, 1] with per-image amounts `[N]`; images where `apply`
+    `[N]` is False come back unchanged."""
+    shape = (-1, 1, 1)
+    value, channel = images.max(dim=1)  # [N, H, W] (the first largest channel on ties)
+    spread = value - images.min(dim=1).values
+    following = torch.gather(images, 1, ((channel + 1) % 3)[:, None]).squeeze(1)
+    after_that = torch.gather(images, 1, ((channel + 2) % 3)[:, None]).squeeze(1)
+    turns = torch.where(spread == 0, 0.0, (2 * channel + (following - after_that) / spread) / 6)
+    saturation = torch.where(value == 0, 0.0, spread / value)
+
+    b = brightness.float().view(shape)
+    value = torch.where(b < 0, value * (1 + b), value * (1 - b) + b)
+    slant = torch.tan((contrast.float().view(shape) + 1) * (math.pi / 4))
+    low = (slant - slant * slant) / (2 * (1 - slant * slant))  # (NaN at slant 1: no branch, the identity)
+    high = 1 - low
+    value = torch.where(value < low, value / slant,
+                        torch.where(value > high, value / slant + 1 - 1 / slant, slant * (value - 0.5) + 0.5))
+    turns = turns + hue.float().view(shape)
+
+    offsets = images.new_tensor([5.0, 3.0, 1.0]).view(1, 3, 1, 1)
+    k = torch.remainder(offsets + 6 * turns[:, None], 6)
+    jittered = value[:, None] - (value * saturation)[:, None] * torch.clamp(torch.minimum(k, 4 - k), 0, 1)
+    return torch.where(apply.view(-1, 1, 1, 1), jittered, images)
+
+
+def check_augmentable(pixel_values: torch.Tensor) -> None:
+    """Refuse, by name, images the augmentation cannot take: it needs 3-channel float images `[B, C, 3, H, W]` in
+    [-1, 1] (a processor's `pixel_values`). Reads the values' range from the device once."""
+    if pixel_values.dim() != 5 or pixel_values.shape[2] != 3 or not pixel_values.is_floating_point():
+        raise ValueError(f"augmentation takes 3-channel float images [B, C, 3, H, W] in [-1, 1], got shape "
+                         f"{tuple(pixel_values.shape)} dtype {pixel_values.dtype} (--no-augment trains without it)")
+    low, high = (float(value) for value in pixel_values.aminmax())
+    if not -1.001 <= low <= high <= 1.001:
+        raise ValueError(f"augmentation takes images in [-1, 1] (a processor's pixel_values), got values in "
+                         f"[{low:.4g}, {high:.4g}] (--no-augment trains without it)")
+
+
+def augment_images(pixel_values: torch.Tensor, camera_names: Sequence[str], draws: AugmentationDraws) -> torch.Tensor:
+    """openpi's augmentation of a batch `pixel_values` `[B, C, 3, H, W]` in [-1, 1] (cameras in `camera_names`
+    order) with `draws` (`draw_augmentation`); returns the augmented batch, same shape, in [-1, 1]."""
+    batch, cameras, channels, height, width = pixel_values.shape
+    if channels != 3 or not pixel_values.is_floating_point():
+        raise ValueError(f"augmentation takes 3-channel float images [B, C, 3, H, W] in [-1, 1], got shape "
+                         f"{tuple(pixel_values.shape)} dtype {pixel_values.dtype}")
+    device = pixel_values.device
+    outputs = []
+    for index, name in enumerate(camera_names):
+        kind = int("wrist" in name)
+        images = pixel_values[:, index].float() / 2.0 + 0.5  # [B, 3, H, W] in [0, 1]
+        if not kind:
+            images = warp(images, draws.crop_offset.to(device), draws.angle.to(device))
+        images = color_jitter(images, draws.brightness[:, kind].to(device), draws.contrast[:, kind].to(device),
+                              draws.hue[:, kind].to(device), draws.apply_jitter[:, kind].to(device))
+        outputs.append(images * 2.0 - 1.0)
+    return torch.stack(outputs, dim=1).to(pixel_values.dtype)
