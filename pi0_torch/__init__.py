@@ -10,6 +10,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 from pi0_torch.models import auto_registration
+from pi0_torch.utils import quiet_imports
 from pi0_torch.utils.lazy import lazy_exports
 
 if TYPE_CHECKING:
@@ -45,3 +46,4 @@ __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)
 __all__ = [*sorted(_EXPORTS), "__version__"]
 
 auto_registration.install()
+quiet_imports.install()

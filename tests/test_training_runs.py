@@ -439,3 +439,16 @@ def test_broken_data_stops_the_command_in_one_line(broken: str, tmp_path: Path, 
                  "--num-workers", str(workers)])
     error = capsys.readouterr().err.strip().splitlines()[-1]  # a line of its own, after the progress bar
     assert code == 1 and re.match(rf"error: {re.escape(str(path))}: {expected}", error), error
+
+
+def test_a_diverged_run_is_not_saved_as_a_finished_policy(dataset_root: Path, tmp_path: Path,
+                                                          capsys: pytest.CaptureFixture[str]) -> None:
+    """A learning rate of 1e6: the loss or the weights go non-finite; the run stops naming the step and exits 1, and
+    no final model (config.json, weights, the settings' final step) is written."""
+    output = tmp_path / "diverged"
+    code = main(["--dataset", str(dataset_root), "--model", "pi0_small", "--output-dir", str(output), "--tokenizer",
+                 "test", "--config-overrides", json.dumps(TINY), "--max-steps", "6", "--batch-size", "2",
+                 "--learning-rate", "1e6", "--logging-steps", "1", "--save-steps", "100", "--no-augment"])
+    assert code == 1
+    assert re.search(r"error: training diverged( at step \d+)?: .*the final model was not saved", capsys.readouterr().err)
+    assert not (output / "config.json").exists() and not (output / TRAIN_SETTINGS_FILE).exists()

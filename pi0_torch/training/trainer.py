@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 import os
 import shutil
 import sys
@@ -33,7 +34,8 @@ from pi0_torch.utils.extras import require_extra
 # all of it: the Trainer needs accelerate, LoRA peft, the loss plot matplotlib, which a run would reach only later
 require_extra("train", __name__)
 import torch
-from transformers import TrainerCallback, TrainerState, TrainingArguments, set_seed
+from torch import nn
+from transformers import TrainerCallback, TrainerControl, TrainerState, TrainingArguments, set_seed
 from transformers.trainer import TRAINER_STATE_NAME
 
 from pi0_torch.cli import bool_mask, json_object
@@ -180,6 +182,49 @@ def train_policy(settings: TrainSettings) -> dict[str, Any]:
     model = build_model(settings, config)
     logger.info("torch uses %d CPU threads per process (--threads)", set_threads(settings.threads, model))
 
+    trainer, divergence = build_trainer(settings, config, model, record, train_dataset, eval_dataset,
+                                        PI0DataCollator(processor, camera_map), SaveProcessorCallback(processor))
+    model = trainer.model
+    if trainer.args.should_save:
+        if settings.overwrite and not _continues_in_place(settings):
+            clear_run_folder(Path(settings.output_dir))  # (check_run_folder found only pi0-torch's files there)
+        files.remove_stale_partials(settings.output_dir)  # checkpoints of a killed run that never finished
+    trainer.accelerator.wait_for_everyone()
+    trainable = count_trainable(model)
+    logger.info("trainable parameters: %d of %d", trainable, sum(p.numel() for p in model.parameters()))
+    if done >= settings.max_steps:  # the Trainer would train one more step: write the checkpoint's final model
+        logger.info("%s already holds step %d (--max-steps %d): writing its final model without training",
+                    settings.resume_from_checkpoint, done, settings.max_steps)
+        _load_checkpoint_for_final(trainer, settings.resume_from_checkpoint)
+    else:
+        trainer.train(resume_from_checkpoint=settings.resume_from_checkpoint)
+
+    final = sharding.gather_model(trainer.model) if settings.fsdp else merge_lora(trainer.model)  # (all processes)
+    broken = next((name for name, value in final.state_dict().items()
+                   if value.is_floating_point() and not bool(torch.isfinite(value).all())), None)
+    if divergence.step is not None or broken is not None:
+        last = [path.name for path in sorted(Path(settings.output_dir).glob("checkpoint-*"), key=_step_of)]
+        raise TrainingDivergedError(
+            f"training diverged{f' at step {divergence.step}' if divergence.step is not None else ''}: "
+            f"{divergence.what or f'the weights hold NaN/inf (the first: {broken})'}; the final model was not saved "
+            f"(last checkpoint: {last[-1] if last else 'none'}; lower --learning-rate, or check the data)")
+    if trainer.is_world_process_zero():
+        recommended = PolicySettings.load(settings.model) if is_model_folder(settings.model) else None  # (carried over)
+        save_final_model(final, processor, settings.output_dir, vars(settings), trainer.state.global_step, recommended)
+        plot_losses(trainer.state.log_history, Path(settings.output_dir) / LOSS_PLOT_FILE)
+        files.record_written(Path(settings.output_dir), [Path(settings.output_dir) / LOSS_PLOT_FILE])
+    trainer.accelerator.wait_for_everyone()
+    return {"output_dir": settings.output_dir, "log_history": trainer.state.log_history, "trainable_parameters": trainable,
+            "steps_trained": trainer.state.global_step - done}
+
+
+def build_trainer(settings: TrainSettings, config: Any, model: nn.Module, record: dict[str, Any], train_dataset: Any,
+                  eval_dataset: Any, collator: Any, *extra_callbacks: TrainerCallback) -> tuple[PI0Trainer, StopOnNonFiniteCallback]:
+    """The trainer of a run, as `train_policy` runs it: openpi's recipe from `settings` (AdamW, clipping, the
+    warm-up + cosine schedule, EMA, augmentation), the run's record in every checkpoint, and the callback that stops
+    on a non-finite loss (returned too). Batches come from `collator` over `train_dataset`; a batch that holds `noise`
+    and `time` trains with them instead of the trainer's own draws (the hook `tests/test_openpi_training.py` feeds
+    openpi's recorded draws through)."""
     args = TrainingArguments(
         output_dir=settings.output_dir,
         max_steps=settings.max_steps,
@@ -193,6 +238,7 @@ def train_policy(settings: TrainSettings) -> dict[str, Any]:
         weight_decay=settings.weight_decay,
         max_grad_norm=settings.max_grad_norm,
         logging_steps=settings.logging_steps,
+        logging_nan_inf_filter=False,  # (a NaN loss is logged as NaN: `StopOnNonFiniteCallback` stops the run on it)
         save_steps=settings.save_steps,
         save_total_limit=settings.save_total_limit,
         eval_strategy="steps" if eval_dataset is not None else "no",
@@ -220,7 +266,8 @@ def train_policy(settings: TrainSettings) -> dict[str, Any]:
     if settings.fsdp:
         model = sharding.shard_model(model, bf16=settings.bf16, device_type=args.device.type)
 
-    callbacks: list[TrainerCallback] = [SaveProcessorCallback(processor), SaveRunSettingsCallback(record)]
+    divergence = StopOnNonFiniteCallback()
+    callbacks: list[TrainerCallback] = [*extra_callbacks, SaveRunSettingsCallback(record), divergence]
     if settings.ema_decay is not None:
         ema_type = sharding.ShardedEMACallback if settings.fsdp else EMACallback
         callbacks.append(ema_type(settings.ema_decay, resume_from=settings.resume_from_checkpoint))
@@ -231,34 +278,37 @@ def train_policy(settings: TrainSettings) -> dict[str, Any]:
         args=args,
         train_dataset=train_dataset,
         eval_dataset=eval_dataset,
-        data_collator=PI0DataCollator(processor, camera_map),
+        data_collator=collator,
         callbacks=callbacks,
         lr_schedule=dict(warmup_steps=settings.warmup_steps, decay_steps=settings.decay_steps, end_lr=settings.end_learning_rate),
         augment=settings.augment,
     )
-    if trainer.args.should_save:
-        if settings.overwrite and not _continues_in_place(settings):
-            clear_run_folder(Path(settings.output_dir))  # (check_run_folder found only pi0-torch's files there)
-        files.remove_stale_partials(settings.output_dir)  # checkpoints of a killed run that never finished
-    trainer.accelerator.wait_for_everyone()
-    trainable = count_trainable(model)
-    logger.info("trainable parameters: %d of %d", trainable, sum(p.numel() for p in model.parameters()))
-    if done >= settings.max_steps:  # the Trainer would train one more step: write the checkpoint's final model
-        logger.info("%s already holds step %d (--max-steps %d): writing its final model without training",
-                    settings.resume_from_checkpoint, done, settings.max_steps)
-        _load_checkpoint_for_final(trainer, settings.resume_from_checkpoint)
-    else:
-        trainer.train(resume_from_checkpoint=settings.resume_from_checkpoint)
+    return trainer, divergence
 
-    final = sharding.gather_model(trainer.model) if settings.fsdp else merge_lora(trainer.model)  # (all processes)
-    if trainer.is_world_process_zero():
-        recommended = PolicySettings.load(settings.model) if is_model_folder(settings.model) else None  # (carried over)
-        save_final_model(final, processor, settings.output_dir, vars(settings), trainer.state.global_step, recommended)
-        plot_losses(trainer.state.log_history, Path(settings.output_dir) / LOSS_PLOT_FILE)
-        files.record_written(Path(settings.output_dir), [Path(settings.output_dir) / LOSS_PLOT_FILE])
-    trainer.accelerator.wait_for_everyone()
-    return {"output_dir": settings.output_dir, "log_history": trainer.state.log_history, "trainable_parameters": trainable,
-            "steps_trained": trainer.state.global_step - done}
+
+class TrainingDivergedError(ValueError):
+    """A run whose loss, gradient norm or weights went non-finite: nothing is saved as its final model."""
+
+
+class StopOnNonFiniteCallback(TrainerCallback):
+    """Stops a run at the first logged loss or gradient norm that is NaN or inf (the Trainer logs every
+    `--logging-steps`; its NaN filter is off), and remembers the step and what diverged."""
+
+    def __init__(self) -> None:
+        self.step: int | None = None
+        self.what: str | None = None
+
+    def on_log(self, args: TrainingArguments, state: TrainerState, control: TrainerControl,
+               logs: dict[str, Any] | None = None, **kwargs: Any) -> None:
+        for key in ("loss", "grad_norm"):
+            value = (logs or {}).get(key)
+            if isinstance(value, (int, float)) and not math.isfinite(value) and self.step is None:
+                self.step, self.what = state.global_step, f"the {key.replace('_', ' ')} is {value}"
+                control.should_training_stop = True
+
+
+def _step_of(path: Path) -> int:
+    return int(path.name.rsplit("-", 1)[-1]) if path.name.rsplit("-", 1)[-1].isdigit() else -1
 
 
 def _load_checkpoint_for_final(trainer: PI0Trainer, checkpoint: str) -> None:
