@@ -36,6 +36,7 @@ import warnings
 from collections.abc import Callable, Iterator
 from typing import Any
 
+import psutil
 import torch
 
 from pi0_torch.inference.graphs import VERIFY_TOLERANCE, relative_deviation
@@ -51,6 +52,10 @@ from pi0_torch.utils.hardware import usable_device
 FLOAT32_BOUND, BF16_BOUND = 1e-4, 3e-2  # tests/test_parity.py: FLOAT32_TOLERANCE, BF16_TOLERANCE
 STEPS, DELAY, EXECUTED = 10, 3, 5  # Euler steps; real-time chunking's inference delay and steps executed
 FAST_PROMPT = 16  # π0-FAST's prompt tokens (the decoded ones follow: the training forward takes them all)
+# What a family or a row takes, in multiples of the model's float32 weights (rows: beyond the model, which they share),
+# with room to spare: a row that would not fit is skipped, naming what it needs and what is available (`--full` on a
+# 24 GB CPU machine: the training step's gradients and their two float32 copies alone are three models)
+MEMORY_NEEDS = {"model": 1.2, "sampling": 0.15, "guidance": 0.5, "training step": 3.3, "lora": 1.4}
 
 
 @dataclasses.dataclass
@@ -81,16 +86,41 @@ class Doctor:
         self.device, self.full = device, full
         self.rows: list[Row] = []
         self.cuda = device.type == "cuda"
+        self.model_bytes = 0  # the float32 weights of the model the rows run now
+
+    def available_bytes(self) -> int:
+        """Memory this process may still take: the GPU's free memory plus what torch's allocator holds unused, or the
+        machine's available RAM."""
+        if self.cuda:
+            free, _ = torch.cuda.mem_get_info(self.device)
+            return free + torch.cuda.memory_reserved(self.device) - torch.cuda.memory_allocated(self.device)
+        return psutil.virtual_memory().available
+
+    def memory_note(self, needed: float) -> str | None:
+        """Why `needed` more bytes do not fit (None: they do)."""
+        available = self.available_bytes()
+        if needed <= available:
+            return None
+        return f"needs about {_size(needed)}, this machine has {_size(available)} available"
+
+    def skip(self, path: str, dtype: torch.dtype | str, note: str) -> None:
+        row = Row(path, self.device.type, str(dtype).removeprefix("torch."), result="skip", note=note)
+        self.rows.append(row)
+        print(row.line(), flush=True)
 
     def row(self, path: str, dtype: torch.dtype | str, check: Callable[[], tuple[float | None, float | None, str]],
-            needs_cuda: bool = False) -> None:
-        """Run one check: `check()` returns (deviation, bound, note); an exception fails the row."""
+            needs_cuda: bool = False, needs: float = MEMORY_NEEDS["sampling"]) -> None:
+        """Run one check: `check()` returns (deviation, bound, note); an exception fails the row. `needs`: the memory
+        it takes beyond the model, in multiples of the model's float32 weights (`MEMORY_NEEDS`): a row that would not
+        fit is skipped, saying so."""
+        if needs_cuda and not self.cuda:
+            self.skip(path, dtype, "needs CUDA")
+            return
+        if (note := self.memory_note(needs * self.model_bytes)) is not None:
+            self.skip(path, dtype, note)
+            return
         row = Row(path, self.device.type, str(dtype).removeprefix("torch."))
         self.rows.append(row)
-        if needs_cuda and not self.cuda:
-            row.result, row.note = "skip", "needs CUDA"
-            print(row.line(), flush=True)
-            return
         start = time.perf_counter()
         try:
             row.deviation, row.bound, row.note = check()
@@ -106,18 +136,33 @@ class Doctor:
         row.seconds = time.perf_counter() - start
         print(row.line(), flush=True)
 
+    def fits(self, path: str, model_class: Any, config: Any) -> bool:
+        """Whether the float32 model of `config` fits (with room for its rows' sampling); else one skip row for the
+        family. Sets `model_bytes` for the rows' own needs."""
+        with torch.device("meta"):
+            self.model_bytes = 4 * sum(parameter.numel() for parameter in model_class(config).parameters())
+        note = self.memory_note(MEMORY_NEEDS["model"] * self.model_bytes)
+        if note is not None:
+            self.skip(path, torch.float32, f"the model {note}")
+        return note is None
+
     # -- π0 / π0.5 --------------------------------------------------------------------------------------------------
 
     def pi0_rows(self, preset: str) -> None:
         device = self.device
         config = PI0Config.from_preset(preset, rtc_max_delay=DELAY)
         name = "π0.5" if config.pi05 else "π0"
+        if not self.fits(f"{name} (every row)", PI0ForActionGeneration, config):
+            return
         torch.manual_seed(0)
         with device:
             model = PI0ForActionGeneration(config).eval()
         inputs, noise = pi0_inputs(config, device)
         previous = torch.randn(noise.shape, generator=torch.Generator().manual_seed(5)).to(device)
         start = time.perf_counter()
+        if (note := self.memory_note(MEMORY_NEEDS["guidance"] * self.model_bytes)) is not None:  # (the references' own)
+            self.skip(f"{name} (every row)", torch.float32, f"its float32 references {note}")
+            return
         reference = model.sample_actions_reference(**inputs, noise=noise, num_steps=STEPS)
 
         def against(got: torch.Tensor, want: torch.Tensor, bound: float, note: str = "") -> tuple[float, float, str]:
@@ -134,11 +179,14 @@ class Doctor:
         print(f"({name}: the float32 references took {time.perf_counter() - start:.1f} s)", flush=True)
         self.row(f"{name} eager", torch.float32, lambda: against(sample(model), reference, FLOAT32_BOUND))
         self.row(f"{name} RTC guidance, eager", torch.float32,
-                 lambda: against(sample(model, **rtc, rtc_method="guidance"), guided32, FLOAT32_BOUND))
+                 lambda: against(sample(model, **rtc, rtc_method="guidance"), guided32, FLOAT32_BOUND),
+                 needs=MEMORY_NEEDS["guidance"])
         self.row(f"{name} training forward vs reference step", torch.float32,
                  lambda: training_forward_check(model, inputs, noise))
-        self.row(f"{name} training step, bf16 autocast", torch.bfloat16, lambda: training_step_check(model, inputs, noise))
-        self.row(f"{name} LoRA (adapters, merged)", torch.float32, lambda: lora_check(model, inputs, noise))
+        self.row(f"{name} training step, bf16 autocast", torch.bfloat16, lambda: training_step_check(model, inputs, noise),
+                 needs=MEMORY_NEEDS["training step"])
+        self.row(f"{name} LoRA (adapters, merged)", torch.float32, lambda: lora_check(model, inputs, noise),
+                 needs=MEMORY_NEEDS["lora"])
 
         model = model.to(torch.bfloat16)
         model.sampling_kernels = "torch"
@@ -232,6 +280,8 @@ class Doctor:
         # decoded tokens at the positions training gives them (later openpi; the fixtures' openpi adds 1), no EOS stop:
         # the cached decoding then equals the training forward over the growing sequence
         config = PI0FastConfig.from_preset(preset, eos_token_id=None, decoding_position_offset=0, max_token_len=FAST_PROMPT + 61)
+        if not self.fits("π0-FAST (every row)", PI0FastForActionGeneration, config):
+            return
         torch.manual_seed(0)
         with device:
             model = PI0FastForActionGeneration(config).eval()
@@ -273,6 +323,10 @@ class Doctor:
             return float(max(int((tokens != eager).sum()) for tokens in calls)), 0.0, "tokens differing from eager"
 
         self.row("π0-FAST compiled decoding (CUDA graphs)", torch.bfloat16, compiled, needs_cuda=True)
+
+
+def _size(count: float) -> str:
+    return f"{count / 1e9:.1f} GB" if count >= 1e9 else f"{count / 1e6:.0f} MB"
 
 
 def pi0_inputs(config: PI0Config, device: torch.device) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
@@ -441,7 +495,9 @@ def _quiet_warnings() -> Iterator[None]:
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu",
                         help="torch device (default: cuda when present)")
-    parser.add_argument("--full", action="store_true", help="full-size models (random weights) instead of the small presets")
+    parser.add_argument("--full", action="store_true", help="full-size models (random weights) instead of the small "
+                        "presets; each row that would not fit this machine's memory is skipped, saying what it needs "
+                        "(π0 in float32: about 16 GB for its sampling rows, 56 GB for all of them)")
 
 
 def run(args: argparse.Namespace) -> int:

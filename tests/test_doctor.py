@@ -65,3 +65,24 @@ def test_bad_devices_are_refused_in_one_line(capsys: pytest.CaptureFixture[str])
     if not torch.cuda.is_available():
         assert doctor.run(parser.parse_args(["--device", "cuda"])) == 2
         assert re.search(r"--device: cuda: this torch \(.*\) is built without CUDA|no CUDA GPU is visible", capsys.readouterr().err)
+
+
+def test_rows_that_would_not_fit_in_memory_are_skipped_by_name(capsys: pytest.CaptureFixture[str],
+                                                               monkeypatch: pytest.MonkeyPatch) -> None:
+    """`--full` on a 24 GB CPU machine was killed for memory: each row now knows what it needs and is skipped, saying
+    so, where it does not fit; the table finishes. (Here the small models with a machine of very little memory.)"""
+    checkup = doctor.Doctor(torch.device("cpu"), full=False)
+    checkup.model_bytes = 10 * 10**9
+    monkeypatch.setattr(doctor.Doctor, "available_bytes", lambda self: 20 * 10**9)
+    checkup.row("fits", torch.float32, lambda: (0.0, 1e-4, ""))
+    checkup.row("a training step", torch.float32, lambda: (0.0, 1e-4, ""), needs=doctor.MEMORY_NEEDS["training step"])
+    assert [row.result for row in checkup.rows] == ["pass", "skip"]
+    assert checkup.rows[1].note == "needs about 33.0 GB, this machine has 20.0 GB available"
+
+    monkeypatch.setattr(doctor.Doctor, "available_bytes", lambda self: 10**5)  # (less than even the small models)
+    code, out = run_doctor(capsys, "--device", "cpu")
+    assert code == 0, out
+    for family in ("π0", "π0.5", "π0-FAST"):
+        assert re.search(rf"^{re.escape(family)} \(every row\)\s+cpu\s+float32\s+-\s+-\s+skip\s+[\d.]+\s+the model needs "
+                         r"about \d+ MB, this machine has 0 MB available", out, re.MULTILINE), out
+    assert re.search(r"^\d+ passed, 0 failed, \d+ skipped$", out, re.MULTILINE), out
