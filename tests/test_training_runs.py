@@ -214,7 +214,7 @@ REFUSED_CHANGES = {  # a change of what the run is -> how the refusal names it
     "another dataset": (lambda data: dict(dataset=str(data)), r"--dataset \S+/data\d*/reach there, \S+/other\d*/reach now"),
     "lora": (lambda data: dict(lora=True, ema_decay=None), r"--lora False there, True now"),
     "freeze vision": (lambda data: dict(freeze=["vision"]), r"--freeze \[\] there, \['vision'\] now"),
-    "norm stats of the model": (lambda data: dict(norm_stats="model"), r"--norm-stats dataset there, model now"),
+    "norm stats of the model": (lambda data: dict(norm_stats="model"), r"--norm-stats auto there, model now"),
     "delta actions": (lambda data: dict(delta_action_mask=[True, False]), r"--delta-action-mask None there, \[True, False\] now"),
     "camera": (lambda data: dict(camera_map={"base_0_rgb": CAMERA_KEY}), rf"--camera base_0_rgb \(unset\) there, {CAMERA_KEY} now"),
     "batch size": (lambda data: dict(batch_size=8), r"--batch-size 4 there, 8 now"),

@@ -122,22 +122,31 @@ def build_processor(settings: TrainSettings, config: PI0Config | PI0FastConfig, 
         raise ValueError("no tokenizer: pass --tokenizer PATH (PaliGemma's SentencePiece model), or --tokenizer test for a tiny demo model")
 
     chosen = run_processor_settings(settings, model_processor)
-    if settings.norm_stats == "dataset":
+    same_space = model_processor is not None and model_processor.norm_stats is not None and (
+        model_processor.state_dim, model_processor.action_dim_robot) == (dataset.state_dim, dataset.action_dim)
+    source = settings.norm_stats
+    if source == "auto":  # a trained policy keeps the statistics it acts with; a base model of another robot does not
+        source = "model" if same_space else "dataset"
+    computed = None
+    if source == "dataset" or same_space:  # (also to say how far the data lies from the model's statistics)
         dataset.check_value_spread()  # one corrupt value would make every other one normalize to about 0
         chunks: Iterable[dict[str, np.ndarray]] = dataset.iter_state_action_chunks()
         if chosen.get("value_conversion") is not None:  # the statistics of what the model sees
             conversion = get_conversion(chosen["value_conversion"])
             chunks = ({"state": conversion.state_to_model(c["state"]), "actions": conversion.actions_to_model(c["actions"])}
                       for c in chunks)
-        norm_stats = compute_norm_stats(
+        computed = compute_norm_stats(
             chunks, delta_action_mask=chosen.get("delta_action_mask"), total=len(dataset.episodes), progress=settings.progress,
         )
-    elif settings.norm_stats == "model":
-        if model_processor is None:
+    if source == "dataset":
+        norm_stats = computed
+    elif source == "model":
+        if model_processor is None or model_processor.norm_stats is None:
             raise ValueError(f"--norm-stats model: {settings.model} has no processor with norm stats")
         norm_stats = model_processor.norm_stats
     else:
         norm_stats = load_openpi_norm_stats(settings.norm_stats)
+    _log_norm_stats_choice(settings, source, model_processor if same_space else None, computed)
     robot = dict(state_dim=dataset.state_dim, action_dim_robot=dataset.action_dim, **chosen)
     if isinstance(config, PI0FastConfig):
         action_tokenizer: Any = settings.fast_tokenizer
@@ -145,6 +154,37 @@ def build_processor(settings: TrainSettings, config: PI0Config | PI0FastConfig, 
             action_tokenizer = model_processor.action_tokenizer
         return build_fast_processor(config, tokenizer, norm_stats, dataset, action_tokenizer, **robot)
     return PI0Processor.from_config(config, tokenizer, norm_stats, **robot)
+
+
+def _log_norm_stats_choice(settings: TrainSettings, source: str, model_processor: PI0Processor | None,
+                           computed: dict[str, Any] | None) -> None:
+    """Say which statistics the run trains with, and, where the model folder has statistics of the same robot space,
+    how far the dataset's lie from them, in the model's normalized units (a fine-tune that silently replaced a trained
+    policy's statistics once took it from 79% to 7% success)."""
+    where = {"model": f"{settings.model}'s (the model folder's processor)", "dataset": "the training episodes'"}
+    what = where.get(source, source)
+    reason = " (--norm-stats auto: the model folder has none for this robot's dims)" if (
+        settings.norm_stats == "auto" and source == "dataset") else ""
+    logger.info("norm stats: %s%s", what, reason)
+    if model_processor is None or computed is None:
+        return
+    mode = model_processor.norm_mode
+    for key in ("state", "actions"):
+        ours, theirs = model_processor.norm_stats[key], computed[key]
+        dims = min(ours.dim, theirs.dim)
+        if mode == "quantile" and ours.has_quantiles and theirs.has_quantiles:
+            span = np.maximum(ours.q99[:dims] - ours.q01[:dims], model_processor.min_norm_scale) / 2  # (units of [-1, 1])
+            shift = np.abs((theirs.q01[:dims] + theirs.q99[:dims]) / 2 - (ours.q01[:dims] + ours.q99[:dims]) / 2) / span
+            spread = (theirs.q99[:dims] - theirs.q01[:dims]) / (2 * span)
+        else:
+            scale = np.maximum(ours.std[:dims], model_processor.min_norm_scale)
+            shift = np.abs(theirs.mean[:dims] - ours.mean[:dims]) / scale
+            spread = theirs.std[:dims] / scale
+        worst = int(np.argmax(shift))
+        logger.info("norm stats, %s: the dataset's centre lies up to %.2f of the model's scale from the model's (dim %d); "
+                    "its spread is %.2f-%.2f times the model's%s", key, float(shift[worst]), worst, float(spread.min()),
+                    float(spread.max()), "" if source == "model" else " (training with the dataset's: --norm-stats model "
+                    "keeps the policy's own)")
 
 
 def build_model(settings: TrainSettings, config: PI0Config | PI0FastConfig) -> nn.Module:

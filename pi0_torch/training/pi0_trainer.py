@@ -116,6 +116,23 @@ class PI0Trainer(Trainer):
                     callback.training_bar = None
             raise
 
+    def get_decay_parameter_names(self, model: nn.Module) -> list[str]:
+        """Every parameter, as openpi decays them (its AdamW has no mask): biases, norm scales and embeddings too (the
+        Trainer's default leaves biases and norms out)."""
+        return [name for name, _ in model.named_parameters()]
+
+    def _clip_grad_norm(self, model: nn.Module) -> torch.Tensor:
+        """openpi's clipping (`optax.clip_by_global_norm`): the gradients' global norm, returned, and above
+        `max_grad_norm` every gradient times `max_grad_norm / norm`, with no epsilon (torch's `clip_grad_norm_` divides
+        by `norm + 1e-6`). Gradients that are shards (FSDP2's DTensors) keep the Trainer's own clipping."""
+        gradients = [parameter.grad for parameter in model.parameters() if parameter.grad is not None]
+        if not gradients or any(type(gradient) is not torch.Tensor for gradient in gradients):
+            return super()._clip_grad_norm(model)
+        norm = torch.linalg.vector_norm(torch.stack(torch._foreach_norm(gradients)).float())
+        scale = torch.clamp(self.args.max_grad_norm / norm, max=1.0)  # (1 below the bound: the gradients unchanged)
+        torch._foreach_mul_(gradients, scale.to(gradients[0].dtype))
+        return norm
+
     def create_optimizer(self, model: nn.Module | None = None) -> torch.optim.Optimizer:
         optimizer = super().create_optimizer(model)
         groups = getattr(optimizer, "optimizer", optimizer).param_groups  # (inside accelerate's wrapper, if any)

@@ -40,7 +40,7 @@ class TrainSettings:
     output_dir: str
     config_overrides: dict[str, Any] = field(default_factory=dict)
     tokenizer: str | None = None
-    norm_stats: str = "dataset"
+    norm_stats: str = "auto"  # "auto": the model folder's for the same robot space, else the dataset's
     camera_map: dict[str, str] = field(default_factory=dict)
     state_key: str = "observation.state"
     action_key: str = "action"

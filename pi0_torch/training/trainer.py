@@ -392,8 +392,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     model.add_argument("--tokenizer", help="PaliGemma SentencePiece model (file/folder); 'test' trains a tiny one (demos)")
     model.add_argument("--fast-tokenizer", help="π0-FAST: the FAST action tokenizer folder (physical-intelligence/fast layout), "
                        "or 'fit' to fit one to the training episodes (default: the model folder's)")
-    model.add_argument("--norm-stats", default="dataset",
-                       help="'dataset' (compute from the training episodes), 'model' (the model folder's), or a norm_stats.json")
+    model.add_argument("--norm-stats", default="auto",
+                       help="'auto' (default: the model folder's statistics when they are of the dataset's robot space, "
+                            "its state and action dims, as a trained policy continues; else the dataset's), 'dataset' "
+                            "(computed from the training episodes), 'model' (the model folder's), or a norm_stats.json")
 
     recipe = parser.add_argument_group("optimization (openpi defaults)")
     recipe.add_argument("--output-dir", required=True)
