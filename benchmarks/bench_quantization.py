@@ -6,8 +6,8 @@
 Error: the actions of one chunk (same inputs, same noise) against float32's, max |difference| / max |action|, for bf16
 and every scheme that runs on this machine. The weights are random, scaled so every block is contractive (random
 full-size weights amplify rounding ~40x per SigLIP block, which would hide the schemes' own error). Speed: the calls
-alternate (`pi0_torch.utils.timing.time_alternating`), median ms. Memory (`--memory`): the resident set of a process
-that loads the folder quantized (quantized while loading), and its peak while loading, per scheme, each in a child
+alternate (`pi0_torch.utils.timing.time_alternating`), median ms. Memory (`--memory`): what the loaded weights take
+per scheme (quantized while loading), what the process allocated, and its peak while loading, each in a child
 process. Prints tables; nothing is asserted.
 """
 
@@ -43,7 +43,7 @@ def contractive_model(preset: str):  # type: ignore[no-untyped-def]
 
 def accuracy_and_speed(preset: str, threads: int, repeats: int) -> None:
     from pi0_torch import PI0ForActionGeneration
-    from pi0_torch.conversion.quantize import torchao_config
+    from pi0_torch.conversion.quantize import quantized_widths, torchao_config
     from pi0_torch.utils.timing import time_alternating
 
     torch.set_num_threads(threads)
@@ -54,9 +54,7 @@ def accuracy_and_speed(preset: str, threads: int, repeats: int) -> None:
         variants = {"float32": model, "bfloat16": copy.deepcopy(model).to(torch.bfloat16)}
         for scheme in CPU_SCHEMES:
             dtype = torch.bfloat16 if scheme == "fp8-weight" else torch.float32
-            with torch.device("meta"):
-                widths = [m.in_features for m in PI0ForActionGeneration(model.config).modules() if isinstance(m, torch.nn.Linear)]
-            config = torchao_config(scheme, "cpu", in_features=widths)
+            config = torchao_config(scheme, "cpu", in_features=quantized_widths(folder))
             variants[scheme] = PI0ForActionGeneration.from_pretrained(folder, quantization_config=config, dtype=dtype).eval()
     reference = None
     calls, errors = {}, {}
@@ -77,24 +75,35 @@ def accuracy_and_speed(preset: str, threads: int, repeats: int) -> None:
 
 
 def memory(folder: str, schemes: list[str]) -> None:
-    print(f"{'weights':12s} {'resident GB':>12s} {'peak while loading GB':>22s}")
+    """Per scheme, in a child process: the bytes of the loaded model's weights (a quantized tensor's inner tensors:
+    its integer data and scales), the process's anonymous resident memory after loading (what it allocated; the
+    weights read from the file are page cache until touched), and its peak resident set while loading."""
+    print(f"{'weights':12s} {'weights GB':>11s} {'allocated GB':>13s} {'peak RSS while loading GB':>26s}")
     for scheme in schemes:
         script = f"""
-import psutil, torch
+import torch
 from pi0_torch import PI0ForActionGeneration
-from pi0_torch.conversion.quantize import torchao_config
-kwargs = {{}} if {scheme!r} == "bfloat16" else {{"quantization_config": torchao_config({scheme!r}, "cpu")}}
+from pi0_torch.conversion.quantize import quantized_widths, torchao_config
+widths = quantized_widths({folder!r})
+kwargs = {{}} if {scheme!r} == "bfloat16" else {{"quantization_config": torchao_config({scheme!r}, "cpu", in_features=widths)}}
 model = PI0ForActionGeneration.from_pretrained({folder!r}, dtype=torch.bfloat16, **kwargs)
-print(psutil.Process().memory_info().rss / 1e9)
+def size(tensor):
+    if type(tensor) in (torch.Tensor, torch.nn.Parameter):
+        return tensor.numel() * tensor.element_size()
+    names, _ = tensor.__tensor_flatten__()
+    return sum(size(getattr(tensor, name)) for name in names)
+weights = sum(size(value) for value in model.state_dict().values())
+anonymous = [int(line.split()[1]) for line in open("/proc/self/status") if line.startswith("RssAnon:")][0] * 1024
+print(weights / 1e9, anonymous / 1e9)
 """
         before = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
         result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True)
         peak = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
         lines = result.stdout.strip().splitlines()
-        resident = float(lines[-1]) if result.returncode == 0 and lines else float("nan")
+        weights, allocated = (float(value) for value in lines[-1].split()) if result.returncode == 0 and lines else (float("nan"),) * 2
         note = "" if peak > before else " (peak of an earlier child)"
         failed = "" if result.returncode == 0 else f"  failed: {(result.stderr.strip().splitlines() or ['?'])[-1][:160]}"
-        print(f"{scheme:12s} {resident:12.2f} {peak / 2**20:22.2f}{note}{failed}", flush=True)
+        print(f"{scheme:12s} {weights:11.2f} {allocated:13.2f} {peak / 2**20:26.2f}{note}{failed}", flush=True)
 
 
 def main() -> int:

@@ -15,7 +15,7 @@ import torch
 pytest.importorskip("torchao", reason="needs torchao: pip install 'pi0-torch[quant]'")
 
 from pi0_torch import PI0ForActionGeneration  # noqa: E402
-from pi0_torch.conversion.quantize import QuantizationError, quantize_folder, torchao_config  # noqa: E402
+from pi0_torch.conversion.quantize import QuantizationError, quantize_folder, quantized_widths, torchao_config  # noqa: E402
 from pi0_torch.runtime.policy import PI0Policy  # noqa: E402
 from pi0_torch.shipped_policy import demo_policy_dir  # noqa: E402
 
@@ -103,3 +103,15 @@ def test_only_the_chosen_groups_are_quantized(tmp_path: Path) -> None:
     assert type(model.layers[0].vlm.gate_up_proj.weight) is torch.nn.Parameter
     assert type(model.vision_tower.encoder.layers[0].mlp.fc1.weight) is torch.nn.Parameter
     shutil.rmtree(folder)
+
+
+def test_cpu_int4_groups_divide_every_quantized_width() -> None:
+    # the released models' widths: Gemma 2048 / 16384, the expert 1024 / 4096, SigLIP 1152 / 4304 (= 16 * 269)
+    group_size = lambda config: config.quant_type.granularity.group_size  # noqa: E731
+    assert group_size(torchao_config("int4", in_features=[1024, 1152, 2048, 4096, 4304, 16384])) == 16
+    assert group_size(torchao_config("int4", in_features=[48, 64, 96, 128])) == 16
+    assert group_size(torchao_config("int4", in_features=[64, 128])) == 64
+    assert group_size(torchao_config("int4")) == 16
+    assert sorted(set(quantized_widths(demo_policy_dir(), ("expert",)))) == [48, 64, 96]  # (no weights read)
+    with pytest.raises(QuantizationError, match=r"groups of 8 to 128 .* widths \[12\] share none: use int8"):
+        torchao_config("int4", in_features=[12])

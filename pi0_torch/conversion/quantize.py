@@ -74,8 +74,9 @@ def check_scheme(scheme: str, device: Any = "cpu") -> None:
 def torchao_config(scheme: str, device: Any = "cpu", modules: Sequence[str] = DEFAULT_GROUPS,
                    in_features: Sequence[int] = ()) -> Any:
     """transformers' `TorchAoConfig` of `scheme` for `device`, quantizing the module `groups` `modules` (of `GROUPS`)
-    and keeping everything else. `in_features`: the input widths of the layers it quantizes (the CPU int4 scheme's
-    group size divides them all; default 32)."""
+    and keeping everything else. `in_features`: the input widths of the layers it quantizes (`quantized_widths`): the
+    CPU int4 scheme's group size is the largest of `INT4_GROUPS` that divides them all; without them, 16 (it divides
+    every width of the released π0 / π0.5 models: SigLIP's MLP is 4304 wide)."""
     require_extra("quant", "a quantized model", modules=("torchao",))
     import torch
     from torchao.quantization import (Float8DynamicActivationFloat8WeightConfig, Float8WeightOnlyConfig,
@@ -96,7 +97,7 @@ def torchao_config(scheme: str, device: Any = "cpu", modules: Sequence[str] = DE
     elif scheme == "int4" and device.type == "cuda":
         config = Int4WeightOnlyConfig(group_size=128, int4_packing_format="tile_packed_to_4d")
     elif scheme == "int4":
-        group = next((size for size in INT4_GROUPS if all(width % size == 0 for width in in_features)), None) if in_features else 32
+        group = next((size for size in INT4_GROUPS if all(width % size == 0 for width in in_features)), None) if in_features else 16
         if group is None:
             raise QuantizationError(f"--scheme int4 on a CPU quantizes in groups of 8 to 128 input features; these layers' "
                                     f"widths {sorted(set(in_features))} share none: use int8")
@@ -115,8 +116,6 @@ def quantize_folder(model_dir: str | Path, output_dir: str | Path, scheme: str =
     `policy_settings.json`) into `output_dir`, whole or not at all. Refuses a folder that is quantized already."""
     import torch
 
-    from pi0_torch.models.modeling_pi0 import PI0ForActionGeneration
-    from pi0_torch.models.modeling_pi0_fast import PI0FastForActionGeneration
     from pi0_torch.shipped_policy import policy_location
     from pi0_torch.utils import files
 
@@ -129,14 +128,10 @@ def quantize_folder(model_dir: str | Path, output_dir: str | Path, scheme: str =
     check_scheme(scheme, device)
     files.check_output_dir(output_dir, overwrite)
     files.check_separate(model_dir, output_dir)
-    model_type = json.loads((model_dir / "config.json").read_text()).get("model_type")
-    model_class = PI0FastForActionGeneration if model_type == "pi0_fast_torch" else PI0ForActionGeneration
+    model_class = _model_class(model_dir)
     # (the dtype the kernels take: CUDA's int4 and float8 linears compute in bf16; otherwise the folder's own)
     dtype = torch.bfloat16 if scheme == "fp8" or (scheme == "int4" and torch.device(device).type == "cuda") else None
-    widths: list[int] = []
-    if scheme == "int4":  # (the group size: from the layers' shapes, on the meta device)
-        with torch.device("meta"):
-            widths = _quantized_widths(model_class(model_class.config_class.from_pretrained(model_dir)), modules)
+    widths = quantized_widths(model_dir, modules) if scheme == "int4" else []  # (int4's group size)
     config = torchao_config(scheme, device, modules, widths)
     model = model_class.from_pretrained(model_dir, quantization_config=config, dtype=dtype, device_map=device)
     with files.atomic_output_dir(output_dir, overwrite) as staging:
@@ -150,14 +145,28 @@ def quantize_folder(model_dir: str | Path, output_dir: str | Path, scheme: str =
     return Path(output_dir).expanduser().absolute()
 
 
-def _quantized_widths(model: Any, modules: Sequence[str]) -> list[int]:
-    """The input widths of the linear layers `torchao_config` would quantize in `model`."""
+def quantized_widths(model_dir: str | Path, modules: Sequence[str] = DEFAULT_GROUPS) -> list[int]:
+    """The input widths of the linear layers `torchao_config(..., modules)` would quantize in the model of `model_dir`
+    (built from its config on the meta device; no weights are read)."""
+    import torch
     from torch import nn
     from transformers.quantizers.quantizers_utils import should_convert_module
 
+    model_class = _model_class(model_dir)
+    with torch.device("meta"):
+        model = model_class(model_class.config_class.from_pretrained(model_dir))
     skipped = [*KEPT_MODULES, *(GROUPS[group] for group in GROUPS if group not in modules)]
     return [module.in_features for name, module in model.named_modules()
             if isinstance(module, nn.Linear) and should_convert_module(name, skipped)]
+
+
+def _model_class(model_dir: str | Path) -> Any:
+    """The model class of the folder `model_dir`: π0-FAST's or π0 / π0.5's."""
+    from pi0_torch.models.modeling_pi0 import PI0ForActionGeneration
+    from pi0_torch.models.modeling_pi0_fast import PI0FastForActionGeneration
+
+    model_type = json.loads((Path(model_dir) / "config.json").read_text()).get("model_type")
+    return PI0FastForActionGeneration if model_type == "pi0_fast_torch" else PI0ForActionGeneration
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
