@@ -1,22 +1,23 @@
 """Quantized π0 / π0.5 against the same model in float32 and bf16: action error, CPU speed and memory.
 
     python benchmarks/bench_quantization.py --preset pi0_medium --threads 2          # error and speed per scheme
-    python benchmarks/bench_quantization.py --memory /tmp/full/pi0_bfloat16           # a full-size folder: RSS loaded
+    python benchmarks/bench_quantization.py --memory /tmp/full/pi0_bfloat16           # a full-size bf16 folder: memory
 
 Error: the actions of one chunk (same inputs, same noise) against float32's, max |difference| / max |action|, for bf16
 and every scheme that runs on this machine. The weights are random, scaled so every block is contractive (random
 full-size weights amplify rounding ~40x per SigLIP block, which would hide the schemes' own error). Speed: the calls
-alternate (`pi0_torch.utils.timing.time_alternating`), median ms. Memory (`--memory`): what the loaded weights take
-per scheme (quantized while loading), what the process allocated, and its peak while loading, each in a child
-process. Prints tables; nothing is asserted.
+alternate (`pi0_torch.utils.timing.time_alternating`), median ms. Memory (`--memory`, a bf16 model folder): per
+scheme, `pi0-torch quantize` writes the quantized folder, and a fresh process loads it and samples one chunk: the
+folder's size, the weights' bytes, the process's resident set after the chunk and its peak, and the quantizing
+process's peak. Prints tables; nothing is asserted.
 """
 
 from __future__ import annotations
 
 import argparse
 import copy
-import json
-import resource
+import os
+import shutil
 import statistics
 import subprocess
 import sys
@@ -74,36 +75,59 @@ def accuracy_and_speed(preset: str, threads: int, repeats: int) -> None:
         print(f"{name:14s} {errors[name]:9.2e} {statistics.median(times) * 1e3:9.1f} {statistics.median(times) / base:9.2f}")
 
 
-def memory(folder: str, schemes: list[str]) -> None:
-    """Per scheme, in a child process: the bytes of the loaded model's weights (a quantized tensor's inner tensors:
-    its integer data and scales), the process's anonymous resident memory after loading (what it allocated; the
-    weights read from the file are page cache until touched), and its peak resident set while loading."""
-    print(f"{'weights':12s} {'weights GB':>11s} {'allocated GB':>13s} {'peak RSS while loading GB':>26s}")
-    for scheme in schemes:
-        script = f"""
-import torch
+LOAD_AND_RUN = """
+import sys, torch
 from pi0_torch import PI0ForActionGeneration
-from pi0_torch.conversion.quantize import quantized_widths, torchao_config
-widths = quantized_widths({folder!r})
-kwargs = {{}} if {scheme!r} == "bfloat16" else {{"quantization_config": torchao_config({scheme!r}, "cpu", in_features=widths)}}
-model = PI0ForActionGeneration.from_pretrained({folder!r}, dtype=torch.bfloat16, **kwargs)
-def size(tensor):
+model = PI0ForActionGeneration.from_pretrained(sys.argv[1], dtype="auto").eval()
+inputs = model.sampling_program(1).example_inputs()
+with torch.inference_mode():
+    actions = model.generate_actions(*inputs[:5], noise=inputs[5])
+assert torch.isfinite(actions).all()
+def size(tensor):  # a quantized tensor: its inner tensors (integer data, scales)
     if type(tensor) in (torch.Tensor, torch.nn.Parameter):
         return tensor.numel() * tensor.element_size()
     names, _ = tensor.__tensor_flatten__()
     return sum(size(getattr(tensor, name)) for name in names)
-weights = sum(size(value) for value in model.state_dict().values())
-anonymous = [int(line.split()[1]) for line in open("/proc/self/status") if line.startswith("RssAnon:")][0] * 1024
-print(weights / 1e9, anonymous / 1e9)
+resident = [int(line.split()[1]) for line in open("/proc/self/status") if line.startswith("VmRSS:")][0] * 1024
+print(sum(size(value) for value in model.state_dict().values()) / 1e9, resident / 1e9)
 """
-        before = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
-        result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True)
-        peak = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
-        lines = result.stdout.strip().splitlines()
-        weights, allocated = (float(value) for value in lines[-1].split()) if result.returncode == 0 and lines else (float("nan"),) * 2
-        note = "" if peak > before else " (peak of an earlier child)"
-        failed = "" if result.returncode == 0 else f"  failed: {(result.stderr.strip().splitlines() or ['?'])[-1][:160]}"
-        print(f"{scheme:12s} {weights:11.2f} {allocated:13.2f} {peak / 2**20:26.2f}{note}{failed}", flush=True)
+
+
+def child(command: list[str]) -> tuple[int, str, str, float]:
+    """Run `command`; its exit status, stdout, stderr and peak resident set in GB (its own, from wait4)."""
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    stdout, stderr = process.stdout.read(), process.stderr.read()  # (small outputs: no deadlock)
+    _, status, usage = os.wait4(process.pid, 0)
+    process.returncode = os.waitstatus_to_exitcode(status)
+    return process.returncode, stdout, stderr, usage.ru_maxrss * 1024 / 1e9
+
+
+def memory(folder: str, schemes: list[str]) -> None:
+    """What a robot loading a quantized folder sees, per scheme: `pi0-torch quantize` writes the folder (its peak
+    resident set: the machine that quantizes), then another process loads it and samples one chunk (every weight
+    touched): the weights' bytes, its resident set after the chunk and its peak. "bfloat16" loads `folder` itself."""
+    print(f"{'weights':12s} {'folder GB':>9s} {'weights GB':>10s} {'RSS after a chunk GB':>21s} {'peak GB':>8s} "
+          f"{'quantizing peak GB':>19s}")
+    with tempfile.TemporaryDirectory() as scratch:
+        for scheme in schemes:
+            target, quantizing_peak, failed = folder, float("nan"), ""
+            if scheme != "bfloat16":
+                target = str(Path(scratch) / scheme)
+                code, _, stderr, quantizing_peak = child([sys.executable, "-m", "pi0_torch.cli", "quantize", folder,
+                                                         "--output-dir", target, "--scheme", scheme])
+                failed = "" if code == 0 else f"  quantize failed: {(stderr.strip().splitlines() or ['?'])[-1][:160]}"
+            weights = resident = peak = float("nan")
+            if not failed:
+                code, stdout, stderr, peak = child([sys.executable, "-c", LOAD_AND_RUN, target])
+                if code == 0:
+                    weights, resident = (float(value) for value in stdout.split())
+                else:
+                    failed = f"  load failed: {(stderr.strip().splitlines() or ['?'])[-1][:160]}"
+            on_disk = sum(path.stat().st_size for path in Path(target).iterdir() if path.is_file()) / 1e9
+            print(f"{scheme:12s} {on_disk:9.2f} {weights:10.2f} {resident:21.2f} {peak:8.2f} {quantizing_peak:19.2f}{failed}",
+                  flush=True)
+            if target != folder:
+                shutil.rmtree(target, ignore_errors=True)
 
 
 def main() -> int:
@@ -112,7 +136,7 @@ def main() -> int:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--repeats", type=int, default=10)
     parser.add_argument("--memory", metavar="FOLDER", help="a model folder to measure loaded quantized (bf16 weights)")
-    parser.add_argument("--memory-schemes", default="bfloat16,int8,int4")
+    parser.add_argument("--memory-schemes", default="bfloat16,int8,int4,fp8-weight")
     args = parser.parse_args()
     if args.memory:
         memory(args.memory, args.memory_schemes.split(","))

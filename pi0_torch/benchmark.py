@@ -176,9 +176,9 @@ def host_side(events: Sequence[Any]) -> tuple[float | None, float | None]:
 
 def print_kernel_table(table: list[tuple[str, int, float]], limit: int) -> None:
     """The `limit` activities of a call that took the most GPU time: count, GPU ms, microseconds each, name."""
-    total = sum(seconds for _, _, seconds in table)
-    for name, count, seconds in table[:limit]:
-        print(f"      {count:6d} x {seconds * 1e3:7.3f} ms {seconds / count * 1e6:8.1f} us {100 * seconds / total:5.1f}%  {name[:110]}")
+    total = sum(spent for _, _, spent in table)
+    for name, count, spent in table[:limit]:
+        print(f"      {count:6d} x {spent * 1e3:7.3f} ms {spent / count * 1e6:8.1f} us {100 * spent / total:5.1f}%  {name[:110]}")
 
 
 def graph_time(fn: Callable[[], object], device: torch.device, calls: int = 50, repeats: int = 10) -> float:

@@ -91,13 +91,15 @@ class Doctor:
     def available_bytes(self) -> int:
         """Memory this process may still take: the GPU's free memory plus what torch's allocator holds unused, or the
         machine's available RAM."""
-        if self.cuda:
+        if self.device.type == "cuda":
             free, _ = torch.cuda.mem_get_info(self.device)
             return free + torch.cuda.memory_reserved(self.device) - torch.cuda.memory_allocated(self.device)
         return psutil.virtual_memory().available
 
     def memory_note(self, needed: float) -> str | None:
         """Why `needed` more bytes do not fit (None: they do)."""
+        if needed <= 0:
+            return None
         available = self.available_bytes()
         if needed <= available:
             return None

@@ -1,4 +1,5 @@
-"""The inference engine of π0 / π0.5: how `generate_actions` runs fast, beside the model math in `pi0_torch.models`.
+"""The inference engine of π0 / π0.5 and π0-FAST: how `generate_actions` and `generate_tokens` run fast, beside the
+model math in `pi0_torch.models` (nothing here imports it).
 
 - `layout`: each pass's tokens laid out so that every query sees one contiguous range of keys (no mask matrix);
 - `attention`: attention over those key ranges, and which kernel runs it;
@@ -8,7 +9,12 @@
 - `vision_pass`: SigLIP's pass of fused sampling, on the tower's weights in fewer launches;
 - `sampling`: `ActionSampling`, the mixin that gives the model `generate_actions` (the prefix cached once, the Euler
   steps, real-time chunking), `compile_sampling` and `capture_sampling`;
-- `graphs`: the sampling captured as CUDA graphs by hand, each verified against eager when captured.
+- `graphs`: the sampling captured as CUDA graphs by hand, each verified against eager when captured;
+- `conditioning`, `plan`, `program`, `rtc`: the flow time's conditioning, a call's plan and route, the exportable
+  core, real-time chunking;
+- π0-FAST: `token_decoding` (`TokenDecoding`, the mixin that gives the model `generate_tokens`, `compile_decoding`
+  and `capture_decoding`), `fast_decoding` (decoded tokens on the fused kernels), `decoding_graphs` (hand-captured
+  CUDA graphs of the prefill and the per-token step).
 
 `pi0_torch.models.modeling_pi0.PI0ForActionGeneration.sample_actions_reference` is the plain loop the engine is tested
 against at every level.

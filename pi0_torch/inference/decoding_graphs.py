@@ -36,7 +36,7 @@ from pi0_torch.inference.graphs import (GraphCaptureError, capture_streams, reco
 if TYPE_CHECKING:
     from collections.abc import Callable
 
-    from pi0_torch.models.modeling_pi0_fast import DecodingCache, PI0FastForActionGeneration
+    from pi0_torch.inference.token_decoding import DecodingCache, TokenDecoding
 
 logger = logging.getLogger(__name__)
 
@@ -70,7 +70,7 @@ class DecodingGraphs:
 
     `prepare` and `step` stand in for `prepare_decoding` and `decode_step` in `PI0FastForActionGeneration.decode`."""
 
-    def __init__(self, model: PI0FastForActionGeneration, verify: bool = True) -> None:
+    def __init__(self, model: TokenDecoding, verify: bool = True) -> None:
         self.model = model
         self.verify = verify  # compare each graph's first replay with an eager run (see the module docstring)
         self.graphs: dict[tuple[Any, ...], CapturedDecoding] = {}
