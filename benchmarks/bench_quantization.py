@@ -55,7 +55,7 @@ def accuracy_and_speed(preset: str, threads: int, repeats: int) -> None:
         variants = {"float32": model, "bfloat16": copy.deepcopy(model).to(torch.bfloat16)}
         for scheme in CPU_SCHEMES:
             dtype = torch.bfloat16 if scheme == "fp8-weight" else torch.float32
-            config = torchao_config(scheme, "cpu", in_features=quantized_widths(folder))
+            config = torchao_config(scheme, "cpu", widths=quantized_widths(folder))
             variants[scheme] = PI0ForActionGeneration.from_pretrained(folder, quantization_config=config, dtype=dtype).eval()
     reference = None
     calls, errors = {}, {}

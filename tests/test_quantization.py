@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from transformers.quantizers.quantizers_utils import should_convert_module
 
 pytest.importorskip("torchao", reason="needs torchao: pip install 'pi0-torch[quant]'")
 
@@ -105,13 +106,22 @@ def test_only_the_chosen_groups_are_quantized(tmp_path: Path) -> None:
     shutil.rmtree(folder)
 
 
-def test_cpu_int4_groups_divide_every_quantized_width() -> None:
+def test_int4_groups_fit_every_quantized_width() -> None:
     # the released models' widths: Gemma 2048 / 16384, the expert 1024 / 4096, SigLIP 1152 / 4304 (= 16 * 269)
+    full_size = {"layers.0.vlm.qkv_proj": 2048, "layers.0.vlm.down_proj": 16384, "layers.0.expert.down_proj": 4096,
+                 "vision_tower.encoder.layers.0.mlp.fc1": 1152, "vision_tower.encoder.layers.0.mlp.fc2": 4304}
     group_size = lambda config: config.quant_type.granularity.group_size  # noqa: E731
-    assert group_size(torchao_config("int4", in_features=[1024, 1152, 2048, 4096, 4304, 16384])) == 16
-    assert group_size(torchao_config("int4", in_features=[48, 64, 96, 128])) == 16
-    assert group_size(torchao_config("int4", in_features=[64, 128])) == 64
+    assert group_size(torchao_config("int4", widths=full_size)) == 16
+    assert group_size(torchao_config("int4", widths={"a": 64, "b": 128})) == 64
     assert group_size(torchao_config("int4")) == 16
-    assert sorted(set(quantized_widths(demo_policy_dir(), ("expert",)))) == [48, 64, 96]  # (no weights read)
     with pytest.raises(QuantizationError, match=r"groups of 8 to 128 .* widths \[12\] share none: use int8"):
-        torchao_config("int4", in_features=[12])
+        torchao_config("int4", widths={"a": 12})
+    # CUDA's tile-packed int4 takes groups of 128: SigLIP's fc2 (4304 wide) is kept, by its exact name
+    cuda = torchao_config("int4", "cuda", widths=full_size)
+    assert cuda.quant_type.group_size == 128
+    assert should_convert_module("vision_tower.encoder.layers.0.mlp.fc1", cuda.modules_to_not_convert)
+    assert not should_convert_module("vision_tower.encoder.layers.0.mlp.fc2", cuda.modules_to_not_convert)
+    assert should_convert_module("vision_tower.encoder.layers.10.mlp.fc2", cuda.modules_to_not_convert)
+    demo = quantized_widths(demo_policy_dir(), ("expert",))  # (from the config alone)
+    assert demo and all(name.startswith("layers.") and ".expert." in name for name in demo)
+    assert sorted(set(demo.values())) == [48, 64, 96]

@@ -14,7 +14,7 @@ Schemes (`SCHEMES`), by where they run:
 |---|---|---|
 | `int8` | `Int8WeightOnlyConfig` | CPU, CUDA |
 | `int8-dynamic` | `Int8DynamicActivationInt8WeightConfig` (activations quantized per call) | CPU, CUDA |
-| `int4` | CUDA: `Int4WeightOnlyConfig` (tile-packed, groups of 128, bf16); CPU: `IntxWeightOnlyConfig` (int4, groups) | CPU, CUDA |
+| `int4` | CUDA: `Int4WeightOnlyConfig` (tile-packed, groups of 128, bf16; layers of other widths kept); CPU: `IntxWeightOnlyConfig` (int4 in groups, stored one value per byte) | CPU, CUDA |
 | `fp8` | `Float8DynamicActivationFloat8WeightConfig` (per row) | CUDA, compute capability >= 8.9 |
 | `fp8-weight` | `Float8WeightOnlyConfig` | CPU, CUDA |
 
@@ -26,8 +26,9 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import re
 import shutil
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -46,6 +47,7 @@ KEPT_MODULES = (
     "action_time_mlp_out", "time_mlp_in", "time_mlp_out", "modulation", "lm_head",
 )
 INT4_GROUPS = (128, 64, 32, 16, 8)  # the CPU int4 scheme's group size: the largest that divides every quantized input width
+CUDA_INT4_GROUP = 128  # CUDA's tile-packed int4 (tinygemm): groups of 128 input features
 PROCESSOR_FILES = ("processor_config.json", "norm_stats.json", "tokenizer.model", "policy_settings.json",
                    "tokenizer.json", "tokenizer_config.json", "special_tokens_map.json")
 
@@ -72,11 +74,12 @@ def check_scheme(scheme: str, device: Any = "cpu") -> None:
 
 
 def torchao_config(scheme: str, device: Any = "cpu", modules: Sequence[str] = DEFAULT_GROUPS,
-                   in_features: Sequence[int] = ()) -> Any:
+                   widths: Mapping[str, int] | None = None) -> Any:
     """transformers' `TorchAoConfig` of `scheme` for `device`, quantizing the module `groups` `modules` (of `GROUPS`)
-    and keeping everything else. `in_features`: the input widths of the layers it quantizes (`quantized_widths`): the
-    CPU int4 scheme's group size is the largest of `INT4_GROUPS` that divides them all; without them, 16 (it divides
-    every width of the released π0 / π0.5 models: SigLIP's MLP is 4304 wide)."""
+    and keeping everything else. `widths`: the input width of each layer it would quantize, by name
+    (`quantized_widths`); int4 needs them: on a CPU its group size is the largest of `INT4_GROUPS` that divides them all
+    (without them, 16: it divides every width of the released π0 / π0.5 models, SigLIP's MLP being 4304 wide); on
+    CUDA, whose tile-packed int4 takes groups of 128, a layer whose width is no multiple of 128 is kept."""
     require_extra("quant", "a quantized model", modules=("torchao",))
     import torch
     from torchao.quantization import (Float8DynamicActivationFloat8WeightConfig, Float8WeightOnlyConfig,
@@ -90,24 +93,30 @@ def torchao_config(scheme: str, device: Any = "cpu", modules: Sequence[str] = DE
     if unknown or not modules:
         raise QuantizationError(f"--modules must name some of {', '.join(GROUPS)}, got {list(modules)}")
     device = torch.device(device)
+    kept = [*KEPT_MODULES, *(GROUPS[group] for group in GROUPS if group not in modules)]
     if scheme == "int8":
         config: Any = Int8WeightOnlyConfig()
     elif scheme == "int8-dynamic":
         config = Int8DynamicActivationInt8WeightConfig()
     elif scheme == "int4" and device.type == "cuda":
-        config = Int4WeightOnlyConfig(group_size=128, int4_packing_format="tile_packed_to_4d")
+        config = Int4WeightOnlyConfig(group_size=CUDA_INT4_GROUP, int4_packing_format="tile_packed_to_4d")
+        unpackable = sorted(name for name, width in (widths or {}).items() if width % CUDA_INT4_GROUP)
+        if unpackable:
+            logger.info("int4 on CUDA packs groups of %d input features: %d layers of other widths stay in their dtype "
+                        "(%s, ...)", CUDA_INT4_GROUP, len(unpackable), unpackable[0])
+        kept += [re.escape(name) for name in unpackable]
     elif scheme == "int4":
-        group = next((size for size in INT4_GROUPS if all(width % size == 0 for width in in_features)), None) if in_features else 16
+        values = sorted(set((widths or {}).values()))
+        group = next((size for size in INT4_GROUPS if all(width % size == 0 for width in values)), None) if values else 16
         if group is None:
             raise QuantizationError(f"--scheme int4 on a CPU quantizes in groups of 8 to 128 input features; these layers' "
-                                    f"widths {sorted(set(in_features))} share none: use int8")
+                                    f"widths {values} share none: use int8")
         config = IntxWeightOnlyConfig(weight_dtype=torch.int4, granularity=PerGroup(group))
     elif scheme == "fp8":
         config = Float8DynamicActivationFloat8WeightConfig(granularity=PerRow())
     else:
         config = Float8WeightOnlyConfig()
-    skipped = [GROUPS[group] for group in GROUPS if group not in modules]
-    return TorchAoConfig(config, modules_to_not_convert=[*KEPT_MODULES, *skipped])
+    return TorchAoConfig(config, modules_to_not_convert=kept)
 
 
 def quantize_folder(model_dir: str | Path, output_dir: str | Path, scheme: str = "int8", device: str = "cpu",
@@ -131,7 +140,7 @@ def quantize_folder(model_dir: str | Path, output_dir: str | Path, scheme: str =
     model_class = _model_class(model_dir)
     # (the dtype the kernels take: CUDA's int4 and float8 linears compute in bf16; otherwise the folder's own)
     dtype = torch.bfloat16 if scheme == "fp8" or (scheme == "int4" and torch.device(device).type == "cuda") else None
-    widths = quantized_widths(model_dir, modules) if scheme == "int4" else []  # (int4's group size)
+    widths = quantized_widths(model_dir, modules) if scheme == "int4" else None  # (int4's groups)
     config = torchao_config(scheme, device, modules, widths)
     model = model_class.from_pretrained(model_dir, quantization_config=config, dtype=dtype, device_map=device)
     with files.atomic_output_dir(output_dir, overwrite) as staging:
@@ -145,9 +154,9 @@ def quantize_folder(model_dir: str | Path, output_dir: str | Path, scheme: str =
     return Path(output_dir).expanduser().absolute()
 
 
-def quantized_widths(model_dir: str | Path, modules: Sequence[str] = DEFAULT_GROUPS) -> list[int]:
-    """The input widths of the linear layers `torchao_config(..., modules)` would quantize in the model of `model_dir`
-    (built from its config on the meta device; no weights are read)."""
+def quantized_widths(model_dir: str | Path, modules: Sequence[str] = DEFAULT_GROUPS) -> dict[str, int]:
+    """The input width of each linear layer `torchao_config(..., modules)` would quantize in the model of `model_dir`,
+    by name (the model built from its config on the meta device; no weights are read)."""
     import torch
     from torch import nn
     from transformers.quantizers.quantizers_utils import should_convert_module
@@ -155,9 +164,9 @@ def quantized_widths(model_dir: str | Path, modules: Sequence[str] = DEFAULT_GRO
     model_class = _model_class(model_dir)
     with torch.device("meta"):
         model = model_class(model_class.config_class.from_pretrained(model_dir))
-    skipped = [*KEPT_MODULES, *(GROUPS[group] for group in GROUPS if group not in modules)]
-    return [module.in_features for name, module in model.named_modules()
-            if isinstance(module, nn.Linear) and should_convert_module(name, skipped)]
+    kept = [*KEPT_MODULES, *(GROUPS[group] for group in GROUPS if group not in modules)]
+    return {name: module.in_features for name, module in model.named_modules()
+            if isinstance(module, nn.Linear) and should_convert_module(name, kept)}
 
 
 def _model_class(model_dir: str | Path) -> Any:
