@@ -18,6 +18,8 @@ torch.set_num_threads(min(2, os.cpu_count() or 1))
 # (Without a GPU the fused Triton kernels run in triton's interpreter: the conftest.py of the repository sets it.)
 
 FIXTURES = Path(__file__).parent / "fixtures" / "openpi"
+# the scripts that made the fixtures run in openpi's JAX environment, not here: not collected (`--doctest-modules`)
+collect_ignore_glob = ["fixtures/*.py"]
 # Seconds a test waits for a subprocess, a socket or a kernel before calling it a hang. Generous on purpose: a loaded
 # machine only makes things slower, never wrong (make test's --timeout bounds each whole test at 1800 s).
 HANG_S = 900

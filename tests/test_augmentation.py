@@ -1,5 +1,5 @@
 """openpi's training-time image augmentation (`pi0_torch.training.augmentation`) against augmax's own outputs
-(`tests/fixtures/augmax`, recorded by `tests/fixtures/make_augmax_fixture.py` with openpi's pinned jax and augmax):
+(`tests/fixtures/augmax_reference`, recorded by `tests/fixtures/make_augmax_fixture.py` with openpi's pinned jax and augmax):
 the same images for the same parameters within 1e-5, and parameters drawn from the same distributions."""
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ import torch
 from pi0_torch.training.augmentation import (AugmentationDraws, augment_images, check_augmentable, color_jitter,
                                              draw_augmentation, warp)
 
-FIXTURE = Path(__file__).parent / "fixtures" / "augmax" / "augmax_reference.npz"
+FIXTURE = Path(__file__).parent / "fixtures" / "augmax_reference" / "augmax_reference.npz"
 CAMERAS = ("base_0_rgb", "left_wrist_0_rgb", "right_wrist_0_rgb")
 
 

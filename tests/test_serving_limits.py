@@ -154,6 +154,43 @@ def test_api_key_is_checked_in_the_handshake(server: ServeProcess, client_python
     assert result["replies"][0]["shape"] == [50, ACTION_DIM]
 
 
+def test_api_keys_no_client_could_send_are_refused_and_wrong_keys_are_held_off(monkeypatch: pytest.MonkeyPatch) -> None:
+    class Policy:  # what PolicyServer reads before serving
+        metadata: ClassVar[dict[str, Any]] = {}
+        camera_names: ClassVar[list[str]] = ["base_0_rgb"]
+
+    for key, message in (("", "non-empty"), ("a-long-enough-key ", "whitespace around it"), (" " * 20, "whitespace"),
+                         ("short-key", "at least 12 characters, got 9"), ("a-long-enough-k\u00e9y", "printable ASCII")):
+        with pytest.raises(ValueError, match=message):
+            PolicyServer(Policy(), api_key=key)  # type: ignore[arg-type]
+
+    class Connection:  # what the handshake's gate reads of a connection
+        state = websockets.protocol.State.OPEN
+
+        def __init__(self, address: str) -> None:
+            self.remote_address = (address, 50_000)
+
+        def respond(self, status: int, body: str) -> tuple[int, str]:
+            return status, body
+
+    def handshake(address: str, key: str | None) -> int | None:
+        headers = websockets.datastructures.Headers({"Authorization": f"Api-Key {key}"} if key else {})
+        response = server._admit(Connection(address), websockets.http11.Request("/", headers))  # type: ignore[arg-type]
+        return None if response is None else response[0]
+
+    clock = [1000.0]
+    monkeypatch.setattr(serving.time, "monotonic", lambda: clock[0])
+    server = PolicyServer(Policy(), api_key=API_KEY, limits=ServerLimits(key_failures=3, key_hold_off_s=60))  # type: ignore[arg-type]
+    assert [handshake("10.0.0.1", "guess") for _ in range(3)] == [401, 401, 401]
+    assert handshake("10.0.0.1", API_KEY) == 429  # held off: not even the right key is checked
+    assert handshake("10.0.0.2", API_KEY) is None  # another address is not
+    clock[0] += 61
+    assert handshake("10.0.0.1", "guess") == 401 and handshake("10.0.0.1", API_KEY) == 429  # one guess a minute
+    clock[0] += 61
+    assert handshake("10.0.0.1", API_KEY) is None  # the right key resets the count
+    assert handshake("10.0.0.1", None) == 401
+
+
 def test_listening_on_all_interfaces_without_a_key_warns(caplog: pytest.LogCaptureFixture) -> None:
     class Policy:  # what PolicyServer reads before serving
         metadata: ClassVar[dict[str, Any]] = {}
@@ -161,7 +198,7 @@ def test_listening_on_all_interfaces_without_a_key_warns(caplog: pytest.LogCaptu
 
     with caplog.at_level(logging.WARNING, logger="pi0_torch.runtime.serving"):
         PolicyServer(Policy(), host="127.0.0.1")  # type: ignore[arg-type]
-        PolicyServer(Policy(), host="0.0.0.0", api_key="k")  # type: ignore[arg-type]
+        PolicyServer(Policy(), host="0.0.0.0", api_key="a-long-enough-key")  # type: ignore[arg-type]
         assert not caplog.records
         PolicyServer(Policy(), host="0.0.0.0")  # type: ignore[arg-type]
     assert "without an API key" in caplog.text and "PI0_TORCH_API_KEY" in caplog.text

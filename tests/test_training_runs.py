@@ -19,6 +19,8 @@ import json
 import logging
 import re
 import shutil
+import subprocess
+import sys
 from dataclasses import replace
 from pathlib import Path
 
@@ -45,6 +47,8 @@ from pi0_torch.training.model_setup import run_processor_settings
 from pi0_torch.training.pi0_trainer import EMA_FILE, openpi_learning_rate
 from pi0_torch.training.settings import RESUME_APPLIED, RESUME_REFUSED, RESUME_UNCHECKED, TrainSettings
 from pi0_torch.training.trainer import main, train_policy
+from pi0_torch.utils import files
+from pi0_torch.utils.files import OutputPathError
 from pi0_torch.utils.files import OutputPathError
 
 DEMO_POLICY = Path(__file__).resolve().parents[1] / "pi0_torch" / "demo_policy"
@@ -105,6 +109,30 @@ def test_a_fresh_run_never_writes_into_another_runs_folder(dataset_root: Path, f
     assert result["steps_trained"] == 3
     assert sorted(p.name for p in output.glob("checkpoint-*")) == ["checkpoint-2", "checkpoint-3"]  # none of the old
     assert json.loads((output / TRAIN_SETTINGS_FILE).read_text())["final_step"] == 3
+
+
+def test_two_runs_into_one_folder_the_second_is_refused(dataset_root: Path, tmp_path: Path) -> None:
+    """Round 5, item 4: two runs started at once into one folder left a checkpoint with the first one's weights and
+    the second one's settings. The folder is held by its run (a lock beside it that the kernel drops when the holder
+    dies, however it dies); a second run is refused in one line, naming the holder."""
+    output = tmp_path / "run"
+    holder = subprocess.Popen([sys.executable, "-c", f"""
+import sys, time
+from pi0_torch.utils.files import output_lock
+with output_lock({str(output)!r}):
+    print("held", flush=True)
+    time.sleep(600)
+"""], stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        with pytest.raises(OutputPathError, match=rf"{re.escape(str(output))} is being written by another run \(pid "
+                                                  rf"{holder.pid} on .*\); wait for it to finish or choose another"):
+            train_policy(settings(dataset_root, output, max_steps=1))
+    finally:
+        holder.kill()  # SIGKILL: no cleanup runs in the holder
+        holder.wait()
+    assert train_policy(settings(dataset_root, output, max_steps=1))["steps_trained"] == 1
+    assert not any(path.name.endswith(files.LOCK_SUFFIX) for path in tmp_path.iterdir())  # released and removed
 
 
 def test_rerunning_a_finished_run_with_latest_trains_nothing(dataset_root: Path, finished_run: Path, tmp_path: Path,

@@ -11,6 +11,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+import safetensors
 import torch
 import transformers
 
@@ -370,6 +371,28 @@ def test_a_folder_of_pickled_weights_is_refused_in_one_line(saved: Path, tmp_pat
                                          r"loaded") as error:
         PI0ForActionGeneration.from_pretrained(pickled)
     assert "weights_only=False" not in str(error.value)
+
+
+def test_a_shard_index_pointing_outside_its_folder_is_refused(saved: Path, tmp_path: Path) -> None:
+    """A `model.safetensors.index.json` naming `../other/model.safetensors` or an absolute path would load another
+    folder's weights as this model's; as the dataset reader, the loader refuses shard paths leaving the folder."""
+    sharded = tmp_path / "sharded"
+    sharded.mkdir()
+    shutil.copy(saved / "config.json", sharded / "config.json")
+    names = list(safetensors.safe_open(saved / "model.safetensors", "pt").keys())
+    for shard in ("../elsewhere/model.safetensors", str(saved / "model.safetensors")):
+        index = {"metadata": {}, "weight_map": {name: shard for name in names}}
+        (sharded / "model.safetensors.index.json").write_text(json.dumps(index))
+        with pytest.raises(ValueError, match="names the shard .* outside the model folder"):
+            PI0ForActionGeneration.from_pretrained(sharded)
+    (sharded / "inside.safetensors").symlink_to(saved / "model.safetensors")  # a link leading out
+    index = {"metadata": {}, "weight_map": {name: "inside.safetensors" for name in names}}
+    (sharded / "model.safetensors.index.json").write_text(json.dumps(index))
+    with pytest.raises(ValueError, match="names the shard 'inside.safetensors' outside the model folder"):
+        PI0ForActionGeneration.from_pretrained(sharded)
+    (sharded / "inside.safetensors").unlink()
+    shutil.copy(saved / "model.safetensors", sharded / "inside.safetensors")  # the same shard, in the folder: loads
+    PI0ForActionGeneration.from_pretrained(sharded)
 
 
 def test_train_takes_demo_as_eval_and_serve_do() -> None:

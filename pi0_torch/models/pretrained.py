@@ -64,6 +64,7 @@ class PI0PreTrainedModel(PreTrainedModel):
         config_file = None if kwargs.get("config") else f"{kwargs['subfolder']}/config.json" if kwargs.get("subfolder") else "config.json"
         check_pretrained_location(pretrained_model_name_or_path, config_file, "model")
         _refuse_pickled_weights(pretrained_model_name_or_path, kwargs.get("subfolder"))
+        _check_shard_index(pretrained_model_name_or_path, kwargs.get("subfolder"))
         _check_quantization(pretrained_model_name_or_path, kwargs.get("subfolder"), kwargs.get("quantization_config"))
         want_info = kwargs.pop("output_loading_info", False)
         allow_mismatched = kwargs.pop("ignore_mismatched_sizes", False)  # an explicit opt-in to re-initialise them
@@ -126,6 +127,27 @@ def _refuse_pickled_weights(location: Any, subfolder: str | None) -> None:
         raise ValueError(f"{folder} holds only pickled weights ({', '.join(pickled[:3])}); pickled weights are not loaded "
                          "(unpickling can run any code): convert them to safetensors where you trust the file, e.g. "
                          "safetensors.torch.save_file(torch.load(path, weights_only=True), 'model.safetensors')")
+
+
+def _check_shard_index(location: Any, subfolder: str | None) -> None:
+    """A local folder's `model.safetensors.index.json` names shards inside the folder: a shard path that is absolute,
+    climbs out (`..`) or leads out through a link would load another folder's weights (or any file) as this model's."""
+    folder = Path(str(location)) / (subfolder or "")
+    index = folder / "model.safetensors.index.json"
+    if not index.is_file():
+        return
+    try:
+        weight_map = json.loads(index.read_text()).get("weight_map")
+    except (OSError, ValueError, AttributeError, RecursionError) as error:
+        raise ValueError(f"{index} is not a shard index (a JSON object with a weight_map): {error}") from None
+    if not isinstance(weight_map, dict) or not all(isinstance(shard, str) for shard in weight_map.values()):
+        raise ValueError(f"{index}: weight_map must map each tensor name to a shard file name")
+    inside = folder.resolve()
+    for shard in sorted(set(weight_map.values())):
+        path = Path(shard)
+        if path.is_absolute() or ".." in path.parts or not (folder / path).resolve().is_relative_to(inside):
+            raise ValueError(f"{index} names the shard {shard!r} outside the model folder; shards are loaded only "
+                             "from the folder itself")
 
 
 def is_quantized(directory: str | Path) -> bool:

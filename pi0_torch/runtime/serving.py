@@ -83,6 +83,8 @@ logger = logging.getLogger(__name__)
 API_KEY_ENV = "PI0_TORCH_API_KEY"
 MAX_MESSAGE_MIB = 4_096  # `--max-message-mib`: more than eight 4K float32 camera frames
 ALL_INTERFACES = ("0.0.0.0", "::", "")
+MIN_API_KEY_CHARS = 12
+MAX_TRACKED_ADDRESSES = 10_000  # addresses whose wrong keys are counted (`ServerLimits.key_failures`)
 _ARRAY_KINDS = "biufUS"  # bool, ints, floats, strings; object/void/complex arrays are refused both ways
 
 
@@ -277,6 +279,11 @@ class ServerLimits:
             refused, or that has had no actions yet, wait for this budget and are decoded one at a time, in arrival
             order; connections whose last request got actions are never held.
         refused_burst_s: how much refused work the budget allows at once before it holds frames (seconds of CPU).
+        key_failures: with an API key, an address whose handshakes brought a missing or wrong key this many times in a
+            row is held off: its handshakes get HTTP 429, unchecked, until `key_hold_off_s` after its last failure
+            (guessing keys runs at a few per minute instead of about a thousand a second). A right key resets its
+            count.
+        key_hold_off_s: see `key_failures`.
     """
 
     max_message_bytes: int = 16 * 2**20
@@ -289,16 +296,19 @@ class ServerLimits:
     displace_idle_s: float | None = 30.0
     refused_share: float = 0.1
     refused_burst_s: float = 0.05
+    key_failures: int = 10
+    key_hold_off_s: float = 60.0
 
     def __post_init__(self) -> None:
         for name in ("max_message_bytes", "max_prompt_chars", "max_image_pixels", "max_items", "max_objects",
-                     "max_connections"):
+                     "max_connections", "key_failures"):
             check_int(name, getattr(self, name), minimum=1)
         for name in ("idle_timeout_s", "displace_idle_s"):
             if getattr(self, name) is not None:
                 check_float(name, getattr(self, name), minimum=0.0, exclusive_minimum=True)
         check_float("refused_share", self.refused_share, minimum=0.0, maximum=1.0, exclusive_minimum=True)
         check_float("refused_burst_s", self.refused_burst_s, minimum=0.0, exclusive_minimum=True)
+        check_float("key_hold_off_s", self.key_hold_off_s, minimum=0.0)
 
     def check(self, observation: Mapping[str, Any]) -> None:
         """Refuse (with [`ObservationError`]) a default-layout observation whose prompt or frames exceed the limits."""
@@ -439,8 +449,8 @@ class PolicyServer:
     ) -> None:
         check_int("max_batch_size", max_batch_size, minimum=1, maximum=MAX_BATCH_SIZE)  # (a compiled warm-up runs each)
         check_int("port", port, minimum=0, maximum=65_535)
-        if api_key is not None and not api_key:
-            raise ValueError("api_key must be a non-empty string (or None for no access control)")
+        if api_key is not None:
+            check_api_key(api_key)
         self.policy = policy
         self.host = host
         self.port = port
@@ -459,6 +469,7 @@ class PolicyServer:
         self._stopping = False
         self._requests_served = 0
         self._clients: dict[ServerConnection, _Client] = {}  # handshakes let through, until their connection closes
+        self._key_failures: dict[str, tuple[int, float]] = {}  # address -> (wrong keys in a row, time of the last)
         self._closing: set[asyncio.Task[None]] = set()  # displaced connections being closed
         self._refusals = RefusalBudget(self.limits.refused_share, self.limits.refused_burst_s)
         self._untrusted_turn: asyncio.Lock | None = None  # one untrusted frame decoded at a time (FIFO)
@@ -568,13 +579,28 @@ class PolicyServer:
             return connection.respond(http.HTTPStatus.OK, "OK\n")
         peer = _peer(connection)
         if self._expected_authorization is not None:
+            address = connection.remote_address[0] if connection.remote_address else "?"
+            failures, last = self._key_failures.get(address, (0, 0.0))
+            now = time.monotonic()
+            if failures >= self.limits.key_failures and now - last < self.limits.key_hold_off_s:
+                return connection.respond(http.HTTPStatus.TOO_MANY_REQUESTS, f"{failures} handshakes in a row from "
+                                          f"this address had no or a wrong API key; try again in "
+                                          f"{self.limits.key_hold_off_s - (now - last):.0f} s\n")
             headers = request.headers.get_all("Authorization")
             given = headers[0].encode() if len(headers) == 1 else b""
             if not hmac.compare_digest(given, self._expected_authorization):
+                self._key_failures[address] = (failures + 1, now)
+                if len(self._key_failures) > MAX_TRACKED_ADDRESSES:  # (forget the oldest: bounded memory)
+                    del self._key_failures[min(self._key_failures, key=lambda key: self._key_failures[key][1])]
                 problem = "wrong" if given else "no" if not headers else f"{len(headers)} Authorization headers, not one:"
-                logger.warning("%s: refused: %s API key", peer, problem)
+                if failures + 1 == self.limits.key_failures:
+                    logger.warning("%s: refused: %s API key; %d in a row from %s: held off for %g s", peer, problem,
+                                   failures + 1, address, self.limits.key_hold_off_s)
+                elif failures < self.limits.key_failures:
+                    logger.warning("%s: refused: %s API key", peer, problem)
                 return connection.respond(http.HTTPStatus.UNAUTHORIZED, "missing or wrong API key: send one header "
                                           "'Authorization: Api-Key <key>' (WebsocketClientPolicy(api_key=...))\n")
+            self._key_failures.pop(address, None)
         self._clients = {c: client for c, client in self._clients.items() if c.state is not State.CLOSED}
         if len(self._clients) >= self.limits.max_connections and not self._displace_idle(peer):
             logger.warning("%s: refused: %d connections open (--max-connections)", peer, len(self._clients))
@@ -772,6 +798,21 @@ def _checked_extra_metadata(extra: Mapping[Any, Any], own: Mapping[str, Any]) ->
             raise ValueError(f"extra metadata (serve --metadata): {key!r} cannot be sent to clients ({error}); "
                              "expected JSON values with integers within 64 bits") from None
     return dict(extra)
+
+
+def check_api_key(key: str) -> None:
+    """Refuse, in one line, a key no client could send or that is easy to guess: empty, shorter than
+    `MIN_API_KEY_CHARS`, with whitespace around it (an HTTP header loses it), or not printable ASCII."""
+    if not isinstance(key, str) or not key:
+        raise ValueError("--api-key must be a non-empty string (or unset for no access control)")
+    if key != key.strip():
+        raise ValueError("--api-key has whitespace around it, which an HTTP header drops: no client could send it; "
+                         "remove it (a shell variable with a trailing newline or space is the usual cause)")
+    if not all(" " <= char <= "~" for char in key):
+        raise ValueError("--api-key must be printable ASCII (an HTTP header carries nothing else)")
+    if len(key) < MIN_API_KEY_CHARS:
+        raise ValueError(f"--api-key must be at least {MIN_API_KEY_CHARS} characters, got {len(key)} (e.g. "
+                         "python -c 'import secrets; print(secrets.token_urlsafe(24))')")
 
 
 def _peer(connection: ServerConnection) -> str:

@@ -5,7 +5,7 @@ each camera's image goes to [0, 1]; a camera whose name has no "wrist" is croppe
 sub-pixel offset, resized back and rotated by up to 5 degrees, all in one bilinear resampling (augmax composes the
 three into one coordinate map; outside the image is black); then every camera gets augmax's ColorJitter (brightness
 0.3, contrast 0.4, hue 0.1, applied to half the images); then back to [-1, 1]. Here the same math, checked against
-augmax's own outputs (`tests/fixtures/augmax`, within 1e-5 on float images):
+augmax's own outputs (`tests/fixtures/augmax_reference`, within 1e-5 on float images):
 
 - the warp: output pixel (i, j) samples the input at
   `(y, x) = T S R (i - (H/2 - 0.5), j - (W/2 - 0.5)) + (H/2 - 0.5, W/2 - 0.5)` with `R` the rotation by `theta`

@@ -19,6 +19,7 @@ settings and a loss plot into `--output-dir`, beside the `checkpoint-N/` folders
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
 import math
 import os
@@ -148,6 +149,20 @@ def train_policy(settings: TrainSettings) -> dict[str, Any]:
         settings = replace(settings, warmup_steps=warmup)
     settings = replace(settings, resume_from_checkpoint=resolve_resume_checkpoint(settings.output_dir, settings.resume_from_checkpoint))
     check_run_folder(settings)
+    # one run per output folder: a second one started into it is refused instead of mixing checkpoints (the main
+    # process holds it for all)
+    with files.output_lock(settings.output_dir) if _is_main_process() else contextlib.nullcontext():
+        return _train_in_folder(settings)
+
+
+def _is_main_process() -> bool:
+    """Whether this is the run's first process (`accelerate launch` / torchrun set RANK; a plain run is)."""
+    return os.environ.get("RANK", "0") == "0"
+
+
+def _train_in_folder(settings: TrainSettings) -> dict[str, Any]:
+    """`train_policy` once it holds the output folder."""
+    check_run_folder(settings)  # (again: a run that held the folder until now may have filled it)
     sharding.check_settings(settings.fsdp, settings.model, settings.resume_from_checkpoint)
     set_seed(settings.seed)
     config = load_config(settings)

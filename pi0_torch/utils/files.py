@@ -61,6 +61,7 @@ OWNER_FILE = ".pi0-torch-owner.json"
 MANIFEST_FILE = ".pi0-torch-manifest.json"  # the files pi0-torch wrote into a folder (see the module docstring)
 SHOWN_FOREIGN_FILES = 5  # foreign files named in a refusal
 PARTIAL_MARKER = ".partial-"
+LOCK_SUFFIX = ".pi0-torch-lock"  # `.{name}.pi0-torch-lock` beside a folder a run holds (`output_lock`)
 RESUMABLE_TAG = "resumable"  # the fixed tag of a partial folder that a later run continues (a download)
 
 
@@ -232,13 +233,17 @@ def sync_folder(folder: Path) -> None:
         os.close(descriptor)
 
 
-def claim(folder: Path) -> None:
-    """Write the owner file of a partial folder: this host, this process and its start time."""
+def _this_process() -> dict[str, object]:
+    """This host, this process and its start time (a recycled pid is another process)."""
     import psutil  # (imported where used: a torch-free deploy install may lack it)
 
     me = psutil.Process()
-    owner = {"host": socket.gethostname(), "pid": me.pid, "started": me.create_time()}
-    (folder / OWNER_FILE).write_text(json.dumps(owner))
+    return {"host": socket.gethostname(), "pid": me.pid, "started": me.create_time()}
+
+
+def claim(folder: Path) -> None:
+    """Write the owner file of a partial folder: this host, this process and its start time."""
+    (folder / OWNER_FILE).write_text(json.dumps(_this_process()))
 
 
 def _owner_is_dead(folder: Path) -> bool:
@@ -325,6 +330,46 @@ def atomic_output_dir(output_dir: str | os.PathLike[str], overwrite: bool = Fals
             except OSError:
                 break
         raise
+
+
+@contextmanager
+def output_lock(output_dir: str | os.PathLike[str], what: str = "--output-dir") -> Iterator[None]:
+    """Hold `output_dir` for one run: an exclusive lock (`flock`) on `.{name}.pi0-torch-lock` beside it, naming the
+    holder (host, pid, start time). A second run into the same folder is refused in one line (`OutputPathError`)
+    instead of mixing its checkpoints with the first's. The kernel drops the lock when its process dies, however it
+    dies, so a killed run never leaves a stale lock; the file is removed when the block ends."""
+    import fcntl
+
+    output_dir = Path(output_dir).expanduser().absolute()
+    lock = output_dir.with_name(f".{output_dir.name}{LOCK_SUFFIX}")
+    lock.parent.mkdir(parents=True, exist_ok=True)
+    while True:
+        handle = open(lock, "a+")  # noqa: SIM115 (held for the block)
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            handle.seek(0)
+            holder = handle.read().strip() or "a process that is starting"
+            handle.close()
+            raise OutputPathError(f"{output_dir} is being written by another run ({holder}); wait for it to finish or "
+                                  f"choose another {what}") from None
+        try:
+            same = os.fstat(handle.fileno()).st_ino == os.stat(lock).st_ino
+        except FileNotFoundError:
+            same = False
+        if same:  # (else the holder removed the file as we opened it: lock the new one)
+            break
+        handle.close()
+    try:
+        handle.seek(0)
+        handle.truncate()
+        owner = _this_process()
+        handle.write(f"pid {owner['pid']} on {owner['host']}")
+        handle.flush()
+        yield
+    finally:
+        lock.unlink(missing_ok=True)  # (while still locked: a run waiting on this file retries on the new one)
+        handle.close()
 
 
 @contextmanager
