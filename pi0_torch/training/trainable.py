@@ -11,6 +11,7 @@ gradient-carrying parameters static.
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Sequence
 
 from pi0_torch.utils.extras import require_extra
@@ -100,7 +101,9 @@ def apply_lora(
         modules_to_save=full_modules,
         exclude_modules=[name.rsplit(".", 1)[0] for name in unused],
     )
-    return get_peft_model(model, config)
+    with warnings.catch_warnings():  # (peft reads transformers' deprecated `is_gradient_checkpointing`: not the user's to fix)
+        warnings.filterwarnings("ignore", message=".*is_gradient_checkpointing.*", category=FutureWarning)
+        return get_peft_model(model, config)
 
 
 def merge_lora(model: nn.Module) -> PI0ForActionGeneration:
