@@ -125,3 +125,30 @@ def test_int4_groups_fit_every_quantized_width() -> None:
     demo = quantized_widths(demo_policy_dir(), ("expert",))  # (from the config alone)
     assert demo and all(name.startswith("layers.") and ".expert." in name for name in demo)
     assert sorted(set(demo.values())) == [48, 64, 96]
+
+
+def test_convert_writes_a_quantized_folder_in_one_command(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from conftest import FIXTURES
+
+    from pi0_torch.cli import main as cli_main
+    from pi0_torch.conversion.convert_openpi import convert_openpi_checkpoint
+    from pi0_torch.models.pretrained import is_quantized
+
+    source = FIXTURES / "pi0_small" / "ckpt" / "0"
+    output = tmp_path / "pi0_small_int8"
+    command = ["convert", "--from", "openpi", "--input", str(source), "--no-progress", "--output-dir", str(output)]
+    assert cli_main([*command, "--quantize", "fp8"]) == 1  # refused before converting: nothing written
+    assert "fp8 (float8 activations and weights) runs on CUDA GPUs" in capsys.readouterr().err
+    assert not output.exists()
+    assert cli_main([*command, "--quantize", "int8"]) == 0
+    assert f"quantized (int8, for cpu) into {output}" in capsys.readouterr().out
+    assert is_quantized(output) and sorted(path.name for path in tmp_path.iterdir()) == ["pi0_small_int8"]  # no scratch
+    quantized = PI0ForActionGeneration.from_pretrained(output).eval()
+    assert type(quantized.layers[0].vlm.gate_up_proj.weight).__name__ == "Int8Tensor"
+    float_model = PI0ForActionGeneration.from_pretrained(
+        convert_openpi_checkpoint(source, tmp_path / "float", progress=False).output_dir).eval()
+    inputs = float_model.sampling_program(1).example_inputs()
+    want = float_model.generate_actions(*inputs[:5], noise=inputs[5])
+    got = quantized.generate_actions(*inputs[:5], noise=inputs[5])
+    # quantized, and close (the fixture's random weights amplify rounding: measured 2.3e-2 of the largest action)
+    assert 0 < float((got - want).abs().max() / want.abs().max()) < 5e-2

@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -86,11 +87,48 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--value-conversion", choices=sorted(CONVERSIONS), help="processor: the robot's value "
                         "conversion the checkpoint was trained with (aloha: openpi's adapt_to_pi)")
     parser.add_argument("--max-shard-size", default="5GB", help="largest weight file before sharding (default: 5GB)")
+    parser.add_argument("--quantize", metavar="SCHEME", help="write the converted model quantized (the quant extra: "
+                        "torchao; int8, int8-dynamic, int4, fp8, fp8-weight; see pi0-torch quantize)")
+    parser.add_argument("--quantize-device", default="cpu", help="with --quantize: where the model will run (cpu or cuda)")
     parser.add_argument("--overwrite", action="store_true", help="replace a non-empty output folder")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
 def run(args: argparse.Namespace) -> int:
+    if not args.quantize:
+        return _convert(args)
+    from pi0_torch.conversion.quantize import QuantizationError, check_scheme, quantize_folder
+    from pi0_torch.utils.extras import MissingExtraError, require_extra
+
+    try:  # (before converting many GB: the scheme, the extra, the output folder)
+        require_extra("quant", "pi0-torch convert --quantize", modules=("torchao",))
+        check_scheme(args.quantize, args.quantize_device)
+        if args.target == "transformers":
+            raise QuantizationError("--quantize writes a pi0-torch folder, not --to transformers")
+        output = Path(args.output_dir).expanduser()
+        check_output_dir(output, args.overwrite)
+    except MissingExtraError as error:
+        print(f"error: {error.message('pi0-torch convert --quantize')}", file=sys.stderr)
+        return 1
+    except (QuantizationError, OutputPathError) as error:
+        print(f"error: {first_line(error)}", file=sys.stderr)
+        return 1
+    output.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(prefix=f".{output.name}.float-", dir=output.parent) as scratch:
+        converted = argparse.Namespace(**{**vars(args), "output_dir": str(Path(scratch) / "model"), "overwrite": False})
+        if (code := _convert(converted)) != 0:
+            return code
+        try:
+            folder = quantize_folder(converted.output_dir, output, args.quantize, args.quantize_device,
+                                     overwrite=args.overwrite)
+        except (ValueError, OSError) as error:
+            print(f"error: --quantize {args.quantize}: {first_line(error)}", file=sys.stderr)
+            return 1
+    print(f"quantized ({args.quantize}, for {args.quantize_device}) into {folder}")
+    return 0
+
+
+def _convert(args: argparse.Namespace) -> int:
     try:
         if args.target == "transformers":
             if args.source != "pi0-torch":

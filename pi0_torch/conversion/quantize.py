@@ -1,7 +1,8 @@
 """Quantized π0 / π0.5 / π0-FAST models with torchao, the transformers way: `from_pretrained(folder,
 quantization_config=torchao_config("int8"))` quantizes while loading, `save_pretrained` writes the quantized weights
 (safetensors) with the quantization in `config.json`, and loading that folder gives the quantized model back.
-`pi0-torch quantize MODEL_DIR --output-dir DIR --scheme int8` does both and copies the processor files.
+`pi0-torch quantize MODEL_DIR --output-dir DIR --scheme int8` does both and copies the processor files;
+`pi0-torch convert ... --quantize int8` converts and quantizes in one command.
 
 Which layers: the decoder projections of both Gemma experts (q/k/v, o, gate/up, down) and SigLIP's attention and MLP
 projections (`GROUPS`; `--modules` chooses among them). Kept in their dtype, always: the embeddings, the norms (π0.5's
