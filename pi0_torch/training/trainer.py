@@ -215,8 +215,12 @@ def _train_in_folder(settings: TrainSettings) -> dict[str, Any]:
         trainer.train(resume_from_checkpoint=settings.resume_from_checkpoint)
 
     final = sharding.gather_model(trainer.model) if settings.fsdp else merge_lora(trainer.model)  # (all processes)
-    broken = next((name for name, value in final.state_dict().items()
-                   if value.is_floating_point() and not bool(torch.isfinite(value).all())), None)
+    broken = None if final is None else next((name for name, value in final.state_dict().items()  # (FSDP: the main
+                                              if value.is_floating_point() and not bool(torch.isfinite(value).all())), None)
+    if settings.fsdp:  # process holds the gathered model: every process learns its verdict, and stops alike
+        flag = torch.tensor([float(broken is not None)], device=trainer.accelerator.device)
+        if float(trainer.accelerator.reduce(flag, "sum")) > 0 and broken is None:
+            broken = "named by the main process"
     if divergence.step is not None or broken is not None:
         last = [path.name for path in sorted(Path(settings.output_dir).glob("checkpoint-*"), key=_step_of)]
         raise TrainingDivergedError(
