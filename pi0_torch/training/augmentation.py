@@ -92,8 +92,10 @@ def color_jitter(images: torch.Tensor, brightness: torch.Tensor, contrast: torch
     """augmax's ColorJitter on `images` `[N, 3, H, W]` in [0, 1] with per-image amounts `[N]`; images where `apply`
     `[N]` is False come back unchanged."""
     shape = (-1, 1, 1)
-    value, channel = images.max(dim=1)  # [N, H, W] (the first largest channel on ties)
-    spread = value - images.min(dim=1).values
+    red, green, blue = images.unbind(1)  # [N, H, W] each (elementwise: several times faster than max/min over dim 1)
+    value = torch.maximum(torch.maximum(red, green), blue)
+    spread = value - torch.minimum(torch.minimum(red, green), blue)
+    channel = torch.where((red >= green) & (red >= blue), 0, torch.where(green >= blue, 1, 2))  # the first largest
     following = torch.gather(images, 1, ((channel + 1) % 3)[:, None]).squeeze(1)
     after_that = torch.gather(images, 1, ((channel + 2) % 3)[:, None]).squeeze(1)
     turns = torch.where(spread == 0, 0.0, (2 * channel + (following - after_that) / spread) / 6)
