@@ -136,13 +136,13 @@ def augment_images(pixel_values: torch.Tensor, camera_names: Sequence[str], draw
         raise ValueError(f"augmentation takes 3-channel float images [B, C, 3, H, W] in [-1, 1], got shape "
                          f"{tuple(pixel_values.shape)} dtype {pixel_values.dtype}")
     device = pixel_values.device
-    outputs = []
-    for index, name in enumerate(camera_names):
-        kind = int("wrist" in name)
+    kinds = [int("wrist" in name) for name in camera_names]  # per camera: 0 non-wrist, 1 wrist
+    warped = []
+    for index, kind in enumerate(kinds):
         images = pixel_values[:, index].float() / 2.0 + 0.5  # [B, 3, H, W] in [0, 1]
-        if not kind:
-            images = warp(images, draws.crop_offset.to(device), draws.angle.to(device))
-        images = color_jitter(images, draws.brightness[:, kind].to(device), draws.contrast[:, kind].to(device),
-                              draws.hue[:, kind].to(device), draws.apply_jitter[:, kind].to(device))
-        outputs.append(images * 2.0 - 1.0)
-    return torch.stack(outputs, dim=1).to(pixel_values.dtype)
+        warped.append(images if kind else warp(images, draws.crop_offset.to(device), draws.angle.to(device)))
+    # one jitter over every camera's images (camera-major [C * B, 3, H, W]), each with its camera kind's amounts
+    amounts = [torch.cat([getattr(draws, name)[:, kind] for kind in kinds]).to(device)
+               for name in ("brightness", "contrast", "hue", "apply_jitter")]
+    jittered = color_jitter(torch.cat(warped), *amounts)
+    return (jittered * 2.0 - 1.0).view(cameras, batch, channels, height, width).transpose(0, 1).to(pixel_values.dtype)
