@@ -38,8 +38,9 @@ import torch.nn.functional as F
 from torch import nn
 
 from pi0_torch import __version__
-from pi0_torch.deploy.folder import (DEPLOY_FILE, FORMAT_NAME, FORMAT_VERSION, FORMATS, INPUT_NAMES, MIN_OPSET,
-                                     ONNX_PROTOBUF_LIMIT, OUTPUT_NAMES, REFERENCE_FILE, file_sha256)
+from pi0_torch.deploy.folder import (ACTION_TOLERANCE, DEPLOY_FILE, FORMAT_NAME, FORMAT_VERSION, FORMATS, INPUT_NAMES,
+                                     MIN_OPSET, ONNX_PROTOBUF_LIMIT, OUTPUT_NAMES, REFERENCE_FILE, action_deviation,
+                                     file_sha256)
 from pi0_torch.processing.normalization import apply_delta, normalize, unnormalize
 from pi0_torch.runtime.policy_settings import SETTINGS_FILE
 from pi0_torch.shipped_policy import policy_location
@@ -51,9 +52,6 @@ logger = logging.getLogger(__name__)
 
 DTYPES = {"float32": torch.float32, "bfloat16": torch.bfloat16, "float16": torch.float16}
 DEVICES = ("cpu", "cuda")
-# The artifact's actions against the model's own on the same inputs, max |difference| / max |action| (the engine's
-# bounds: `pi0_torch.inference.graphs.VERIFY_TOLERANCE`; an exporter's rewrite reorders float sums, nothing more)
-EXPORT_TOLERANCE = {torch.float32: 1e-4, torch.bfloat16: 3e-2, torch.float16: 3e-2}
 REFERENCE_PROMPT = "pick up the object"
 
 
@@ -171,7 +169,7 @@ def export_model(
     expected = _model_actions(model, processor, inputs, num_steps)  # generate_actions' own, the oracle
     # (traced with autograd on, as a deployment may call it: the program's own no_grad region is then recorded)
     exported = torch.export.export(graph, inputs, strict=False)
-    bound = EXPORT_TOLERANCE[DTYPES[dtype]]
+    bound = ACTION_TOLERANCE[dtype]
     traced = exported.module()(*inputs)
     _verify("the traced program", traced, expected, bound)
 
@@ -212,7 +210,8 @@ def _check_exportable(model_dir: Path, fmt: str, dtype: str, device: str) -> Non
         raise ExportError(f"{model_dir} is not a model folder (no config.json); pi0-torch export takes a folder written "
                           "by pi0-torch convert, train or save_pretrained ('demo': the shipped demo policy)")
     try:
-        model_type = json.loads(config_path.read_text()).get("model_type")
+        config = json.loads(config_path.read_text())
+        model_type = config.get("model_type")
     except (OSError, ValueError, RecursionError, AttributeError) as error:
         raise ExportError(f"{config_path}: not a readable model config ({first_line(error)})") from None
     if model_type == "pi0_fast_torch":
@@ -220,7 +219,7 @@ def _check_exportable(model_dir: Path, fmt: str, dtype: str, device: str) -> Non
                           "π0.5, which sample a fixed number of flow steps, are); serve it with pi0-torch serve")
     if model_type != "pi0_torch":
         raise ExportError(f"{config_path}: model_type {model_type!r}; pi0-torch export takes π0 / π0.5 folders ('pi0_torch')")
-    if json.loads(config_path.read_text()).get("quantization_config"):
+    if config.get("quantization_config"):
         raise ExportError(f"{model_dir} is quantized (torchao): export the float model it came from; an engine quantizes "
                           "for its hardware (TensorRT: NVIDIA ModelOpt's INT8 / FP8, docs/deploy.md)")
     if (model_dir / "adapter_config.json").is_file():
@@ -258,8 +257,7 @@ def _model_actions(model: nn.Module, processor: Any, inputs: tuple[torch.Tensor,
 
 
 def _verify(what: str, got: torch.Tensor, want: torch.Tensor, bound: float) -> None:
-    got, want = got.float().cpu(), want.float().cpu()
-    deviation = float((got - want).abs().max() / want.abs().max().clamp(min=1e-12)) if bool(torch.isfinite(got).all()) else float("inf")
+    deviation = action_deviation(got.float().cpu().numpy(), want.float().cpu().numpy())
     if not deviation <= bound:
         raise ExportError(f"{what} deviates from generate_actions by {deviation:.3g} of the largest action (bound {bound:g}); "
                           "nothing was written (please report this with the model's config)")

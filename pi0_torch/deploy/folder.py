@@ -34,6 +34,8 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 DEPLOY_FILE = "deploy.json"
 REFERENCE_FILE = "reference.npz"
 FORMAT_NAME = "pi0-torch-export"
@@ -43,6 +45,17 @@ INPUT_NAMES = ("images", "image_masks", "input_ids", "attention_mask", "state", 
 OUTPUT_NAMES = ("actions",)
 MIN_OPSET = 18  # RMSNorm's and RoPE's ops as exported (public ports patch them by hand below 18)
 ONNX_PROTOBUF_LIMIT = 2 * 1024**3  # above it an ONNX model keeps its weights as external data
+# An artifact's actions against the model's own on the same inputs (at export) and against `reference.npz` (when a
+# runtime loads it), max |difference| / max |action|, by the weights' dtype: the engine's bounds
+# (`pi0_torch.inference.graphs.VERIFY_TOLERANCE`); an exporter's rewrite reorders float sums, nothing more
+ACTION_TOLERANCE = {"float32": 1e-4, "bfloat16": 3e-2, "float16": 3e-2}
+
+
+def action_deviation(got: np.ndarray, want: np.ndarray) -> float:
+    """max |got - want| / max |want| (inf where `got` holds NaN or inf): what `ACTION_TOLERANCE` bounds."""
+    if not np.isfinite(got).all():
+        return float("inf")
+    return float(np.abs(got - want).max() / max(float(np.abs(want).max()), 1e-12))
 
 
 class ExportFolderError(ValueError):

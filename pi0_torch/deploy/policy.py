@@ -29,17 +29,16 @@ from typing import Any
 
 import numpy as np
 
-from pi0_torch.deploy.folder import INPUT_NAMES, REFERENCE_FILE, ExportFolderError, check_artifact_hash, read_deploy
-from pi0_torch.deploy.runners import ONNX_PROVIDERS, load_runner
-from pi0_torch.runtime.action_safety import UnsafeActionsError, non_finite_count
+from pi0_torch.deploy.folder import (ACTION_TOLERANCE, DEPLOY_FILE, FORMAT_NAME, INPUT_NAMES, REFERENCE_FILE,
+                                     ExportFolderError, action_deviation, check_artifact_hash, read_deploy)
+from pi0_torch.deploy.runners import check_provider, load_runner
+from pi0_torch.runtime.action_safety import withhold_unsafe
 from pi0_torch.runtime.observation_formats import ObservationError, default_layout_sample
 from pi0_torch.runtime.policy_settings import MAX_NOISE_SCALE, PolicySettings
 from pi0_torch.utils.threads import MAX_THREADS, SMALL_MODEL_PARAMETERS
 from pi0_torch.utils.validation import check_float, check_int
 
 logger = logging.getLogger(__name__)
-
-SELF_CHECK_TOLERANCE = {"float32": 1e-4, "bfloat16": 3e-2, "float16": 3e-2}  # the export's own bounds
 
 
 @dataclasses.dataclass
@@ -89,8 +88,7 @@ class ExportedPolicy:
         elif int(spec["model"].get("parameters", SMALL_MODEL_PARAMETERS)) < SMALL_MODEL_PARAMETERS:
             threads = 1  # (as `pi0-torch eval` runs a small model: more threads only slow it down)
         artifact = spec["artifact"]
-        if artifact["format"] == "onnx" and provider not in ONNX_PROVIDERS:
-            raise ExportFolderError(f"provider must be one of {sorted(ONNX_PROVIDERS)}, got {provider!r}")
+        check_provider(artifact["format"], provider)
         if artifact["format"] == "onnx" and provider == "cpu" and artifact["dtype"] != "float32":
             raise ExportFolderError(f"{directory} holds a {artifact['dtype']} ONNX graph, which onnxruntime runs on its "
                                     "'cuda' and 'tensorrt' providers only (its CPU provider has no such kernels): export "
@@ -121,8 +119,8 @@ class ExportedPolicy:
         reference = np.load(self.directory / REFERENCE_FILE)
         actions = self.runner([reference[name] for name in INPUT_NAMES])
         want = reference["actions"]
-        deviation = float(np.abs(actions - want).max() / max(float(np.abs(want).max()), 1e-12)) if np.isfinite(actions).all() else float("inf")
-        bound = SELF_CHECK_TOLERANCE.get(self.spec["artifact"]["dtype"], 1e-4)
+        deviation = action_deviation(actions, want)
+        bound = ACTION_TOLERANCE.get(self.spec["artifact"]["dtype"], ACTION_TOLERANCE["float32"])
         if not deviation <= bound:
             raise ExportFolderError(f"{self.directory}: this runtime ({self.provider}) returns actions that deviate from "
                                     f"the export's by {deviation:.3g} of the largest action (bound {bound:g})")
@@ -188,22 +186,9 @@ class ExportedPolicy:
                       np.stack([p.state for p in padded]), noise]
             chunks.extend(self.runner(inputs)[: len(group)])
         infer_ms = (time.monotonic() - start) * 1000
-        outcomes: list[dict[str, Any] | UnsafeActionsError] = []
-        for index, chunk in enumerate(chunks):
-            robot = chunk if self._conversion is None else self._conversion.actions_to_robot(chunk)
-            robot = np.asarray(robot, np.float32)
-            bad = non_finite_count(robot)
-            if bad:
-                where = f"observation {index} of a batch of {len(chunks)}: " if len(chunks) > 1 else ""
-                outcomes.append(UnsafeActionsError(f"{where}the action chunk holds {bad} NaN/inf values and was withheld; "
-                                                   f"cause: the exported graph returned NaN/inf ({self.spec['artifact']['dtype']}, "
-                                                   f"{self.provider}, noise_scale {self.noise_scale:g})"))
-            else:
-                outcomes.append({"actions": robot, "policy_timing": {"infer_ms": infer_ms, "batch_size": len(chunks)}})
-        unsafe = [outcome for outcome in outcomes if isinstance(outcome, UnsafeActionsError)]
-        if unsafe:
-            raise UnsafeActionsError(str(unsafe[0]), outcomes)
-        return outcomes  # type: ignore[return-value]
+        robot = [chunk if self._conversion is None else self._conversion.actions_to_robot(chunk) for chunk in chunks]
+        artifact = f"{self.spec['artifact']['dtype']}, {self.provider}, noise_scale {self.noise_scale:g}"
+        return withhold_unsafe(robot, lambda index: f"the exported graph returned NaN/inf ({artifact})", infer_ms)
 
     def infer(self, observation: Mapping[str, Any]) -> dict[str, Any]:
         """Actions for one observation: `{"actions": float32 [horizon, robot action dims], "policy_timing": ...}`."""
@@ -228,10 +213,10 @@ class ExportedPolicy:
 
 def is_export_folder(directory: str | Path) -> bool:
     """Whether `directory` holds an exported policy (`deploy.json`), for commands that take either kind of folder."""
-    path = Path(directory) / "deploy.json"
+    path = Path(directory) / DEPLOY_FILE
     if not path.is_file():
         return False
     try:
-        return json.loads(path.read_text()).get("format") == "pi0-torch-export"
+        return json.loads(path.read_text()).get("format") == FORMAT_NAME
     except (OSError, ValueError, AttributeError, RecursionError):
         return True  # (one that claims to be: `read_deploy` names what is wrong with it)

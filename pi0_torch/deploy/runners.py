@@ -19,11 +19,20 @@ ONNX_PROVIDERS = {
 }
 
 
+def check_provider(fmt: str, provider: str) -> None:
+    """Refuse, in one line, a provider that cannot run a graph of format `fmt`."""
+    if fmt == "onnx" and provider not in ONNX_PROVIDERS:
+        raise ExportFolderError(f"provider must be one of {sorted(ONNX_PROVIDERS)}, got {provider!r}")
+    if fmt == "pt2" and provider not in ("cpu", "cuda"):
+        raise ExportFolderError(f"an AOTInductor package runs on 'cpu' or 'cuda' (what it was compiled for), not {provider!r}")
+
+
 def load_runner(path: Path, fmt: str, provider: str = "cpu", threads: int | None = None,
                 input_names: Sequence[str] = INPUT_NAMES) -> Runner:
     """A callable running the graph at `path` (`fmt` "onnx" or "pt2") on `provider` ("cpu", "cuda", or for ONNX
     "tensorrt"); `threads`: intra-op threads (None: the runtime's default); `input_names`: the graph's inputs, in the
     order the callable takes them."""
+    check_provider(fmt, provider)
     if fmt == "onnx":
         return _onnx_runner(path, provider, threads, tuple(input_names))
     return _pt2_runner(path, provider, threads)
@@ -35,8 +44,6 @@ def _onnx_runner(path: Path, provider: str, threads: int | None, input_names: tu
                                 "the CUDA and TensorRT providers)")
     import onnxruntime
 
-    if provider not in ONNX_PROVIDERS:
-        raise ExportFolderError(f"provider must be one of {sorted(ONNX_PROVIDERS)}, got {provider!r}")
     wanted = ONNX_PROVIDERS[provider]
     available = onnxruntime.get_available_providers()
     if wanted[0] not in available:
@@ -68,8 +75,6 @@ def _pt2_runner(path: Path, provider: str, threads: int | None) -> Runner:
                                 "version it was compiled with; an ONNX export runs without torch")
     import torch
 
-    if provider not in ("cpu", "cuda"):
-        raise ExportFolderError(f"an AOTInductor package runs on 'cpu' or 'cuda' (what it was compiled for), not {provider!r}")
     if threads is not None:
         torch.set_num_threads(threads)
     try:

@@ -26,7 +26,7 @@ from safetensors import SafetensorError
 from pi0_torch import __version__
 from pi0_torch.models.configuration_base import SIZE_LIMITS
 from pi0_torch.models.pretrained import is_quantized
-from pi0_torch.runtime.action_safety import UnsafeActionsError, non_finite_count
+from pi0_torch.runtime.action_safety import withhold_unsafe
 from pi0_torch.runtime.observation_formats import ObservationError, default_layout_sample
 from pi0_torch.runtime.policy_settings import SETTINGS_FILE, PolicySettings
 from pi0_torch.shipped_policy import policy_location
@@ -241,20 +241,8 @@ class BasePolicy(abc.ABC):
             for index, chunk in zip(members, chunks):
                 actions[index] = chunk
         model_ms = (time.monotonic() - start) * 1000
-        outcomes: list[dict[str, Any] | UnsafeActionsError] = []
-        for index, (chunk, p) in enumerate(zip(actions, prepared)):
-            robot = np.asarray(self.processor.postprocess_actions(chunk, state=p.state), dtype=np.float32)
-            bad = non_finite_count(robot)
-            if bad:
-                where = f"observation {index} of a batch of {len(prepared)}: " if len(prepared) > 1 else ""
-                outcomes.append(UnsafeActionsError(f"{where}the action chunk holds {bad} NaN/inf values and was "
-                                                   f"withheld; cause: {self._unsafe_cause(chunk, p)}"))
-            else:
-                outcomes.append({"actions": robot, "policy_timing": {"infer_ms": model_ms, "batch_size": len(prepared)}})
-        unsafe = [outcome for outcome in outcomes if isinstance(outcome, UnsafeActionsError)]
-        if unsafe:
-            raise UnsafeActionsError(str(unsafe[0]), outcomes)
-        return outcomes  # type: ignore[return-value]
+        robot = [self.processor.postprocess_actions(chunk, state=p.state) for chunk, p in zip(actions, prepared)]
+        return withhold_unsafe(robot, lambda index: self._unsafe_cause(actions[index], prepared[index]), model_ms)
 
     def infer(self, observation: Mapping[str, Any]) -> dict[str, Any]:
         """Actions for one observation: `{"actions": float32 [horizon, robot action dims], "policy_timing": ...}`."""
