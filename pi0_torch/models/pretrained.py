@@ -63,9 +63,12 @@ class PI0PreTrainedModel(PreTrainedModel):
         """
         config_file = None if kwargs.get("config") else f"{kwargs['subfolder']}/config.json" if kwargs.get("subfolder") else "config.json"
         check_pretrained_location(pretrained_model_name_or_path, config_file, "model")
-        _refuse_pickled_weights(pretrained_model_name_or_path, kwargs.get("subfolder"))
-        _check_shard_index(pretrained_model_name_or_path, kwargs.get("subfolder"))
-        _check_quantization(pretrained_model_name_or_path, kwargs.get("subfolder"), kwargs.get("quantization_config"))
+        folder = Path(str(pretrained_model_name_or_path)) / (kwargs.get("subfolder") or "")
+        local = folder.is_dir()  # (else a hub id: transformers' own checks)
+        if local:
+            _refuse_pickled_weights(folder)
+            _check_shard_index(folder)
+            _check_quantization(folder, kwargs.get("quantization_config"))
         want_info = kwargs.pop("output_loading_info", False)
         allow_mismatched = kwargs.pop("ignore_mismatched_sizes", False)  # an explicit opt-in to re-initialise them
         with hub_errors(pretrained_model_name_or_path, "model"), transformers_progress(kwargs.pop("verbose", False)):
@@ -78,7 +81,7 @@ class PI0PreTrainedModel(PreTrainedModel):
             "mis-shaped": [] if allow_mismatched else sorted(_describe_mismatch(item) for item in info.get("mismatched_keys", ())),
         }
         problems = {kind: names for kind, names in problems.items() if names}
-        wrong_kind = _non_floating_weights(pretrained_model_name_or_path, kwargs.get("subfolder"), model)
+        wrong_kind = _non_floating_weights(folder, model) if local else []
         if wrong_kind:
             problems["not floating-point"] = wrong_kind
         if problems:
@@ -96,15 +99,12 @@ class PI0PreTrainedModel(PreTrainedModel):
         return result
 
 
-def _non_floating_weights(location: Any, subfolder: str | None, model: nn.Module) -> list[str]:
+def _non_floating_weights(folder: Path, model: nn.Module) -> list[str]:
     """The tensors of a local checkpoint's safetensors files that are stored as integers, booleans or 8-bit floats
     where the model has a floating-point parameter or buffer (`name (I32)`): transformers casts them silently (the demo
     policy saved as int32 loaded with 560 of 272,947 parameters non-zero and returned normal-looking actions)."""
     from safetensors import safe_open
 
-    folder = Path(str(location)) / (subfolder or "")
-    if not folder.is_dir():
-        return []
     floating = {name for name, tensor in model.state_dict().items() if tensor.is_floating_point()}
     found = []
     for path in sorted(folder.glob("*.safetensors")):
@@ -116,11 +116,10 @@ def _non_floating_weights(location: Any, subfolder: str | None, model: nn.Module
     return sorted(found)
 
 
-def _refuse_pickled_weights(location: Any, subfolder: str | None) -> None:
+def _refuse_pickled_weights(folder: Path) -> None:
     """A local folder whose weights are only pickled (`pytorch_model.bin`, `*.pt`): unpickling runs arbitrary code, and
     torch's refusal recommends exactly that (`weights_only=False`), so it is refused first, in one line."""
-    folder = Path(str(location)) / (subfolder or "")
-    if not folder.is_dir() or any(folder.glob("*.safetensors")):
+    if any(folder.glob("*.safetensors")):
         return
     pickled = sorted(path.name for pattern in ("*.bin", "*.pt", "*.pth", "*.ckpt") for path in folder.glob(pattern))
     if pickled:
@@ -129,10 +128,9 @@ def _refuse_pickled_weights(location: Any, subfolder: str | None) -> None:
                          "safetensors.torch.save_file(torch.load(path, weights_only=True), 'model.safetensors')")
 
 
-def _check_shard_index(location: Any, subfolder: str | None) -> None:
+def _check_shard_index(folder: Path) -> None:
     """A local folder's `model.safetensors.index.json` names shards inside the folder: a shard path that is absolute,
     climbs out (`..`) or leads out through a link would load another folder's weights (or any file) as this model's."""
-    folder = Path(str(location)) / (subfolder or "")
     index = folder / "model.safetensors.index.json"
     if not index.is_file():
         return
@@ -160,13 +158,12 @@ def is_quantized(directory: str | Path) -> bool:
         return False
 
 
-def _check_quantization(location: Any, subfolder: str | None, asked: Any) -> None:
+def _check_quantization(folder: Path, asked: Any) -> None:
     """A quantized folder (its `config.json` records a `quantization_config`) loads with torchao installed; quantizing
     it again is refused. Both in one line, before transformers tries."""
     from pi0_torch.utils.extras import require_extra
 
-    folder = Path(str(location)) / (subfolder or "")
-    if not folder.is_dir() or not is_quantized(folder):
+    if not is_quantized(folder):
         return
     if asked is not None:
         raise ValueError(f"{folder} is quantized already (its config.json records a quantization_config); load it as it "
