@@ -26,8 +26,7 @@ from collections.abc import Callable, Iterator
 import torch
 
 from pi0_torch.benchmark import TEXT_TOKENS, graph_time, step_gemms
-from pi0_torch.inference.fused_pass import FUSED_TOLERANCE
-from pi0_torch.inference.graphs import relative_deviation
+from pi0_torch.inference.checks import FUSED_TOLERANCE, relative_deviation
 from pi0_torch.kernels import reference, triton_kernels
 from pi0_torch.kernels.triton_kernels import AttentionBlocks, Blocks
 from pi0_torch.models.configuration_pi0 import PI0Config

@@ -45,8 +45,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from persistent_mlp import compile_variants, experiment_main, print_times
 
-from pi0_torch.inference.fused_pass import FUSED_TOLERANCE
-from pi0_torch.inference.graphs import relative_deviation
+from pi0_torch.inference.checks import FUSED_TOLERANCE, relative_deviation
 from pi0_torch.kernels import ops, persistent, reference
 from pi0_torch.kernels.persistent import (
     PHASES,

@@ -45,8 +45,7 @@ import triton
 import triton.language as tl
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from pi0_torch.inference.fused_pass import FUSED_TOLERANCE
-from pi0_torch.inference.graphs import relative_deviation
+from pi0_torch.inference.checks import FUSED_TOLERANCE, relative_deviation
 from pi0_torch.kernels import reference
 from pi0_torch.kernels.persistent import SPINS, _gate_up_tile, _residual_tile
 from pi0_torch.kernels.triton_kernels import INTERPRETING, cdiv, dot_dtype

@@ -49,7 +49,7 @@ from pi0_torch.utils.timing import seconds, time_alternating
 from pi0_torch.models.configuration_pi0_fast import PI0FastConfig, fast_preset_names
 from pi0_torch.inference.conditioning import euler_times
 from pi0_torch.kernels.reference import rope_cos_sin
-from pi0_torch.inference.graphs import relative_deviation
+from pi0_torch.inference.checks import relative_deviation
 from pi0_torch.inference.layout import InputFacts
 from pi0_torch.inference.plan import SamplingInputs, SamplingPlan, SamplingRoute
 from pi0_torch.models.modeling_pi0 import PI0ForActionGeneration
@@ -525,7 +525,8 @@ def sample_on_meta(
     )
     max_guidance = DEFAULT_MAX_GUIDANCE if rtc_method == "guidance" else 0.0
     with torch.no_grad(), (AtenOpCounter() if count else contextlib.nullcontext()) as counter:
-        plan = SamplingPlan(layout, tuple(euler_times(steps)), rtc_method, max_guidance, fused, fused and persistent)
+        plan = SamplingPlan(layout, tuple(euler_times(steps)), rtc_method, max_guidance,
+                            ("persistent" if persistent else "triton") if fused else "torch")
         sampled = model.sample_planned(inputs, plan)
     return sampled, counter
 

@@ -13,7 +13,7 @@ seconds the row took:
   growing sequence), and on CUDA its compiled decoding (CUDA graphs) against eager.
 
 Bounds: float32 1e-4 and bf16 3e-2, the openpi fixtures' (tests/test_parity.py); graph against eager
-`pi0_torch.inference.graphs.VERIFY_TOLERANCE`. A CUDA error fails its row; one that loses the CUDA context stops the
+`pi0_torch.inference.checks.VERIFY_TOLERANCE`. A CUDA error fails its row; one that loses the CUDA context stops the
 run, naming the row. Exits 1 on any FAIL.
 
     pi0-torch doctor                          # small sizes, on CUDA when present (seconds)
@@ -39,7 +39,7 @@ from typing import Any
 import psutil
 import torch
 
-from pi0_torch.inference.graphs import VERIFY_TOLERANCE, relative_deviation
+from pi0_torch.inference.checks import VERIFY_TOLERANCE, relative_deviation
 from pi0_torch.kernels import ops
 from pi0_torch.models.configuration_pi0 import PI0Config
 from pi0_torch.models.configuration_pi0_fast import PI0FastConfig

@@ -30,7 +30,7 @@ def unaligned(tensor: torch.Tensor) -> torch.Tensor:
 def cases(K: Any) -> dict[str, Callable[[], Any]]:
     """Calls of the fused ops (`triton_kernels` as `K`) whose launches are compared, one launch each: the classes
     below, and every variant of the other kernels that sampling runs (the first-call check's cases at full width)."""
-    from pi0_torch.inference.fused_pass import _sampling_cases
+    from pi0_torch.inference.checks import op_name, sampling_cases
 
     generator = torch.Generator().manual_seed(0)
 
@@ -51,9 +51,9 @@ def cases(K: Any) -> dict[str, Callable[[], Any]]:
         "matmul_residual_, split-K": lambda: K.matmul_residual_(residual, y, weight, None),
         "matmul_residual_, gated": lambda: K.matmul_residual_(residual, y, weight, gate),
         "range_attention, key parts": lambda: K.range_attention(query, key_cache, value_cache, first, ends),
-        **{f"{name}, variant {index}": (lambda name=name, arguments=make(): getattr(K, name)(*arguments))
-           for index, (name, make) in enumerate(_sampling_cases(torch.device("cpu"), torch.bfloat16, 1024, 8, 256, 4096, 32, 1152))
-           if name in ("norm_qkv_rope", "norm_gate_up_geglu", "norm_linear_euler_", "embed_actions", "add_layer_norm_")},
+        **{f"{op_name(op)}, variant {index}": (lambda name=op_name(op), arguments=make(): getattr(K, name)(*arguments))
+           for index, (op, make) in enumerate(sampling_cases(torch.device("cpu"), torch.bfloat16, 1024, 8, 256, 4096, 32, 1152))
+           if op_name(op) in ("norm_qkv_rope", "norm_gate_up_geglu", "norm_linear_euler_", "embed_actions", "add_layer_norm_")},
     }
 
 

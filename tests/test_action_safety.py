@@ -181,11 +181,11 @@ def test_auto_leaves_a_persistent_launch_that_abandoned_a_wait(monkeypatch: pyte
     """Under "auto" where the fused kernels apply (as on CUDA in bf16), an eager chunk of one sample takes the
     persistent launch. The chunk in which a launch abandons a wait is withheld, naming the launch; from the next chunk
     on "auto" samples with five launches per decoder layer there (logged once), and the chunks are fine again."""
-    from pi0_torch.inference import fused_pass
+    from pi0_torch.inference import checks
     from pi0_torch.kernels import persistent
 
     monkeypatch.setattr(persistent, "_watches", {})  # (this test's watch, not the process's)
-    monkeypatch.setattr(fused_pass, "_AVOIDED", set())
+    monkeypatch.setattr(checks, "_AVOIDED", set())
     policy = tiny_policy(rtc_max_delay=0)
     model = policy.model
     assert model.sampling_kernels == "auto"
@@ -203,7 +203,7 @@ def test_auto_leaves_a_persistent_launch_that_abandoned_a_wait(monkeypatch: pyte
     with pytest.raises(UnsafeActionsError, match=r"withheld; cause: persistent launch abandoned a wait that did not end "
                                                  r".*\(sampling_kernels='auto' samples without it from the next chunk\)"):
         policy.infer(OBSERVATION)
-    with caplog.at_level("WARNING", logger="pi0_torch.inference.fused_pass"):
+    with caplog.at_level("WARNING", logger="pi0_torch.inference.checks"):
         for _ in range(2):
             assert np.isfinite(policy.infer(OBSERVATION)["actions"]).all()
     assert [plan.persistent for plan, _ in model._fused_refusals] == [True, False]  # (five launches, verified)

@@ -259,12 +259,12 @@ def test_auto_leaves_the_persistent_launch_once_one_gave_up_a_wait_on_this_gpu(m
     watchdog and samples with five launches per decoder layer, verified on its first call, and is fine again."""
     from pi0_torch import PI0Config, PI0ForActionGeneration
     from pi0_torch.benchmark import example_batch
-    from pi0_torch.inference import fused_pass
+    from pi0_torch.inference import checks
     from pi0_torch.inference.sampling import SamplingRoute
     from pi0_torch.kernels import persistent
 
     monkeypatch.setattr(persistent, "_watches", {})  # (this test's watchdog, not the process's)
-    monkeypatch.setattr(fused_pass, "_AVOIDED", set())
+    monkeypatch.setattr(checks, "_AVOIDED", set())
     torch.manual_seed(0)
     config = PI0Config.from_preset("pi0", num_hidden_layers=2, vision_num_layers=2)
     with CUDA:

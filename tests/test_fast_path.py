@@ -388,7 +388,7 @@ def test_compiled_calls_raise_the_recompile_limit_in_their_own_thread(monkeypatc
     limit = "recompile_limit" if hasattr(torch._dynamo.config, "recompile_limit") else "cache_size_limit"
     model = PI0ForActionGeneration(PI0Config.from_preset("pi0_small", num_hidden_layers=1)).eval()
     model.compile_sampling()
-    monkeypatch.setattr(model, "sample_planned", lambda inputs, plan: inputs.noise)
+    monkeypatch.setattr(model, "sample_planned", lambda inputs, plan, *weights: inputs.noise)
     batch = dict(pixel_values=torch.zeros(1, 3, 3, 224, 224), image_masks=torch.ones(1, 3, dtype=torch.bool),
                  input_ids=torch.ones(1, 8, dtype=torch.long), attention_mask=torch.ones(1, 8, dtype=torch.bool),
                  state=torch.zeros(1, 32))
@@ -490,7 +490,7 @@ def record_sampling_calls(model: PI0ForActionGeneration, monkeypatch: pytest.Mon
     """The (inputs, plan) of every `sample_planned` call `model` makes from now on, in order."""
     calls: list[tuple[SamplingInputs, SamplingPlan]] = []
     sample = model.sample_planned
-    monkeypatch.setattr(model, "sample_planned", lambda inputs, plan: calls.append((inputs, plan)) or sample(inputs, plan))
+    monkeypatch.setattr(model, "sample_planned", lambda inputs, plan, *weights: calls.append((inputs, plan)) or sample(inputs, plan, *weights))
     return calls
 
 
@@ -511,14 +511,15 @@ def test_a_refused_guidance_capture_samples_eagerly_and_keeps_the_other_graphs(
     graphs = SamplingGraphs(model, guidance=True)
     graphs.graphs["captured before"] = kept = object()
 
-    def refused(inputs: SamplingInputs, plan: SamplingPlan) -> None:
+    def refused(inputs: SamplingInputs, plan: SamplingPlan, weights: object = None) -> None:
         raise SamplingCaptureError("could not capture sampling with RTC guidance as a CUDA graph (operation not permitted)")
 
     monkeypatch.setattr(graphs, "_capture", refused)
     assert graphs.covers("guidance")
     with caplog.at_level(logging.WARNING), torch.no_grad():  # (as `generate_actions` calls it)
-        actions = graphs.run(guided_inputs, guided_plan)
+        actions, refusal = graphs.run(guided_inputs, guided_plan)
     torch.testing.assert_close(actions, guided, rtol=0, atol=0)  # the eager guided chunk
+    assert refusal == "could not capture sampling with RTC guidance as a CUDA graph (operation not permitted)"
     assert not actions.is_inference()  # (the caller may change it in place)
     assert not graphs.covers("guidance") and graphs.covers("conditioning") and graphs.covers(None)
     model._graphs = graphs
@@ -556,7 +557,7 @@ def test_a_graph_whose_first_replay_differs_from_eager_is_refused_and_its_plan_s
 
     captures: list[str | None] = []
 
-    def capture(inputs: SamplingInputs, plan: SamplingPlan) -> tuple[CapturedSampling, torch.Tensor]:
+    def capture(inputs: SamplingInputs, plan: SamplingPlan, weights: object = None) -> tuple[CapturedSampling, torch.Tensor]:
         captures.append(plan.rtc_method)
         eager = sample(inputs, plan)
         output = torch.empty_like(eager)
@@ -567,12 +568,14 @@ def test_a_graph_whose_first_replay_differs_from_eager_is_refused_and_its_plan_s
     graphs = SamplingGraphs(model)
     monkeypatch.setattr(graphs, "_capture", capture)
     with caplog.at_level(logging.WARNING), torch.no_grad():
-        first = graphs.run(plain_inputs, plain_plan)
-        again = graphs.run(plain_inputs, plain_plan)
-        kept = graphs.run(conditioned_inputs, conditioned_plan)
+        first, first_refusal = graphs.run(plain_inputs, plain_plan)
+        again, again_refusal = graphs.run(plain_inputs, plain_plan)
+        kept, kept_refusal = graphs.run(conditioned_inputs, conditioned_plan)
     torch.testing.assert_close(first, plain, rtol=0, atol=0)  # the eager actions, not the graph's
     torch.testing.assert_close(again, plain, rtol=0, atol=0)
     torch.testing.assert_close(kept, conditioned, rtol=0, atol=0)
+    assert first_refusal == again_refusal == graphs.refused[plain_plan, input_signature(plain_inputs)]
+    assert kept_refusal is None  # (replayed)
     assert captures == [None, "conditioning"]  # the refused plan is not captured again
     assert list(graphs.refused) == [(plain_plan, input_signature(plain_inputs))] and len(graphs.graphs) == 1
     assert caplog.text.count("was refused") == 1, caplog.text
@@ -583,7 +586,7 @@ def test_a_graph_whose_first_replay_differs_from_eager_is_refused_and_its_plan_s
     unverified = SamplingGraphs(model, verify=False)
     monkeypatch.setattr(unverified, "_capture", capture)
     with torch.no_grad():
-        torch.testing.assert_close(unverified.run(plain_inputs, plain_plan), plain * 3.0)
+        torch.testing.assert_close(unverified.run(plain_inputs, plain_plan)[0], plain * 3.0)
     assert not unverified.refused
 
 

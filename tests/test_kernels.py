@@ -19,7 +19,7 @@ from conftest import OpenpiReference, relative_error
 
 from pi0_torch import PI0Config, PI0ForActionGeneration
 from pi0_torch.benchmark import sample_on_meta
-from pi0_torch.inference import fused_pass, vision_pass
+from pi0_torch.inference import checks, fused_pass, vision_pass
 from pi0_torch.inference.layout import InputFacts
 from pi0_torch.inference.plan import SamplingRoute
 from pi0_torch.kernels import ops, reference
@@ -282,12 +282,12 @@ def test_auto_runs_the_fused_steps_only_where_they_apply(monkeypatch: pytest.Mon
     with pytest.raises(ValueError, match="sampling_kernels must be one of"):
         model.sampling_kernels = "cuda"
 
-    fused_pass.fused_kernels_reason.cache_clear()
+    checks.sampling_ops_reason.cache_clear()
     broken = kernels().norm_gate_up_geglu
     monkeypatch.setattr(kernels(), "norm_gate_up_geglu", lambda *args: broken(*args) * 1.5)
-    reason = fused_pass.fused_kernels_reason(DEVICE, torch.float32, 64, 2, 16, 128, 32, 48)
+    reason = checks.sampling_ops_reason(DEVICE, torch.float32, 64, 2, 16, 128, 32, 48)
     assert reason.startswith("the fused kernel norm_gate_up_geglu differs from its torch reference"), reason
-    fused_pass.fused_kernels_reason.cache_clear()
+    checks.sampling_ops_reason.cache_clear()
 
 
 def test_each_fused_plan_is_verified_against_the_unfused_path_on_its_first_call(monkeypatch: pytest.MonkeyPatch,
@@ -304,7 +304,7 @@ def test_each_fused_plan_is_verified_against_the_unfused_path_on_its_first_call(
     unfused = model.generate_actions(**inputs, num_steps=2)
     samplings: list[bool] = []  # plan.fused of each `sample_planned`
     sample = model.sample_planned
-    monkeypatch.setattr(model, "sample_planned", lambda inputs, plan: samplings.append(plan.fused) or sample(inputs, plan))
+    monkeypatch.setattr(model, "sample_planned", lambda inputs, plan, *weights: samplings.append(plan.fused) or sample(inputs, plan, *weights))
 
     model.sampling_kernels = "triton"
     first = model.generate_actions(**inputs, num_steps=2)
@@ -375,8 +375,8 @@ def test_auto_runs_the_persistent_launch_in_eager_calls_of_few_samples(monkeypat
     monkeypatch.setattr(model, "fused_steps_reason", lambda *args: None)
     samplings: list[tuple[bool, bool]] = []  # (plan.fused, plan.persistent) of each `sample_planned`
     sample = model.sample_planned
-    monkeypatch.setattr(model, "sample_planned", lambda inputs, plan: samplings.append((plan.fused, plan.persistent))
-                        or sample(inputs, plan))
+    monkeypatch.setattr(model, "sample_planned", lambda inputs, plan, *weights: samplings.append((plan.fused, plan.persistent))
+                        or sample(inputs, plan, *weights))
     first = {name: value[:1] for name, value in inputs.items()}
     one = model.generate_actions(**first, num_steps=2)
     assert samplings == [(False, False), (True, True)]  # verified: unfused, then in persistent launches
@@ -433,6 +433,30 @@ def test_the_fused_steps_run_few_kernels_per_layer_and_step() -> None:
         # (the steps' 5 ops per layer become one per step; plus the stacked norm scales and adaRMS tensors: 2 and 6)
         assert persistent.kernels <= fused.kernels - 10 * (5 * layers - 1) + (6 if config.pi05 else 2), (
             persistent.kernels, fused.kernels)
+
+
+def test_every_fused_op_the_engine_launches_has_a_self_check_case() -> None:
+    """Each fused op a sampling or decoding path launches is checked against its torch reference before first use:
+    the ops counted on the meta device (full size, bf16, five launches per layer; π0-FAST's decoded token) all have a
+    case in `checks.sampling_cases` / `checks.decoding_cases`, paired by the op itself. The persistent launch
+    (`expert_layers_`) is the five per-layer ops in one kernel: each plan of it is verified on its first call
+    (`checks.verify_fused_sampling`), which `test_auto_runs_the_persistent_launch_in_eager_calls_of_few_samples`
+    covers."""
+    from pi0_torch.benchmark import decode_step_on_meta
+    from pi0_torch.models.configuration_pi0_fast import PI0FastConfig
+
+    ours = {name for name in dir(ops) if isinstance(getattr(ops, name), torch._library.custom_ops.CustomOpDef)}
+    cpu = torch.device("cpu")
+    checked = {checks.op_name(op) for op, _ in checks.sampling_cases(cpu, torch.float32, 64, 2, 16, 128, 32, 48)}
+    facts = InputFacts(((True, True, True),), (48,), 48)
+    for preset in ("pi0", "pi05"):
+        _, fused = sample_on_meta(PI0Config.from_preset(preset), facts, 2, torch.bfloat16, fused=True)
+        launched = {name for name, count in fused.ops.items() if count and name in ours}
+        assert launched and launched <= checked, (preset, launched - checked)
+    decoded = decode_step_on_meta(PI0FastConfig.from_preset("pi0_fast"), fused=True)
+    launched = {name for name, count in decoded.ops.items() if count and name in ours}
+    checked = {checks.op_name(op) for op, _ in checks.decoding_cases(cpu, torch.float32, 2, 16, 128, 1, 64)}
+    assert launched and launched <= checked, launched - checked
 
 
 def test_every_kernel_variant_fits_the_shared_memory_of_an_rtx_4090() -> None:

@@ -15,7 +15,7 @@ import torch
 
 from pi0_torch import PI0FastConfig, PI0FastForActionGeneration
 from pi0_torch.conversion.openpi_weights import config_from_openpi_shapes, load_openpi_params
-from pi0_torch.inference import fast_decoding
+from pi0_torch.inference import checks, fast_decoding
 from pi0_torch.inference.decoding_graphs import DecodingGraphs
 from pi0_torch.kernels import ops
 from pi0_torch.masks import prefix_lm_mask
@@ -417,15 +417,15 @@ def test_fused_decoding_matches_openpi_and_the_modules(fast_reference: FastRefer
     steps = int(fast_reference["inputs/max_decoding_steps"])
     model.decoding_kernels = "triton"
     assert model.decoding_kernels_reason(torch.device("cpu"), torch.float32) is None
-    fast_decoding.decoding_kernels_reason.cache_clear()
+    checks.decoding_ops_reason.cache_clear()
     tokens = model.generate_tokens(**infer, max_new_tokens=steps)
     cameras, text = infer["pixel_values"].shape[1], infer["input_ids"].shape[1]
     slots = model.decoding_slots(cameras, text, steps)  # (the call's own shapes were checked)
-    assert fast_decoding.decoding_kernels_reason.cache_info().currsize == 1
-    assert fast_decoding.decoding_kernels_reason(torch.device("cpu"), torch.float32, model.config.num_attention_heads,
+    assert checks.decoding_ops_reason.cache_info().currsize == 1
+    assert checks.decoding_ops_reason(torch.device("cpu"), torch.float32, model.config.num_attention_heads,
                                                  model.config.head_dim, model.config.intermediate_size,
                                                  tokens.shape[0], slots) is None
-    assert fast_decoding.decoding_kernels_reason.cache_info().hits == 1
+    assert checks.decoding_ops_reason.cache_info().hits == 1
     with torch.no_grad():
         assert model.prepare_decoding(*infer.values(), steps)[0].keys[0].shape[2] == slots
     np.testing.assert_array_equal(tokens.numpy(), fast_reference["fp32/output_tokens"])
@@ -474,9 +474,9 @@ def test_decoding_kernels_run_only_where_they_apply(monkeypatch: pytest.MonkeyPa
         return
     from pi0_torch.kernels import triton_kernels
 
-    fast_decoding.decoding_kernels_reason.cache_clear()
+    checks.decoding_ops_reason.cache_clear()
     broken = triton_kernels.range_attention
     monkeypatch.setattr(triton_kernels, "range_attention", lambda *args: broken(*args) * 1.5)
-    reason = fast_decoding.decoding_kernels_reason(cpu, torch.float32, 2, 32, 128, 3, 600)
+    reason = checks.decoding_ops_reason(cpu, torch.float32, 2, 32, 128, 3, 600)
     assert reason.startswith("the fused kernel range_attention differs from its torch reference"), reason
-    fast_decoding.decoding_kernels_reason.cache_clear()
+    checks.decoding_ops_reason.cache_clear()

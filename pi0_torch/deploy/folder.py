@@ -47,7 +47,7 @@ MIN_OPSET = 18  # RMSNorm's and RoPE's ops as exported (public ports patch them 
 ONNX_PROTOBUF_LIMIT = 2 * 1024**3  # above it an ONNX model keeps its weights as external data
 # An artifact's actions against the model's own on the same inputs (at export) and against `reference.npz` (when a
 # runtime loads it), max |difference| / max |action|, by the weights' dtype: the engine's bounds
-# (`pi0_torch.inference.graphs.VERIFY_TOLERANCE`); an exporter's rewrite reorders float sums, nothing more
+# (`pi0_torch.inference.checks.VERIFY_TOLERANCE`); an exporter's rewrite reorders float sums, nothing more
 ACTION_TOLERANCE = {"float32": 1e-4, "bfloat16": 3e-2, "float16": 3e-2}
 
 

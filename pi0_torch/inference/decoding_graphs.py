@@ -30,8 +30,8 @@ from typing import TYPE_CHECKING, Any
 
 import torch
 
-from pi0_torch.inference.graphs import (GraphCaptureError, capture_streams, record_graph, relative_deviation,
-                                       verify_bound)
+from pi0_torch.inference.checks import relative_deviation, verify_bound
+from pi0_torch.inference.graphs import GraphCaptureError, capture_streams, record_graph
 
 if TYPE_CHECKING:
     from collections.abc import Callable

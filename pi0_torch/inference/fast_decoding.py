@@ -11,67 +11,24 @@ included) and π0's fused GEMM kernels, tiled for the suffix's 50 rows, are not 
 
 It computes what `FastDecoderLayer` computes with a k/v buffer, with fewer roundings in bf16 (RoPE rounds once, the
 residual adds round with their GEMM). Used on CUDA in bf16 / fp16 (`PI0FastForActionGeneration.decoding_kernels`,
-"auto") after `decoding_kernels_reason` found the kernels equal to their torch references at the model's sizes and the
+"auto") after `checks.decoding_ops_reason` found the kernels equal to their torch references at the model's sizes and the
 call's batch size and cache length on that device; the prefill runs the modules.
 """
 
 from __future__ import annotations
 
-import functools
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import torch
 
-from pi0_torch.inference.fused_pass import attention_shape_reason, kernels_reason, seeded_random
-from pi0_torch.inference.layer_pass import SamplingWeights, expert_sampling_weights, runs_extra_code, runs_its_weights
+from pi0_torch.inference.layer_pass import SamplingWeights, expert_sampling_weights
 from pi0_torch.kernels import ops
-from pi0_torch.kernels.reference import rms_norm, rope_cos_sin
+from pi0_torch.kernels.reference import rms_norm
 
 if TYPE_CHECKING:
     from pi0_torch.models.modeling_pi0_fast import FastDecoderLayer
-
-
-def structural_reason(layers: Sequence[FastDecoderLayer], kv_heads: int, head_dim: int) -> str | None:
-    """Why the fused ops cannot run these decoder layers at all (None: they can)."""
-    if (reason := attention_shape_reason(kv_heads, head_dim)) is not None:
-        return reason
-    if any(runs_extra_code(layer) or not runs_its_weights(layer.block) for layer in layers):
-        return "a layer's projections are not plain weights (LoRA, quantized or hooked layers, autocast)"
-    return None
-
-
-@functools.lru_cache(maxsize=None)
-def decoding_kernels_reason(device: torch.device, dtype: torch.dtype, heads: int, head_dim: int, mlp_width: int,
-                            batch: int, slots: int) -> str | None:
-    """Why the fused ops of a decoded token may not run on `device` in `dtype` for `batch` rows over caches of `slots`
-    (None: they may): triton is unusable there, or one of them, run once on random inputs shaped exactly as
-    decoding's (one row per sample, the slot a device value, a key range that ends before the cache does), differs
-    from its torch reference or fails. Triton compiles a kernel anew per class of its arguments (an integer equal to
-    1 or divisible by 16, the number of key parts), so each batch size and cache length is checked once; a refusal
-    is logged once."""
-
-    def cases() -> list[tuple[str, Callable[[], tuple]]]:
-        random = seeded_random(device, dtype)
-        end = slots - 1 - slots // 32  # the token decoded into slot end - 1; the slots after it not written yet
-        positions = torch.arange(batch, device=device)[:, None] * 7 + end // 2  # [B, 1]
-        cos, sin = rope_cos_sin(positions, head_dim, 10_000.0)  # [B, 1, H]
-        first = torch.arange(batch, device=device) * 13 % max(1, end // 2)  # [B]
-
-        def cache() -> torch.Tensor:  # [B, S, H]: NaN after the token's slot (never read)
-            nan = torch.full((batch, slots - end, head_dim), float("nan"), device=device, dtype=dtype)
-            return torch.cat([random(batch, end, head_dim), nan], dim=1)
-
-        return [
-            ("rope_cache_write", lambda: (random(batch, (heads + 2) * head_dim), cos, sin, cache(), cache(), 0,
-                                          torch.tensor([end - 1], device=device))),
-            ("range_attention", lambda: (random(batch, 1, heads, head_dim), cache(), cache(), first,
-                                         torch.tensor([end], device=device))),
-            ("geglu", lambda: (random(batch, 2 * mlp_width),)),
-        ]
-
-    return kernels_reason(device, dtype, cases, "π0-FAST decodes through the modules")
 
 
 @dataclass(frozen=True)

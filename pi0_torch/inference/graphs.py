@@ -10,7 +10,7 @@ capture stream); later calls copy their inputs into the graph's static buffers, 
 output, which the next replay does not overwrite.
 
 Every graph is verified when it is captured: its first replay must give the actions of the last warm-up run, an eager
-run of the same inputs, within `VERIFY_TOLERANCE` (relative to the largest action). A graph that does not is refused
+run of the same inputs, within `checks.VERIFY_TOLERANCE` (relative to the largest action). A graph that does not is refused
 with a warning naming its plan and the deviation, and that plan samples eagerly from then on: no graph ever replays
 other actions than eager sampling silently. (The first GPU run found one that did: real-time chunking's guidance, whose
 per-step vector-Jacobian product is autograd work, replayed as if the product were zero; guided chunks therefore
@@ -35,23 +35,16 @@ from typing import TYPE_CHECKING, Any
 
 import torch
 
+from pi0_torch.inference.checks import relative_deviation, verify_bound
+
 if TYPE_CHECKING:
+    from pi0_torch.inference.layer_pass import ModelSamplingWeights
     from pi0_torch.inference.plan import SamplingInputs, SamplingPlan
     from pi0_torch.models.modeling_pi0 import PI0ForActionGeneration
 
 logger = logging.getLogger(__name__)
 
 WARMUP_RUNS = 2  # before a capture (cuBLAS / cuDNN pick and allocate on their first calls)
-# A graph's first replay against eager sampling of the same inputs, max |difference| / max |eager action|. Both run the
-# same kernels, so they agree to rounding; a wrong graph is off by the actions' own size (guidance: 1.1-1.2). The
-# bounds are the openpi fixtures' (tests/test_parity.py): float32 agrees with openpi to 1e-4; bf16 sampling differs from
-# float32 by 3.8e-3-5.5e-3 there, and 1e-2 is twice that (fp16 likewise).
-VERIFY_TOLERANCE = {torch.float32: 1e-4, torch.bfloat16: 1e-2, torch.float16: 1e-2}
-
-
-def verify_bound(dtype: torch.dtype) -> float:
-    """`VERIFY_TOLERANCE` of a model in `dtype` (float32's for any other dtype)."""
-    return VERIFY_TOLERANCE.get(dtype, VERIFY_TOLERANCE[torch.float32])
 
 
 class GraphCaptureError(RuntimeError):
@@ -77,16 +70,8 @@ def input_signature(inputs: SamplingInputs) -> tuple[Any, ...]:
 def describe_plan(plan: SamplingPlan, batch: int) -> str:
     """`sampling with RTC guidance (batch 1, 10 steps, 800 prefix slots, fused steps)`: a plan in a log line."""
     what = "sampling" if plan.rtc_method is None else f"sampling with RTC {plan.rtc_method}"
-    steps = (", fused steps in persistent launches" if plan.persistent else ", fused steps") if plan.fused else ""
+    steps = {"torch": "", "triton": ", fused steps", "persistent": ", fused steps in persistent launches"}[plan.steps]
     return f"{what} (batch {batch}, {len(plan.times)} steps, {plan.layout.length} prefix slots{steps})"
-
-
-def relative_deviation(got: torch.Tensor, want: torch.Tensor) -> float:
-    """max |got - want| / max |want| (inf where `got` is not finite)."""
-    got, want = got.float(), want.float()
-    if not bool(torch.isfinite(got).all()):
-        return float("inf")
-    return float((got - want).abs().max() / want.abs().max().clamp(min=1e-12))
 
 
 class SamplingGraphs:
@@ -115,41 +100,43 @@ class SamplingGraphs:
         """Whether sampling with this real-time chunking method (None: plain) replays graphs."""
         return rtc_method != "guidance" or self.guidance
 
-    def run(self, inputs: SamplingInputs, plan: SamplingPlan) -> torch.Tensor:
+    def run(self, inputs: SamplingInputs, plan: SamplingPlan,
+            weights: ModelSamplingWeights | None = None) -> tuple[torch.Tensor, str | None]:
         """Actions `[B, horizon, action_dim]` for `inputs` (on CUDA) by replaying the plan's graph (captured and
-        verified on first use), or eagerly for a plan whose graph was refused."""
+        verified on first use), or eagerly for a plan whose graph was refused; and why no graph replayed (None: one
+        did). `weights`: the call's plain-weights check (`layer_pass.model_sampling_weights`)."""
         batch = inputs.noise.shape[0]
         if self.batch_sizes is not None and batch not in self.batch_sizes:
             raise ValueError(f"batch size {batch}: sampling is captured for batch sizes {list(self.batch_sizes)} only "
                              "(model.capture_sampling(batch_sizes=...))")
         key = (plan, input_signature(inputs))
         if key in self.refused:
-            return self.model.sample_planned(inputs, plan)
+            return self.model.sample_planned(inputs, plan, weights), self.refused[key]
         captured = self.graphs.get(key)
         if captured is None:
-            eager = None
+            eager, failed = None, None
             try:
-                captured, eager = self._capture(inputs, plan)
+                captured, eager = self._capture(inputs, plan, weights)
             except SamplingCaptureError as error:
                 if plan.rtc_method != "guidance":
                     raise
                 logger.warning("%s; chunks guided by real-time chunking sample eagerly from now on", error)
-                self.guidance = False
+                self.guidance, failed = False, str(error)
             if captured is None:  # (outside the `except`: its traceback holds the failed capture's tensors)
-                return self.model.sample_planned(inputs, plan)
+                return self.model.sample_planned(inputs, plan, weights), failed
             refusal = self._verify(captured, eager, plan) if self.verify else None
             if refusal is not None:
                 self.refused[key] = refusal
                 logger.warning("the CUDA graph of %s was refused: %s; that plan samples eagerly from now on",
                                describe_plan(plan, batch), refusal)
-                return eager.clone()  # (these inputs' eager actions)
+                return eager.clone(), refusal  # (these inputs' eager actions)
             self.graphs[key] = captured
         with torch.inference_mode():
             for static, value in zip(_tensors(captured.inputs), _tensors(inputs)):
                 if static is not None:
                     static.copy_(value)
             captured.graph.replay()
-        return captured.output.clone()  # (outside inference mode: a normal tensor the next replay leaves alone)
+        return captured.output.clone(), None  # (outside inference mode: a normal tensor the next replay leaves alone)
 
     def _verify(self, captured: CapturedSampling, eager: torch.Tensor, plan: SamplingPlan) -> str | None:
         """Why the graph's first replay is refused (None: it gives the actions of `eager`, the last warm-up run of the
@@ -162,7 +149,8 @@ class SamplingGraphs:
             return None
         return f"its first replay deviates from eager sampling by {deviation:.3g} of the largest action (bound {bound:g})"
 
-    def _capture(self, inputs: SamplingInputs, plan: SamplingPlan) -> tuple[CapturedSampling, torch.Tensor]:
+    def _capture(self, inputs: SamplingInputs, plan: SamplingPlan,
+                 weights: ModelSamplingWeights | None = None) -> tuple[CapturedSampling, torch.Tensor]:
         """Warm up and capture the plan's graph: the graph, and the last warm-up run's actions (eager sampling of the
         same inputs, to verify the graph against)."""
         device = inputs.noise.device
@@ -173,7 +161,7 @@ class SamplingGraphs:
                 self.stream, self.warmup_stream = capture_streams(device)
             pool = self.pools[guided] if guided in self.pools else torch.cuda.graph_pool_handle()
             try:
-                graph, output, eager = record_graph(lambda: self.model.sample_planned(static, plan), device, self.stream,
+                graph, output, eager = record_graph(lambda: self.model.sample_planned(static, plan, weights), device, self.stream,
                                                     self.warmup_stream, pool)
             except GraphCaptureError as error:
                 self.pools.pop(guided, None)  # (never captured into again)

@@ -10,6 +10,7 @@ projection after its norm as the GEMM's bias (`project_normed`). Where that is n
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -77,6 +78,30 @@ def layer_sampling_weights(layer: JointDecoderLayer, vlm: bool, expert: bool) ->
     experts = layer._modules
     return (expert_sampling_weights(experts["vlm"]) if vlm else CALL_MODULES,
             expert_sampling_weights(experts["expert"]) if expert else CALL_MODULES)
+
+
+@dataclass(frozen=True)
+class ModelSamplingWeights:
+    """The plain-weights check of one sampling call (`model_sampling_weights`), made once per call (a user may add a
+    hook or an adapter between calls) and shared by its gate and every pass of it."""
+
+    layers: tuple[tuple[SamplingWeights, SamplingWeights], ...]  # per decoder layer: (VLM, action expert)
+    plain_action_linears: bool  # the action projections (π0: and the action/time MLP) are plain linears
+
+
+def model_sampling_weights(model: nn.Module) -> ModelSamplingWeights:
+    """Each decoder layer's (VLM, action expert) `SamplingWeights` of a π0 / π0.5 `model`, and whether its action
+    projections are plain linear layers with biases."""
+    action_linears = [model.action_in_proj, model.action_out_proj]
+    if not model.config.pi05:
+        action_linears += [model.action_time_mlp_in, model.action_time_mlp_out]
+    return ModelSamplingWeights(tuple(layer_sampling_weights(layer, vlm=True, expert=True) for layer in model.layers),
+                                all(plain_linear(linear, bias=True) for linear in action_linears))
+
+
+def decoder_sampling_weights(layers: Sequence[nn.Module]) -> list[SamplingWeights]:
+    """Each π0-FAST decoder layer's `SamplingWeights` (`CALL_MODULES` where the layer itself runs extra code)."""
+    return [CALL_MODULES if runs_extra_code(layer) else expert_sampling_weights(layer.block) for layer in layers]
 
 
 def plain_linear(module: nn.Module | None, bias: bool) -> bool:

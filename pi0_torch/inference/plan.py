@@ -1,10 +1,11 @@
 """What one sampling call runs, as the engine hands it around: its checked inputs (`SamplingInputs`), the host-side
-settings it was planned with (`SamplingPlan`: one CUDA graph or exported program per plan and input shapes), and what
-ran it in the end (`SamplingRoute`, `model.last_sampling_route`)."""
+settings it was planned with (`SamplingPlan`: one CUDA graph or exported program per plan and input shapes), and the
+record of what was decided for it (`SamplingDecision`, made with the plan, completed as the call runs), which
+`model.last_sampling_route` reports (`SamplingRoute`)."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 
 import torch
 
@@ -35,9 +36,19 @@ class SamplingPlan:
     times: tuple[float, ...]
     rtc_method: str | None = None  # None: plain sampling
     max_guidance: float = 0.0
-    fused: bool = False  # the steps in the fused kernels (`pi0_torch.inference.fused_pass`)
-    persistent: bool = False  # (fused) each step's decoder layers in one launch (`pi0_torch.kernels.persistent`)
+    steps: str = "torch"  # what runs the Euler steps: "torch", "triton" (the fused kernels of
+    # `pi0_torch.inference.fused_pass`, five launches per decoder layer) or "persistent" (each step's decoder layers in
+    # one launch, `pi0_torch.kernels.persistent`)
     attention: str = "auto"  # the attention kernel setting of its passes (`ActionSampling.attention_kernel`)
+
+    @property
+    def fused(self) -> bool:
+        """The steps run the fused kernels."""
+        return self.steps != "torch"
+
+    @property
+    def persistent(self) -> bool:
+        return self.steps == "persistent"
 
 
 @dataclass(frozen=True)
@@ -51,3 +62,36 @@ class SamplingRoute:
     why_unfused: str | None = None  # why the steps ran "torch" (None where they ran fused)
     refusals: tuple[str, ...] = ()  # what a check refused for this call's plan and shapes, and why: its persistent
     # launch or its fused steps (first call's verification), its graph (first replay's); each made it run the next path
+
+
+@dataclass
+class SamplingDecision:
+    """What one `generate_actions` call runs, decided once, as its plan is made (`ActionSampling.decide`), and
+    completed as the call runs: each verification that refuses a fast path steps the plan down (persistent launch,
+    then five launches per layer, then the torch path) and records why; the graph run records whether it replayed.
+    `last_sampling_route` is its `route()`; nothing re-derives it afterwards."""
+
+    plan: SamplingPlan
+    why_unfused: str | None  # why the steps run "torch" (None where they run fused)
+    refusals: list[str] = field(default_factory=list)
+    replayed: bool = False
+
+    def step_down(self, why: str) -> None:
+        """The plan's fused steps were refused for this call (`why`): the next path runs (a persistent launch falls
+        back to five launches per layer, those to the torch path)."""
+        if self.plan.persistent:
+            self.refusals.append(f"persistent launch: {why}")
+            self.plan = replace(self.plan, steps="triton")
+        else:
+            self.refusals.append(f"fused steps: {why}")
+            self.plan = replace(self.plan, steps="torch")
+            self.why_unfused = f"the fused steps were refused: {why}"
+
+    def graph_outcome(self, refusal: str | None) -> None:
+        """The call ran through the captured graphs: it replayed one (`refusal` None), or sampled eagerly (why)."""
+        self.replayed = refusal is None
+        if refusal is not None:
+            self.refusals.append(f"CUDA graph: {refusal}")
+
+    def route(self) -> SamplingRoute:
+        return SamplingRoute(self.plan.steps, self.replayed, self.why_unfused, tuple(self.refusals))

@@ -22,15 +22,16 @@ import torch
 
 from pi0_torch.inference import fused_pass, vision_pass
 from pi0_torch.inference.attention import KERNELS, choose_kernel
+from pi0_torch.inference.checks import (auto_avoids_persistent, sampling_layers_reason, sampling_ops_reason, setting_reason,
+                                        verify_fused_sampling)
 from pi0_torch.inference.conditioning import NormParams, StepConditioning, euler_times
-from pi0_torch.inference.fused_pass import (FusedSteps, auto_avoids_persistent, fused_kernels_reason, kernels_setting_reason,
-                                            structural_reason, verify_fused_sampling)
+from pi0_torch.inference.fused_pass import FusedSteps
 from pi0_torch.inference.graphs import SamplingGraphs, describe_plan, input_signature
-from pi0_torch.inference.layer_pass import (CALL_MODULES, SamplingWeights, activation_quantized, layer_sampling_weights,
-                                            sampling_layer_pass)
+from pi0_torch.inference.layer_pass import (CALL_MODULES, ModelSamplingWeights, SamplingWeights, activation_quantized,
+                                            model_sampling_weights, sampling_layer_pass)
 from pi0_torch.inference.layout import (PrefixLayout, StreamPass, camera_inputs, compact_prefix, prefix_stream, rope_tables,
                                         suffix_stream)
-from pi0_torch.inference.plan import SamplingInputs, SamplingPlan, SamplingRoute
+from pi0_torch.inference.plan import SamplingDecision, SamplingInputs, SamplingPlan, SamplingRoute
 from pi0_torch.inference.program import SamplingProgram
 from pi0_torch.inference.rtc import DEFAULT_MAX_GUIDANCE, METHODS, ChunkPrefix, check_rtc_inputs, chunk_prefix, guidance_weight
 from pi0_torch.masks import aligned_key_count
@@ -156,7 +157,7 @@ class ActionSampling:
         """Whether fused Euler steps of `batch` samples on `device` run each step's decoder layers in one persistent
         launch rather than five launches per layer: always under `sampling_kernels="persistent"`; under "auto" in an
         eager call (`replayed`: a CUDA graph of `capture_sampling` replays it) of at most `PERSISTENT_EAGER_BATCH`
-        samples, unless a persistent launch on `device` has abandoned a wait (`fused_pass.auto_avoids_persistent`:
+        samples, unless a persistent launch on `device` has abandoned a wait (`checks.auto_avoids_persistent`:
         every later one returns NaN; the chunk it happened in is NaN, the next ones take five launches per layer).
 
         Measured on an H200 (full-size π0 and π0.5, bf16, 3 cameras; docs/gpu.md): eagerly the host's launches bound a
@@ -168,45 +169,55 @@ class ActionSampling:
         return (self._sampling_kernels == "auto" and not replayed and batch <= self.PERSISTENT_EAGER_BATCH
                 and not auto_avoids_persistent(device))
 
-    def fused_steps_reason(self, device: torch.device, dtype: torch.dtype, rtc_method: str | None = None) -> str | None:
+    def fused_steps_reason(self, device: torch.device, dtype: torch.dtype, rtc_method: str | None = None,
+                           weights: ModelSamplingWeights | None = None) -> str | None:
         """Why plain sampling's steps on `device` in `dtype` do not run the fused kernels (None: they do); see
-        `sampling_kernels`. Raises `ValueError` with the reason where "triton" or "persistent" was asked for and cannot
+        `sampling_kernels`. `weights`: the call's plain-weights check (`layer_pass.model_sampling_weights`; made here
+        where not given). Raises `ValueError` with the reason where "triton" or "persistent" was asked for and cannot
         be had."""
         config = self.config
 
         def check() -> str | None:
-            return structural_reason(self) or fused_kernels_reason(
-                device, dtype, config.expert_hidden_size, config.num_attention_heads, config.head_dim,
-                config.expert_intermediate_size, config.action_dim, config.vision_hidden_size)
+            plain = model_sampling_weights(self) if weights is None else weights
+            return sampling_layers_reason(config.num_key_value_heads, config.head_dim, self.sampling_compiled, plain) or (
+                sampling_ops_reason(device, dtype, config.expert_hidden_size, config.num_attention_heads, config.head_dim,
+                                    config.expert_intermediate_size, config.action_dim, config.vision_hidden_size))
 
         unsupported = None if rtc_method is None else f"real-time chunking ({rtc_method}) steps run unfused"
-        return kernels_setting_reason(self._sampling_kernels, "sampling_kernels", device, dtype, check, unsupported)
+        return setting_reason(self._sampling_kernels, "sampling_kernels", device, dtype, check, unsupported)
 
-    def _verified_plan(self, inputs: SamplingInputs, plan: SamplingPlan, signature: tuple[Any, ...],
-                       unfused: torch.Tensor | None = None) -> tuple[SamplingPlan, torch.Tensor | None]:
-        """The fused `plan`, or it unfused where its fused steps are refused for these input shapes (`signature`:
-        `input_signature(inputs)`); and, on the first call of each plan and input shapes, that call's actions. The
-        verdict is taken on that first call (`fused_pass.verify_fused_sampling`: unfused against fused, eagerly) and
-        kept; a refusal is logged once, or raised (`ValueError`) where `sampling_kernels` asks for them by name
-        ("triton", "persistent"). Under "auto" a refused persistent plan falls back to five launches per layer,
-        verified in their turn against the unfused actions its own verification sampled (`unfused`)."""
-        key = (plan, signature)
-        sampled = None
-        if key not in self._fused_refusals:
-            refusal, sampled = verify_fused_sampling(self, inputs, plan, unfused)
-            if refusal is not None:
-                described = describe_plan(plan, inputs.noise.shape[0])
-                if self._sampling_kernels != "auto":
-                    raise ValueError(f"sampling_kernels={self._sampling_kernels!r} cannot run {described}: {refusal}")
-                instead = "five launches per decoder layer" if plan.persistent else "the torch path"
-                logger.warning("the fused kernels were refused for %s: %s; it runs %s from now on", described, refusal,
-                               instead)
-            self._fused_refusals[key] = refusal
-        if self._fused_refusals[key] is None:
-            return plan, sampled
-        if plan.persistent:  # (a refusal is kept under "auto" only: a named setting raised; `sampled` is unfused)
-            return self._verified_plan(inputs, replace(plan, persistent=False), signature, sampled)
-        return replace(plan, fused=False), sampled
+    def decide(self, inputs: SamplingInputs, plan: SamplingPlan, weights: ModelSamplingWeights,
+               replayed: bool) -> tuple[SamplingDecision, torch.Tensor | None]:
+        """What a call with these checked inputs runs, decided once: `plan` (its layout, times and real-time chunking)
+        with the steps `sampling_kernels` allows here (`fused_steps_reason`, `runs_persistent`; `replayed`: a CUDA
+        graph replays the call), each fused plan verified on its first call with these input shapes
+        (`verify_fused_sampling`: unfused against fused, eagerly; the verdict is kept in `_fused_refusals`). A refusal
+        steps the plan down and is logged once, or raised (`ValueError`) where `sampling_kernels` names the kernels
+        ("triton", "persistent"). Returns the decision, and the call's actions where its verification sampled them
+        (None else)."""
+        device, batch = inputs.noise.device, inputs.noise.shape[0]
+        why_unfused = self.fused_steps_reason(device, self.dtype, plan.rtc_method, weights)
+        if why_unfused is None:
+            plan = replace(plan, steps="persistent" if self.runs_persistent(batch, replayed, device) else "triton")
+        decision = SamplingDecision(plan, why_unfused)
+        signature, sampled, unfused = input_signature(inputs), None, None
+        while decision.plan.fused:
+            key = (decision.plan, signature)
+            if key not in self._fused_refusals:
+                refusal, sampled = verify_fused_sampling(self, inputs, decision.plan, weights, unfused)
+                if refusal is not None:
+                    described = describe_plan(decision.plan, batch)
+                    if self._sampling_kernels != "auto":
+                        raise ValueError(f"sampling_kernels={self._sampling_kernels!r} cannot run {described}: {refusal}")
+                    instead = "five launches per decoder layer" if decision.plan.persistent else "the torch path"
+                    logger.warning("the fused kernels were refused for %s: %s; it runs %s from now on", described,
+                                   refusal, instead)
+                    unfused = sampled  # (the unfused actions: a fallback's verification compares with them)
+                self._fused_refusals[key] = refusal
+            if self._fused_refusals[key] is None:
+                break
+            decision.step_down(self._fused_refusals[key])
+        return decision, sampled
 
     def attention_kernel_for(self, device: torch.device, dtype: torch.dtype, differentiable: bool,
                              setting: str | None = None) -> str:
@@ -281,18 +292,18 @@ class ActionSampling:
             weights=prefix.weights if method == "guidance" else None,
             committed=prefix.committed if method == "conditioning" else None,
         )
-        why_unfused = self.fused_steps_reason(pixel_values.device, self.dtype, method)
-        fused = why_unfused is None
-        requested = SamplingPlan(layout, times, method, float(rtc_max_guidance) if method == "guidance" else 0.0, fused,
-                                 persistent=fused and self.runs_persistent(batch, graphs is not None, pixel_values.device),
-                                 attention=self._attention_kernel)
-        signature = input_signature(inputs)
-        plan, sampled = self._verified_plan(inputs, requested, signature) if fused else (requested, None)
-        if sampled is None or graphs is not None:  # (else the first call's actions, from its verification)
+        weights = model_sampling_weights(self)  # (the plain-weights check of this call, shared by all that follows)
+        planned = SamplingPlan(layout, times, method, float(rtc_max_guidance) if method == "guidance" else 0.0,
+                               attention=self._attention_kernel)
+        decision, sampled = self.decide(inputs, planned, weights, graphs is not None)
+        if graphs is not None:
+            sampled, refusal = graphs.run(inputs, decision.plan, weights)
+            decision.graph_outcome(refusal)
+        elif sampled is None:  # (else the first call's actions, from its verification)
             if self.sampling_compiled:
                 allow_recompiles(self.RECOMPILE_LIMIT)
-            sampled = self.sample_planned(inputs, plan) if graphs is None else graphs.run(inputs, plan)
-        self._last_route = self._route(requested, plan, signature, graphs, why_unfused)
+            sampled = self.sample_planned(inputs, decision.plan, weights)
+        self._last_route = decision.route()
         return sampled
 
     def sampling_program(self, batch_size: int = 1, num_steps: int | None = None,
@@ -321,22 +332,10 @@ class ActionSampling:
                                  "for: use rtc_method='conditioning' with a model trained for it, or weight-only "
                                  "quantization")
 
-    def _route(self, requested: SamplingPlan, plan: SamplingPlan, signature: tuple[Any, ...],
-               graphs: SamplingGraphs | None, why_unfused: str | None) -> SamplingRoute:
-        """The `SamplingRoute` of a call that planned `requested` and ran `plan` (`graphs`: its captured graphs)."""
-        refused = {tried.persistent: why for tried in dict.fromkeys((requested, replace(requested, persistent=False)))
-                   if tried.fused and (why := self._fused_refusals.get((tried, signature))) is not None}
-        refusals = [f"{'persistent launch' if persistent else 'fused steps'}: {why}" for persistent, why in refused.items()]
-        replayed = graphs is not None and (plan, signature) in graphs.graphs
-        if graphs is not None and (plan, signature) in graphs.refused:
-            refusals.append(f"CUDA graph: {graphs.refused[plan, signature]}")
-        if why_unfused is None and not plan.fused:  # (its first call's verification refused them)
-            why_unfused = f"the fused steps were refused: {refused[False]}"
-        steps = "torch" if not plan.fused else "persistent" if plan.persistent else "triton"
-        return SamplingRoute(steps, replayed, why_unfused, tuple(refusals))
-
-    def sample_planned(self, inputs: SamplingInputs, plan: SamplingPlan) -> torch.Tensor:
+    def sample_planned(self, inputs: SamplingInputs, plan: SamplingPlan,
+                       weights: ModelSamplingWeights | None = None) -> torch.Tensor:
         """The sampling of `generate_actions` on checked inputs: no host reads, so it can be captured as a CUDA graph.
+        `weights`: the call's plain-weights check (`layer_pass.model_sampling_weights`; made here where not given).
 
         Guided sampling runs outside inference mode (under no_grad; functorch re-enables gradients for its vjp): before
         torch 2.12, `torch.func.vjp` inside `torch.inference_mode()` records nothing and returns zeros (pytorch#177318),
@@ -344,9 +343,11 @@ class ActionSampling:
         guided = plan.rtc_method == "guidance"
         if guided and torch.is_inference_mode_enabled():
             with torch.inference_mode(False), torch.no_grad():
-                return self.sample_planned(inputs, plan)
-        cache = self.cache_prefix(inputs, plan.layout, differentiable_steps=guided, fused=plan.fused, attention=plan.attention)
-        actions = self.action_pass(cache, differentiable=guided, attention=plan.attention)
+                return self.sample_planned(inputs, plan, weights)
+        weights = model_sampling_weights(self) if weights is None else weights
+        cache = self.cache_prefix(inputs, plan.layout, differentiable_steps=guided, fused=plan.fused, attention=plan.attention,
+                                  weights=weights)
+        actions = self.action_pass(cache, differentiable=guided, attention=plan.attention, weights=weights)
         committed = inputs.committed
         conditioning = self.step_conditioning(inputs.times, actions.expert_weights if committed is None else None)
         dt = -1.0 / len(plan.times)
@@ -388,7 +389,7 @@ class ActionSampling:
 
     def cache_prefix(
         self, inputs: SamplingInputs, layout: PrefixLayout, differentiable_steps: bool = False, fused: bool = False,
-        attention: str | None = None,
+        attention: str | None = None, weights: ModelSamplingWeights | None = None,
     ) -> PrefixCache:
         """Run the prefix once (π0: with the state token) and keep every layer's post-RoPE k/v.
 
@@ -399,7 +400,7 @@ class ActionSampling:
         layers run `fused_pass.prefix_layer` (the fused kernels around cuBLAS's GEMMs), SigLIP `vision_pass`, and π0's
         state token is left to the first fused step, which runs it beside the action tokens on the same pass over the
         action expert's weights (`PrefixCache.state`, `fused_pass.FusedSteps`). `attention`: the attention kernel
-        setting (default: `attention_kernel`).
+        setting (default: `attention_kernel`). `weights`: the call's plain-weights check (made here where not given).
         """
         config = self.config
         pixel_values = inputs.pixel_values
@@ -435,7 +436,9 @@ class ActionSampling:
         first_step_state, state = (state, None) if fused else (None, state)  # (fused: the first step runs it)
         scales = [norm.scale for norm in rms_norm_params(  # (fused: the VLM's attention and MLP norms of each layer)
             [norm for layer in self.layers for norm in (layer.vlm.attn_norm, layer.vlm.mlp_norm)] if fused else [])]
-        weights = [layer_sampling_weights(layer, vlm=True, expert=state is not None) for layer in self.layers]
+        weights = (model_sampling_weights(self) if weights is None else weights).layers
+        if state is None:  # (the action expert runs nothing in this pass)
+            weights = tuple((vlm, CALL_MODULES) for vlm, _ in weights)
         for index, (layer, layer_keys, layer_values, layer_weights) in enumerate(zip(self.layers, keys, values, weights)):
             last = index == len(self.layers) - 1
             if fused and layer_weights[0].usable:
@@ -446,15 +449,18 @@ class ActionSampling:
                                             keys_only=last)
         return PrefixCache(keys, values, first, layout, slots, rope, buffers, first_step_state)
 
-    def action_pass(self, cache: PrefixCache, differentiable: bool = False, attention: str | None = None) -> ActionPass:
+    def action_pass(self, cache: PrefixCache, differentiable: bool = False, attention: str | None = None,
+                    weights: ModelSamplingWeights | None = None) -> ActionPass:
         """What every sampling step shares (see `ActionPass`), computed once per call; `differentiable` for steps that
-        are differentiated (RTC guidance); `attention`: the attention kernel setting (default: `attention_kernel`)."""
+        are differentiated (RTC guidance); `attention`: the attention kernel setting (default: `attention_kernel`);
+        `weights`: the call's plain-weights check (made here where not given)."""
         config = self.config
         first_slot = cache.slots - config.action_horizon
         kernel = self.attention_kernel_for(cache.first.device, cache.keys[0].dtype, differentiable, attention)
         stream = suffix_stream(config, cache.first, cache.layout, first_slot, (config.action_horizon,), kernel,
                                cache.keys[0].shape[2], self.dtype, cache.rope)
-        weights = [layer_sampling_weights(layer, vlm=False, expert=not differentiable)[1] for layer in self.layers]
+        weights = [CALL_MODULES if differentiable else expert
+                   for _, expert in (model_sampling_weights(self) if weights is None else weights).layers]
         if config.pi05:
             return ActionPass(cache, stream, weights, None, None, None)
         norms = rms_norm_params([norm for layer in self.layers for norm in (layer.expert.attn_norm, layer.expert.mlp_norm)]
@@ -626,7 +632,7 @@ class ActionSampling:
 
         Every graph is verified when captured (`verify=True`): its first replay is compared with the last warm-up run,
         an eager run of the same inputs (so verifying costs no extra eager call); a graph whose actions deviate beyond
-        `pi0_torch.inference.graphs.VERIFY_TOLERANCE` is refused with a warning naming the plan and the deviation, and
+        `pi0_torch.inference.checks.VERIFY_TOLERANCE` is refused with a warning naming the plan and the deviation, and
         that plan samples eagerly from then on. `verify=False` opts out.
 
         Plain sampling and real-time chunking's "conditioning" are captured. "guidance" (a vector-Jacobian product per

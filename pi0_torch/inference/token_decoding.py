@@ -16,11 +16,10 @@ from typing import Any
 
 import torch
 
+from pi0_torch.inference.checks import (decoding_layers_reason, decoding_ops_reason, relative_deviation, setting_reason,
+                                        verify_bound)
 from pi0_torch.inference.fast_decoding import DecodingLayers
-from pi0_torch.inference.fast_decoding import decoding_kernels_reason as fused_decoding_reason
-from pi0_torch.inference.fast_decoding import structural_reason as decoding_structural_reason
-from pi0_torch.inference.fused_pass import kernels_setting_reason
-from pi0_torch.inference.graphs import relative_deviation, verify_bound
+from pi0_torch.inference.layer_pass import decoder_sampling_weights
 
 logger = logging.getLogger(__name__)
 
@@ -157,10 +156,11 @@ class TokenDecoding:
         config = self.config
 
         def check() -> str | None:
-            return decoding_structural_reason(self.layers, config.num_key_value_heads, config.head_dim) or fused_decoding_reason(
+            weights = decoder_sampling_weights(self.layers)
+            return decoding_layers_reason(weights, config.num_key_value_heads, config.head_dim) or decoding_ops_reason(
                 device, dtype, config.num_attention_heads, config.head_dim, config.intermediate_size, batch, slots)
 
-        return kernels_setting_reason(self._decoding_kernels, "decoding_kernels", device, dtype, check)
+        return setting_reason(self._decoding_kernels, "decoding_kernels", device, dtype, check)
 
     @property
     def decoding_compiled(self) -> bool:
@@ -173,7 +173,7 @@ class TokenDecoding:
         unless given; on CUDA `mode="reduce-overhead"` replays each as a CUDA graph. With `verify` (the default) the
         first `VERIFY_CALLS` calls of `generate_tokens` (CUDA graphs record on the second and replay from the third)
         also decode eagerly along the same tokens; logits that deviate beyond
-        `pi0_torch.inference.graphs.VERIFY_TOLERANCE` switch compiling off with a warning, and that call returns the
+        `pi0_torch.inference.checks.VERIFY_TOLERANCE` switch compiling off with a warning, and that call returns the
         eager tokens. `compile_decoding(disable=True)` goes back to eager.
 
         Compiled decoding traces the modules whatever `decoding_kernels` says (inductor makes its own kernels; the
@@ -207,7 +207,7 @@ class TokenDecoding:
         CPU decoding stays eager.
 
         Every graph is verified when captured (`verify=True`): the first replays must give the logits of an eager
-        prefill and an eager step of the same token within `pi0_torch.inference.graphs.VERIFY_TOLERANCE`; graphs that
+        prefill and an eager step of the same token within `pi0_torch.inference.checks.VERIFY_TOLERANCE`; graphs that
         do not, or that CUDA refuses to record, are refused with a warning and their signature decodes eagerly from
         then on. Switches `compile_decoding` off (and `compile_decoding` switches this off).
         `capture_decoding(disable=True)` goes back to eager. See `pi0_torch.inference.decoding_graphs`."""

@@ -34,7 +34,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from pi0_torch.inference.fused_pass import PERSISTENT_ABANDONED, persistent_abandoned
+from pi0_torch.inference.checks import PERSISTENT_ABANDONED, persistent_abandoned
 from pi0_torch.inference.graphs import SamplingCaptureError
 from pi0_torch.models.configuration_base import PI0BaseConfig
 from pi0_torch.models.configuration_pi0_fast import PI0FastConfig
