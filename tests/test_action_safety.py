@@ -4,13 +4,17 @@ name, the real-time chunking inputs that drove its flow there.
 - Out-of-range inputs (a previous chunk far outside the model's action range, a guidance clip of inf or 1e30, a
   noise scale of 1e30) are refused with a one-line `ValueError` naming the field, at the model API and through the
   policy and its server.
-- Whatever else makes a chunk non-finite (NaN weights, norm stats that overflow when unnormalizing, a model that
-  diverges), the policy withholds that chunk with an `UnsafeActionsError` naming the cause; the other observations
-  of its batch get their actions, over the websocket too.
+- Whatever else makes a chunk non-finite (NaN weights, a model that diverges), the policy withholds that chunk with an
+  `UnsafeActionsError` naming the cause; the other observations of its batch get their actions, over the websocket
+  too.
+- Issue 63, round 5 item 5: absurd but finite norm stats are refused at load, and a finite chunk beyond the policy's
+  bounds (±1000 in the normalized space; `max_abs_action` in robot units) is withheld the same way.
 """
 
 from __future__ import annotations
 
+import json
+import re
 import threading
 from typing import Any
 
@@ -23,6 +27,7 @@ from conftest import HORIZON, tiny_policy
 from pi0_torch.kernels import ops
 from pi0_torch.inference.rtc import MAX_GUIDANCE, MAX_PREVIOUS_ACTION
 from pi0_torch.processing.normalization import NormStats
+from pi0_torch.processing.processing_pi0 import PI0Processor
 from pi0_torch.runtime.action_safety import UnsafeActionsError
 from pi0_torch.runtime.observation_formats import ObservationError
 from pi0_torch.runtime.policy import PI0Policy
@@ -115,11 +120,6 @@ def _nan_weights(policy: PI0Policy, monkeypatch: pytest.MonkeyPatch) -> None:  #
         next(iter(policy.model.parameters()))[..., 0] = float("nan")
 
 
-def _overflowing_norm_stats(policy: PI0Policy, monkeypatch: pytest.MonkeyPatch) -> None:
-    huge = NormStats(mean=np.zeros(3), std=np.full(3, 3e38))
-    monkeypatch.setattr(policy.processor, "_action_stats", huge)
-
-
 def _diverging_model(policy: PI0Policy, monkeypatch: pytest.MonkeyPatch) -> None:
     generate = policy.model.generate_actions
     monkeypatch.setattr(policy.model, "generate_actions", lambda **kw: generate(**kw) * float("nan"))
@@ -133,7 +133,6 @@ def _diverging_guidance(policy: PI0Policy, monkeypatch: pytest.MonkeyPatch) -> N
 
 CAUSES = {
     "NaN weights": (_nan_weights, {}, r"the model's weights hold NaN/inf \(the first: "),
-    "norm stats": (_overflowing_norm_stats, {}, r"unnormalizing with the processor's action norm stats overflowed"),
     "model": (_diverging_model, {}, r"the model returned NaN/inf from finite inputs \(float32 weights"),
     "guidance": (_diverging_guidance, CONTINUATION, r"real-time chunking guidance diverged \(rtc_max_guidance 5"),
 }
@@ -148,6 +147,66 @@ def test_non_finite_actions_are_withheld_naming_the_cause(cause: str, monkeypatc
                                                  + message) as withheld:
         policy.infer({**OBSERVATION, **fields})
     assert "\n" not in str(withheld.value)
+
+
+@pytest.mark.parametrize(("field", "value"), [("mean", 3.3e38), ("std", 1e38), ("q99", 1e30), ("q01", -2.0**25)])
+def test_absurd_but_finite_norm_stats_are_refused_at_load(tmp_path: Any, field: str, value: float) -> None:
+    """`norm_stats.actions.mean[0] = 3.3e38` (or std 1e38) in a policy folder made `serve` reply actions of 3.3e38 and
+    `eval` report "jerk inf". Statistics beyond ±2^24 robot units are refused at load, naming the file, the field
+    and the dim."""
+    from pi0_torch.processing.normalization import load_openpi_norm_stats, save_openpi_norm_stats
+
+    entry = {"mean": [0.0, 1.0], "std": [1.0, 1.0], "q01": [-1.0, 0.0], "q99": [1.0, 2.0]}
+    path = save_openpi_norm_stats(tmp_path, {key: NormStats.from_dict(entry) for key in ("state", "actions")})
+    document = json.loads(path.read_text())
+    document["norm_stats"]["actions"][field][1] = value
+    path.write_text(json.dumps(document))
+    with pytest.raises(ValueError, match=rf"^{re.escape(str(path))}: NormStats.{field}\[1\] is .* beyond ±16777216 "
+                                         r"\(2\^24\) in the robot's units"):
+        load_openpi_norm_stats(tmp_path)
+
+
+def test_an_absurd_min_norm_scale_is_refused() -> None:
+    from pi0_torch.processing.tokenization import build_test_tokenizer
+
+    stats = {key: NormStats(mean=np.zeros(3), std=np.ones(3)) for key in ("state", "actions")}
+    with pytest.raises(ValueError, match=r"min_norm_scale must be .*<= 1\.67772e\+07.*got 1e\+30"):
+        PI0Processor(build_test_tokenizer(), camera_names=["base_0_rgb"], norm_stats=stats, min_norm_scale=1e30)
+
+
+def test_a_chunk_beyond_the_normalized_bound_is_withheld(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A finite chunk the model returns far outside its normalized range (a broken model or stats) is withheld, naming
+    the bound, the largest value and where; a chunk within it is returned."""
+    policy = tiny_policy(rtc_max_delay=0)
+    model_actions = policy.model_actions
+    scale = {"by": 1.0}
+    monkeypatch.setattr(policy, "model_actions", lambda batch, **options: model_actions(batch, **options) * scale["by"])
+    assert np.isfinite(policy.infer(OBSERVATION)["actions"]).all()
+    scale["by"] = 1e6
+    with pytest.raises(UnsafeActionsError, match=r"^the action chunk was withheld: \d+ values beyond ±1000 in the "
+                                                 r"model's normalized space, .*; the largest -?[\d.e+]+ at step \d+, dim \d"):
+        policy.infer(OBSERVATION)
+
+
+def test_max_abs_action_bounds_the_chunks_in_robot_units(tmp_path: Any) -> None:
+    """`max_abs_action` in a folder's policy_settings.json bounds every action in robot units: a chunk beyond it is
+    withheld (the server replies the line instead of actions); a bound the actions keep changes nothing."""
+    from dataclasses import replace
+
+    from pi0_torch.runtime.policy_settings import PolicySettings
+
+    policy = tiny_policy(rtc_max_delay=0)
+    seeded = {**OBSERVATION, "noise_seed": 7}
+    actions = policy.infer(seeded)["actions"]
+    policy.settings = replace(policy.settings, max_abs_action=float(np.abs(actions).max()) * 2)
+    np.testing.assert_array_equal(policy.infer(seeded)["actions"], actions)
+    policy.settings = replace(policy.settings, max_abs_action=float(np.abs(actions).max()) / 2)
+    with pytest.raises(UnsafeActionsError, match=r"^the action chunk was withheld: \d+ values beyond ±[\d.e+-]+ robot units "
+                                                 r"\(the policy's max_abs_action, policy_settings.json\)"):
+        policy.infer(OBSERVATION)
+    (tmp_path / "policy_settings.json").write_text('{"max_abs_action": -1}')
+    with pytest.raises(ValueError, match=r"policy_settings.json: max_abs_action must be"):
+        PolicySettings.load(tmp_path)
 
 
 # (the persistent launch runs in triton's interpreter here: TRITON_INTERPRET=1, the repository's conftest.py)

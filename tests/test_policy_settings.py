@@ -112,3 +112,34 @@ def test_fine_tuned_copies_keep_their_settings(tmp_path: Path) -> None:
     assert PolicySettings.load(tmp_path / "copy").replan_steps == DEMO_REPLAN_STEPS
     (tmp_path / "copy" / SETTINGS_FILE).unlink()
     assert PI0Policy.from_pretrained(tmp_path / "copy", device="cpu").noise_scale == 1.0
+
+
+BROKEN_JSON = {"nested 100,000 deep": ("[" * 100_000, "nested too deeply"), "empty": ("", "Expecting value"),
+               "a 5,000-digit integer": ('{"a": ' + "9" * 5_000 + "}", "Exceeds the limit")}
+
+
+@pytest.mark.parametrize("name", [SETTINGS_FILE, "norm_stats.json", "processor_config.json", "config.json"])
+@pytest.mark.parametrize("broken", sorted(BROKEN_JSON))
+def test_a_broken_json_file_of_a_policy_folder_is_one_line_naming_it(tmp_path: Path, name: str, broken: str) -> None:
+    """Issue 63, round 5 items 9 and 11: a `policy_settings.json`, `config.json`, `norm_stats.json` or
+    `processor_config.json` nested 100,000 deep gave a RecursionError traceback, an empty `norm_stats.json` or one
+    with a 5,000-digit integer a parser message naming no file. Each is one line naming the file now."""
+    folder = tmp_path / "policy"
+    shutil.copytree(demo_policy_dir(), folder)
+    text, reason = BROKEN_JSON[broken]
+    (folder / name).write_text(text)
+    with pytest.raises(ValueError, match=rf"^{folder / name}: not a readable JSON file \(.*{reason}") as refused:
+        PI0Policy.from_pretrained(str(folder), device="cpu")
+    assert "\n" not in str(refused.value)
+
+
+@pytest.mark.parametrize("kind", ["a folder", "a link to /dev/zero"])
+def test_a_settings_file_that_is_no_file_is_refused_not_skipped(tmp_path: Path, kind: str) -> None:
+    """Issue 63, round 5 item 10: a `policy_settings.json` that was a folder, or a link to /dev/zero, was ignored and
+    the defaults used."""
+    if kind == "a folder":
+        (tmp_path / SETTINGS_FILE).mkdir()
+    else:
+        (tmp_path / SETTINGS_FILE).symlink_to("/dev/zero")
+    with pytest.raises(ValueError, match=rf"{SETTINGS_FILE}: expected a JSON file, found (a folder|no regular file)"):
+        PolicySettings.load(tmp_path)

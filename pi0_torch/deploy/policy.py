@@ -188,7 +188,8 @@ class ExportedPolicy:
         infer_ms = (time.monotonic() - start) * 1000
         robot = [chunk if self._conversion is None else self._conversion.actions_to_robot(chunk) for chunk in chunks]
         artifact = f"{self.spec['artifact']['dtype']}, {self.provider}, noise_scale {self.noise_scale:g}"
-        return withhold_unsafe(robot, lambda index: f"the exported graph returned NaN/inf ({artifact})", infer_ms)
+        return withhold_unsafe(robot, lambda index: f"the exported graph returned NaN/inf ({artifact})", infer_ms,
+                               self.settings.max_abs_action)
 
     def infer(self, observation: Mapping[str, Any]) -> dict[str, Any]:
         """Actions for one observation: `{"actions": float32 [horizon, robot action dims], "policy_timing": ...}`."""

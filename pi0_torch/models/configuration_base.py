@@ -9,7 +9,6 @@ counts they imply, and the loading of a `config.json`; each member adds its own 
 
 from __future__ import annotations
 
-import json
 import os
 from collections.abc import Mapping, Sequence
 from typing import Any, ClassVar
@@ -18,7 +17,7 @@ from transformers import PretrainedConfig
 
 from pi0_torch.models import auto_registration
 from pi0_torch.utils.limits import SIZE_LIMITS
-from pi0_torch.utils.validation import check_float, check_int, check_pretrained_location, hub_errors
+from pi0_torch.utils.validation import check_float, check_int, check_pretrained_location, hub_errors, read_json_file
 
 PALIGEMMA_VOCAB_SIZE = 257_152
 
@@ -94,10 +93,7 @@ class PI0BaseConfig(PretrainedConfig):
 
     @classmethod
     def _dict_from_json_file(cls, json_file: str | os.PathLike[str]) -> dict[str, Any]:
-        try:
-            config_dict = super()._dict_from_json_file(json_file)
-        except json.JSONDecodeError as error:
-            raise ValueError(f"{json_file} is not valid JSON: {error}") from None
+        config_dict = read_json_file(json_file)  # (transformers' own reader raises the parser's errors, naming no file)
         if not isinstance(config_dict, Mapping):
             raise ValueError(f"{json_file} must hold a JSON object of settings, got a JSON {type(config_dict).__name__}")
         return dict(config_dict)

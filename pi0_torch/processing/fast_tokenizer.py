@@ -49,6 +49,7 @@ from tokenizers.trainers import BpeTrainer
 from transformers import PreTrainedTokenizerFast
 
 from pi0_torch.utils.files import atomic_output_dir
+from pi0_torch.utils.validation import read_json_file
 
 logger = logging.getLogger(__name__)
 
@@ -104,7 +105,9 @@ class FASTActionTokenizer:
                 f"{folder} is not a FAST tokenizer folder: expected {PROCESSOR_CONFIG_FILE} and {BPE_FILE} "
                 "(the layout of physical-intelligence/fast)"
             )
-        settings = json.loads(config_path.read_text())
+        settings = read_json_file(config_path)
+        if not isinstance(settings, dict):
+            raise ValueError(f"{config_path}: expected a JSON object of settings, got a JSON {type(settings).__name__}")
         missing = [key for key in ("scale", "vocab_size", "min_token") if key not in settings]
         if missing:
             raise ValueError(f"{config_path} lacks {missing}; has {sorted(settings)}")

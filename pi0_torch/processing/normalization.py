@@ -44,6 +44,7 @@ import numpy as np
 
 from pi0_torch.utils import files
 from pi0_torch.utils.optional import is_torch_tensor
+from pi0_torch.utils.validation import read_json_file
 
 if TYPE_CHECKING:  # (imported where used: the processing code runs without torch, `pi0_torch.utils.optional`)
     import torch
@@ -54,6 +55,10 @@ DEFAULT_MIN_SCALE = 1e-3
 OPENPI_EPSILON = 1e-6  # openpi adds this to every scale
 NUM_QUANTILE_BINS = 5000  # openpi's RunningStats histogram resolution
 DEFAULT_MAX_EXACT_ROWS = 1_000_000  # rows per key kept for exact quantiles; beyond, the histogram estimate is used
+# |mean|, std, |q01|, |q99| and min_scale in the robot's units: float32 (what the model reads) resolves whole units only
+# up to 2^24, so a statistic beyond it cannot normalize any reading meaningfully; no robot's joint, position, gripper or
+# encoder reading is that large, and a corrupted file (3.3e38, 1e30) is refused at load instead of reaching the robot
+MAX_STATISTIC = float(2**24)
 
 ArrayT = TypeVar("ArrayT", np.ndarray, "torch.Tensor")
 ArrayLike = Union[np.ndarray, "torch.Tensor", Sequence[float]]
@@ -83,6 +88,11 @@ class NormStats:
                 raise ValueError(f"NormStats.{name} must be a non-empty 1-D vector, got shape {array.shape}")
             if not np.all(np.isfinite(array)):
                 raise ValueError(f"NormStats.{name} contains NaN or inf: {array.tolist()}")
+            if array.size and np.abs(array).max() > MAX_STATISTIC:
+                dim = int(np.abs(array).argmax())
+                raise ValueError(f"NormStats.{name}[{dim}] is {array[dim]:.6g}, beyond ±{MAX_STATISTIC:.0f} (2^24) in the "
+                                 "robot's units: no reading is that large (float32 stops resolving whole units there); "
+                                 "recompute them from the data (compute_norm_stats; train --norm-stats dataset)")
             object.__setattr__(self, name, array)
         if (self.q01 is None) != (self.q99 is None):
             raise ValueError("NormStats.q01 and NormStats.q99 must be given together")
@@ -236,9 +246,7 @@ def load_openpi_norm_stats(path: str | Path) -> dict[str, NormStats]:
                 f"expected one norm_stats.json in {path} (directly or under assets/<asset_id>/), found: {where}"
             )
         path = found[0]
-    if not path.is_file():
-        raise FileNotFoundError(f"norm stats file not found: {path}")
-    data = json.loads(path.read_text())
+    data = read_json_file(path)
     if not isinstance(data, dict) or not isinstance(data.get("norm_stats"), dict):
         raise ValueError(f"{path}: expected openpi's layout {{\"norm_stats\": {{\"state\": ..., \"actions\": ...}}}}")
     try:

@@ -62,6 +62,7 @@ from pi0_torch.processing.images import check_float_range, missing_image, to_mod
 from pi0_torch.processing.normalization import (
     DEFAULT_MIN_SCALE,
     NORM_MODES,
+    MAX_STATISTIC,
     NormStats,
     apply_delta,
     load_openpi_norm_stats,
@@ -74,7 +75,8 @@ from pi0_torch.processing.robot_spaces import get_conversion
 from pi0_torch.processing.tokenization import PromptTokenizer, TokenizerSource, load_tokenizer
 from pi0_torch.utils import files
 from pi0_torch.utils.optional import is_torch_tensor
-from pi0_torch.utils.validation import check_finite, check_pretrained_location, hub_errors, is_hub_id
+from pi0_torch.utils.validation import (check_finite, check_float, check_pretrained_location, hub_errors, is_hub_id,
+                                         read_json_file)
 
 if TYPE_CHECKING:  # (imported where used: the processor runs without torch or transformers, `pi0_torch.deploy`)
     import torch
@@ -173,11 +175,10 @@ class PI0Processor:
         if truncation not in ("warn", "error"):
             raise ValueError(f"truncation must be 'warn' or 'error', got {truncation!r}")
         self.truncation = truncation
-        if self.max_token_len < 1 or self.image_size < 1 or self.model_action_dim < 1 or self.min_norm_scale < 0:
-            raise ValueError(
-                f"max_token_len, image_size and model_action_dim must be positive and min_norm_scale >= 0, got "
-                f"{self.max_token_len}, {self.image_size}, {self.model_action_dim}, {self.min_norm_scale}"
-            )
+        if self.max_token_len < 1 or self.image_size < 1 or self.model_action_dim < 1:
+            raise ValueError(f"max_token_len, image_size and model_action_dim must be positive, got {self.max_token_len}, "
+                             f"{self.image_size}, {self.model_action_dim}")
+        check_float("min_norm_scale", self.min_norm_scale, minimum=0.0, maximum=MAX_STATISTIC)  # (robot units)
 
         unknown = sorted(set(required_cameras or ()) - set(self.camera_names))
         if unknown:
@@ -666,10 +667,7 @@ PROCESSOR_SETTINGS = processor_settings(PI0Processor)
 
 def _read_processor_config(path: Path, known: Sequence[str] = PROCESSOR_SETTINGS) -> dict[str, Any]:
     """`processor_config.json` as a dict of `known` settings plus `tokenizer_kind`; `ValueError` naming the file."""
-    try:
-        settings = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
-        raise ValueError(f"{path} is not a readable processor config: {error}") from None
+    settings = read_json_file(path)
     if not isinstance(settings, dict):
         raise ValueError(f"{path} must hold a JSON object of settings, got a JSON {type(settings).__name__}")
     if not isinstance(settings.get("tokenizer_kind"), str):

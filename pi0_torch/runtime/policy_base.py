@@ -242,7 +242,10 @@ class BasePolicy(abc.ABC):
                 actions[index] = chunk
         model_ms = (time.monotonic() - start) * 1000
         robot = [self.processor.postprocess_actions(chunk, state=p.state) for chunk, p in zip(actions, prepared)]
-        return withhold_unsafe(robot, lambda index: self._unsafe_cause(actions[index], prepared[index]), model_ms)
+        normalized = None if self.processor.norm_stats is None or self.processor.norm_mode == "none" else [
+            chunk[..., : self.processor.action_dim_robot] for chunk in actions]
+        return withhold_unsafe(robot, lambda index: self._unsafe_cause(actions[index], prepared[index]), model_ms,
+                               self.settings.max_abs_action, normalized)
 
     def infer(self, observation: Mapping[str, Any]) -> dict[str, Any]:
         """Actions for one observation: `{"actions": float32 [horizon, robot action dims], "policy_timing": ...}`."""
@@ -285,9 +288,9 @@ class BasePolicy(abc.ABC):
         return {name: torch.cat([p.inputs[name] for p in prepared]).to(self.device) for name in prepared[0].inputs}
 
     def _unsafe_cause(self, chunk: np.ndarray, prepared: PreparedObservation) -> str:
-        """The likeliest reason an action chunk is not finite (model space `chunk`), for the error withholding it."""
-        if np.isfinite(chunk).all():
-            return "unnormalizing with the processor's action norm stats overflowed float32 (see its norm_stats.json)"
+        """The likeliest reason an action chunk is not finite (model space `chunk`), for the error withholding it. (Its
+        unnormalizing cannot overflow: the norm stats are bounded at load, `normalization.MAX_STATISTIC`, and the
+        model-space actions by `action_safety.MAX_NORMALIZED_ACTION` before it.)"""
         broken = next((name for name, value in self.model.named_parameters() if not bool(torch.isfinite(value).all())), None)
         if broken is not None:
             return f"the model's weights hold NaN/inf (the first: {broken})"

@@ -13,7 +13,10 @@ folder therefore holds the settings it should run with, and `PI0Policy.from_pret
 - `replan_steps`: actions to execute per chunk before the next observation (`pi0-torch eval --replan-steps`; a
   server's clients find it in the metadata);
 - `rtc_method`: the real-time chunking method for continued chunks ("guidance" or "conditioning");
-- `num_steps`: Euler steps per chunk.
+- `num_steps`: Euler steps per chunk;
+- `max_abs_action`: the largest |action| in the robot's units that leaves the policy; a chunk with a larger value is
+  withheld (`UnsafeActionsError`), as a chunk with NaN is. None: no bound in robot units (every policy with norm stats
+  still withholds a chunk beyond ±1000 in its normalized space, `action_safety.MAX_NORMALIZED_ACTION`).
 
 Write one by hand or with `PolicySettings(noise_scale=0.1, replan_steps=4).save(folder)`; `pi0-torch train` carries
 the base model's file over to a fine-tuned one.
@@ -22,7 +25,7 @@ the base model's file over to a fine-tuned one.
 >>> folder = tempfile.mkdtemp()
 >>> PolicySettings(noise_scale=0.1, replan_steps=4).save(folder)
 >>> PolicySettings.load(folder)
-PolicySettings(noise_scale=0.1, replan_steps=4, rtc_method=None, num_steps=None)
+PolicySettings(noise_scale=0.1, replan_steps=4, rtc_method=None, num_steps=None, max_abs_action=None)
 >>> PolicySettings.load(folder).describe()
 'noise_scale 0.1, replan_steps 4'
 """
@@ -35,12 +38,13 @@ from pathlib import Path
 from typing import Any
 
 from pi0_torch.utils import files
-from pi0_torch.utils.validation import check_float, check_int
+from pi0_torch.utils.validation import check_float, check_int, read_json_file
 
 SETTINGS_FILE = "policy_settings.json"
 RTC_METHODS = ("guidance", "conditioning")  # (pi0_torch.inference.rtc.METHODS, without importing torch here)
 MAX_NOISE_SCALE = 10.0  # every policy's bound: ten times the training noise (1e30 gave NaN actions)
 MAX_STEPS = 8192
+MAX_ABS_ACTION = float(2**24)  # (the norm stats' own bound, `normalization.MAX_STATISTIC`)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -51,6 +55,7 @@ class PolicySettings:
     replan_steps: int | None = None
     rtc_method: str | None = None
     num_steps: int | None = None
+    max_abs_action: float | None = None
 
     def __post_init__(self) -> None:
         where = SETTINGS_FILE
@@ -60,6 +65,8 @@ class PolicySettings:
             check_int(f"{where}: replan_steps", self.replan_steps, minimum=1, maximum=MAX_STEPS)
         if self.num_steps is not None:
             check_int(f"{where}: num_steps", self.num_steps, minimum=1, maximum=MAX_STEPS)
+        if self.max_abs_action is not None:
+            check_float(f"{where}: max_abs_action", self.max_abs_action, minimum=0.0, maximum=MAX_ABS_ACTION)
         if self.rtc_method is not None and self.rtc_method not in RTC_METHODS:
             raise ValueError(f"{where}: rtc_method must be one of {RTC_METHODS}, got {self.rtc_method!r:.60}")
 
@@ -68,12 +75,9 @@ class PolicySettings:
         """The folder's settings (all None when it has no `policy_settings.json`); a malformed file is a `ValueError`
         naming it and the field."""
         path = Path(folder) / SETTINGS_FILE
-        if not path.is_file():
+        if not path.exists() and not path.is_symlink():
             return cls()
-        try:
-            values = json.loads(path.read_text())
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
-            raise ValueError(f"{path}: not a readable JSON file ({error})") from None
+        values = read_json_file(path)  # (a folder, a device or a dangling link there is refused, not skipped)
         if not isinstance(values, dict):
             raise ValueError(f"{path}: expected a JSON object of settings, got a JSON {type(values).__name__}")
         unknown = sorted(set(values) - {field.name for field in dataclasses.fields(cls)})

@@ -20,7 +20,9 @@ ValueError: state must be finite, got 1 NaN/inf value (the first at index (0, 1)
 
 from __future__ import annotations
 
+import json
 import math
+import stat
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
@@ -36,6 +38,7 @@ if TYPE_CHECKING:  # (imported where used: the processing code runs without torc
 FLOAT32_MAX = float(np.finfo(np.float32).max)
 MAX_ERROR_CHARS = 500
 PACKAGE_NAMESPACE = "pi0_torch"  # `pi0_torch/<folder>` names a folder of this package, not a hub repository
+MAX_JSON_BYTES = 64 * 2**20  # a settings or statistics file; the largest real one (norm stats of 32 dims) is kilobytes
 MAX_SEED = 2**63 - 1  # seeds are stored as int64 (dataset columns) and fed to numpy's generators
 
 
@@ -200,6 +203,31 @@ def is_hub_id(name_or_path: Any) -> bool:
         return False
     namespace = name_or_path.split("/")[0]
     return namespace != PACKAGE_NAMESPACE and not Path(name_or_path).exists() and not Path(namespace).is_dir()
+
+
+def read_json_file(path: str | Path, max_bytes: int = MAX_JSON_BYTES) -> Any:
+    """The JSON value in the file at `path`, or a one-line `ValueError` that names the file and what is wrong with
+    it: not a regular file (a folder, a device such as `/dev/zero`, a link to one), larger than `max_bytes`, not
+    UTF-8, not JSON, nested too deeply for Python's parser, or holding an integer too long for Python to read.
+    (`FileNotFoundError` where nothing is there.)"""
+    path = Path(path)
+    try:
+        info = path.stat()  # (follows links: a link to a device is refused as the device)
+    except FileNotFoundError:
+        raise FileNotFoundError(f"{path} not found") from None
+    except OSError as error:
+        raise ValueError(f"{path}: cannot be read ({error.strerror or error})") from None
+    if not stat.S_ISREG(info.st_mode):
+        raise ValueError(f"{path}: expected a JSON file, found {'a folder' if stat.S_ISDIR(info.st_mode) else 'no regular file'}")
+    if info.st_size > max_bytes:
+        raise ValueError(f"{path}: {info.st_size:,} bytes, more than a JSON settings file holds ({max_bytes:,} at most)")
+    try:
+        with open(path, "rb") as file:
+            return json.loads(file.read(max_bytes + 1).decode("utf-8"))
+    except RecursionError:
+        raise ValueError(f"{path}: not a readable JSON file (nested too deeply)") from None
+    except (OSError, UnicodeDecodeError, ValueError) as error:  # (ValueError: JSON syntax, an integer of 4,300+ digits)
+        raise ValueError(f"{path}: not a readable JSON file ({one_line(str(error), 200)})") from None
 
 
 def check_pretrained_location(name_or_path: Any, required_file: str | None, what: str) -> None:
