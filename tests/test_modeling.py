@@ -219,8 +219,9 @@ def test_pi05_ignores_state(references: dict[str, OpenpiReference]) -> None:
 def test_fully_masked_rows_stay_finite_in_bf16(tiny_pi0: PI0ForActionGeneration) -> None:
     model = PI0ForActionGeneration(tiny_pi0.config).eval().to(torch.bfloat16)
     batch = small_batch(model.config)
-    batch["image_masks"][:] = False  # every image token masked: many fully masked query rows
+    batch["image_masks"][:, 1:] = False  # two cameras' image tokens masked: many fully masked query rows
     assert torch.isfinite(model.generate_actions(**batch, num_steps=2)).all()
+    assert torch.isfinite(model.sample_actions_reference(**batch, num_steps=2)).all()  # (openpi's mask: the rows kept)
 
 
 # -- input errors --------------------------------------------------------------------------------------------------------------
@@ -248,8 +249,21 @@ def test_bad_inputs_raise_clear_errors(tiny_pi0: PI0ForActionGeneration, field: 
         tiny_pi0(**batch)
 
 
+@pytest.mark.parametrize("field", ["image_masks", "attention_mask"])
+def test_a_sample_with_no_camera_or_no_token_is_refused(tiny_pi0: PI0ForActionGeneration, field: str) -> None:
+    """Issue 63, round 5 item 10: every `image_masks` or `attention_mask` entry of a sample False gave actions from
+    nothing; refused by name (the other sample is fine)."""
+    batch = small_batch(tiny_pi0.config)
+    batch[field] = batch[field].clone()
+    batch[field][1] = False
+    with pytest.raises(ValueError, match=rf"^{field}: every entry of sample 1 is False, so the model would act on no "):
+        tiny_pi0.generate_actions(**batch)
+
+
 def test_bad_noise_and_actions_raise_clear_errors(tiny_pi0: PI0ForActionGeneration) -> None:
     batch = small_batch(tiny_pi0.config)
+    with pytest.raises(ValueError, match=r"noise: values in \[1e\+30, 1e\+30\], beyond ±1000"):  # (returned actions of 1e30)
+        tiny_pi0.generate_actions(**batch, noise=torch.full((2, 50, 32), 1e30))
     with pytest.raises(ValueError, match=r"noise must have shape \(2, 50, 32\)"):
         tiny_pi0.generate_actions(**batch, noise=torch.zeros(2, 50, 7))
     with pytest.raises(ValueError, match=r"actions must have shape \(2, 50, 32\)"):

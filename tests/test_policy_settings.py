@@ -143,3 +143,20 @@ def test_a_settings_file_that_is_no_file_is_refused_not_skipped(tmp_path: Path, 
         (tmp_path / SETTINGS_FILE).symlink_to("/dev/zero")
     with pytest.raises(ValueError, match=rf"{SETTINGS_FILE}: expected a JSON file, found (a folder|no regular file)"):
         PolicySettings.load(tmp_path)
+
+
+@pytest.mark.parametrize(("setting", "value", "config_setting"), [("pi05", True, "pi05"), ("action_horizon", 50, "action_horizon"),
+                                                                   ("max_token_len", 20, "max_token_len")])
+def test_a_processor_that_describes_another_model_is_refused(tmp_path: Path, setting: str, value: object,
+                                                             config_setting: str) -> None:
+    """Issue 63, round 5 item 10: `processor_config.json` with `pi05: true` beside a π0 model changed the actions by
+    2.0, and a `config.json` at `action_horizon` 50 beside a model trained at 16 was taken; both were silent."""
+    folder = tmp_path / "policy"
+    shutil.copytree(demo_policy_dir(), folder)
+    edited = "config.json" if setting == "action_horizon" else "processor_config.json"
+    document = json.loads((folder / edited).read_text())
+    document[setting] = value
+    (folder / edited).write_text(json.dumps(document))
+    with pytest.raises(ValueError, match=rf"the processor's {setting} is .* but the model's config.json has "
+                                         rf"{config_setting} .*describe different models"):
+        PI0Policy.from_pretrained(str(folder), device="cpu")

@@ -364,3 +364,22 @@ def test_pi05_without_the_state_in_its_prompt_uses_pi0s_prompt() -> None:
     assert PUBLISHED_CHECKPOINTS["pi05_libero"].processor_options() == {"state_in_prompt": False}
     with pytest.raises(ValueError, match="state_in_prompt applies to π0.5"):
         PI0Processor(tokenizer, pi05=False, state_in_prompt=True, **common)
+
+
+def test_a_delta_action_mask_is_a_list_of_booleans_one_per_action_dim(tokenizer) -> None:
+    """Issue 63, round 5 item 10: `delta_action_mask: "110"` read as three trues, and a short mask was taken without a
+    word. A string or non-boolean entries are refused; a short mask leaves the other dims absolute (openpi's rule)
+    and says which; a relative dim beyond the state is refused."""
+    stats = {key: NormStats(mean=np.zeros(3), std=np.ones(3)) for key in ("state", "actions")}
+    make = lambda mask, **more: PI0Processor(tokenizer, camera_names=["base_0_rgb"], norm_stats=stats,  # noqa: E731
+                                             delta_action_mask=mask, **more)
+    for mask in ("110", [1, 1, 2], [True, None, False], 3):
+        with pytest.raises(ValueError, match=r"delta_action_mask must be a list of true / false, one per robot action dim \(3\)"):
+            make(mask)
+    with pytest.warns(UserWarning, match=r"delta_action_mask has 2 entries for 3 action dims: dims \[2\] are absolute"):
+        assert make([True, True]).delta_action_mask == [True, True, False]
+    assert make([1, 0, 1]).delta_action_mask == [True, False, True]
+    with pytest.raises(ValueError, match=r"delta_action_mask has 4 entries, more than the robot's 3 action dims"):
+        make([True] * 4)
+    with pytest.raises(ValueError, match=r"makes action dim 2 relative to the state, which has 2 dims"):
+        make([False, False, True], state_dim=2)

@@ -480,3 +480,25 @@ def test_a_diverged_run_is_not_saved_as_a_finished_policy(dataset_root: Path, tm
     assert code == 1
     assert re.search(r"error: training diverged( at step \d+)?: .*the final model was not saved", capsys.readouterr().err)
     assert not (output / "config.json").exists() and not (output / TRAIN_SETTINGS_FILE).exists()
+
+
+def test_norm_stats_of_another_robot_space_are_refused(dataset_root: Path, tmp_path: Path) -> None:
+    """Issue 63, round 5 item 10: `--norm-stats` with 3-dim statistics for a 2-dim dataset was cut to 2 dims without a
+    word, trained and saved. Refused before anything is written, naming the file and both dims."""
+    from pi0_torch.processing.normalization import save_openpi_norm_stats
+
+    state_dim = LeRobotEpisodeDataset(dataset_root, 4, progress=False).state_dim
+    stats = {key: NormStats(mean=np.zeros(state_dim + 1), std=np.ones(state_dim + 1)) for key in ("state", "actions")}
+    path = save_openpi_norm_stats(tmp_path / "stats", stats)
+    with pytest.raises(ValueError, match=rf"--norm-stats {re.escape(str(path))}: .* have {state_dim + 1} state dims, "
+                                         rf"the dataset {state_dim}: they describe another robot"):
+        train_policy(settings(dataset_root, tmp_path / "run", max_steps=1, norm_stats=str(path)))
+    assert not (tmp_path / "run").exists()
+
+
+def test_a_batch_larger_than_the_dataset_is_named(dataset_root: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """Issue 63, round 5 item 10: `--batch-size 1000` on 48 frames trained at 48 without a word."""
+    frames = len(LeRobotEpisodeDataset(dataset_root, 4, episodes=None, progress=False))
+    with caplog.at_level(logging.WARNING, logger="pi0_torch.training.trainer"):
+        train_policy(settings(dataset_root, tmp_path / "run", max_steps=1, batch_size=1000, train_split=None))
+    assert f"--batch-size 1000 is more than the {frames} frames of the training episodes" in caplog.text

@@ -11,6 +11,10 @@ from pi0_torch.inference.layout import InputFacts
 from pi0_torch.utils.validation import check_tensor as _check_tensor
 from pi0_torch.utils.validation import describe, nonfinite_error
 
+# |noise| a sampling call takes: a unit normal draw times a noise scale of at most 10 (`PolicySettings`' bound) stays
+# within about ±60; 1e30 passed before and came back as actions of 1e30
+MAX_NOISE = 1_000.0
+
 
 class InputChecks:
     """`_check_placement` and `_check_inputs` for `PI0ForActionGeneration` (which provides `config`, `device` and
@@ -75,16 +79,18 @@ class InputChecks:
             _check_tensor(name, value, shapes.get(name, (batch, config.action_horizon, config.action_dim)), floating=True, finite=False, device=device)
 
         # the one read: pixel range, token id range, flow-time range, finiteness, cameras shown and text tokens per sample
-        time = checked.get("time")
+        time, noise = checked.get("time"), checked.get("noise")
+        zeros = torch.zeros(2, device=pixel_values.device)
         ranges = torch.cat([torch.stack(pixel_values.aminmax()).float(), torch.stack(input_ids.aminmax()).float(),
-                            torch.stack(time.aminmax()).float() if time is not None else torch.zeros(2, device=pixel_values.device)])
+                            torch.stack(time.aminmax()).float() if time is not None else zeros,
+                            torch.stack(noise.aminmax()).float() if noise is not None else zeros])
         finite = [torch.isfinite(value).all() for value in checked.values()]
         read = torch.cat([
             ranges, torch.stack(finite).float() if finite else ranges.new_empty(0), image_masks.flatten().float(),
             attention_mask.sum(dim=1).float(),
         ]).cpu().tolist()
-        pixel_low, pixel_high, id_low, id_high, time_low, time_high = read[:6]
-        read = read[6:]
+        pixel_low, pixel_high, id_low, id_high, time_low, time_high, noise_low, noise_high = read[:8]
+        read = read[8:]
         if not -1.001 <= pixel_low <= pixel_high <= 1.001:  # (NaN fails every comparison)
             raise ValueError(
                 f"pixel_values must lie in [-1, 1] (uint8 images map to x / 255 * 2 - 1), got range [{pixel_low:.4g}, {pixel_high:.4g}]"
@@ -100,14 +106,24 @@ class InputChecks:
         if time is not None and not 0.0 <= time_low <= time_high <= 1.0:  # (a non-finite one is named above)
             raise ValueError(f"time: flow times must lie in [0, 1] (1 is noise, 0 the actions), got values in "
                              f"[{time_low:.4g}, {time_high:.4g}]")
+        if noise is not None and not -MAX_NOISE <= noise_low <= noise_high <= MAX_NOISE:
+            raise ValueError(f"noise: values in [{noise_low:.4g}, {noise_high:.4g}], beyond ±{MAX_NOISE:g}: the flow starts "
+                             "from a unit normal draw (times a noise scale of at most 10)")
         masks_start = len(checked)
         cameras = config.num_cameras
         shown = read[masks_start : masks_start + batch * cameras]
-        return InputFacts(
+        facts = InputFacts(
             image_masks=tuple(tuple(bool(v) for v in shown[b * cameras : (b + 1) * cameras]) for b in range(batch)),
             text_counts=tuple(int(v) for v in read[masks_start + batch * cameras :]),
             text_length=input_ids.shape[1],
         )
+        for sample, (cameras_shown, text_count) in enumerate(zip(facts.image_masks, facts.text_counts)):
+            if not any(cameras_shown) or text_count == 0:
+                empty = "image_masks" if not any(cameras_shown) else "attention_mask"
+                raise ValueError(f"{empty}: every entry of sample {sample} is False, so the model would act on "
+                                 f"{'no camera' if empty == 'image_masks' else 'no prompt token (not even BOS)'}; "
+                                 "show at least one camera and one token")
+        return facts
 
 
 def _place_name(place: int | str | torch.device) -> str:

@@ -51,6 +51,7 @@ from __future__ import annotations
 
 import inspect
 import json
+import warnings
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -210,13 +211,29 @@ class PI0Processor:
                 f"got state_dim {self.state_dim} and action_dim_robot {self.action_dim_robot}"
             )
 
-        self.delta_action_mask = [bool(m) for m in delta_action_mask] if delta_action_mask is not None else None
-        delta_dims = len(self.delta_action_mask) if self.delta_action_mask is not None else 0
-        if delta_dims > min(self.state_dim, self.action_dim_robot):
-            raise ValueError(
-                f"delta_action_mask has {len(self.delta_action_mask)} entries, more than state_dim {self.state_dim} "
-                f"or action_dim_robot {self.action_dim_robot}"
-            )
+        self.delta_action_mask = None if delta_action_mask is None else self._check_delta_mask(delta_action_mask)
+
+    def _check_delta_mask(self, mask: Any) -> list[bool]:
+        """`delta_action_mask` as a list of bools, one per robot action dim: true / false entries (a string such as
+        "110" read as three trues before), no more than the action dims, and no relative dim beyond the state's. A
+        shorter mask leaves the remaining dims absolute (openpi's `DeltaActions` rule), with a warning naming them."""
+        entries = list(mask) if isinstance(mask, (list, tuple, np.ndarray)) else None
+        if entries is None or not all(type(m) in (bool, np.bool_) or (type(m) is int and m in (0, 1)) for m in entries):
+            raise ValueError(f"delta_action_mask must be a list of true / false, one per robot action dim "
+                             f"({self.action_dim_robot}), got {mask!r:.80}")
+        if len(entries) > self.action_dim_robot:
+            raise ValueError(f"delta_action_mask has {len(entries)} entries, more than the robot's "
+                             f"{self.action_dim_robot} action dims")
+        if len(entries) < self.action_dim_robot:
+            absolute = list(range(len(entries), self.action_dim_robot))
+            warnings.warn(f"delta_action_mask has {len(entries)} entries for {self.action_dim_robot} action dims: dims "
+                          f"{absolute} are absolute (openpi's rule); give one entry per dim to say so", stacklevel=3)
+            entries += [False] * len(absolute)
+        relative = [index for index, entry in enumerate(entries) if entry]
+        if relative and relative[-1] >= self.state_dim:
+            raise ValueError(f"delta_action_mask makes action dim {relative[-1]} relative to the state, which has "
+                             f"{self.state_dim} dims")
+        return [bool(entry) for entry in entries]
 
     def _robot_dim(self, given: int | None, key: str, name: str) -> int:
         stats_dim = self.norm_stats[key].dim if self.norm_stats is not None and key in self.norm_stats else None

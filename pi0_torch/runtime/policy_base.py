@@ -62,6 +62,12 @@ class PreparedObservation:
     noise_seed: int | None = None  # this chunk's noise from its own generator (independent of batching)
 
 
+# (processor setting, model config setting) that must agree: π0.5's prompt and normalization against π0's (pi05 on a π0
+# model moved its actions by 2.0), the chunk length the model was trained at, the prompt and image sizes, the action dims
+MATCHED_SETTINGS = (("pi05", "pi05"), ("action_horizon", "action_horizon"), ("max_token_len", "max_token_len"),
+                    ("image_size", "image_size"), ("model_action_dim", "action_dim"))
+
+
 class BasePolicy(abc.ABC):
     """A model and its processor behind openpi's policy interface (`infer(obs) -> dict`).
 
@@ -96,6 +102,12 @@ class BasePolicy(abc.ABC):
         if list(processor.camera_names) != list(model.config.camera_names):
             raise ValueError(f"processor cameras {list(processor.camera_names)} differ from the model's "
                              f"{list(model.config.camera_names)}")
+        for setting, config_setting in MATCHED_SETTINGS:  # (a processor setting None: not recorded, nothing to match)
+            ours, theirs = getattr(processor, setting, None), getattr(model.config, config_setting, None)
+            if ours is not None and theirs is not None and ours != theirs:
+                raise ValueError(f"the processor's {setting} is {ours!r} but the model's config.json has {config_setting} "
+                                 f"{theirs!r}: processor_config.json and config.json describe different models (the "
+                                 "actions would be wrong, not refused); save the model and its processor together again")
 
     @classmethod
     def from_pretrained(

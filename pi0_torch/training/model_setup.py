@@ -146,6 +146,13 @@ def build_processor(settings: TrainSettings, config: PI0Config | PI0FastConfig, 
         norm_stats = model_processor.norm_stats
     else:
         norm_stats = load_openpi_norm_stats(settings.norm_stats)
+    if source != "dataset":  # (statistics of another robot space would be cut to the dataset's dims without a word)
+        given = {"model": f"{settings.model}'s norm stats"}.get(source, str(settings.norm_stats))
+        for key, dim in (("state", dataset.state_dim), ("actions", dataset.action_dim)):
+            if key in norm_stats and norm_stats[key].dim != dim:
+                raise ValueError(f"--norm-stats {source if source == 'model' else settings.norm_stats}: {given} have "
+                                 f"{norm_stats[key].dim} {key} dims, the dataset {dim}: they describe another robot "
+                                 "(--norm-stats dataset computes the dataset's)")
     _log_norm_stats_choice(settings, source, model_processor if same_space else None, computed)
     robot = dict(state_dim=dataset.state_dim, action_dim_robot=dataset.action_dim, **chosen)
     if isinstance(config, PI0FastConfig):

@@ -192,6 +192,10 @@ def _train_in_folder(settings: TrainSettings) -> dict[str, Any]:
         if settings.eval_split
         else None
     )
+    if settings.batch_size > len(train_dataset):  # (the data loader gives what there is: a smaller batch, without a word)
+        logger.warning("--batch-size %d is more than the %d frames of the training episodes: each step trains on a "
+                       "batch of %d, every frame once (the schedule and learning rate were chosen for %d)",
+                       settings.batch_size, len(train_dataset), len(train_dataset), settings.batch_size)
     processor = build_processor(settings, config, train_dataset)
     camera_map = default_camera_map(train_dataset.camera_keys, config.camera_names, settings.camera_map)
     model = build_model(settings, config)
