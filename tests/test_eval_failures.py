@@ -7,6 +7,10 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
+import os
+import signal
+import subprocess
+import sys
 import threading
 from collections.abc import Iterator
 from pathlib import Path
@@ -82,7 +86,7 @@ def test_a_server_that_drops_mid_evaluation_keeps_the_finished_episodes(tmp_path
                                "--output-dir", str(tmp_path / "out"))
     assert status == 2 and "\n" not in err, err
     assert err.startswith(f"pi0-torch eval: error: ConnectionError: the policy server at {url} closed the connection"), err
-    assert "(stopped after 2 finished episodes of 4; eval.json in " in err, err
+    assert "(stopped after 2 finished episodes of 4; eval.json and episodes.jsonl in " in err, err
     written = json.loads((tmp_path / "out" / "eval.json").read_text())
     assert written["complete"] is False and written["episodes"] == 2 and "closed the connection" in written["stopped_by"]
     assert [episode["seed"] for episode in written["episodes_detail"]] == [1_000_000, 1_000_001]
@@ -156,3 +160,59 @@ def test_a_policy_camera_the_env_does_not_give_is_a_warning_once(caplog: pytest.
     assert not caplog.records
 
 
+
+
+EXPERT_EVAL = ("--policy", "expert", "--episodes", "10", "--num-envs", "2")
+
+
+def _details(folder: Path) -> list[dict]:
+    return json.loads((folder / "eval.json").read_text())["episodes_detail"]
+
+
+def _signal_on_call(number: int, signum: int) -> str:
+    """Source that makes the scripted policy send this process `signum` on its `number`-th call."""
+    return (f"import os\nfrom pi0_torch.runtime import rollout\ncall = rollout.ScriptedPolicy.__call__\ncalls = [0]\n"
+            f"def counting(self, observations):\n    calls[0] += 1\n    if calls[0] == {number}:\n"
+            f"        os.kill(os.getpid(), {int(signum)})\n    return call(self, observations)\n"
+            "rollout.ScriptedPolicy.__call__ = counting\n")
+
+
+def test_sigterm_and_sigkill_keep_the_finished_episodes_and_resume_continues(tmp_path: Path,
+                                                                            capsys: pytest.CaptureFixture[str]) -> None:
+    """Issue 63, round 5 item 6: TERM at 12 s of 400 episodes exited 143 and the 208 finished episodes were gone.
+    Each episode is recorded as it ends (`episodes.jsonl`); SIGTERM stops like Ctrl-C (eval.json of the finished
+    episodes, marked incomplete); after SIGKILL the record is in the partial folder; `--resume` runs the episodes it
+    lacks, and the result equals an uninterrupted evaluation's."""
+    reference = tmp_path / "reference"
+    assert run_eval(capsys, *EXPERT_EVAL, "--output-dir", str(reference))[0] == 0
+
+    terminated = tmp_path / "terminated"
+    namespace: dict = {}
+    exec(_signal_on_call(40, signal.SIGTERM), namespace)  # (in this process: its handler is the CLI's)
+    try:
+        status, err = run_eval(capsys, *EXPERT_EVAL, "--output-dir", str(terminated))
+    finally:
+        from pi0_torch.runtime import rollout
+        rollout.ScriptedPolicy.__call__ = namespace["call"]
+    assert status == 2 and "Terminated: signal SIGTERM (stopped after " in err, err
+    stopped = json.loads((terminated / "eval.json").read_text())
+    assert stopped["complete"] is False and 0 < stopped["episodes"] < 10
+    assert len((terminated / "episodes.jsonl").read_text().splitlines()) > stopped["episodes"]  # (+ identity, calls)
+    assert run_eval(capsys, *EXPERT_EVAL, "--output-dir", str(terminated))[1].endswith(
+        "--resume continues it, --overwrite starts over")  # (never dropped unasked)
+    assert run_eval(capsys, *EXPERT_EVAL, "--output-dir", str(terminated), "--resume")[0] == 0
+    assert _details(terminated) == _details(reference)
+
+    killed = tmp_path / "killed"
+    script = _signal_on_call(40, signal.SIGKILL) + (
+        "from pi0_torch.cli import main\n"
+        f"main(['eval', '--env', 'pi0_torch/Reach-v0', '--max-steps', '8', *{list(EXPERT_EVAL)!r}, '--output-dir', {str(killed)!r}])\n")
+    run = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
+    assert run.returncode == -signal.SIGKILL, run.stderr[-2000:]
+    assert not killed.exists()
+    partial = tmp_path / ".killed.partial-resumable" / "episodes.jsonl"
+    assert sum('"episode"' in line for line in partial.read_text().splitlines()) > 0
+    status, err = run_eval(capsys, *EXPERT_EVAL[:3], "12", *EXPERT_EVAL[4:], "--output-dir", str(killed), "--resume")
+    assert status == 2 and "records another evaluation (episodes 10 there, 12 now)" in err, err  # (never mixed)
+    assert run_eval(capsys, *EXPERT_EVAL, "--output-dir", str(killed), "--resume")[0] == 0
+    assert _details(killed) == _details(reference) and not partial.exists()

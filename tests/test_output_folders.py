@@ -22,7 +22,7 @@ from pi0_torch.data.lerobot_writer import EpisodeRecord, write_lerobot_dataset
 from pi0_torch.envs.demos import record_demos
 from pi0_torch.runtime.rollout import EvalResult, EvalSettings, check_eval_output, write_outputs
 from pi0_torch.utils import files
-from pi0_torch.utils.files import OutputPathError, atomic_output_dir
+from pi0_torch.utils.files import OutputPathError, atomic_output_dir, check_output_dir, resumable_output_dir
 
 DEMO_POLICY = Path(__file__).resolve().parents[1] / "pi0_torch" / "demo_policy"
 VECTORS = {"observation.state": ["x"], "action": ["x"]}
@@ -39,8 +39,10 @@ def eval_result() -> EvalResult:
                       interior_jerk=None, policy={}, episodes_detail=[{"seed": 0, "success": True, "steps": 3}])
 
 
-def write_eval(folder: Path, overwrite: bool) -> None:
-    write_outputs(eval_result(), {}, folder, fps=10, overwrite=overwrite)
+def write_eval(folder: Path, overwrite: bool) -> None:  # (as `evaluate` writes its output folder)
+    check_output_dir(folder, overwrite)
+    with resumable_output_dir(folder, overwrite) as staging:
+        write_outputs(eval_result(), {}, staging, fps=10)
 
 
 def write_dataset(folder: Path, overwrite: bool) -> None:

@@ -8,7 +8,9 @@ episodes locally, through `pi0-torch serve`, and with any `--num-envs`.
 
 Nothing is lost when the policy fails part way (a server that drops the connection, sends no reply within
 `--timeout`, or replies without actions): the episodes finished so far are summarized, written to `eval.json` (marked
-`"complete": false` with the reason) and the error is one line ([`EvaluationStopped`]). The output folder is checked
+`"complete": false` with the reason) and the error is one line ([`EvaluationStopped`]). Each episode is recorded as it
+ends (`episodes.jsonl`, `pi0_torch.runtime.eval_record`), SIGTERM stops like Ctrl-C, and `--resume` continues an
+evaluation that was stopped or killed. The output folder is checked
 before the first episode ([`pi0_torch.utils.files.check_output_dir`]: absent, empty, or with `--overwrite` a folder
 pi0-torch wrote) and is never the evaluated policy's folder.
 
@@ -28,9 +30,11 @@ import importlib
 import json
 import logging
 import math
+import shutil
+import signal
 import sys
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Protocol
@@ -49,7 +53,8 @@ from pi0_torch.shipped_policy import policy_location
 from pi0_torch.runtime.observation_formats import ObservationFormat
 from pi0_torch.utils.extras import require_extra
 from pi0_torch.runtime.policy_settings import SETTINGS_FILE
-from pi0_torch.utils.files import atomic_output_dir, check_output_dir, check_separate, check_writable
+from pi0_torch.runtime.eval_record import RECORD_FILE, EvalRecord, partial_folder, stopped_record
+from pi0_torch.utils.files import check_output_dir, check_separate, check_writable, resumable_output_dir
 from pi0_torch.utils.threads import add_threads_argument, set_threads
 from pi0_torch.utils.validation import MAX_SEED, check_finite, check_float, check_int, first_line
 
@@ -298,6 +303,7 @@ class EvalSettings:
     video_episodes: int = 0
     output_dir: str | None = None
     overwrite: bool = False  # replace a non-empty output_dir that pi0-torch wrote
+    resume: bool = False  # continue the stopped evaluation recorded for output_dir (`pi0_torch.runtime.eval_record`)
     progress: bool = False
 
 
@@ -439,17 +445,28 @@ def check_eval_settings(settings: EvalSettings, horizon: int) -> int:
     return replan
 
 
-def check_eval_output(settings: EvalSettings, policy_source: str | Path | None) -> None:
+def check_eval_output(settings: EvalSettings, policy_source: str | Path | None) -> Path | None:
     """Refuse an output folder evaluation may not write, before any episode runs: see
     [`pi0_torch.utils.files.check_output_dir`]; never the evaluated policy's folder (nor one inside or around it);
     and one whose file system refuses a file there (read-only, full: `files.check_writable`), which used to surface
-    only after every episode had run."""
+    only after every episode had run. A stopped evaluation's record there is never dropped unasked: `--resume`
+    continues it (returned: its record file), `--overwrite` starts over."""
     if not settings.output_dir:
-        return
+        if settings.resume:
+            raise ValueError("--resume needs the --output-dir of the stopped evaluation")
+        return None
+    output = Path(settings.output_dir).expanduser().absolute()
     if policy_source is not None and Path(policy_source).is_dir():
-        check_separate(policy_source, settings.output_dir)
-    check_output_dir(settings.output_dir, settings.overwrite)
-    check_writable(settings.output_dir, "--output-dir")
+        check_separate(policy_source, output)
+    stopped = stopped_record(output)
+    if settings.resume and stopped is None:
+        raise ValueError(f"--resume: {output} holds no stopped evaluation (no {RECORD_FILE} of an incomplete one)")
+    if stopped is not None and not (settings.resume or settings.overwrite):
+        raise ValueError(f"{output}: a stopped evaluation's record is at {stopped}; --resume continues it, "
+                         "--overwrite starts over")
+    check_output_dir(output, settings.overwrite or settings.resume)
+    check_writable(output, "--output-dir")
+    return stopped if settings.resume else None
 
 
 def evaluate(policy: ChunkPolicy, settings: EvalSettings) -> EvalResult:
@@ -459,7 +476,7 @@ def evaluate(policy: ChunkPolicy, settings: EvalSettings) -> EvalResult:
     and [`EvaluationStopped`] says why; when none had finished, the failure itself is raised."""
     horizon = int(policy.metadata["action_horizon"])
     replan = check_eval_settings(settings, horizon)
-    check_eval_output(settings, getattr(policy, "source", None))
+    resumed = check_eval_output(settings, getattr(policy, "source", None))
     mode, delay = settings.execution, settings.inference_delay
     schedule = ChunkSchedule(mode, horizon, replan, delay)
     if mode == "rtc-trained" and delay > policy.metadata.get("real_time_chunking", {}).get("rtc_max_delay", 0):
@@ -471,6 +488,65 @@ def evaluate(policy: ChunkPolicy, settings: EvalSettings) -> EvalResult:
         require_extra("envs", "recording videos", modules=("av",))  # before the episodes run, not after
         kwargs.setdefault("render_mode", "rgb_array")
     envs = [make_env(settings.env, **kwargs) for _ in range(min(settings.num_envs, settings.episodes))]
+    try:
+        if not settings.output_dir:
+            result, stopped = _evaluate_in(policy, settings, replan, schedule, envs, None, None)
+        else:
+            output = Path(settings.output_dir).expanduser().absolute()
+            if settings.overwrite and not settings.resume:
+                shutil.rmtree(partial_folder(output), ignore_errors=True)  # (--overwrite: a stopped record starts over)
+            try:
+                # (published when the block ends without an exception)
+                with resumable_output_dir(output, settings.overwrite or settings.resume) as folder:
+                    record = EvalRecord.start(folder, _identity(policy, settings, replan), resumed)
+                    try:
+                        result, stopped = _evaluate_in(policy, settings, replan, schedule, envs, folder, record)
+                    finally:
+                        record.close()
+            except _NothingFinished as nothing:  # (no record worth keeping: the next run starts afresh)
+                shutil.rmtree(partial_folder(output), ignore_errors=True)
+                raise nothing.cause from None
+    finally:
+        for env in envs:
+            env.close()
+    if stopped is not None:
+        written = (f"; eval.json and {RECORD_FILE} in {settings.output_dir} hold them (--resume continues)"
+                   if settings.output_dir else "")
+        raise EvaluationStopped(f"{result.stopped_by} (stopped after {result.episodes} finished episodes of "
+                                f"{settings.episodes}{written})", result) from stopped
+    return result
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM during `pi0-torch eval`: it stops the episodes as Ctrl-C does (the finished ones are kept)."""
+
+
+def _terminate(signum: int, frame: Any) -> None:
+    raise Terminated(f"signal {signal.Signals(signum).name}")
+
+
+class _NothingFinished(Exception):
+    """An evaluation that stopped before any episode finished (`cause`: why)."""
+
+    def __init__(self, cause: BaseException) -> None:
+        super().__init__(first_line(cause))
+        self.cause = cause
+
+
+def _identity(policy: ChunkPolicy, settings: EvalSettings, replan: int) -> dict[str, Any]:
+    """What an evaluation's episodes depend on (the first line of its record): a resumed one must agree."""
+    return {"env": settings.env, "policy": str(getattr(policy, "source", None) or policy.metadata.get("policy", "")),
+            "episodes": settings.episodes, "seed": settings.seed, "execution": settings.execution,
+            "inference_delay": settings.inference_delay, "replan_steps": replan, "max_steps": settings.max_steps,
+            "obs_format": settings.obs_format, "env_kwargs": settings.env_kwargs, "prompt": settings.prompt}
+
+
+def _evaluate_in(policy: ChunkPolicy, settings: EvalSettings, replan: int, schedule: ChunkSchedule, envs: list[Any],
+                 folder: Path | None, record: EvalRecord | None) -> tuple[EvalResult, BaseException | None]:
+    """The episodes of `evaluate` not in `record` yet (each recorded as it ends), then the summary, written into
+    `folder` (published as the output folder when this returns); and what stopped the episodes early (None: they
+    all ran). A failure before any episode finished raises (`_NothingFinished` around it where there is a record)."""
+    mode, delay = settings.execution, settings.inference_delay
     obs_format = ObservationFormat.from_preset(settings.obs_format or default_obs_format(settings.env, policy.metadata))
     action_dim = int(np.prod(envs[0].action_space.shape))
 
@@ -485,22 +561,26 @@ def evaluate(policy: ChunkPolicy, settings: EvalSettings) -> EvalResult:
     _check_match(policy, envs[0], first_observation)
     if delay:
         _hold_action(envs[0], first_observation, first_raw, action_dim)
+    results = [EpisodeResult(**episode) for episode in record.episodes] if record is not None else []
+    latencies: list[float] = list(record.calls_ms) if record is not None else []
+    recorded = {result.seed for result in results}
+    remaining = [settings.seed + i for i in range(settings.episodes) if settings.seed + i not in recorded]
+    if results:
+        print(f"resuming: {len(results)} of {settings.episodes} episodes recorded, {len(remaining)} to run")
     progress = None
     if settings.progress:
         from tqdm.auto import tqdm
 
-        progress = tqdm(total=settings.episodes, desc=f"eval {settings.env}", unit="episode")
-    results: list[EpisodeResult] = []
-    latencies: list[float] = []
+        progress = tqdm(total=settings.episodes, initial=len(results), desc=f"eval {settings.env}", unit="episode")
     frames: dict[int, list[np.ndarray]] = {}  # episode seed -> its rendered frames
     stopped: BaseException | None = None
     try:
-        for first in range(0, settings.episodes, len(envs)):
-            seeds = [settings.seed + i for i in range(first, min(first + len(envs), settings.episodes))]
-            group = envs[: len(seeds)]
+        for first in range(0, len(remaining), len(envs)):
+            seeds = remaining[first : first + len(envs)]
             try:
-                wave, wave_frames = _run_group(policy, group, seeds, schedule, observe, action_dim, latencies,
-                                               record=max(0, settings.video_episodes - len(frames)))
+                wave, wave_frames = _run_group(policy, envs[: len(seeds)], seeds, schedule, observe, action_dim,
+                                               latencies, record=max(0, settings.video_episodes - len(frames)),
+                                               log=record)
             except _GroupStopped as interrupted:
                 wave, wave_frames, stopped = interrupted.results, interrupted.frames, interrupted.cause
             results += wave
@@ -514,10 +594,9 @@ def evaluate(policy: ChunkPolicy, settings: EvalSettings) -> EvalResult:
     finally:
         if progress is not None:
             progress.close()
-        for env in envs:
-            env.close()
     if stopped is not None and not results:
-        raise stopped
+        raise _NothingFinished(stopped) if folder is not None else stopped
+    results.sort(key=lambda r: r.seed)
     successes = sum(r.success for r in results)
     boundary = [j for r in results for j in r.boundary_jerk]
     interior = [j for r in results for j in r.interior_jerk]
@@ -536,17 +615,14 @@ def evaluate(policy: ChunkPolicy, settings: EvalSettings) -> EvalResult:
         complete=stopped is None,
         stopped_by=None if stopped is None else f"{type(stopped).__name__}: {first_line(stopped)}",
     )
-    if settings.output_dir:
+    if folder is not None:
         try:
-            write_outputs(result, frames, Path(settings.output_dir), fps=_control_hz(envs[0]), overwrite=settings.overwrite)
+            write_outputs(result, frames, folder, fps=_control_hz(envs[0]))
         except OSError as error:  # (the disk filled up, or the folder went read-only, while the episodes ran)
             raise EvaluationStopped(f"the episodes ran, but {settings.output_dir} could not be written "
-                                    f"({first_line(error)}); the summary above is all there is", result) from error
-    if stopped is not None:
-        written = f"; eval.json in {settings.output_dir} holds them" if settings.output_dir else ""
-        raise EvaluationStopped(f"{result.stopped_by} (stopped after {len(results)} finished episodes of "
-                                f"{settings.episodes}{written})", result) from stopped
-    return result
+                                    f"({first_line(error)}); the summary above is all there is, and --resume "
+                                    f"writes it from the record ({record.path})", result) from error
+    return result, stopped
 
 
 def _per_task(results: Sequence[EpisodeResult]) -> dict[str, dict[str, Any]]:
@@ -572,10 +648,11 @@ def _run_group(
     action_dim: int,
     latencies: list[float],
     record: int,
+    log: EvalRecord | None = None,
 ) -> tuple[list[EpisodeResult], dict[int, list[np.ndarray]]]:
     """Episodes of one group of environments in lockstep (they share the chunk schedule): their results and the
-    frames of the first `record` episodes (by seed). A failure part way raises [`_GroupStopped`] holding the
-    episodes finished before it."""
+    frames of the first `record` episodes (by seed); each episode and policy call is appended to `log` as it ends. A
+    failure part way raises [`_GroupStopped`] holding the episodes finished before it."""
     done = [False] * len(envs)
     success = [False] * len(envs)
     executed: list[list[np.ndarray]] = [[] for _ in envs]
@@ -598,9 +675,13 @@ def _run_group(
     def finished(indices: Sequence[int]) -> tuple[list[EpisodeResult], dict[int, list[np.ndarray]]]:
         return [episode(i) for i in indices], {seeds[i]: frames[i] for i in indices if frames[i]}
 
+    def ended(i: int) -> None:
+        if log is not None:
+            log.add_episode(episode(i))
+
     try:
         _step_group(policy, envs, seeds, schedule, observe, action_dim, latencies, record,
-                    done, success, executed, switches, frames)
+                    done, success, executed, switches, frames, ended, None if log is None else log.add_call)
     except (Exception, KeyboardInterrupt) as error:
         raise _GroupStopped(*finished([i for i in range(len(envs)) if done[i]]), error) from error
     return finished(range(len(envs)))
@@ -620,8 +701,11 @@ def _step_group(
     executed: list[list[np.ndarray]],
     switches: list[list[int]],
     frames: list[list[np.ndarray]],
+    ended: Callable[[int], None],
+    called: Callable[[float], None] | None,
 ) -> None:
-    """The closed loop of [`_run_group`], filling its per-episode lists as it goes."""
+    """The closed loop of [`_run_group`], filling its per-episode lists as it goes; `ended(i)` as episode `i` ends,
+    `called(ms)` after each policy call."""
     raws = [env.reset(seed=seed)[0] for env, seed in zip(envs, seeds)]
     observations = [observe(raw) for raw in raws]
     holds = [_hold_action(env, o, raw, action_dim) if schedule.inference_delay else None
@@ -653,6 +737,8 @@ def _step_group(
             start = time.monotonic()
             chunks = policy(requests)
             latencies.append((time.monotonic() - start) * 1000)
+            if called is not None:
+                called(latencies[-1])
             for i, chunk in zip(active, chunks):
                 pending[i].append((schedule.arrival(step), schedule.anchor(step), chunk))
             chunk_count += 1
@@ -669,25 +755,24 @@ def _step_group(
                 frames[i].append(env.render())
             if terminated or truncated:
                 done[i], success[i] = True, bool(info.get("is_success", False))
+                ended(i)
         step += 1
 
 
-def write_outputs(result: EvalResult, frames: Mapping[int, list[np.ndarray]], output_dir: Path, fps: int,
-                  overwrite: bool = False) -> None:
+def write_outputs(result: EvalResult, frames: Mapping[int, list[np.ndarray]], folder: Path, fps: int) -> None:
     """`eval.json`, and for recorded episodes (`frames`: seed -> frames) `rollout_<seed>.mp4` plus one
-    `rollout_<seed>.png` strip, written aside and moved into place ([`pi0_torch.utils.files.atomic_output_dir`]:
-    a non-empty `output_dir` only with `overwrite`, and only when pi0-torch wrote it)."""
+    `rollout_<seed>.png` strip, into `folder` (the output folder's partial folder, published when the evaluation
+    ends: [`pi0_torch.utils.files.resumable_output_dir`])."""
     from PIL import Image
 
     from pi0_torch.data.video import encode_video
 
-    with atomic_output_dir(output_dir, overwrite=overwrite) as staging:
-        (staging / "eval.json").write_text(json.dumps(asdict(result), indent=2) + "\n")
-        for seed, frames_of_episode in frames.items():
-            name = f"rollout_{seed}"
-            encode_video(staging / f"{name}.mp4", [_even(f) for f in frames_of_episode], fps, "libx264")
-            picks = np.linspace(0, len(frames_of_episode) - 1, num=min(8, len(frames_of_episode))).round().astype(int)
-            Image.fromarray(np.concatenate([frames_of_episode[i] for i in picks], axis=1)).save(staging / f"{name}.png")
+    (folder / "eval.json").write_text(json.dumps(asdict(result), indent=2) + "\n")
+    for seed, frames_of_episode in frames.items():
+        name = f"rollout_{seed}"
+        encode_video(folder / f"{name}.mp4", [_even(f) for f in frames_of_episode], fps, "libx264")
+        picks = np.linspace(0, len(frames_of_episode) - 1, num=min(8, len(frames_of_episode))).round().astype(int)
+        Image.fromarray(np.concatenate([frames_of_episode[i] for i in picks], axis=1)).save(folder / f"{name}.png")
 
 
 def _even(frame: np.ndarray) -> np.ndarray:
@@ -768,6 +853,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--output-dir", help="write eval.json (and videos) here: a new or empty folder (see --overwrite)")
     parser.add_argument("--overwrite", action="store_true", help="replace a non-empty --output-dir that pi0-torch "
                         "wrote (a folder with files of others is never replaced)")
+    parser.add_argument("--resume", action="store_true", help="continue the evaluation into --output-dir that was "
+                        f"stopped (Ctrl-C, SIGTERM, a failure) or killed, from its record ({RECORD_FILE}): the same "
+                        "settings, the episodes it lacks")
     parser.add_argument("--video", nargs="?", type=int, const=1, default=0, metavar="N",
                         help="record the first N episodes (default 1) as mp4 and PNG strips (needs --output-dir)")
 
@@ -777,7 +865,8 @@ def run(args: argparse.Namespace) -> int:
         env=args.env, episodes=args.episodes, num_envs=args.num_envs, seed=args.seed,
         replan_steps=args.replan_steps, execution=args.execution, inference_delay=args.inference_delay,
         max_steps=args.max_steps, obs_format=args.obs_format, env_kwargs=args.env_kwargs, prompt=args.prompt,
-        video_episodes=args.video, output_dir=args.output_dir, overwrite=args.overwrite, progress=True,
+        video_episodes=args.video, output_dir=args.output_dir, overwrite=args.overwrite, resume=args.resume,
+        progress=True,
     )
     try:
         if settings.video_episodes and not settings.output_dir:
@@ -797,11 +886,17 @@ def run(args: argparse.Namespace) -> int:
         elif settings.replan_steps is None and recommended is not None:
             settings = replace(settings, replan_steps=recommended)
             print(f"replan steps {recommended}: the policy's recommended setting ({SETTINGS_FILE}; --replan-steps to change)")
+        previous = signal.signal(signal.SIGTERM, _terminate)  # (SIGTERM stops the episodes as Ctrl-C does)
         try:
             result = evaluate(policy, settings)
         finally:
+            signal.signal(signal.SIGTERM, previous)
             if isinstance(policy, RemotePolicy):
                 policy.close()
+    except KeyboardInterrupt as error:  # (outside an episode group: the record holds every finished episode)
+        where = f"; --resume continues from {settings.output_dir}'s record" if settings.output_dir else ""
+        print(f"pi0-torch eval: stopped ({type(error).__name__}){where}", file=sys.stderr)
+        return 2
     except (ValueError, OSError, EvaluationStopped) as error:  # settings, files, the server: one line
         if isinstance(error, EvaluationStopped):  # the finished episodes' result first, whatever became of the files
             print("\n".join([error.result.summary(), *error.result.task_lines()]))

@@ -373,10 +373,12 @@ def output_lock(output_dir: str | os.PathLike[str], what: str = "--output-dir") 
 
 
 @contextmanager
-def resumable_output_dir(output_dir: str | os.PathLike[str]) -> Iterator[Path]:
+def resumable_output_dir(output_dir: str | os.PathLike[str], overwrite: bool | None = None) -> Iterator[Path]:
     """Like [`atomic_output_dir`], but the partial folder has a fixed name and is KEPT when the block fails, so that
-    the next call continues what it holds (a download resumes its files). It is published only when the block
-    succeeds. Refuses (`OutputPathError`) when a live run (or one on another host) holds the partial folder."""
+    the next call continues what it holds (a download resumes its files, an evaluation its episodes). It is published
+    only when the block succeeds, after [`check_output_dir`] with `overwrite` where that is given (what appeared in
+    `output_dir` meanwhile is never replaced unasked). Refuses (`OutputPathError`) when a live run (or one on another
+    host) holds the partial folder."""
     output_dir = Path(output_dir).expanduser().absolute()
     partial = output_dir.with_name(partial_name(output_dir.name, RESUMABLE_TAG))
     if partial.is_dir() and in_use(partial):
@@ -389,5 +391,7 @@ def resumable_output_dir(output_dir: str | os.PathLike[str]) -> Iterator[Path]:
         (partial / OWNER_FILE).unlink(missing_ok=True)  # free for the next run, which continues it
         raise
     (partial / OWNER_FILE).unlink(missing_ok=True)
+    if overwrite is not None:
+        check_output_dir(output_dir, overwrite)
     record_written(partial, [partial])
     publish(partial, output_dir)
