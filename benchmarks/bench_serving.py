@@ -17,6 +17,13 @@ refusals per second are counted.
 
     python benchmarks/bench_serving.py --num-steps 1 --flood 0,1,3,6 --requests 40
 
+`--flood-kind reset` makes each attacker loop instead on: connect, upgrade, send a frame header that claims 8 MiB,
+send 1 MiB of it, reset the connection (issue 63, round 5 item 2: a good client's median went from 7.7 to 496 ms
+under three of them); `--attacker-address` sends them from another loopback address (127.0.0.2) than the good
+client's.
+
+    python benchmarks/bench_serving.py --model pi0_torch/demo_policy --flood 0,3 --flood-kind reset --requests 100
+
 Only 127.0.0.1 is used; the number of requests is bounded by --clients x --requests (the flood by --requests and the
 good client's time).
 """
@@ -105,15 +112,57 @@ def refused_frame(max_objects: int = 100_000, items: int = 10_000) -> bytes:
     return b"\xdc" + (max_objects // items).to_bytes(2, "big") + inner * (max_objects // items)
 
 
-def _attacker_process(port: int, attackers: int, started: Any, stop: Any, results: Any) -> None:
-    """Runs in a child process: `attackers` threads, each looping on `refused_frame()` over its own connection until
-    `stop` is set; puts the count of refusals and the seconds they took on `results`."""
+def _reset_attack(port: int, address: str) -> bool:
+    """One connect-upgrade-reset round: the websocket handshake, a masked binary frame header that claims 8 MiB, 1 MiB
+    of its payload, then a TCP reset (SO_LINGER 0). True if the server accepted the handshake."""
+    import base64
+    import os
+    import socket
+    import struct
+
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as raw:
+        raw.bind((address, 0))
+        raw.connect(("127.0.0.1", port))
+        key = base64.b64encode(os.urandom(16)).decode()
+        raw.sendall((f"GET / HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
+                     f"Sec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n\r\n").encode())
+        response = b""
+        while b"\r\n\r\n" not in response:
+            chunk = raw.recv(4096)
+            if not chunk:
+                break
+            response += chunk
+        accepted = response.startswith(b"HTTP/1.1 101")
+        if accepted:
+            raw.sendall(b"\x82" + bytes([0x80 | 127]) + struct.pack(">Q", 8 * 2**20) + b"\0\0\0\0")
+            raw.sendall(b"\0" * 2**20)
+        raw.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
+    return accepted
+
+
+def _attacker_process(port: int, attackers: int, started: Any, stop: Any, results: Any, kind: str = "refused",
+                      address: str = "127.0.0.1") -> None:
+    """Runs in a child process: `attackers` threads, each looping until `stop` is set on `refused_frame()` over its own
+    connection (`kind` "refused"; counted: refusals) or on connect-upgrade-reset rounds from `address` ("reset";
+    counted: rounds); puts the count and the seconds they took on `results`."""
     import websockets.sync.client
 
     frame = refused_frame()
     refusals = [0] * attackers
     errors: list[str] = []
     connected = threading.Barrier(attackers + 1)
+
+    def reset(index: int) -> None:
+        try:
+            connected.wait()
+            while not stop.is_set():
+                try:
+                    _reset_attack(port, address)
+                except OSError:  # (a refused or reset handshake: the next round)
+                    pass
+                refusals[index] += 1
+        except Exception as error:
+            errors.append(repr(error))
 
     def attack(index: int) -> None:
         try:
@@ -130,7 +179,7 @@ def _attacker_process(port: int, attackers: int, started: Any, stop: Any, result
             errors.append(repr(error))
             connected.abort()
 
-    threads = [threading.Thread(target=attack, args=(i,)) for i in range(attackers)]
+    threads = [threading.Thread(target=reset if kind == "reset" else attack, args=(i,)) for i in range(attackers)]
     for thread in threads:
         thread.start()
     try:
@@ -148,14 +197,18 @@ def _flood(policy: Any, args: argparse.Namespace, frame_shape: tuple[int, ...]) 
     """The good client's latency while 0, 1, 3, ... clients loop on a refused frame (one server each)."""
     from pi0_torch.runtime.serving import PolicyServer
 
-    print(f"refused frame: {len(refused_frame()) / 1024:.0f} KiB, one object past --max-objects 100000")
-    print("| attackers | good requests | errors | p50 ms | p90 ms | max ms | refusals/s |")
+    if args.flood_kind == "reset":
+        print(f"connect-upgrade-reset rounds (8 MiB claimed, 1 MiB sent) from {args.attacker_address}")
+    else:
+        print(f"refused frame: {len(refused_frame()) / 1024:.0f} KiB, one object past --max-objects 100000")
+    print(f"| attackers | good requests | errors | p50 ms | p90 ms | max ms | {'rounds' if args.flood_kind == 'reset' else 'refusals'}/s |")
     print("|---:|---:|---:|---:|---:|---:|---:|")
     context = multiprocessing.get_context("spawn")
     for attackers in map(int, args.flood.split(",")):
         with PolicyServer(policy, host="127.0.0.1", port=0).serve_in_thread() as port:
             started, stop, results = context.Event(), context.Event(), context.Queue()
-            flood = context.Process(target=_attacker_process, args=(port, attackers, started, stop, results))
+            flood = context.Process(target=_attacker_process, args=(port, attackers, started, stop, results,
+                                                                    args.flood_kind, args.attacker_address))
             if attackers:
                 flood.start()
                 started.wait(timeout=600)
@@ -246,6 +299,10 @@ def main() -> None:
                         "auto, 1 for a model under 10 M parameters)")
     parser.add_argument("--flood", default=None, metavar="N,N,...", help="instead of the load test: one good client's "
                         "latency while N other clients loop on a refused frame, for each N")
+    parser.add_argument("--flood-kind", choices=("refused", "reset"), default="refused", help="what the --flood "
+                        "attackers loop on: a refused frame, or connect-upgrade-reset rounds")
+    parser.add_argument("--attacker-address", default="127.0.0.1", help="loopback address the reset attackers "
+                        "connect from (the good client's is 127.0.0.1)")
     args = parser.parse_args()
 
     import torch

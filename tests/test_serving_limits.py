@@ -479,9 +479,13 @@ def test_the_object_bound_stops_any_amplifying_shape_at_the_bound(shape: str, mo
 # --------------------------------------------------------------------------------------------- in-process servers
 
 
-def _client(port: int) -> websockets.sync.client.ClientConnection:
-    """An openpi-like client of an in-process server, its metadata read."""
-    ws = websockets.sync.client.connect(f"ws://127.0.0.1:{port}", compression=None, max_size=None, open_timeout=HANG_S)
+def _client(port: int, address: str = "127.0.0.1") -> websockets.sync.client.ClientConnection:
+    """An openpi-like client of an in-process server, its metadata read; connecting from the loopback `address`."""
+    import socket
+
+    raw = socket.create_connection(("127.0.0.1", port), timeout=HANG_S, source_address=(address, 0))
+    ws = websockets.sync.client.connect(f"ws://127.0.0.1:{port}", sock=raw, compression=None, max_size=None,
+                                        open_timeout=HANG_S)
     unpack_message(ws.recv(timeout=HANG_S))
     return ws
 
@@ -620,3 +624,81 @@ def test_metadata_that_clients_cannot_trust_is_refused_by_name(policy: PI0Policy
         PolicyServer(policy, extra_metadata={"reset_pose": [0, 2**70]})
     served = PolicyServer(policy, extra_metadata={"reset_pose": [0, 2**64 - 1], "site": "lab"}).metadata
     assert served["reset_pose"] == [0, 2**64 - 1] and served["camera_names"] == policy.camera_names
+
+
+def test_one_address_recycling_every_socket_cannot_lock_others_out(policy: PI0Policy,  # noqa: F811
+                                                                    caplog: pytest.LogCaptureFixture) -> None:
+    """Issue 63, round 5 item 1: 16 held connections, each replaced before it was 30 s old, locked every new client
+    out (HTTP 503 at 10, 35, 50 and 65 s: no socket got old enough to be displaced). Now, when all are taken, a new
+    client of another address displaces the connection longest without actions of the address holding the most; an
+    address never displaces connections of one holding fewer than it plus two."""
+    server = PolicyServer(policy, host="127.0.0.1", port=0, limits=ServerLimits(max_connections=4, displace_idle_s=3600.0))
+    good = pack_message(good_observation())
+    with caplog.at_level(logging.WARNING, logger="pi0_torch.runtime.serving"), server.serve_in_thread() as port:
+        held = [_client(port, "127.0.0.2") for _ in range(4)]
+        for _ in range(3):  # the holder recycles its sockets; each new one is let in only by displacing one of its own
+            held.pop(0).close()
+            held.append(_client(port, "127.0.0.2"))
+        with _client(port, "127.0.0.1") as newcomer:  # another address: gets its share
+            assert ask(newcomer, good)["actions"].shape == (50, ACTION_DIM)
+            open_held = [ws for ws in held if _is_open(ws)]
+            assert len(open_held) == 3
+            with _client(port, "127.0.0.3") as second:  # 127.0.0.2 still holds 3 > 0 + 2: it gives another one up
+                assert ask(second, good)["actions"].shape == (50, ACTION_DIM)
+                with pytest.raises(InvalidStatus) as refused:  # 2, 1, 1 held: none two more than 127.0.0.1 holds
+                    _client(port, "127.0.0.1")
+                assert refused.value.response.status_code == 503
+                assert ask(newcomer, good)["actions"].shape == (50, ACTION_DIM)  # never displaced by the flood
+        for ws in held:
+            ws.close()
+    assert "displaced by 127.0.0.1:" in caplog.text and "(fair shares)" in caplog.text
+
+
+def _is_open(ws: websockets.sync.client.ClientConnection) -> bool:
+    try:
+        ws.ping().wait(HANG_S)
+        return True
+    except websockets.ConnectionClosed:
+        return False
+
+
+def test_an_address_opening_connections_too_fast_is_held_unread_then_reset(policy: PI0Policy,  # noqa: F811
+                                                                         monkeypatch: pytest.MonkeyPatch) -> None:
+    """Issue 63, round 5 item 2: a connect-upgrade-reset flood starved the model (a good client's median 7.7 to 496
+    ms; benchmarks/bench_serving.py --flood-kind reset). An address may open `handshakes_per_s` connections a second
+    (a burst of `handshake_burst`); the ones beyond are held unread, then reset (a looping attacker waits instead of
+    costing the server an accept after another); other addresses are not affected."""
+    monkeypatch.setattr(serving, "HOLD_S", 0.5)
+    limits = ServerLimits(handshakes_per_s=0.01, handshake_burst=3)
+    with PolicyServer(policy, host="127.0.0.1", port=0, limits=limits).serve_in_thread() as port:
+        clients = [_client(port, "127.0.0.2") for _ in range(3)]
+        start = time.monotonic()
+        with pytest.raises((ConnectionError, websockets.InvalidHandshake, websockets.ConnectionClosed, TimeoutError)):
+            _client(port, "127.0.0.2")
+        assert time.monotonic() - start >= 0.4  # (held, not answered)
+        with _client(port, "127.0.0.1") as other:
+            assert ask(other, pack_message(good_observation()))["actions"].shape == (50, ACTION_DIM)
+        for ws in clients:
+            ws.close()
+
+
+def test_connection_log_lines_are_limited_per_address() -> None:
+    """A flood of 56k connections wrote 15 MB of log (two lines each): at most 5 lines per address, kind and minute;
+    the next one logged says how many were left out."""
+    now = [0.0]
+    budget = serving.LogBudget(lines=5, window_s=60.0, clock=lambda: now[0])
+    records: list[str] = []
+    handler = logging.Handler()
+    handler.emit = lambda record: records.append(record.getMessage())  # type: ignore[method-assign]
+    serving.logger.addHandler(handler)
+    try:
+        for _ in range(1000):
+            budget.log(logging.WARNING, "10.0.0.9", "opened", "connection from %s opened", "10.0.0.9:1")
+        budget.log(logging.WARNING, "10.0.0.8", "opened", "connection from %s opened", "10.0.0.8:1")
+        now[0] = 61.0
+        budget.log(logging.WARNING, "10.0.0.9", "opened", "connection from %s opened", "10.0.0.9:2")
+    finally:
+        serving.logger.removeHandler(handler)
+    assert records[:5] == ["connection from 10.0.0.9:1 opened"] * 5 and records[5] == "connection from 10.0.0.8:1 opened"
+    assert records[6] == "connection from 10.0.0.9:2 opened (and 995 more such lines from 10.0.0.9 left out of the log)"
+    assert len(records) == 7

@@ -19,8 +19,11 @@ unchanged:
 
 Limits ([`ServerLimits`], each a `pi0-torch serve` flag): every request is bounded before any work is done on it
 (frame size, list lengths, the total count of decoded objects, prompt characters, image pixels), connections are
-capped (a new client displaces the connection longest without actions once that is idle past a grace period; else it
-gets HTTP 503) and closed after an idle time, and with an API key the handshake needs exactly one
+capped (a new client displaces a connection of an address that holds two or more more than its own, or the connection
+longest without actions once that is idle past a grace period; else it gets HTTP 503) and closed after an idle time,
+each address may open only so many connections a second (the ones beyond are reset as they are accepted, before any
+handshake work), log lines about connections are limited per address and minute, and with an API key the handshake
+needs exactly one
 `Authorization: Api-Key <key>` header, as `WebsocketClientPolicy(api_key=...)` sends it (others get HTTP 401 before
 reaching the model). Refusing costs CPU too: the frames the server refuses may take a bounded share of one core
 ([`RefusalBudget`]), and a client whose last request was refused waits for it, so clients looping on bad frames
@@ -84,6 +87,8 @@ API_KEY_ENV = "PI0_TORCH_API_KEY"
 MAX_MESSAGE_MIB = 4_096  # `--max-message-mib`: more than eight 4K float32 camera frames
 ALL_INTERFACES = ("0.0.0.0", "::", "")
 MIN_API_KEY_CHARS = 12
+HOLD_S = 5.0  # a connection over its address's rate is held unread this long, then reset (`_hold_then_reset`)
+MAX_HELD = 256  # connections held so at once; beyond, they are reset at once
 MAX_TRACKED_ADDRESSES = 10_000  # addresses whose wrong keys are counted (`ServerLimits.key_failures`)
 _ARRAY_KINDS = "biufUS"  # bool, ints, floats, strings; object/void/complex arrays are refused both ways
 
@@ -284,6 +289,10 @@ class ServerLimits:
             (guessing keys runs at a few per minute instead of about a thousand a second). A right key resets its
             count.
         key_hold_off_s: see `key_failures`.
+        handshakes_per_s: connections one address may open per second, on average (`handshake_burst` at once); the
+            ones beyond are reset as they are accepted, before their handshake is read, so a flood of connections
+            (connect, upgrade, a large frame begun, reset) costs the server little of the CPU the model runs on.
+        handshake_burst: see `handshakes_per_s` (an evaluation of `--num-envs 16` opens 16 at once).
     """
 
     max_message_bytes: int = 16 * 2**20
@@ -298,10 +307,12 @@ class ServerLimits:
     refused_burst_s: float = 0.05
     key_failures: int = 10
     key_hold_off_s: float = 60.0
+    handshakes_per_s: float = 20.0
+    handshake_burst: int = 40
 
     def __post_init__(self) -> None:
         for name in ("max_message_bytes", "max_prompt_chars", "max_image_pixels", "max_items", "max_objects",
-                     "max_connections", "key_failures"):
+                     "max_connections", "key_failures", "handshake_burst"):
             check_int(name, getattr(self, name), minimum=1)
         for name in ("idle_timeout_s", "displace_idle_s"):
             if getattr(self, name) is not None:
@@ -309,6 +320,7 @@ class ServerLimits:
         check_float("refused_share", self.refused_share, minimum=0.0, maximum=1.0, exclusive_minimum=True)
         check_float("refused_burst_s", self.refused_burst_s, minimum=0.0, exclusive_minimum=True)
         check_float("key_hold_off_s", self.key_hold_off_s, minimum=0.0)
+        check_float("handshakes_per_s", self.handshakes_per_s, minimum=0.0, exclusive_minimum=True)
 
     def check(self, observation: Mapping[str, Any]) -> None:
         """Refuse (with [`ObservationError`]) a default-layout observation whose prompt or frames exceed the limits."""
@@ -368,6 +380,65 @@ class RefusalBudget:
         with self._lock:
             self._refill()
             return max(0.0, -self._level / self.share)
+
+
+class AddressBuckets:
+    """A token bucket per address: `take(address)` is True while that address has spent fewer than `burst` tokens
+    refilled at `rate` per second. Bounded memory: beyond `MAX_TRACKED_ADDRESSES` the fullest buckets (addresses that
+    have been quiet longest) are forgotten first.
+
+    ```python
+    >>> now = [0.0]
+    >>> buckets = AddressBuckets(rate=1.0, burst=2, clock=lambda: now[0])
+    >>> [buckets.take("10.0.0.1") for _ in range(3)], buckets.take("10.0.0.2")
+    ([True, True, False], True)
+    >>> now[0] = 1.0
+    >>> buckets.take("10.0.0.1")
+    True
+
+    ```
+    """
+
+    def __init__(self, rate: float, burst: int, clock: Callable[[], float] = time.monotonic) -> None:
+        self.rate, self.burst, self.clock = rate, burst, clock
+        self._buckets: dict[str, tuple[float, float]] = {}  # address -> (tokens, when)
+
+    def take(self, address: str) -> bool:
+        now = self.clock()
+        tokens, when = self._buckets.get(address, (float(self.burst), now))
+        tokens = min(float(self.burst), tokens + (now - when) * self.rate)
+        allowed = tokens >= 1.0
+        self._buckets[address] = (tokens - 1.0 if allowed else tokens, now)
+        if len(self._buckets) > MAX_TRACKED_ADDRESSES:
+            quiet = sorted(self._buckets, key=lambda key: now - self._buckets[key][1])[-MAX_TRACKED_ADDRESSES // 10:]
+            for key in quiet:
+                del self._buckets[key]
+        return allowed
+
+
+class LogBudget:
+    """At most `lines` log lines a minute per address and kind of event; the others are counted, and the next line
+    logged for that address and kind says how many were left out (a flood of 56k connections wrote 15 MB of log)."""
+
+    def __init__(self, lines: int = 5, window_s: float = 60.0, clock: Callable[[], float] = time.monotonic) -> None:
+        self.lines, self.window_s, self.clock = lines, window_s, clock
+        self._counts: dict[tuple[str, str], tuple[float, int, int]] = {}  # (address, kind) -> (start, logged, left out)
+
+    def log(self, level: int, address: str, kind: str, message: str, *args: Any) -> None:
+        now = self.clock()
+        start, logged, left_out = self._counts.get((address, kind), (now, 0, 0))
+        if now - start >= self.window_s:
+            start, logged = now, 0
+        if logged >= self.lines:
+            self._counts[(address, kind)] = (start, logged, left_out + 1)
+            return
+        if left_out:
+            message += f" (and {left_out} more such lines from %s left out of the log)"
+            args = (*args, address)
+        logger.log(level, message, *args)
+        self._counts[(address, kind)] = (start, logged + 1, 0)
+        if len(self._counts) > MAX_TRACKED_ADDRESSES:
+            del self._counts[min(self._counts, key=lambda key: self._counts[key][0])]
 
 
 # --- the server --------------------------------------------------------------------------------------------------
@@ -473,6 +544,9 @@ class PolicyServer:
         self._closing: set[asyncio.Task[None]] = set()  # displaced connections being closed
         self._refusals = RefusalBudget(self.limits.refused_share, self.limits.refused_burst_s)
         self._untrusted_turn: asyncio.Lock | None = None  # one untrusted frame decoded at a time (FIFO)
+        self._handshakes = AddressBuckets(self.limits.handshakes_per_s, self.limits.handshake_burst)
+        self._held: set[asyncio.BaseTransport] = set()  # connections over their address's rate, held unread
+        self._log = LogBudget()
 
     @contextlib.contextmanager
     def serve_in_thread(self, timeout: float = 600.0) -> Iterator[int]:
@@ -553,6 +627,7 @@ class PolicyServer:
                 max_size=self.limits.max_message_bytes,
                 max_queue=1,  # one request at a time per connection: never buffer a pipelining client's frames
                 process_request=self._admit,
+                create_connection=_gated_connection(self),
             ) as server:
                 port = next(iter(server.sockets)).getsockname()[1]
                 logger.info("serving %s on ws://%s:%d (health check: http://%s:%d/healthz)",
@@ -562,6 +637,9 @@ class PolicyServer:
                 await stop.wait()
                 logger.info("shutting down: closing connections")
                 self._stopping = True
+                for transport in list(self._held):  # (connections held unread: `_hold_then_reset`)
+                    transport.abort()
+                self._held.clear()
                 self._fail_queued(_ShuttingDown("server is shutting down"))
                 server.close()
                 await server.wait_closed()
@@ -597,19 +675,71 @@ class PolicyServer:
                     logger.warning("%s: refused: %s API key; %d in a row from %s: held off for %g s", peer, problem,
                                    failures + 1, address, self.limits.key_hold_off_s)
                 elif failures < self.limits.key_failures:
-                    logger.warning("%s: refused: %s API key", peer, problem)
+                    self._log.log(logging.WARNING, address, "key", "%s: refused: %s API key", peer, problem)
                 return connection.respond(http.HTTPStatus.UNAUTHORIZED, "missing or wrong API key: send one header "
                                           "'Authorization: Api-Key <key>' (WebsocketClientPolicy(api_key=...))\n")
             self._key_failures.pop(address, None)
         self._clients = {c: client for c, client in self._clients.items() if c.state is not State.CLOSED}
-        if len(self._clients) >= self.limits.max_connections and not self._displace_idle(peer):
-            logger.warning("%s: refused: %d connections open (--max-connections)", peer, len(self._clients))
+        full = len(self._clients) >= self.limits.max_connections
+        if full and not self._displace_crowding(connection, peer) and not self._displace_idle(peer):
+            self._log.log(logging.WARNING, _address(connection), "full", "%s: refused: %d connections open "
+                          "(--max-connections)", peer, len(self._clients))
             idle = (f" and none has gone {self.limits.displace_idle_s:g} s without actions"
                     if self.limits.displace_idle_s is not None else "")
             return connection.respond(http.HTTPStatus.SERVICE_UNAVAILABLE, f"the server holds its limit of "
                                       f"{self.limits.max_connections} connections{idle}; try again later\n")
         self._clients[connection] = _Client(last_served=time.monotonic())
         return None
+
+    def _hold_then_reset(self, transport: asyncio.BaseTransport) -> None:
+        """A connection over its address's rate: read nothing of it and reset it after `HOLD_S` (a client looping on
+        connect-and-send waits for the reply meanwhile, instead of costing the server one accept after another), or
+        at once when `MAX_HELD` are held already or the server stops."""
+        if len(self._held) >= MAX_HELD or self._stopping:
+            transport.abort()
+            return
+        transport.pause_reading()  # type: ignore[attr-defined]
+        self._held.add(transport)
+
+        def reset() -> None:
+            self._held.discard(transport)
+            transport.abort()
+
+        asyncio.get_running_loop().call_later(HOLD_S, reset)
+
+    def _displace_crowding(self, newcomer: ServerConnection, peer: str) -> bool:
+        """Fair shares when every connection is taken: a new client whose address holds fewer connections than
+        another address by two or more displaces that address's connection longest without actions (that has no
+        request with the model). One address recycling all the sockets before any is idle long enough to be displaced
+        (`displace_idle_s`) locked every other client out; now it keeps at most its share. True if one was displaced."""
+        held: dict[str, list[tuple[float, ServerConnection]]] = {}
+        now = time.monotonic()
+        for connection, client in self._clients.items():
+            if connection.state is State.OPEN or connection.state is State.CONNECTING:
+                held.setdefault(_address(connection), []).append((now - client.last_served, connection))
+        crowded = max(held, key=lambda address: len(held[address]), default=None)
+        mine = len(held.get(_address(newcomer), []))
+        if crowded is None or len(held[crowded]) < mine + 2:
+            return False
+        candidates = [(seconds, connection) for seconds, connection in held[crowded]
+                      if not self._clients[connection].with_model]
+        if not candidates:
+            return False
+        seconds, victim = max(candidates, key=lambda entry: entry[0])
+        self._displace(victim, peer, f"displaced: this address held {len(held[crowded])} of the server's "
+                       f"{self.limits.max_connections} connections while another address waited",
+                       f"its address held {len(held[crowded])} of the {self.limits.max_connections} connections, "
+                       f"{peer}'s {mine} (fair shares)")
+        return True
+
+    def _displace(self, victim: ServerConnection, peer: str, reason: str, note: str) -> None:
+        """Drop `victim` from the clients (its slot is free at once) and close it with code 1000 and `reason` (sent
+        to it); `note`: why, for the log."""
+        del self._clients[victim]
+        self._log.log(logging.WARNING, _address(victim), "displaced", "%s: displaced by %s: %s", _peer(victim), peer, note)
+        closing = asyncio.get_running_loop().create_task(victim.close(1000, reason[:123]))  # (at most 123 bytes)
+        self._closing.add(closing)
+        closing.add_done_callback(self._closing.discard)
 
     def _displace_idle(self, peer: str) -> bool:
         """Close the open connection that has gone longest without actions, if longer than `displace_idle_s` and
@@ -624,20 +754,15 @@ class PolicyServer:
         seconds, victim = max(idle, key=lambda entry: entry[0])
         if seconds <= self.limits.displace_idle_s:
             return False
-        del self._clients[victim]
-        logger.warning("%s: displaced by %s: no actions for %.0f s while all %d connections were taken "
-                       "(--displace-idle-after %g)", _peer(victim), peer, seconds, self.limits.max_connections,
-                       self.limits.displace_idle_s)
-        closing = asyncio.get_running_loop().create_task(victim.close(1000, (
-            f"displaced: no actions for {seconds:.0f} s while another client waited for one of the server's "
-            f"{self.limits.max_connections} connections")[:123]))  # a close reason holds at most 123 bytes
-        self._closing.add(closing)
-        closing.add_done_callback(self._closing.discard)
+        self._displace(victim, peer, f"displaced: no actions for {seconds:.0f} s while another client waited for one "
+                       f"of the server's {self.limits.max_connections} connections",
+                       f"no actions for {seconds:.0f} s while all {self.limits.max_connections} connections were "
+                       f"taken (--displace-idle-after {self.limits.displace_idle_s:g})")
         return True
 
     async def _handle(self, ws: ServerConnection, prepare_pool: concurrent.futures.Executor) -> None:
         peer = _peer(ws)
-        logger.info("connection from %s opened", peer)
+        self._log.log(logging.INFO, _address(ws), "opened", "connection from %s opened", peer)
         prev_total_ms: float | None = None
         idle_timeout = self.limits.idle_timeout_s
         try:
@@ -663,7 +788,7 @@ class PolicyServer:
                 prev_total_ms = (time.monotonic() - received) * 1000
         except websockets.ConnectionClosed:
             pass
-        logger.info("connection from %s closed", peer)
+        self._log.log(logging.INFO, _address(ws), "closed", "connection from %s closed", peer)
 
     async def _answer(
         self, frame: Any, ws: ServerConnection, peer: str, prepare_pool: concurrent.futures.Executor
@@ -819,6 +944,30 @@ def _peer(connection: ServerConnection) -> str:
     return "%s:%s" % connection.remote_address[:2] if connection.remote_address else "?"
 
 
+def _address(connection: ServerConnection) -> str:
+    """The connection's IP address (its peer without the port)."""
+    return str(connection.remote_address[0]) if connection.remote_address else "?"
+
+
+def _gated_connection(server: PolicyServer) -> type[ServerConnection]:
+    """`ServerConnection` for `server`, whose connections from an address that opened more than its share lately
+    (`ServerLimits.handshakes_per_s`) are reset as they are accepted: before the handshake is read or answered, at
+    the least CPU a refusal can cost in Python."""
+
+    class GatedConnection(ServerConnection):
+        def connection_made(self, transport: asyncio.BaseTransport) -> None:
+            super().connection_made(transport)
+            peer = transport.get_extra_info("peername")
+            address = str(peer[0]) if peer else "?"
+            if not server._handshakes.take(address):
+                server._log.log(logging.WARNING, address, "flood", "%s: connections held unread, then reset: more "
+                                "than %g a second from this address (--handshakes-per-s)", address,
+                                server.limits.handshakes_per_s)
+                server._hold_then_reset(transport)
+
+    return GatedConnection
+
+
 # --- the `pi0-torch serve` command -------------------------------------------------------------------------------
 
 
@@ -864,7 +1013,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         f"WebsocketClientPolicy(api_key=KEY)); default: ${API_KEY_ENV}, else no access control")
     access.add_argument("--max-connections", type=int, default=defaults.max_connections,
                         help=f"refuse more connections with HTTP 503 (default {defaults.max_connections}), unless one "
-                        "can be displaced (--displace-idle-after)")
+                        "can be displaced: a connection of an address holding two or more connections more than the "
+                        "new client's, or one idle past --displace-idle-after")
+    access.add_argument("--handshakes-per-s", type=float, default=defaults.handshakes_per_s, metavar="RATE",
+                        help=f"connections one address may open per second (default {defaults.handshakes_per_s:g}, "
+                        f"{defaults.handshake_burst} at once); the ones beyond are reset as they are accepted")
     access.add_argument("--idle-timeout", type=float, default=defaults.idle_timeout_s, metavar="SECONDS",
                         help=f"close connections without a request for this long (default {defaults.idle_timeout_s:g}; "
                         "0: never)")
@@ -899,6 +1052,7 @@ def _server_limits(args: argparse.Namespace) -> ServerLimits:
         idle_timeout_s=check_float("--idle-timeout", args.idle_timeout, minimum=0.0) or None,
         displace_idle_s=check_float("--displace-idle-after", args.displace_idle_after, minimum=0.0) or None,
         refused_share=check_float("--refused-share", args.refused_share, 0.0, 1.0, exclusive_minimum=True),
+        handshakes_per_s=check_float("--handshakes-per-s", args.handshakes_per_s, 0.0, exclusive_minimum=True),
     )
 
 
