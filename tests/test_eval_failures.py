@@ -216,3 +216,33 @@ def test_sigterm_and_sigkill_keep_the_finished_episodes_and_resume_continues(tmp
     assert status == 2 and "records another evaluation (episodes 10 there, 12 now)" in err, err  # (never mixed)
     assert run_eval(capsys, *EXPERT_EVAL, "--output-dir", str(killed), "--resume")[0] == 0
     assert _details(killed) == _details(reference) and not partial.exists()
+
+
+def test_expert_is_refused_in_one_line_where_the_env_has_none(capsys: pytest.CaptureFixture[str],
+                                                              monkeypatch: pytest.MonkeyPatch) -> None:
+    """Issue 63, first hour 3: `eval --env aloha/AlohaTransferCube-v0 --policy expert` printed a `TypeError` traceback
+    and six dm_control atexit tracebacks, though `--help` offered `expert`. Refused in one line, before any env is
+    made."""
+    from pi0_torch.runtime import rollout
+
+    monkeypatch.setattr(rollout, "make_env", lambda *args, **kwargs: pytest.fail("an env was made"))
+    status = main(["eval", "--env", "aloha/AlohaTransferCube-v0", "--policy", "expert", "--episodes", "1"])
+    err = capsys.readouterr().err.strip()
+    assert status == 2 and err == ("pi0-torch eval: error: --policy expert: aloha/AlohaTransferCube-v0 has no scripted "
+                                   "expert here (the pi0_torch/... tabletop envs and metaworld/... have one); --policy "
+                                   "random gives a floor")
+
+
+def test_an_aloha_evaluation_exits_without_dm_control_noise() -> None:
+    """Issue 63, first hour 3: dm_control freed gym-aloha's rendering contexts at exit, after its render thread had
+    stopped, printing a traceback each. `AlohaSimEnv.close` frees them."""
+    pytest.importorskip("gym_aloha")
+    script = ("from pi0_torch.cli import main\nfrom pi0_torch.runtime import rollout\n"
+              "def fails(self, observations):\n    raise RuntimeError('a policy bug')\n"
+              "rollout.ScriptedPolicy.__call__ = fails\n"  # (the traceback keeps the envs alive until exit)
+              "raise SystemExit(main(['eval', '--env', 'aloha/AlohaTransferCube-v0', '--policy', 'random', "
+              "'--episodes', '1', '--max-steps', '2']))\n")
+    run = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=600)
+    if "RuntimeError: a policy bug" not in run.stderr:
+        pytest.skip(f"the ALOHA env did not run here: {run.stderr.strip().splitlines()[-1:]}")
+    assert "Exception ignored" not in run.stderr, run.stderr[-2000:]

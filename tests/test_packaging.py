@@ -210,3 +210,31 @@ def test_the_shipped_policy_is_named_from_anywhere(tmp_path: Path, monkeypatch: 
     assert policy.metadata["action_horizon"] == 16
     with pytest.raises(FileNotFoundError, match=r"pi0_torch.demo_policy_dir\(\) \(--policy demo"):
         PI0ForActionGeneration.from_pretrained("pi0_torch/demo_policy")
+
+
+def test_the_simulator_extras_agree_on_one_mujoco_in_any_install_order() -> None:
+    """Issue 63, first hour 4: `pip install '.[metaworld]'` then `'.[aloha]'` upgraded mujoco from 3.3.0 to 3.8.1
+    (the newest dm-control needs it) and `pip check` failed: metaworld pins 3.3.0. Every simulator extra must accept
+    metaworld's mujoco, and [aloha] must cap dm-control at a release that accepts it too (checked against the
+    installed metaworld and dm-control's own requirements, where they are installed)."""
+    import importlib.metadata
+
+    from packaging.requirements import Requirement
+
+    extras = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["optional-dependencies"]
+    wanted = {name: {Requirement(r).name: Requirement(r) for r in extras[name]} for name in ("metaworld", "aloha", "libero")}
+    try:
+        metaworld_mujoco = next(Requirement(r) for r in importlib.metadata.requires("metaworld") or ()
+                                if Requirement(r).name == "mujoco")
+        dm_control = importlib.metadata.version("dm_control")
+        dm_control_mujoco = next(Requirement(r) for r in importlib.metadata.requires("dm_control") or ()
+                                 if Requirement(r).name == "mujoco")
+    except (importlib.metadata.PackageNotFoundError, StopIteration):
+        pytest.skip("metaworld and dm-control are not installed (the dev extra)")
+    pinned = next(iter(metaworld_mujoco.specifier)).version  # ("==3.3.0")
+    for name, requirements in wanted.items():
+        assert requirements["mujoco"].specifier.contains(pinned), (name, str(requirements["mujoco"]), pinned)
+    cap = wanted["aloha"]["dm-control"].specifier
+    assert any(spec.operator in ("<=", "<", "==") for spec in cap), f"[aloha] leaves dm-control uncapped: {cap}"
+    if cap.contains(dm_control) and all(spec.version == dm_control for spec in cap if spec.operator == "<="):
+        assert dm_control_mujoco.specifier.contains(pinned), (dm_control, str(dm_control_mujoco), pinned)

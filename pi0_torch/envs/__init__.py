@@ -17,7 +17,7 @@ from pi0_torch.utils.extras import require_extra
 require_extra("envs", __name__)
 import gymnasium
 
-from pi0_torch.envs.experts import ScriptedExpert, make_expert
+from pi0_torch.envs.experts import ScriptedExpert, has_scripted_expert, make_expert
 from pi0_torch.envs.tasks import ConveyorEnv, PickPlaceEnv, ReachEnv, TabletopEnv
 
 ENV_CLASSES: dict[str, type[TabletopEnv]] = {
@@ -36,5 +36,6 @@ for _env_id, _env_class in ENV_CLASSES.items():
         )
 
 __all__ = [
-    "ENV_CLASSES", "ENV_IDS", "ConveyorEnv", "PickPlaceEnv", "ReachEnv", "ScriptedExpert", "TabletopEnv", "make_expert",
+    "ENV_CLASSES", "ENV_IDS", "ConveyorEnv", "PickPlaceEnv", "ReachEnv", "ScriptedExpert", "TabletopEnv",
+    "has_scripted_expert", "make_expert",
 ]

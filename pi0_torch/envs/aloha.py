@@ -105,7 +105,12 @@ class AlohaSimEnv(gymnasium.Env):
         return self._frame
 
     def close(self) -> None:
+        """Close gym-aloha's env and free its MuJoCo rendering contexts now: left to the interpreter's exit, dm_control
+        frees them after its render thread has stopped, and prints a traceback per context."""
         self.simulator.close()
+        physics = getattr(getattr(self.simulator.unwrapped, "_env", None), "physics", None)
+        if physics is not None and hasattr(physics, "free"):
+            physics.free()  # (dm_control's `Physics.free`: twice is harmless)
 
 
 def make_env(name: str, **kwargs: Any) -> AlohaSimEnv:

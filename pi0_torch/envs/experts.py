@@ -184,9 +184,20 @@ class ScriptedExpert:
         return Plan(kind, self._waypoints(start, velocity, goal, self._bend()), step, gripper)
 
 
+def has_scripted_expert(env_id: str) -> bool:
+    """Whether `pi0-torch eval --policy expert` has an expert for this env id: the tabletop envs (`pi0_torch/...`)
+    and Meta-World's (`metaworld/...`, its own scripted policies). ALOHA sim, LIBERO and PushT have none here
+    (gym-aloha ships its tasks, not the scripted policies ACT recorded its demos with)."""
+    return env_id.startswith(("pi0_torch/", "metaworld/"))
+
+
 def make_expert(env: gymnasium.Env) -> Any:
     """The scripted expert of an env (wrapped or not): a tabletop env's [`ScriptedExpert`], or the one an env
-    provides (`scripted_expert()`: Meta-World's). It has `reset(seed)` and `act(env) -> action`."""
+    provides (`scripted_expert()`: Meta-World's). It has `reset(seed)` and `act(env) -> action`; an env with
+    neither is a `ValueError` naming it."""
     if hasattr(env.unwrapped, "scripted_expert"):
         return env.unwrapped.scripted_expert()
+    if not isinstance(env.unwrapped, TabletopEnv):
+        raise ValueError(f"{type(env.unwrapped).__name__} has no scripted expert (the pi0_torch tabletop envs and "
+                         "Meta-World's have one)")
     return ScriptedExpert(env)

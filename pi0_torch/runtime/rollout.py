@@ -819,7 +819,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of `pi0-torch eval`."""
     parser.add_argument("--policy", required=True, help="a model folder, an exported folder (pi0-torch export), demo "
                         "(the policy shipped with the package), ws://HOST:PORT of pi0-torch serve, or 'expert' / 'random' (references: the env's scripted "
-                        "expert, uniform random actions)")
+                        "expert, for pi0_torch/... and metaworld/... envs; uniform random actions)")
     parser.add_argument("--env", required=True, help="gymnasium id, e.g. pi0_torch/PickPlace-v0 or gym_pusht/PushT-v0, "
                         "or a public benchmark: metaworld/<task>-v3, aloha/AlohaTransferCube-v0, libero/libero_spatial "
                         "(docs/benchmarks.md)")
@@ -872,6 +872,12 @@ def run(args: argparse.Namespace) -> int:
         if settings.video_episodes and not settings.output_dir:
             raise ValueError("--video needs --output-dir")
         check_eval_output(settings, policy_location(args.policy))  # before the policy loads and the episodes run
+        if args.policy == "expert":
+            from pi0_torch.envs import has_scripted_expert
+
+            if not has_scripted_expert(settings.env):
+                raise ValueError(f"--policy expert: {settings.env} has no scripted expert here (the pi0_torch/... "
+                                 "tabletop envs and metaworld/... have one); --policy random gives a floor")
         probe = make_env(settings.env, **settings.env_kwargs)  # an unknown id or setting fails before the policy loads
         protocol_replan_steps = getattr(probe.unwrapped, "replan_steps", None)  # a benchmark's published protocol
         probe.close()
