@@ -12,6 +12,7 @@ import argparse
 import importlib
 import json
 import sys
+import traceback
 from typing import Any
 
 from pi0_torch.utils.extras import MissingExtraError, require_extra
@@ -93,6 +94,36 @@ def main(argv: list[str] | None = None) -> int:
     except MissingExtraError as error:  # the command's module, or what it runs, needs an extra that is not installed
         print(error.message(f"pi0-torch {argv[0]}"), file=sys.stderr)
         return 1
+    except (ImportError, ValueError, AttributeError) as error:
+        mismatch = numpy_mismatch(error)
+        if mismatch is None:
+            raise
+        print(f"pi0-torch {argv[0]}: error: {mismatch}", file=sys.stderr)
+        return 1
+
+
+# What importing a compiled package built for another numpy major version raises (pandas, pyarrow, scipy, ...)
+_NUMPY_ABI_MESSAGES = ("numpy.dtype size changed", "compiled using NumPy", "numpy.core.multiarray failed to import",
+                       "_ARRAY_API not found", "numpy.core._multiarray_umath")
+
+
+def numpy_mismatch(error: BaseException) -> str | None:
+    """One line for an import that failed because the installed numpy is not the major version a compiled package
+    was built for (None for any other error): most often a package pinned `numpy<2` into this environment
+    (openpi-client 0.1.2 does), and pandas, pyarrow or scipy, built for numpy 2, no longer import."""
+    text = str(error)
+    if not any(message in text for message in _NUMPY_ABI_MESSAGES):
+        return None
+    import numpy
+
+    compiled = ("pandas", "pyarrow", "scipy", "datasets", "sklearn", "matplotlib")
+    module = getattr(error, "name", None) or next(
+        (frame.f_globals.get("__name__", "") for frame, _ in traceback.walk_tb(error.__traceback__)
+         if frame.f_globals.get("__name__", "").split(".")[0] in compiled), "")
+    package = module.split(".")[0] or "a compiled package"
+    return (f"{package} does not import with numpy {numpy.__version__} ({text.strip().splitlines()[0][:120]}): it was "
+            "built for another numpy major version. A package pinned numpy here (openpi-client pins numpy<2): "
+            "pip install --upgrade 'numpy>=2' here, and keep openpi-client in a virtualenv of its own (docs/serving.md)")
 
 
 if __name__ == "__main__":

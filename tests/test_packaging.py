@@ -11,6 +11,7 @@ import re
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -238,3 +239,25 @@ def test_the_simulator_extras_agree_on_one_mujoco_in_any_install_order() -> None
     assert any(spec.operator in ("<=", "<", "==") for spec in cap), f"[aloha] leaves dm-control uncapped: {cap}"
     if cap.contains(dm_control) and all(spec.version == dm_control for spec in cap if spec.operator == "<="):
         assert dm_control_mujoco.specifier.contains(pinned), (dm_control, str(dm_control_mujoco), pinned)
+
+
+def test_a_numpy_downgrade_is_one_line_at_the_first_import_that_fails(monkeypatch: pytest.MonkeyPatch,
+                                                                      capsys: pytest.CaptureFixture[str]) -> None:
+    """Issue 63, first hour 6: openpi-client in the same environment pinned numpy<2, pandas then failed to import,
+    and `train` printed pandas' traceback. Now one line names the package, numpy's version, the cause and the fix."""
+    from pi0_torch import cli
+
+    def pandas_built_for_numpy_2(name: str) -> Any:
+        raise ValueError("numpy.dtype size changed, may indicate binary incompatibility. Expected 96 from C header, "
+                         "got 88 from PyObject")
+
+    monkeypatch.setattr(cli.importlib, "import_module", pandas_built_for_numpy_2)
+    status = main(["doctor"])
+    err = capsys.readouterr().err.strip()
+    assert status == 1 and "\n" not in err, err
+    assert re.match(r"pi0-torch doctor: error: a compiled package does not import with numpy [\d.]+ \(numpy.dtype size "
+                    r"changed, .*\): it was built for another numpy major version\. A package pinned numpy here "
+                    r"\(openpi-client pins numpy<2\): pip install --upgrade 'numpy>=2'", err), err
+    other = ImportError("No module named 'x'")
+    assert cli.numpy_mismatch(other) is None and cli.numpy_mismatch(ImportError("compiled using NumPy 1.x", name="pyarrow")
+                                                                    ).startswith("pyarrow does not import with numpy")
