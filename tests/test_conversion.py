@@ -521,3 +521,17 @@ def test_a_truncated_weights_file_is_one_line_naming_the_input(tmp_path: Path, c
     error = capsys.readouterr().err
     assert error.startswith(f"error: {tmp_path / 'in'}: the weights are not a readable safetensors file") and error.count("\n") == 1
     assert not (tmp_path / "out").exists()
+
+
+def test_no_progress_silences_the_export_to_transformers(tmp_path: Path, capfd: pytest.CaptureFixture) -> None:
+    """Issue 63, first hour 7: `convert --to transformers --no-progress` still showed "Writing model shards"."""
+    from transformers.utils import logging as hf_logging
+
+    from pi0_torch import demo_policy_dir
+    from pi0_torch.cli import main
+
+    hf_logging.enable_progress_bar()  # (as in a fresh process)
+    assert main(["convert", "--from", "pi0-torch", "--to", "transformers", "--input", str(demo_policy_dir()),
+                 "--output-dir", str(tmp_path / "out"), "--no-progress"]) == 0
+    captured = capfd.readouterr()
+    assert "Writing model shards" not in captured.err + captured.out and (tmp_path / "out" / "config.json").is_file()

@@ -106,3 +106,23 @@ def test_the_backend_is_the_users_or_egl_with_an_nvidia_driver_else_osmesa(monke
     monkeypatch.setenv("MUJOCO_GL", "vulkan")
     with pytest.raises(rendering.RenderingError, match="MUJOCO_GL='vulkan' is not a MuJoCo backend; expected one of egl, osmesa, glfw"):
         rendering.configure_mujoco_gl()
+
+
+def test_the_scripted_expert_acts_without_warnings_and_errors_name_the_env_id(recwarn: pytest.WarningsRecorder) -> None:
+    """Issue 63, first hour 7: the expert leaked Meta-World's `UserWarning: Constant(s) may be too high` (it clips the
+    action anyway), and a dims mismatch named `<MetaWorldEnv instance>` instead of the env id."""
+    from pi0_torch.runtime.rollout import _check_match
+
+    env = make_env(TASK, image_size=32, max_episode_steps=70)
+    expert = env.unwrapped.scripted_expert()
+    observation, _ = env.reset(seed=0)
+    for _ in range(70):  # (its raw policy warns about 70 times on this task)
+        observation, _, terminated, truncated, _ = env.step(expert.act(env))
+        if terminated or truncated:
+            break
+    assert not [str(w.message) for w in recwarn if "Constant" in str(w.message)]
+    policy = ScriptedPolicy("random")
+    policy.metadata = {**policy.metadata, "action_dim": 7}
+    with pytest.raises(ValueError, match=rf"the env metaworld/{TASK} takes 4"):
+        _check_match(policy, env, observation, f"metaworld/{TASK}")
+    env.close()

@@ -261,3 +261,14 @@ def test_a_numpy_downgrade_is_one_line_at_the_first_import_that_fails(monkeypatc
     other = ImportError("No module named 'x'")
     assert cli.numpy_mismatch(other) is None and cli.numpy_mismatch(ImportError("compiled using NumPy 1.x", name="pyarrow")
                                                                     ).startswith("pyarrow does not import with numpy")
+
+
+def test_progress_bars_do_not_ask_for_ipywidgets(tmp_path: Path) -> None:
+    """Issue 63, first hour 7: evaluate.ipynb warned that ipywidgets was missing (tqdm.auto's notebook bar wants it,
+    and no extra brings it). Without ipywidgets every bar is tqdm's text bar, which warns nothing."""
+    code = ("import importlib.util, sys\n"
+            "find = importlib.util.find_spec\n"
+            "importlib.util.find_spec = lambda name, *a: None if name == 'ipywidgets' else find(name, *a)\n"
+            "import tqdm.std\nfrom pi0_torch.utils import progress\nassert progress.tqdm is tqdm.std.tqdm\n")
+    run = _python(code, tmp_path)
+    assert run.returncode == 0, run.stderr

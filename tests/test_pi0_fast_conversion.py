@@ -31,7 +31,9 @@ def test_convert_command_gives_model_and_processor(tmp_path: Path, fast_referenc
         "--tokenizer", str(FAST_DIR / "tokenizer.model"), "--fast-tokenizer", str(FAST_DIR / "fast_tokenizer"),
         "--max-token-len", "96", "--no-progress",
     ])
-    assert code == 0 and "π0-FAST" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert code == 0 and "π0-FAST" in printed
+    assert "processor: written (PI0FastProcessor.from_pretrained loads it)" in printed  # (said PI0Processor: issue 63)
     assert sorted(p.name for p in output.iterdir()) == [
         ".pi0-torch-manifest.json", "config.json", "fast_tokenizer", "model.safetensors", "norm_stats.json",
         "processor_config.json", "tokenizer.model",

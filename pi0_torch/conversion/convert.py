@@ -133,7 +133,9 @@ def _convert(args: argparse.Namespace) -> int:
         if args.target == "transformers":
             if args.source != "pi0-torch":
                 raise ConversionError("--to transformers exports a pi0-torch folder: convert first, then use --from pi0-torch")
-            print(f"wrote {export_to_transformers(args.input, args.output_dir, dtype=args.dtype, overwrite=args.overwrite)}")
+            written = export_to_transformers(args.input, args.output_dir, dtype=args.dtype, overwrite=args.overwrite,
+                                             progress=not args.no_progress)
+            print(f"wrote {written}")
             return 0
         options = {"delta_action_mask": args.delta_action_mask, "value_conversion": args.value_conversion}
         overrides: dict[str, Any] = {}

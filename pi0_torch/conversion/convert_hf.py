@@ -47,6 +47,7 @@ from pi0_torch.conversion.output_folder import (
 from pi0_torch.models.configuration_pi0 import PI0Config
 from pi0_torch.processing.normalization import NormStats
 from pi0_torch.utils.files import atomic_output_dir
+from pi0_torch.utils.quiet import transformers_progress
 
 CONFIG_FILE = "config.json"
 
@@ -439,14 +440,15 @@ def _transformers_config(config: PI0Config) -> Any:
 
 
 def export_to_transformers(
-    model_dir: str | os.PathLike[str], output_dir: str | os.PathLike[str], *, dtype: str | None = None, overwrite: bool = False
+    model_dir: str | os.PathLike[str], output_dir: str | os.PathLike[str], *, dtype: str | None = None, overwrite: bool = False,
+    progress: bool = False,
 ) -> Path:
     """Write a pi0-torch π0 folder as a transformers `PI0ForConditionalGeneration` folder (weights + config.json).
 
     For side-by-side comparisons with `transformers.PI0ForConditionalGeneration.from_pretrained(output_dir)`. q/k/v
     and gate/up are split; transformers' action expert carries an embedding table the model never reads, written as
     zeros. π0.5 has no transformers counterpart. The whole model passes through memory once (transformers writes
-    the files). `dtype` defaults to the stored dtype.
+    the files). `dtype` defaults to the stored dtype. `progress`: transformers' "Writing model shards" bar.
     """
     from transformers import PI0ForConditionalGeneration
 
@@ -478,7 +480,7 @@ def export_to_transformers(
         model.load_state_dict(state, strict=True, assign=True)
     except RuntimeError as error:
         raise ConversionError(f"{source} does not fill transformers' PI0: {first_line(error)}") from None
-    with atomic_output_dir(output, overwrite) as folder:
+    with atomic_output_dir(output, overwrite) as folder, transformers_progress(progress):
         model.save_pretrained(folder)
     return output
 

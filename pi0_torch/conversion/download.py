@@ -54,7 +54,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from tqdm.auto import tqdm
+from pi0_torch.utils.progress import tqdm
 
 from pi0_torch.conversion.orbax_reader import CheckpointError
 from pi0_torch.utils.files import resumable_output_dir

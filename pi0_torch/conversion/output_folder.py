@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from tqdm.auto import tqdm
+from pi0_torch.utils.progress import tqdm
 
 from pi0_torch.conversion.orbax_reader import CheckpointError
 from pi0_torch.models.configuration_pi0 import PI0Config
@@ -355,7 +355,9 @@ class ConversionResult:
     processor_missing: list[str] = field(default_factory=list)  # what the processor lacked (empty: it was written)
 
     def summary(self) -> str:
-        kind = "π0-FAST" if isinstance(self.config, PI0FastConfig) else "π0.5" if self.config.pi05 else "π0"
+        fast = isinstance(self.config, PI0FastConfig)
+        kind = "π0-FAST" if fast else "π0.5" if self.config.pi05 else "π0"
+        processor = "PI0FastProcessor" if fast else "PI0Processor"
         params = self.weight_bytes // torch.empty((), dtype=self.dtype).element_size()
         lines = [
             f"wrote {self.output_dir}: {kind}, {_human(params)} parameters, {_human(self.weight_bytes)}B of "
@@ -363,7 +365,7 @@ class ConversionResult:
             f"norm stats: {self.norm_stats or 'none found'}",
             "processor: " + (f"none: it needs {' and '.join(self.processor_missing)}"
                              + (" (--tokenizer: PaliGemma's SentencePiece file, or test)" if "--tokenizer" in self.processor_missing else "")
-                             if self.processor_missing else "written (PI0Processor.from_pretrained loads it)"),
+                             if self.processor_missing else f"written ({processor}.from_pretrained loads it)"),
         ]
         if self.dropped:
             lines.append(f"not converted (unused by the model): {name_list(self.dropped, 6)}")

@@ -51,7 +51,7 @@ from typing import Any, Literal
 import numpy as np
 import torch
 from PIL import Image
-from tqdm.auto import tqdm
+from pi0_torch.utils.progress import tqdm
 
 from pi0_torch.utils.extras import require_extra
 

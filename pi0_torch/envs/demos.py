@@ -35,7 +35,7 @@ from typing import Any
 
 import gymnasium
 import numpy as np
-from tqdm.auto import tqdm
+from pi0_torch.utils.progress import tqdm
 
 from pi0_torch.data.lerobot_writer import EpisodeRecord, LeRobotDatasetWriter, Storage, partial_dataset_episodes
 from pi0_torch.envs import ENV_IDS, make_expert

@@ -32,6 +32,7 @@ True
 
 from __future__ import annotations
 
+import warnings
 from typing import Any
 
 import gymnasium
@@ -169,7 +170,10 @@ class MetaWorldExpert:
         """(The scripted policies are deterministic.)"""
 
     def act(self, env: gymnasium.Env) -> np.ndarray:
-        return np.clip(self.policy.get_action(env.unwrapped.vector), -1.0, 1.0).astype(np.float32)
+        with warnings.catch_warnings():  # (its "Constant(s) may be too high" on large moves: the action is clipped here)
+            warnings.filterwarnings("ignore", message="Constant\\(s\\) may be too high", category=UserWarning)
+            action = self.policy.get_action(env.unwrapped.vector)
+        return np.clip(action, -1.0, 1.0).astype(np.float32)
 
 
 def make_env(name: str, **kwargs: Any) -> MetaWorldEnv:

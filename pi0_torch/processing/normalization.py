@@ -408,7 +408,7 @@ def compute_norm_stats(
         total = len(data)  # type: ignore[arg-type]
     running: dict[str, RunningStats] = {}
     single = False
-    from tqdm.auto import tqdm
+    from pi0_torch.utils.progress import tqdm
 
     for index, item in enumerate(tqdm(data, total=total, desc="norm stats", disable=not progress)):
         if isinstance(item, Mapping):

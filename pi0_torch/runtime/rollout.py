@@ -386,15 +386,16 @@ def _hold_action(env: Any, observation: Mapping[str, Any], raw: Mapping[str, Any
     return state
 
 
-def _check_match(policy: ChunkPolicy, env: Any, observation: Mapping[str, Any]) -> None:
+def _check_match(policy: ChunkPolicy, env: Any, observation: Mapping[str, Any], env_id: str) -> None:
+    """Refuse a policy whose action or state dims, or cameras, differ from the env's (`env_id`, as given), naming both."""
     meta = policy.metadata
     action_dim = int(np.prod(env.action_space.shape))
     if meta.get("action_dim") not in (None, action_dim):
-        raise ValueError(f"action dims differ: the policy acts in {meta['action_dim']} dims, the env "
-                         f"{env.spec.id if env.spec else env} takes {action_dim}")
+        raise ValueError(f"action dims differ: the policy acts in {meta['action_dim']} dims, the env {env_id} takes "
+                         f"{action_dim}")
     state_dim = np.asarray(observation["state"]).shape[0]
     if meta.get("state_dim") not in (None, state_dim):
-        raise ValueError(f"state dims differ: the policy expects {meta['state_dim']}, the env gives {state_dim}")
+        raise ValueError(f"state dims differ: the policy expects {meta['state_dim']}, the env {env_id} gives {state_dim}")
     cameras, policy_cameras = sorted(observation["images"]), list(meta.get("camera_names", []))
     if policy_cameras and not set(cameras) <= set(policy_cameras):
         from pi0_torch.envs.tasks import TabletopEnv
@@ -402,7 +403,7 @@ def _check_match(policy: ChunkPolicy, env: Any, observation: Mapping[str, Any]) 
         way_out = "map them with --obs-format"
         if isinstance(env.unwrapped, TabletopEnv):  # its wrist camera can be switched off
             way_out += """, or drop the wrist camera with --env-kwargs '{"wrist_camera": false}'"""
-        raise ValueError(f"cameras differ: the env gives {cameras}, the policy knows {policy_cameras} ({way_out})")
+        raise ValueError(f"cameras differ: the env {env_id} gives {cameras}, the policy knows {policy_cameras} ({way_out})")
     unseen = [camera for camera in policy_cameras if camera not in cameras]
     if unseen:  # (once per evaluation) a policy trained with them acts blind on their side
         logger.warning("the env gives no frames for the policy's cameras %s: they are fed as absent (masked) in every "
@@ -558,7 +559,7 @@ def _evaluate_in(policy: ChunkPolicy, settings: EvalSettings, replan: int, sched
 
     first_raw = envs[0].reset(seed=settings.seed)[0]
     first_observation = observe(first_raw)
-    _check_match(policy, envs[0], first_observation)
+    _check_match(policy, envs[0], first_observation, settings.env)
     if delay:
         _hold_action(envs[0], first_observation, first_raw, action_dim)
     results = [EpisodeResult(**episode) for episode in record.episodes] if record is not None else []
@@ -569,7 +570,7 @@ def _evaluate_in(policy: ChunkPolicy, settings: EvalSettings, replan: int, sched
         print(f"resuming: {len(results)} of {settings.episodes} episodes recorded, {len(remaining)} to run")
     progress = None
     if settings.progress:
-        from tqdm.auto import tqdm
+        from pi0_torch.utils.progress import tqdm
 
         progress = tqdm(total=settings.episodes, initial=len(results), desc=f"eval {settings.env}", unit="episode")
     frames: dict[int, list[np.ndarray]] = {}  # episode seed -> its rendered frames

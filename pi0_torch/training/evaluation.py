@@ -64,7 +64,7 @@ def evaluate_policy(
     The noise of batch k comes from `torch.Generator().manual_seed(seed + k)`, so the result is reproducible. The
     baseline predicts the mean action of the processor's statistics (the training data) at every step.
     """
-    from tqdm.auto import tqdm
+    from pi0_torch.utils.progress import tqdm
 
     model.eval()
     camera_map = dict(camera_map) if camera_map is not None else default_camera_map(dataset.camera_keys, model.config.camera_names)

@@ -44,7 +44,7 @@ EXTRAS: dict[str, tuple[str, ...]] = {
     "export": ("onnx", "onnxscript", "onnxruntime"),
     "quant": ("torchao",),
     "metaworld": ("metaworld", "mujoco"),  # (each benchmark's extra also brings envs)
-    "aloha": ("gym_aloha", "mujoco"),
+    "aloha": ("gym_aloha", "dm_control", "mujoco"),
     "libero": ("libero", "mujoco", "yaml"),
 }
 DISTRIBUTIONS = {"libero": "hf-libero", "yaml": "pyyaml"}  # module -> pip distribution, where they differ
