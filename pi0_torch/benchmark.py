@@ -299,6 +299,7 @@ def rtc_options(config: PI0Config, batch: int, device: torch.device, method: str
 
 
 def bench_generate(args: argparse.Namespace, device: torch.device) -> None:
+    plotted: list[tuple[str, float, float, float]] = []  # (row, median, fastest, slowest ms): --plot
     print(f"\ngenerate_actions on {device_name(device)}, {TEXT_TOKENS} text tokens, 50 actions, 10 steps; set-up: the "
           "first call in each mode (compiling, capturing)"
           + (f"; rtc: continuing a chunk (delay {RTC_DELAY}, {RTC_EXECUTED} steps executed; FLOP/s of plain sampling "
@@ -350,9 +351,18 @@ def bench_generate(args: argparse.Namespace, device: torch.device) -> None:
                             fused = steps_label(model.last_sampling_route)
                             print(f"{preset:12s} {dtype_name:9s} {mode:14s} {fused:8s} {label:12s} {cameras:4d} {batch:5d} "
                                   f"{setup:8.1f} {timing.row()} {rate}{work}")
+                            plotted.append((f"{preset} {dtype_name} {mode} {fused}{'' if method is None else ' ' + label} "
+                                            f"{cameras} cam b{batch}", timing.median * 1e3, timing.minimum * 1e3,
+                                            timing.maximum * 1e3))
                             print_kernel_table(table, args.kernel_table)
             del model
             gc.collect()
+    if args.plot:
+        from pi0_torch.utils.charts import bar_chart
+
+        title = f"generate_actions on {device_name(device)}: median ms per chunk ({TEXT_TOKENS} text tokens, 50 actions)"
+        bar_chart(plotted, title, " ms").save(args.plot)
+        print(f"wrote {args.plot}")
 
 
 def steps_label(route: SamplingRoute) -> str:
@@ -741,6 +751,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--loading-preset", default="pi0", help="preset of --loading")
     parser.add_argument("--tmp-dir", default=None, help="where --loading writes its checkpoint")
     parser.add_argument("--skip-generate", action="store_true", help="leave out the generate_actions table")
+    parser.add_argument("--plot", metavar="PNG", help="also draw the generate_actions table as a bar chart (median ms, "
+                        "whiskers from the fastest to the slowest run) into this PNG file")
     parser.add_argument("--export", action="store_true", help="only the exported sampling: the eager engine against "
                         "onnxruntime and AOTInductor on the same inputs (default presets pi0_medium,pi05_medium, 3 "
                         "cameras, 2 threads, float32, batch 1; pi0_torch.deploy.benchmark)")

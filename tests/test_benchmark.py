@@ -30,6 +30,17 @@ def test_generate_and_train_tables(capsys: pytest.CaptureFixture[str], compiled:
     assert re.search(r"^pi0_small\s+float32\s+1\s+[\d.]+", out.split("training step")[1], re.MULTILINE), out
 
 
+def test_plot_draws_the_generate_table(capsys: pytest.CaptureFixture[str], tmp_path) -> None:
+    """Issue 63, first hour 8: `pi0-torch bench --plot PNG` draws its generate_actions table (one bar per row)."""
+    from PIL import Image
+
+    out = bench(capsys, "--presets", "pi0_small", "--dtypes", "float32", "--cameras", "1,2", "--batches", "1",
+                "--plot", str(tmp_path / "bench.png"))
+    assert f"wrote {tmp_path / 'bench.png'}" in out
+    with Image.open(tmp_path / "bench.png") as chart:
+        assert chart.format == "PNG" and chart.size[1] >= 2 * 30  # (two rows)
+
+
 def test_real_time_chunking_rows(capsys: pytest.CaptureFixture[str]) -> None:
     """`--rtc` adds a row per method after each plain one: chunks continued by real-time chunking (guidance
     differentiates every step, so its FLOP/s of plain sampling are not shown)."""

@@ -11,6 +11,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from PIL import Image
 import pytest
 import torch
 
@@ -126,6 +127,8 @@ def test_scripted_expert_and_random_through_the_harness(tmp_path: Path) -> None:
                 "inference_delay", "boundary_jerk"):
         assert key in saved
     assert [e["seed"] for e in saved["episodes_detail"]] == list(range(1_000_000, 1_000_006))
+    with Image.open(tmp_path / "expert" / "success.png") as chart:  # (issue 63: the success chart beside eval.json)
+        assert chart.format == "PNG" and chart.size[0] == 900
 
 
 def test_episodes_do_not_depend_on_batching_or_on_the_wire() -> None:

@@ -54,12 +54,14 @@ from pi0_torch.runtime.observation_formats import ObservationFormat
 from pi0_torch.utils.extras import require_extra
 from pi0_torch.runtime.policy_settings import SETTINGS_FILE
 from pi0_torch.runtime.eval_record import RECORD_FILE, EvalRecord, partial_folder, stopped_record
+from pi0_torch.utils.charts import bar_chart
 from pi0_torch.utils.files import check_output_dir, check_separate, check_writable, resumable_output_dir
 from pi0_torch.utils.threads import add_threads_argument, set_threads
 from pi0_torch.utils.validation import MAX_SEED, check_finite, check_float, check_int, first_line
 
 logger = logging.getLogger(__name__)
 
+SUCCESS_PLOT_FILE = "success.png"  # beside eval.json: `success_chart`
 DEFAULT_TIMEOUT_S = 600.0  # per reply of a policy server (a CPU-served full-size π0 batch takes minutes)
 MAX_EPISODES = 1_000_000
 MAX_NUM_ENVS = 1_024
@@ -761,7 +763,7 @@ def _step_group(
 
 
 def write_outputs(result: EvalResult, frames: Mapping[int, list[np.ndarray]], folder: Path, fps: int) -> None:
-    """`eval.json`, and for recorded episodes (`frames`: seed -> frames) `rollout_<seed>.mp4` plus one
+    """`eval.json` and `success.png`, and for recorded episodes (`frames`: seed -> frames) `rollout_<seed>.mp4` plus one
     `rollout_<seed>.png` strip, into `folder` (the output folder's partial folder, published when the evaluation
     ends: [`pi0_torch.utils.files.resumable_output_dir`])."""
     from PIL import Image
@@ -769,11 +771,25 @@ def write_outputs(result: EvalResult, frames: Mapping[int, list[np.ndarray]], fo
     from pi0_torch.data.video import encode_video
 
     (folder / "eval.json").write_text(json.dumps(asdict(result), indent=2) + "\n")
+    success_chart(result).save(folder / SUCCESS_PLOT_FILE)
     for seed, frames_of_episode in frames.items():
         name = f"rollout_{seed}"
         encode_video(folder / f"{name}.mp4", [_even(f) for f in frames_of_episode], fps, "libx264")
         picks = np.linspace(0, len(frames_of_episode) - 1, num=min(8, len(frames_of_episode))).round().astype(int)
         Image.fromarray(np.concatenate([frames_of_episode[i] for i in picks], axis=1)).save(folder / f"{name}.png")
+
+
+def success_chart(result: EvalResult) -> Any:
+    """`success.png`: the success rate with its 95% interval, per task where the episodes ran several, then overall."""
+    percent = lambda rate, interval: (100 * rate, 100 * interval[0], 100 * interval[1])  # noqa: E731
+    rows = [(f"{task} ({t['episodes']})", *percent(t["success_rate"], t["success_ci95"]))
+            for task, t in result.per_task.items()] if len(result.per_task) > 1 else []
+    rows.append((f"all ({result.episodes})" if rows else f"{result.env} ({result.episodes})",
+                 *percent(result.success_rate, result.success_ci95)))
+    title = (f"{result.env}: success with 95% intervals, {result.episodes} episodes, {result.execution} "
+             f"d={result.inference_delay} s={result.replan_steps}, policy {result.policy.get('policy', '?')}"
+             + ("" if result.complete else " (incomplete)"))
+    return bar_chart(rows, title, "%", upper=100.0)
 
 
 def _even(frame: np.ndarray) -> np.ndarray:
