@@ -8,6 +8,7 @@ import contextlib
 import json
 import logging
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -122,6 +123,7 @@ def test_a_refused_server_is_left_with_no_connection_open() -> None:
     (("--episodes", "0"), "--episodes must be an integer in [1, "),
     (("--env-kwargs", '{"no_such_setting": 1}'), "cannot be made with the settings ['no_such_setting']"),
     (("--timeout", "0"), "--timeout must be a finite number > 0"),
+    (("--env-kwargs", '{"render_mode": 5}'), "--env-kwargs: render_mode must be a string such as 'rgb_array', got 5"),
 ])
 def test_settings_that_cannot_run_are_named_before_the_first_episode(args: tuple[str, ...], message: str,
                                                                      capsys: pytest.CaptureFixture[str]) -> None:
@@ -246,3 +248,42 @@ def test_an_aloha_evaluation_exits_without_dm_control_noise() -> None:
     if "RuntimeError: a policy bug" not in run.stderr:
         pytest.skip(f"the ALOHA env did not run here: {run.stderr.strip().splitlines()[-1:]}")
     assert "Exception ignored" not in run.stderr, run.stderr[-2000:]
+
+
+def test_a_recommended_replan_steps_beyond_the_chunk_names_its_file(tmp_path: Path,
+                                                                    capsys: pytest.CaptureFixture[str]) -> None:
+    """Issue 63, round 5 item 11: `replan_steps: 17` in policy_settings.json was reported as "--replan-steps must be
+    ...", a flag never given."""
+    import shutil
+
+    from pi0_torch import demo_policy_dir
+
+    folder = tmp_path / "policy"
+    shutil.copytree(demo_policy_dir(), folder)
+    (folder / "policy_settings.json").write_text('{"replan_steps": 17}')
+    status, err = run_eval(capsys, "--policy", str(folder), "--episodes", "1")
+    assert status == 2 and err == (f"pi0-torch eval: error: replan_steps 17 in {folder}/policy_settings.json is beyond "
+                                   "the policy's 16-action chunks; fix the file, or give --replan-steps"), err
+
+
+def test_seeds_an_env_cannot_take_and_too_many_envs_for_the_memory_are_refused(capsys: pytest.CaptureFixture[str],
+                                                                               monkeypatch: pytest.MonkeyPatch) -> None:
+    """Issue 63, round 5 item 11: ALOHA accepted `--seed` up to 2^63-2 but needs < 2^32; `--num-envs 1024` was
+    allowed though each Meta-World env takes about 84 MB. Both refused before the first episode, naming the bound."""
+    import psutil
+
+    class Tight:  # (what psutil says of a machine with 1 MiB available)
+        available = 2**20
+
+    monkeypatch.setattr(psutil, "virtual_memory", lambda: Tight())
+    status, err = run_eval(capsys, "--policy", "expert", "--episodes", "64", "--num-envs", "64")
+    assert status == 2 and re.search(r"--num-envs 64: each pi0_torch/Reach-v0 env holds about \d+ MB here, [\d.]+ GB "
+                                      r"for 64; this machine has 0.0 GB available: use fewer", err), err
+    monkeypatch.undo()
+    pytest.importorskip("gym_aloha")
+    status, err = main(["eval", "--env", "aloha/AlohaTransferCube-v0", "--policy", "random", "--episodes", "2",
+                        "--seed", str(2**32 - 1)]), capsys.readouterr().err.strip().splitlines()[-1]
+    if "render" in err.lower() and "seed" not in err:
+        pytest.skip(f"MuJoCo cannot render here: {err}")
+    assert status == 2 and err == ("pi0-torch eval: error: --seed must be an integer in [0, 4294967294] for 2 episodes "
+                                   f"of aloha/AlohaTransferCube-v0 (its seeds stay below 4294967296), got {2**32 - 1}"), err

@@ -405,3 +405,19 @@ def test_train_takes_demo_as_eval_and_serve_do() -> None:
     add_arguments(parser)
     args = parser.parse_args(["--model", "demo", "--dataset", "data", "--output-dir", "out"])
     assert settings_from_args(args).model == str(demo_policy_dir())
+
+
+@pytest.mark.parametrize("command", [["doctor"], ["eval", "--policy", "demo", "--env", "pi0_torch/Reach-v0"],
+                                     ["bench", "--presets", "pi0_small"]])
+def test_the_meta_device_is_refused_in_one_line(command: list[str], capsys: pytest.CaptureFixture[str]) -> None:
+    """Issue 63, round 5 item 9: `--device meta` in doctor and eval, and `PI0Policy.from_pretrained(device="meta")`,
+    gave tracebacks (meta tensors hold no data: nothing computes there)."""
+    from pi0_torch.cli import main
+    from pi0_torch.runtime import PI0Policy
+
+    assert main([*command, "--device", "meta"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.endswith("--device: meta holds tensors without data, so nothing runs there; pi0-torch runs on cpu, "
+                        "cuda or mps") and "\n" not in err, err
+    with pytest.raises(ValueError, match=r"^device: meta holds tensors without data"):
+        PI0Policy.from_pretrained("demo", device="meta")

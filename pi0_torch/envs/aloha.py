@@ -67,6 +67,7 @@ class AlohaSimEnv(gymnasium.Env):
     metadata: ClassVar[dict[str, Any]] = {"render_modes": ["rgb_array"], "render_fps": CONTROL_HZ}
     replan_steps = REPLAN_STEPS
     control_hz = CONTROL_HZ
+    max_seed = 2**32 - 1  # (gym-aloha seeds numpy's RandomState, which takes seeds below 2^32)
 
     def __init__(self, task_name: str, simulator: gymnasium.Env) -> None:
         self.task_name = task_name

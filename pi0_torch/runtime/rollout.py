@@ -27,6 +27,7 @@ import argparse
 import concurrent.futures
 import contextlib
 import importlib
+import importlib.util
 import json
 import logging
 import math
@@ -56,6 +57,7 @@ from pi0_torch.runtime.policy_settings import SETTINGS_FILE
 from pi0_torch.runtime.eval_record import RECORD_FILE, EvalRecord, partial_folder, stopped_record
 from pi0_torch.utils.charts import bar_chart
 from pi0_torch.utils.files import check_output_dir, check_separate, check_writable, resumable_output_dir
+from pi0_torch.utils.hardware import usable_device
 from pi0_torch.utils.threads import add_threads_argument, set_threads
 from pi0_torch.utils.validation import MAX_SEED, check_finite, check_float, check_int, first_line
 
@@ -68,6 +70,7 @@ MAX_NUM_ENVS = 1_024
 MAX_INFERENCE_DELAY = 10_000  # control steps
 MAX_EPISODE_STEPS = 10_000_000
 
+MUJOCO_NAMESPACES = ("gym_aloha",)  # third-party env packages that render with MuJoCo (checked before they import it)
 # Third-party simulators: the keyword arguments that make them emit images, and their observation layout.
 KNOWN_ENVS: dict[str, tuple[dict[str, Any], str]] = {
     "gym_pusht/PushT-v0": ({"obs_type": "pixels_agent_pos"}, "pusht"),
@@ -261,12 +264,20 @@ def make_env(env_id: str, **kwargs: Any) -> Any:
 
     from pi0_torch.envs.benchmarks import benchmark_of, make_benchmark_env
 
+    render_mode = kwargs.get("render_mode")
+    if render_mode is not None and not isinstance(render_mode, str):  # (gymnasium.make: an AttributeError)
+        raise ValueError(f"--env-kwargs: render_mode must be a string such as 'rgb_array', got {render_mode!r:.40}")
+
     if benchmark_of(env_id) is not None:  # metaworld/..., aloha/..., libero/...
         return make_benchmark_env(env_id, **kwargs)
     namespace = env_id.split("/")[0] if "/" in env_id else None
     if namespace == "pi0_torch":
         importlib.import_module("pi0_torch.envs")
     elif namespace is not None and env_id not in gymnasium.registry:
+        if namespace in MUJOCO_NAMESPACES and importlib.util.find_spec(namespace) is not None:
+            from pi0_torch.envs.rendering import check_mujoco_rendering
+
+            check_mujoco_rendering()  # (one line naming what to install, before MuJoCo fails to load its GL library)
         try:
             importlib.import_module(namespace)
         except ModuleNotFoundError as error:
@@ -490,7 +501,13 @@ def evaluate(policy: ChunkPolicy, settings: EvalSettings) -> EvalResult:
     if settings.video_episodes:
         require_extra("envs", "recording videos", modules=("av",))  # before the episodes run, not after
         kwargs.setdefault("render_mode", "rgb_array")
-    envs = [make_env(settings.env, **kwargs) for _ in range(min(settings.num_envs, settings.episodes))]
+    envs = _make_envs(settings.env, min(settings.num_envs, settings.episodes), kwargs)
+    max_seed = getattr(envs[0].unwrapped, "max_seed", None)  # (gym-aloha seeds numpy's RandomState: below 2^32)
+    if max_seed is not None and settings.seed + settings.episodes - 1 > max_seed:
+        for env in envs:
+            env.close()
+        raise ValueError(f"--seed must be an integer in [0, {max_seed - settings.episodes + 1}] for {settings.episodes} "
+                         f"episodes of {settings.env} (its seeds stay below {max_seed + 1}), got {settings.seed}")
     try:
         if not settings.output_dir:
             result, stopped = _evaluate_in(policy, settings, replan, schedule, envs, None, None)
@@ -518,6 +535,28 @@ def evaluate(policy: ChunkPolicy, settings: EvalSettings) -> EvalResult:
         raise EvaluationStopped(f"{result.stopped_by} (stopped after {result.episodes} finished episodes of "
                                 f"{settings.episodes}{written})", result) from stopped
     return result
+
+
+def _make_envs(env_id: str, count: int, kwargs: Mapping[str, Any]) -> list[Any]:
+    """`count` envs of `env_id`; beyond two, refused (`ValueError` naming `--num-envs`) when they would not fit in
+    the memory this machine has available, as the second one measured (a Meta-World env holds about 84 MB)."""
+    import psutil
+
+    process = psutil.Process()
+    envs = [make_env(env_id, **kwargs)]
+    if count > 2:
+        before = process.memory_info().rss
+        envs.append(make_env(env_id, **kwargs))
+        each = max(process.memory_info().rss - before, 2**20)  # (at least 1 MiB: RSS misses what reused freed memory)
+        needed, available = each * (count - 2), psutil.virtual_memory().available
+        if needed > 0.8 * available:
+            for env in envs:
+                env.close()
+            raise ValueError(f"--num-envs {count}: each {env_id} env holds about {each / 2**20:.0f} MB here, "
+                             f"{each * count / 2**30:.1f} GB for {count}; this machine has {available / 2**30:.1f} GB "
+                             "available: use fewer")
+    envs += [make_env(env_id, **kwargs) for _ in range(count - len(envs))]
+    return envs
 
 
 class Terminated(KeyboardInterrupt):
@@ -889,6 +928,8 @@ def run(args: argparse.Namespace) -> int:
         if settings.video_episodes and not settings.output_dir:
             raise ValueError("--video needs --output-dir")
         check_eval_output(settings, policy_location(args.policy))  # before the policy loads and the episodes run
+        if args.device is not None:
+            usable_device(args.device, "--device")
         if args.policy == "expert":
             from pi0_torch.envs import has_scripted_expert
 
@@ -907,6 +948,12 @@ def run(args: argparse.Namespace) -> int:
             settings = replace(settings, replan_steps=min(protocol_replan_steps, int(policy.metadata["action_horizon"])))
             print(f"replan steps {settings.replan_steps}: the benchmark's protocol for {settings.env} (--replan-steps to change)")
         elif settings.replan_steps is None and recommended is not None:
+            horizon = int(policy.metadata["action_horizon"])
+            if not 1 <= recommended <= horizon:  # (named as the file's setting: no --replan-steps was given)
+                where = (f"{policy.source}/{SETTINGS_FILE}" if isinstance(policy, LocalPolicy)
+                         else f"the policy server's {SETTINGS_FILE}")
+                raise ValueError(f"replan_steps {recommended} in {where} is beyond the policy's {horizon}-action chunks; "
+                                 "fix the file, or give --replan-steps")
             settings = replace(settings, replan_steps=recommended)
             print(f"replan steps {recommended}: the policy's recommended setting ({SETTINGS_FILE}; --replan-steps to change)")
         previous = signal.signal(signal.SIGTERM, _terminate)  # (SIGTERM stops the episodes as Ctrl-C does)

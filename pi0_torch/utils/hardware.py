@@ -55,7 +55,10 @@ def usable_device(device: str | torch.device | None, name: str = "device") -> to
             raise ValueError(f"{name}: {resolved}: there are {torch.cuda.device_count()} CUDA GPUs")
     elif resolved.type == "mps" and not torch.backends.mps.is_available():
         raise ValueError(f"{name}: mps: Apple's Metal backend is not available here")
-    elif resolved.type not in ("cpu", "cuda", "mps", "meta"):
+    elif resolved.type == "meta":  # (tensors with shapes and no data: a model there computes nothing)
+        raise ValueError(f"{name}: meta holds tensors without data, so nothing runs there; pi0-torch runs on cpu, cuda "
+                         "or mps")
+    elif resolved.type not in ("cpu", "cuda", "mps"):
         raise ValueError(f"{name}: {resolved.type}: pi0-torch runs on cpu, cuda or mps")
     return resolved
 
