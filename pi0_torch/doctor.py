@@ -48,6 +48,7 @@ from pi0_torch.models.modeling_pi0 import PI0ForActionGeneration
 from pi0_torch.models.modeling_pi0_fast import PI0FastForActionGeneration
 from pi0_torch.inference.rtc import chunk_prefix, guidance_weight
 from pi0_torch.utils.hardware import usable_device
+from pi0_torch.utils.triton_guard import set_aside_broken_triton
 
 FLOAT32_BOUND, BF16_BOUND = 1e-4, 3e-2  # tests/test_parity.py: FLOAT32_TOLERANCE, BF16_TOLERANCE
 STEPS, DELAY, EXECUTED = 10, 3, 5  # Euler steps; real-time chunking's inference delay and steps executed
@@ -502,6 +503,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "(π0 in float32: about 16 GB for its sampling rows, 56 GB for all of them)")
 
 
+def _triton_row() -> tuple[float | None, float | None, str]:
+    """FAIL where an installed triton does not import (it was set aside: `pi0_torch.utils.triton_guard`), skip where
+    none is installed, pass with its version."""
+    if (broken := set_aside_broken_triton()) is not None:
+        raise ImportError(broken)
+    if importlib.util.find_spec("triton") is None:
+        return None, None, "skip: not installed (torch's CUDA wheels bring it; the CPU runs without it)"
+    import triton
+
+    return None, None, f"triton {triton.__version__} imports"
+
+
 def run(args: argparse.Namespace) -> int:
     try:
         device = usable_device(args.device, "--device")
@@ -513,6 +526,7 @@ def run(args: argparse.Namespace) -> int:
           f"weights; deviation = max |ours - reference| / max |reference|")
     print(f"{'path':44s} {'device':6s} {'dtype':9s} {'deviation':>10s} {'bound':>7s} {'result':>7s} {'seconds':>7s}")
     doctor = Doctor(device, args.full)
+    doctor.row("triton (the fused kernels' compiler)", "-", _triton_row)
     sizes = ("pi0", "pi05", "pi0_fast") if args.full else ("pi0_small", "pi05_small", "pi0_fast_small")
     try:
         with _quiet_warnings():

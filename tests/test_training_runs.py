@@ -502,3 +502,24 @@ def test_a_batch_larger_than_the_dataset_is_named(dataset_root: Path, tmp_path: 
     with caplog.at_level(logging.WARNING, logger="pi0_torch.training.trainer"):
         train_policy(settings(dataset_root, tmp_path / "run", max_steps=1, batch_size=1000, train_split=None))
     assert f"--batch-size 1000 is more than the {frames} frames of the training episodes" in caplog.text
+
+
+def test_the_action_key_equal_to_the_state_key_is_refused(dataset_root: Path) -> None:
+    """Issue 63, round 5 item 9: `--action-key` equal to the state key gave a pyarrow `KeyError` traceback."""
+    with pytest.raises(LeRobotDatasetError, match=r"the action key and the state key are both 'observation.state'"):
+        LeRobotEpisodeDataset(dataset_root, 4, state_key="observation.state", action_key="observation.state", progress=False)
+
+
+def test_ctrl_c_in_train_is_one_line_and_keeps_the_checkpoints(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                              capsys: pytest.CaptureFixture[str]) -> None:
+    """Issue 63, round 5 item 9: Ctrl-C in `train` printed a traceback (eval says it in one line)."""
+    from pi0_torch.training import trainer
+
+    def interrupted(settings: TrainSettings) -> dict:
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(trainer, "train_policy", interrupted)
+    assert main(["--dataset", str(tmp_path / "data"), "--model", "demo", "--output-dir", str(tmp_path / "run")]) == 130
+    err = capsys.readouterr().err.strip()
+    assert err == (f"stopped (Ctrl-C): the checkpoints saved in {tmp_path / 'run'} so far are kept; the same command "
+                   "with --resume-from-checkpoint latest continues"), err

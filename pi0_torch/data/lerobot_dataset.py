@@ -684,6 +684,9 @@ class LeRobotEpisodeDataset(torch.utils.data.Dataset):
         self.state_key, self.action_key = state_key, action_key
         self.short_episodes = short_episodes
         features = self.info["features"]
+        if state_key == action_key:  # (a policy trained on it would learn to copy its input)
+            raise LeRobotDatasetError(f"the action key and the state key are both {state_key!r}: the actions are what "
+                                      "the robot is told to do next, another feature (--action-key, --state-key)")
         for role, key in (("state_key", state_key), ("action_key", action_key)):
             if key not in features:
                 numeric = [k for k, f in features.items() if f.get("dtype") not in ("image", "video", "string")]

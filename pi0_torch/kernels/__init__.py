@@ -4,3 +4,7 @@
 The inference engine uses them through `pi0_torch.inference.fused_pass` and `vision_pass`; nothing here imports the
 engine or the model classes.
 """
+
+from pi0_torch.utils.triton_guard import set_aside_broken_triton
+
+set_aside_broken_triton()  # (a triton that does not import would break torch's compiler, and every model with it)

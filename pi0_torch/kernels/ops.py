@@ -23,6 +23,7 @@ import torch
 from torch.utils._python_dispatch import _get_current_dispatch_mode
 
 from pi0_torch.kernels import reference
+from pi0_torch.utils.triton_guard import set_aside_broken_triton
 
 logger = logging.getLogger(__name__)
 
@@ -31,6 +32,8 @@ TRITON_KERNELS, PERSISTENT = "pi0_torch.kernels.triton_kernels", "pi0_torch.kern
 
 @functools.lru_cache(maxsize=None)
 def _triton_import_error() -> Optional[str]:
+    if (broken := set_aside_broken_triton()) is not None:
+        return broken
     if importlib.util.find_spec("triton") is None:
         return "triton is not installed (torch's CUDA wheels bring it; pip install 'pi0-torch[kernels]')"
     try:

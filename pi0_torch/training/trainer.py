@@ -504,6 +504,11 @@ def run(args: argparse.Namespace) -> int:
         logger.debug("training failed", exc_info=True)
         print(f"error: {error_line(error)}", file=sys.stderr)
         return 1
+    except KeyboardInterrupt:  # (as eval: one line; the checkpoints written so far stay)
+        logger.debug("training interrupted", exc_info=True)
+        print(f"stopped (Ctrl-C): the checkpoints saved in {args.output_dir} so far are kept; the same command with "
+              "--resume-from-checkpoint latest continues", file=sys.stderr)
+        return 130
     if result["trainable_parameters"] is None:
         print(f"nothing to train: {result['output_dir']} already holds this run's final model")
     else:
