@@ -91,19 +91,22 @@ class Doctor:
 
     def available_bytes(self) -> int:
         """Memory this process may still take: the GPU's free memory plus what torch's allocator holds unused, or the
-        machine's available RAM."""
+        machine's available RAM, and no more than an address-space limit leaves (`ulimit -v`: a row past it failed
+        with the allocator's traceback)."""
         if self.device.type == "cuda":
             free, _ = torch.cuda.mem_get_info(self.device)
             return free + torch.cuda.memory_reserved(self.device) - torch.cuda.memory_allocated(self.device)
-        return psutil.virtual_memory().available
+        return min(psutil.virtual_memory().available, _address_space_left())
 
     def memory_note(self, needed: float) -> str | None:
         """Why `needed` more bytes do not fit (None: they do)."""
         if needed <= 0:
             return None
-        available = self.available_bytes()
+        available, limited = self.available_bytes(), None if self.cuda else _address_space_left()
         if needed <= available:
             return None
+        if limited is not None and limited <= available:
+            return f"needs about {_size(needed)}, this process's address-space limit (ulimit -v) leaves {_size(limited)}"
         return f"needs about {_size(needed)}, this machine has {_size(available)} available"
 
     def skip(self, path: str, dtype: torch.dtype | str, note: str) -> None:
@@ -501,6 +504,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--full", action="store_true", help="full-size models (random weights) instead of the small "
                         "presets; each row that would not fit this machine's memory is skipped, saying what it needs "
                         "(π0 in float32: about 16 GB for its sampling rows, 56 GB for all of them)")
+
+
+def _address_space_left() -> float:
+    """Bytes of address space this process may still map under its limit (`ulimit -v`, RLIMIT_AS; inf: none)."""
+    try:
+        import resource
+    except ImportError:  # (not on Windows)
+        return float("inf")
+    soft, _ = resource.getrlimit(resource.RLIMIT_AS)
+    if soft == resource.RLIM_INFINITY:
+        return float("inf")
+    return max(soft - psutil.Process().memory_info().vms, 0)
 
 
 def _triton_row() -> tuple[float | None, float | None, str]:

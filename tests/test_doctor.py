@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 import re
+import subprocess
+import sys
 
 import pytest
 import torch
@@ -86,3 +88,16 @@ def test_rows_that_would_not_fit_in_memory_are_skipped_by_name(capsys: pytest.Ca
         assert re.search(rf"^{re.escape(family)} \(every row\)\s+cpu\s+float32\s+-\s+-\s+skip\s+[\d.]+\s+the model needs "
                          r"about \d+ MB, this machine has 0 MB available", out, re.MULTILINE), out
     assert re.search(r"^\d+ passed, 0 failed, \d+ skipped$", out, re.MULTILINE), out
+
+
+def test_an_address_space_limit_counts_as_the_memory_there_is() -> None:
+    """Issue 63, round 5 item 9: `doctor --full` under `ulimit -v` failed with the allocator's traceback: the rows
+    counted the machine's RAM, not what the process may still map. Each row past the limit is skipped, naming it."""
+    script = ("import resource, psutil\n"
+              "limit = psutil.Process().memory_info().vms + 3 * 2**30\n"
+              "resource.setrlimit(resource.RLIMIT_AS, (limit, resource.RLIM_INFINITY))\n"
+              "from pi0_torch.cli import main\nraise SystemExit(main(['doctor', '--full', '--device', 'cpu']))\n")
+    run = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=900)
+    assert run.returncode == 0 and "Traceback" not in run.stderr, run.stdout[-2000:] + run.stderr[-2000:]
+    assert re.search(r"the model needs about [\d.]+ GB, this process's address-space limit \(ulimit -v\) leaves "
+                     r"[\d.]+ GB", run.stdout), run.stdout
