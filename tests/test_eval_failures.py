@@ -287,3 +287,18 @@ def test_seeds_an_env_cannot_take_and_too_many_envs_for_the_memory_are_refused(c
         pytest.skip(f"MuJoCo cannot render here: {err}")
     assert status == 2 and err == ("pi0-torch eval: error: --seed must be an integer in [0, 4294967294] for 2 episodes "
                                    f"of aloha/AlohaTransferCube-v0 (its seeds stay below 4294967296), got {2**32 - 1}"), err
+
+
+def test_a_gl_error_is_one_line_without_mujocos_renderer_noise(tmp_path: Path) -> None:
+    """Issue 63, round 5 item 9: after the one-line GL error, MuJoCo's `Renderer.__del__` printed an AttributeError
+    (its GL context never opened, so it has no MuJoCo context to free)."""
+    pytest.importorskip("mujoco")
+    script = ("import mujoco.renderer\n"
+              "class Broken:\n    def __init__(self, *args):\n        raise RuntimeError('cannot initialize EGL display')\n"
+              "mujoco.renderer.gl_context.GLContext = Broken\n"
+              "from pi0_torch.envs import rendering\n"
+              "try:\n    rendering.check_mujoco_rendering()\nexcept rendering.RenderingError as error:\n"
+              "    print(error)\nimport gc\ngc.collect()\n")
+    run = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0 and "MuJoCo cannot render offscreen" in run.stdout, run.stdout + run.stderr
+    assert "Exception ignored" not in run.stderr and "AttributeError" not in run.stderr, run.stderr

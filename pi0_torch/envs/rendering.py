@@ -57,8 +57,13 @@ def check_mujoco_rendering() -> str:
     try:
         import mujoco
 
+        class Renderer(mujoco.Renderer):
+            def __del__(self) -> None:  # (one whose GL context failed to open has no `_mjr_context`: MuJoCo's own
+                if "_mjr_context" in self.__dict__:  # `__del__` then prints an AttributeError after our one line)
+                    self.close()
+
         model = mujoco.MjModel.from_xml_string("<mujoco><worldbody><geom size='0.1'/></worldbody></mujoco>")
-        renderer = mujoco.Renderer(model, 8, 8)
+        renderer = Renderer(model, 8, 8)
         try:
             renderer.update_scene(mujoco.MjData(model))
             renderer.render()
