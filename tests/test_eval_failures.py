@@ -293,10 +293,11 @@ def test_a_gl_error_is_one_line_without_mujocos_renderer_noise(tmp_path: Path) -
     """Issue 63, round 5 item 9: after the one-line GL error, MuJoCo's `Renderer.__del__` printed an AttributeError
     (its GL context never opened, so it has no MuJoCo context to free)."""
     pytest.importorskip("mujoco")
-    script = ("import mujoco.renderer\n"
+    script = ("from pi0_torch.envs import rendering\n"
+              "rendering.configure_mujoco_gl()\nrendering._load_triton_first()\n"  # (as the check orders them)
+              "import mujoco.renderer\n"
               "class Broken:\n    def __init__(self, *args):\n        raise RuntimeError('cannot initialize EGL display')\n"
               "mujoco.renderer.gl_context.GLContext = Broken\n"
-              "from pi0_torch.envs import rendering\n"
               "try:\n    rendering.check_mujoco_rendering()\nexcept rendering.RenderingError as error:\n"
               "    print(error)\nimport gc\ngc.collect()\n")
     run = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
