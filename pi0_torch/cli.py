@@ -90,6 +90,7 @@ def main(argv: list[str] | None = None) -> int:
             raise missing
         if unknown:
             parser.parse_args(argv)  # argparse's own one-line error for the unknown options
+        args._argv = list(argv[1:])  # (the command's options as given: `train --config` tells them from its defaults)
         return int(importlib.import_module(args._module).run(args) or 0)
     except MissingExtraError as error:  # the command's module, or what it runs, needs an extra that is not installed
         print(error.message(f"pi0-torch {argv[0]}"), file=sys.stderr)

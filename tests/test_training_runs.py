@@ -523,3 +523,49 @@ def test_ctrl_c_in_train_is_one_line_and_keeps_the_checkpoints(tmp_path: Path, m
     err = capsys.readouterr().err.strip()
     assert err == (f"stopped (Ctrl-C): the checkpoints saved in {tmp_path / 'run'} so far are kept; the same command "
                    "with --resume-from-checkpoint latest continues"), err
+
+
+def _libero_like_dataset(root: Path) -> Path:
+    """A small LeRobot dataset laid out as openpi's LIBERO conversion writes it: `image`, `wrist_image`, `state` (8)
+    and `actions` (7)."""
+    rng = np.random.default_rng(0)
+    episodes = [EpisodeRecord("put the bowl on the plate",
+                              {"image": rng.integers(0, 256, (12, 16, 16, 3), dtype=np.uint8),
+                               "wrist_image": rng.integers(0, 256, (12, 16, 16, 3), dtype=np.uint8)},
+                              {"state": rng.uniform(-1, 1, (12, 8)), "actions": rng.uniform(-1, 1, (12, 7))})
+                for _ in range(4)]
+    return write_lerobot_dataset(root, episodes, fps=10, storage="image",
+                                 vector_names={"state": [f"s{i}" for i in range(8)], "actions": [f"a{i}" for i in range(7)]})
+
+
+def test_openpi_configs_by_name(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """Issue 60, item 4: `train --config pi0_libero` takes openpi's TrainConfig values (LIBERO's features and cameras,
+    its delta mask, the dataset's norm stats, EMA 0.99, the schedule), each flag given overriding one; the model variant
+    is checked against --model; unknown and unfollowable names are one line."""
+    from pi0_torch.training.openpi_configs import OPENPI_CONFIGS
+
+    data = _libero_like_dataset(tmp_path / "libero")
+    argv = ["--dataset", str(data), "--model", "pi0_small", "--output-dir", str(tmp_path / "run"), "--config",
+            "pi0_libero", "--config-overrides", json.dumps({**TINY, "action_dim": 8}), "--tokenizer", "test",
+            "--max-steps", "2", "--batch-size", "4", "--logging-steps", "1", "--threads", "1"]
+    with caplog.at_level(logging.INFO, logger="pi0_torch.training.trainer"):
+        assert main(argv) == 0
+    assert "openpi's config pi0_libero, with --batch-size, --max-steps from the command line" in caplog.text
+    record = json.loads((tmp_path / "run" / TRAIN_SETTINGS_FILE).read_text())
+    settings = record.get("settings", record)
+    assert settings["config"] == "pi0_libero" and settings["ema_decay"] == 0.99 and settings["batch_size"] == 4
+    assert settings["camera_map"] == {"base_0_rgb": "image", "left_wrist_0_rgb": "wrist_image"}
+    processor = PI0Processor.from_pretrained(tmp_path / "run")
+    assert processor.delta_action_mask == [True] * 6 + [False] and processor.norm_mode == "zscore"
+
+    mismatched = TrainSettings.from_openpi_config("pi05_libero", dataset=str(data), model="pi0_small", tokenizer="test",
+                                                  output_dir=str(tmp_path / "pi05"), config_overrides=dict(TINY))
+    with pytest.raises(ValueError, match=r"--config pi05_libero fine-tunes a pi05 model \(openpi starts from "
+                                         r"pi05_base\); --model pi0_small is a pi0 model"):
+        train_policy(mismatched)
+    with pytest.raises(SystemExit):
+        main(["--dataset", str(data), "--model", "pi0_small", "--output-dir", str(tmp_path / "x"), "--config"])
+    for name, message in (("pi0_libre", "is not one of openpi's training configs that pi0-torch follows: "
+                                        + ", ".join(OPENPI_CONFIGS)), ("pi0_droid", "an inference config in openpi")):
+        with pytest.raises(ValueError, match=re.escape(message)):
+            TrainSettings.from_openpi_config(name, dataset="d", model="m", output_dir="o")

@@ -77,7 +77,8 @@ def run_processor_settings(settings: TrainSettings, model_processor: PI0Processo
     that changes an inherited setting logs a warning naming both values."""
     saved = model_processor.to_dict() if model_processor is not None else {}
     chosen = {name: saved[name] for name in INHERITED_PROCESSOR_SETTINGS if name in saved}
-    flags = {"delta_action_mask": settings.delta_action_mask, "value_conversion": settings.value_conversion}
+    flags = {"delta_action_mask": settings.delta_action_mask, "value_conversion": settings.value_conversion,
+             "default_prompt": settings.default_prompt}
     for name, value in flags.items():
         if value is None:
             continue
@@ -88,7 +89,8 @@ def run_processor_settings(settings: TrainSettings, model_processor: PI0Processo
         chosen[name] = value
     kept = [f"{name}={value}" for name, value in chosen.items() if name in saved and flags.get(name) is None]
     if kept:
-        logger.info("processor settings of %s kept: %s (--delta-action-mask / --value-conversion override those two)",
+        logger.info("processor settings of %s kept: %s (--delta-action-mask, --value-conversion, --default-prompt "
+                    "override those)",
                     settings.model, ", ".join(kept))
     return chosen
 

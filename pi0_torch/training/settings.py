@@ -38,6 +38,7 @@ class TrainSettings:
     dataset: str
     model: str
     output_dir: str
+    config: str | None = None  # openpi's training config by name (`pi0_torch.training.openpi_configs`)
     config_overrides: dict[str, Any] = field(default_factory=dict)
     tokenizer: str | None = None
     norm_stats: str = "auto"  # "auto": the model folder's for the same robot space, else the dataset's
@@ -49,6 +50,7 @@ class TrainSettings:
     short_episodes: str = "pad"
     delta_action_mask: list[bool] | None = None
     value_conversion: str | None = None
+    default_prompt: str | None = None  # the prompt of episodes without a task, saved with the processor
     max_steps: int = 30_000
     batch_size: int = 32
     gradient_accumulation_steps: int = 1
@@ -82,6 +84,21 @@ class TrainSettings:
     report_to: str = "none"
     progress: bool = False  # progress bars (the command line turns them on)
 
+    @classmethod
+    def from_openpi_config(cls, name: str, **values: Any) -> TrainSettings:
+        """The settings of openpi's training config `name` (`pi0_torch.training.openpi_configs`: model variant and
+        sizes, data features and transforms, recipe), with `values` (`dataset`, `model`, `output_dir`, and any
+        setting to change) on top.
+
+        >>> settings = TrainSettings.from_openpi_config("pi0_libero", dataset="libero", model="pi0_base",
+        ...                                             output_dir="run", max_steps=100)
+        >>> settings.max_steps, settings.ema_decay, settings.camera_map["left_wrist_0_rgb"], settings.config
+        (100, 0.99, 'wrist_image', 'pi0_libero')
+        """
+        from pi0_torch.training.openpi_configs import openpi_config
+
+        return cls(**{**openpi_config(name).settings, **values, "config": name})
+
 
 # The largest value of each count of a run (a batch of 1e9 would fail on its first allocation, not by name).
 RUN_LIMITS: dict[str, int] = {
@@ -97,8 +114,8 @@ RESUME_REFUSED = (
     # what the run learns from: the data order and the normalization of the steps trained so far
     "dataset", "train_split", "short_episodes", "state_key", "action_key", "camera_map",
     # the model and its processor, which the checkpoint holds
-    "model", "config_overrides", "tokenizer", "fast_tokenizer", "norm_stats", "delta_action_mask", "value_conversion",
-    "rtc_max_delay",
+    "model", "config", "config_overrides", "tokenizer", "fast_tokenizer", "norm_stats", "delta_action_mask",
+    "value_conversion", "default_prompt", "rtc_max_delay",
     # what trains: the parameters the checkpoint's optimizer state belongs to
     "lora", "lora_rank_vlm", "lora_rank_expert", "freeze", "fsdp",
     # what every step sees of its images

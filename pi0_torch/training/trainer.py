@@ -73,7 +73,9 @@ from pi0_torch.training.settings import (
     OPENPI_WEIGHT_DECAY,
     TrainSettings,
     check_settings,
+    flag_name,
 )
+from pi0_torch.training.openpi_configs import OPENPI_CONFIGS, openpi_config
 from pi0_torch.training.trainable import FREEZE_GROUPS, count_trainable, merge_lora
 from pi0_torch.utils import files
 from pi0_torch.utils.threads import add_threads_argument, set_threads
@@ -166,6 +168,12 @@ def _train_in_folder(settings: TrainSettings) -> dict[str, Any]:
     sharding.check_settings(settings.fsdp, settings.model, settings.resume_from_checkpoint)
     set_seed(settings.seed)
     config = load_config(settings)
+    if settings.config is not None:  # the model variant openpi's config fine-tunes
+        recipe = openpi_config(settings.config)
+        variant = "pi0_fast" if isinstance(config, PI0FastConfig) else "pi05" if config.pi05 else "pi0"
+        if variant != recipe.variant:
+            raise ValueError(f"--config {settings.config} fine-tunes a {recipe.variant} model (openpi starts from "
+                             f"{recipe.base}); --model {settings.model} is a {variant} model")
     if not is_model_folder(settings.model):  # before the dataset loads and the model is built
         check_memory(config)
     record = run_record(settings)
@@ -410,6 +418,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     model = parser.add_argument_group("model")
     model.add_argument("--model", required=True, help="checkpoint folder, demo (the policy shipped with the package), or "
                        f"a preset: {', '.join(preset_names() + fast_preset_names())}")
+    model.add_argument("--config", metavar="NAME", help="openpi's training config of this name (its model variant and "
+                       "sizes, data features, delta masks, norm stats, batch size, steps, schedule, EMA, LoRA; each "
+                       f"overridden by its own flag): {', '.join(OPENPI_CONFIGS)}; --model is the converted base "
+                       "checkpoint it names (pi0_base, pi05_base)")
+    model.add_argument("--default-prompt", help="the prompt of episodes without a task (saved with the processor; "
+                       "default: the model folder's)")
     model.add_argument("--config-overrides", type=json_object, default={}, metavar="JSON",
                        help='preset overrides, e.g. \'{"image_size": 56, "action_horizon": 8}\'')
     model.add_argument("--tokenizer", help="PaliGemma SentencePiece model (file/folder); 'test' trains a tiny one (demos)")
@@ -470,12 +484,43 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def settings_from_args(args: argparse.Namespace) -> TrainSettings:
+    """The run's settings from `pi0-torch train`'s options; with `--config NAME`, openpi's config of that name, each
+    of its values replaced by the flag's where the flag was given (`args._given`: the options on the command line)."""
     names = {f for f in TrainSettings.__dataclass_fields__}
     values = {name: getattr(args, name) for name in names if hasattr(args, name)}
     values["camera_map"] = dict(args.camera)
     values["model"] = str(policy_location(args.model))  # `demo`: the shipped policy, as eval and serve take it
     values["progress"] = True  # long command-line work keeps its progress bar
-    return TrainSettings(**values)
+    if args.config is None:
+        return TrainSettings(**values)
+    argv = getattr(args, "_argv", None)  # (the CLI keeps its command line there)
+    if argv is not None:
+        given = given_options(argv)
+    else:  # (an `argparse.Namespace` built by hand: the options that differ from their defaults)
+        given = {name for name in names if hasattr(args, name) and getattr(args, name) != _parser_default(name)}
+    given |= {"dataset", "model", "output_dir"}
+    kept = {name: value for name, value in values.items() if name in given or name not in openpi_config(args.config).settings}
+    overridden = sorted(flag_name(name) for name in given if name in openpi_config(args.config).settings)
+    logger.info("openpi's config %s%s", args.config, f", with {', '.join(overridden)} from the command line" if overridden else "")
+    return TrainSettings.from_openpi_config(args.config, **kept)
+
+
+def _parser_default(name: str) -> Any:
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    return parser.get_default("camera" if name == "camera_map" else name)
+
+
+def given_options(argv: Sequence[str]) -> set[str]:
+    """The `TrainSettings` fields whose options appear on the command line `argv` (`--batch-size 8`,
+    `--batch-size=8`, `--no-augment`, `--camera ...`)."""
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    given = set()
+    for action in parser._actions:
+        if any(token == flag or token.startswith(flag + "=") for token in argv for flag in action.option_strings):
+            given.add("camera_map" if action.dest == "camera" else action.dest)
+    return given
 
 
 def error_line(error: BaseException) -> str:
@@ -520,4 +565,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     """`python -m pi0_torch.training.trainer ...` (the same as `pi0-torch train ...`; handy after `accelerate launch -m`)."""
     parser = argparse.ArgumentParser(prog="pi0_torch.training", description="Fine-tune π0 / π0.5 on a LeRobot dataset.")
     add_arguments(parser)
-    return run(parser.parse_args(argv))
+    args = parser.parse_args(argv)
+    args._argv = list(sys.argv[1:] if argv is None else argv)
+    return run(args)
