@@ -403,10 +403,11 @@ def settings_from(base: dict, **changes: object) -> TrainSettings:
 
 def test_a_value_conversion_is_inherited_and_none_turns_it_off(caplog: pytest.LogCaptureFixture) -> None:
     stats = {key: NormStats(mean=np.zeros(14), std=np.ones(14)) for key in ("state", "actions")}
-    aloha = PI0Processor(build_test_tokenizer(), norm_stats=stats, value_conversion="aloha", delta_action_mask=[True] * 6)
+    aloha = PI0Processor(build_test_tokenizer(), norm_stats=stats, value_conversion="aloha",
+                         delta_action_mask=[True] * 6 + [False] * 8)
     base = settings_from(dict(dataset="d", model="m", output_dir="o"))
     assert run_processor_settings(base, aloha)["value_conversion"] == "aloha"
-    assert run_processor_settings(base, aloha)["delta_action_mask"] == [True] * 6
+    assert run_processor_settings(base, aloha)["delta_action_mask"] == [True] * 6 + [False] * 8
     with caplog.at_level(logging.WARNING):
         chosen = run_processor_settings(replace(base, value_conversion="none"), aloha)
     assert chosen["value_conversion"] is None and "--value-conversion none replaces the value_conversion aloha" in caplog.text

@@ -67,7 +67,7 @@ def _processor_class(config: PI0Config | PI0FastConfig) -> type[PI0Processor]:
 # what the model was trained to read and to predict. Sizes come from the config, robot dims from the dataset.
 INHERITED_PROCESSOR_SETTINGS = (
     "norm_mode", "delta_action_mask", "value_conversion", "min_norm_scale", "float_image_range", "required_cameras",
-    "default_prompt", "truncation",
+    "default_prompt", "truncation", "state_in_prompt",
 )
 
 
@@ -78,7 +78,7 @@ def run_processor_settings(settings: TrainSettings, model_processor: PI0Processo
     saved = model_processor.to_dict() if model_processor is not None else {}
     chosen = {name: saved[name] for name in INHERITED_PROCESSOR_SETTINGS if name in saved}
     flags = {"delta_action_mask": settings.delta_action_mask, "value_conversion": settings.value_conversion,
-             "default_prompt": settings.default_prompt}
+             "default_prompt": settings.default_prompt, "state_in_prompt": settings.state_in_prompt}
     for name, value in flags.items():
         if value is None:
             continue

@@ -51,6 +51,7 @@ class TrainSettings:
     delta_action_mask: list[bool] | None = None
     value_conversion: str | None = None
     default_prompt: str | None = None  # the prompt of episodes without a task, saved with the processor
+    state_in_prompt: bool | None = None  # π0.5: the discretized state in the prompt (openpi's discrete_state_input)
     max_steps: int = 30_000
     batch_size: int = 32
     gradient_accumulation_steps: int = 1
@@ -115,7 +116,7 @@ RESUME_REFUSED = (
     "dataset", "train_split", "short_episodes", "state_key", "action_key", "camera_map",
     # the model and its processor, which the checkpoint holds
     "model", "config", "config_overrides", "tokenizer", "fast_tokenizer", "norm_stats", "delta_action_mask",
-    "value_conversion", "default_prompt", "rtc_max_delay",
+    "value_conversion", "default_prompt", "state_in_prompt", "rtc_max_delay",
     # what trains: the parameters the checkpoint's optimizer state belongs to
     "lora", "lora_rank_vlm", "lora_rank_expert", "freeze", "fsdp",
     # what every step sees of its images

@@ -424,6 +424,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                        "checkpoint it names (pi0_base, pi05_base)")
     model.add_argument("--default-prompt", help="the prompt of episodes without a task (saved with the processor; "
                        "default: the model folder's)")
+    model.add_argument("--state-in-prompt", action=argparse.BooleanOptionalAction, default=None, help="π0.5: the "
+                       "discretized state in the prompt (openpi's discrete_state_input; default: the model folder's, "
+                       "else on)")
     model.add_argument("--config-overrides", type=json_object, default={}, metavar="JSON",
                        help='preset overrides, e.g. \'{"image_size": 56, "action_horizon": 8}\'')
     model.add_argument("--tokenizer", help="PaliGemma SentencePiece model (file/folder); 'test' trains a tiny one (demos)")
