@@ -275,3 +275,28 @@ def test_eval_command_on_gym_pusht(tmp_path: Path) -> None:
                          timeout=HANG_S, check=False)
     assert bad.returncode == 2 and bad.stderr.strip().count("\n") == 0
     assert "needs the package gym_nothing, which is not installed: pip install gym-nothing" in bad.stderr
+
+
+def test_perturb_shifts_non_wrist_cameras_and_jitters_every_camera_per_episode() -> None:
+    """Issue 60, targets: `eval --perturb` sees held-out episodes through a camera shifted by a few pixels and other
+    light. Per episode, from its seed: the same seed the same perturbation, another seed another; wrist cameras are
+    not shifted; channels-first frames (ALOHA's) alike; no perturbation at 0, 0."""
+    from pi0_torch.runtime.perturbation import Perturbation, parse_perturbation
+
+    ramp = np.broadcast_to(np.arange(16, dtype=np.uint8)[:, None, None] * 10, (16, 16, 3)).copy()  # row r: 10 r
+    frames = {"base_0_rgb": ramp, "left_wrist_0_rgb": ramp, "cam_high": np.moveaxis(ramp, -1, 0).copy()}
+    shifted = Perturbation(shift=3, jitter=0.0).for_episode(1)
+    once, again = shifted(frames), shifted(frames)
+    assert all(np.array_equal(once[c], again[c]) for c in frames)  # (the episode keeps its draw)
+    np.testing.assert_array_equal(once["left_wrist_0_rgb"], ramp)  # (wrist cameras: not shifted)
+    dy = 8 - int(once["base_0_rgb"][8, 0, 0]) // 10  # (content moved down by dy: row r shows row r - dy)
+    expected = (np.clip(np.arange(16) - dy, 0, 15) * 10).astype(np.uint8)[:, None].repeat(16, 1)
+    assert -3 <= dy <= 3 and np.array_equal(once["base_0_rgb"][:, :, 0], expected)  # (edges repeated)
+    assert once["cam_high"].shape == (3, 16, 16)
+    draws = {tuple(Perturbation(3, 0.2).for_episode(seed)(frames)["base_0_rgb"].ravel()[:64]) for seed in range(8)}
+    assert len(draws) > 1  # (other seeds, other perturbations)
+    identity = Perturbation(0, 0.0).for_episode(5)(frames)
+    assert all(np.array_equal(identity[c], frames[c]) for c in frames)
+    assert parse_perturbation("4,0.2") == Perturbation(4, 0.2) and parse_perturbation("2") == Perturbation(2, 0.2)
+    with pytest.raises(ValueError, match=r"--perturb: SHIFT must be in \[0, 64\]"):
+        parse_perturbation("100")

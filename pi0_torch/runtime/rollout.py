@@ -55,6 +55,7 @@ from pi0_torch.runtime.observation_formats import ObservationFormat
 from pi0_torch.utils.extras import require_extra
 from pi0_torch.runtime.policy_settings import SETTINGS_FILE
 from pi0_torch.runtime.eval_record import RECORD_FILE, EvalRecord, partial_folder, stopped_record
+from pi0_torch.runtime.perturbation import Perturbation, parse_perturbation
 from pi0_torch.utils.charts import bar_chart
 from pi0_torch.utils.files import check_output_dir, check_separate, check_writable, resumable_output_dir
 from pi0_torch.utils.hardware import usable_device
@@ -317,6 +318,7 @@ class EvalSettings:
     output_dir: str | None = None
     overwrite: bool = False  # replace a non-empty output_dir that pi0-torch wrote
     resume: bool = False  # continue the stopped evaluation recorded for output_dir (`pi0_torch.runtime.eval_record`)
+    perturb: Perturbation | None = None  # each episode's camera shift and colour jitter (`pi0_torch.runtime.perturbation`)
     progress: bool = False
 
 
@@ -351,6 +353,7 @@ class EvalResult:
     complete: bool = True  # False: the evaluation stopped early; these are the episodes finished before
     stopped_by: str | None = None  # why it stopped (one line)
     per_task: dict[str, dict[str, Any]] = field(default_factory=dict)  # task -> episodes, success_rate, success_ci95
+    perturb: dict[str, Any] | None = None  # `--perturb`'s shift (pixels) and jitter, where the frames were perturbed
 
     def task_lines(self) -> list[str]:
         """One line per task, when the episodes ran more than one task."""
@@ -363,7 +366,8 @@ class EvalResult:
         steps = f"{self.mean_steps:.1f}" if self.mean_steps is not None else "-"
         jerk = "".join(f", jerk {where} {value:.4f}" for where, value in
                        (("at chunk boundaries", self.boundary_jerk), ("inside chunks", self.interior_jerk)) if value is not None)
-        return (f"{self.env} {self.execution} d={self.inference_delay} s={self.replan_steps}: success "
+        perturbed = "" if self.perturb is None else f" perturbed (shift {self.perturb['shift']} px, jitter {self.perturb['jitter']:g})"
+        return (f"{self.env}{perturbed} {self.execution} d={self.inference_delay} s={self.replan_steps}: success "
                 f"{100 * self.success_rate:.1f}% [{100 * low:.1f}, {100 * high:.1f}] over {self.episodes} episodes, "
                 f"{steps} steps per success, policy {self.latency_ms:.0f} ms per call{jerk}"
                 + ("" if self.complete else f" (incomplete: stopped by {self.stopped_by})"))
@@ -580,7 +584,8 @@ def _identity(policy: ChunkPolicy, settings: EvalSettings, replan: int) -> dict[
     return {"env": settings.env, "policy": str(getattr(policy, "source", None) or policy.metadata.get("policy", "")),
             "episodes": settings.episodes, "seed": settings.seed, "execution": settings.execution,
             "inference_delay": settings.inference_delay, "replan_steps": replan, "max_steps": settings.max_steps,
-            "obs_format": settings.obs_format, "env_kwargs": settings.env_kwargs, "prompt": settings.prompt}
+            "obs_format": settings.obs_format, "env_kwargs": settings.env_kwargs, "prompt": settings.prompt,
+            "perturb": None if settings.perturb is None else asdict(settings.perturb)}
 
 
 def _evaluate_in(policy: ChunkPolicy, settings: EvalSettings, replan: int, schedule: ChunkSchedule, envs: list[Any],
@@ -592,14 +597,20 @@ def _evaluate_in(policy: ChunkPolicy, settings: EvalSettings, replan: int, sched
     obs_format = ObservationFormat.from_preset(settings.obs_format or default_obs_format(settings.env, policy.metadata))
     action_dim = int(np.prod(envs[0].action_space.shape))
 
-    def observe(raw: Mapping[str, Any]) -> dict[str, Any]:
+    perturbations: dict[int, Callable[[Mapping[str, Any]], dict[str, Any]]] = {}  # episode seed -> its perturbation
+
+    def observe(raw: Mapping[str, Any], seed: int) -> dict[str, Any]:
         observation = obs_format.to_default(raw)
         if observation["prompt"] is None and settings.prompt is not None:
             observation["prompt"] = settings.prompt
+        if settings.perturb is not None:  # (`--perturb`: the episode's camera shift and light, from its seed)
+            if seed not in perturbations:
+                perturbations[seed] = settings.perturb.for_episode(seed)
+            observation["images"] = perturbations[seed](observation["images"])
         return observation
 
     first_raw = envs[0].reset(seed=settings.seed)[0]
-    first_observation = observe(first_raw)
+    first_observation = observe(first_raw, settings.seed)
     _check_match(policy, envs[0], first_observation, settings.env)
     if delay:
         _hold_action(envs[0], first_observation, first_raw, action_dim)
@@ -654,6 +665,7 @@ def _evaluate_in(policy: ChunkPolicy, settings: EvalSettings, replan: int, sched
         episodes_detail=[{"seed": r.seed, "success": r.success, "steps": r.steps, **({"task": r.task} if r.task else {})}
                          for r in results],
         per_task=_per_task(results),
+        perturb=None if settings.perturb is None else asdict(settings.perturb),
         complete=stopped is None,
         stopped_by=None if stopped is None else f"{type(stopped).__name__}: {first_line(stopped)}",
     )
@@ -749,7 +761,7 @@ def _step_group(
     """The closed loop of [`_run_group`], filling its per-episode lists as it goes; `ended(i)` as episode `i` ends,
     `called(ms)` after each policy call."""
     raws = [env.reset(seed=seed)[0] for env, seed in zip(envs, seeds)]
-    observations = [observe(raw) for raw in raws]
+    observations = [observe(raw, seed) for raw, seed in zip(raws, seeds)]
     holds = [_hold_action(env, o, raw, action_dim) if schedule.inference_delay else None
              for env, o, raw in zip(envs, observations, raws)]
     stitchers = [ChunkStitcher(schedule.mode, schedule.replan_steps) for _ in envs]
@@ -792,7 +804,7 @@ def _step_group(
             action = stitchers[i].action(step, hold)
             executed[i].append(np.asarray(action, np.float32))
             raw, _, terminated, truncated, info = env.step(action)
-            observations[i] = observe(raw)
+            observations[i] = observe(raw, seeds[i])
             if i < record:
                 frames[i].append(env.render())
             if terminated or truncated:
@@ -825,7 +837,8 @@ def success_chart(result: EvalResult) -> Any:
             for task, t in result.per_task.items()] if len(result.per_task) > 1 else []
     rows.append((f"all ({result.episodes})" if rows else f"{result.env} ({result.episodes})",
                  *percent(result.success_rate, result.success_ci95)))
-    title = (f"{result.env}: success with 95% intervals, {result.episodes} episodes, {result.execution} "
+    perturbed = "" if result.perturb is None else f" (perturbed: shift {result.perturb['shift']} px, jitter {result.perturb['jitter']:g})"
+    title = (f"{result.env}{perturbed}: success with 95% intervals, {result.episodes} episodes, {result.execution} "
              f"d={result.inference_delay} s={result.replan_steps}, policy {result.policy.get('policy', '?')}"
              + ("" if result.complete else " (incomplete)"))
     return bar_chart(rows, title, "%", upper=100.0)
@@ -909,6 +922,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--output-dir", help="write eval.json (and videos) here: a new or empty folder (see --overwrite)")
     parser.add_argument("--overwrite", action="store_true", help="replace a non-empty --output-dir that pi0-torch "
                         "wrote (a folder with files of others is never replaced)")
+    parser.add_argument("--perturb", nargs="?", const="4,0.2", metavar="SHIFT[,JITTER]", help="see every episode through "
+                        "a camera shifted by up to SHIFT pixels (non-wrist cameras) and colours jittered by factors in "
+                        "[1-JITTER, 1+JITTER] (every camera), drawn from the episode's seed: what training-time "
+                        "augmentation should make a policy robust to (bare flag: 4,0.2)")
     parser.add_argument("--resume", action="store_true", help="continue the evaluation into --output-dir that was "
                         f"stopped (Ctrl-C, SIGTERM, a failure) or killed, from its record ({RECORD_FILE}): the same "
                         "settings, the episodes it lacks")
@@ -924,6 +941,11 @@ def run(args: argparse.Namespace) -> int:
         video_episodes=args.video, output_dir=args.output_dir, overwrite=args.overwrite, resume=args.resume,
         progress=True,
     )
+    try:
+        settings = replace(settings, perturb=None if args.perturb is None else parse_perturbation(args.perturb))
+    except ValueError as error:
+        print(f"pi0-torch eval: error: {error}", file=sys.stderr)
+        return 2
     try:
         if settings.video_episodes and not settings.output_dir:
             raise ValueError("--video needs --output-dir")
