@@ -134,7 +134,8 @@ def test_processor_settings_from_the_command_line(tmp_path: Path, capsys: pytest
     build_test_tokenizer(save_to=tmp_path / "tok.model")
     common = ["--from", "openpi", "--input", str(step_dir("pi0_small")), "--tokenizer", str(tmp_path / "tok.model")]
     assert run_cli(*common, "--output-dir", str(tmp_path / "delta"), "--delta-action-mask", "1,1,1,0", "--no-progress") == 0
-    assert PI0Processor.from_pretrained(tmp_path / "delta").delta_action_mask == [True, True, True, False]
+    mask = PI0Processor.from_pretrained(tmp_path / "delta").delta_action_mask  # (padded to the robot's 8 action dims)
+    assert mask == [True, True, True, False] + [False] * (len(mask) - 4) and len(mask) == 8
     assert run_cli(*common, "--output-dir", str(tmp_path / "aloha"), "--value-conversion", "aloha") == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert err[-1].startswith("error: cannot build the processor") and "applies to a state and actions of 14 values" in err[-1]

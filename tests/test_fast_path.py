@@ -34,14 +34,15 @@ ODD = dict(max_token_len=11, action_horizon=3, num_attention_heads=4, num_key_va
 
 
 def random_batch(config: PI0Config, batch: int, seed: int) -> dict[str, torch.Tensor]:
-    """Inputs with every kind of padding: random prompt lengths (some 0), random camera masks (one camera shown by
-    no sample)."""
+    """Inputs with every kind of padding: random prompt lengths, random camera masks (one camera shown by no sample).
+    Every sample shows a camera and a token (`generate_actions` refuses a sample with none, issue 63)."""
     generator = torch.Generator().manual_seed(seed)
     length = config.max_token_len
     masks = torch.rand(batch, config.num_cameras, generator=generator) < 0.6
+    masks[torch.arange(batch), torch.randint(0, config.num_cameras - 1, (batch,), generator=generator)] = True
     masks[:, -1] = False
     masks[0, 0] = True
-    counts = torch.randint(0, length + 1, (batch,), generator=generator)
+    counts = torch.randint(1, length + 1, (batch,), generator=generator)
     return dict(
         pixel_values=torch.rand(batch, config.num_cameras, 3, config.image_size, config.image_size, generator=generator) * 2 - 1,
         image_masks=masks,

@@ -232,7 +232,7 @@ def test_mismatches_are_named() -> None:
     with pytest.raises(ValueError, match=r"action dims differ: the policy acts in 2 dims, the env .* takes 3"):
         evaluate(LocalPolicy(tiny_policy(action_dim=2)), EvalSettings(env="pi0_torch/Reach-v0", episodes=1))
     top_camera_only = LocalPolicy(tiny_policy(cameras=("base_0_rgb",)))
-    with pytest.raises(ValueError, match=r"cameras differ: the env gives \['base_0_rgb', 'left_wrist_0_rgb'\], the policy "
+    with pytest.raises(ValueError, match=r"cameras differ: the env pi0_torch/Reach-v0 gives \['base_0_rgb', 'left_wrist_0_rgb'\], the policy "
                                          r"knows \['base_0_rgb'\] \(map them with --obs-format, or drop the wrist camera "
                                          r"with --env-kwargs '\{\"wrist_camera\": false\}'\)"):
         evaluate(top_camera_only, EvalSettings(env="pi0_torch/Reach-v0", episodes=1))

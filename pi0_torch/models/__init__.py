@@ -5,9 +5,6 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 from pi0_torch.utils.lazy import lazy_exports
-from pi0_torch.utils.triton_guard import set_aside_broken_triton
-
-set_aside_broken_triton()  # (before the model files import torch's compiler, which imports triton)
 
 if TYPE_CHECKING:
     from pi0_torch.models.configuration_pi0 import PI0Config, preset_names

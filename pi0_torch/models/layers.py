@@ -9,14 +9,17 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-import torch
-from torch import nn
-from transformers.modeling_layers import GradientCheckpointingLayer
+from pi0_torch.utils.triton_guard import set_aside_broken_triton
 
-from pi0_torch.inference.attention import attend
-from pi0_torch.inference.conditioning import NormParams, StepConditioning  # noqa: F401 (re-exported: older import path)
-from pi0_torch.inference.layout import StreamPass
-from pi0_torch.kernels.reference import apply_rope, geglu, rms_norm, rope_cos_sin  # noqa: F401 (rope_cos_sin: re-exported)
+set_aside_broken_triton()  # (before transformers' model layers import torch's compiler, which imports triton)
+import torch  # noqa: E402
+from torch import nn  # noqa: E402
+from transformers.modeling_layers import GradientCheckpointingLayer  # noqa: E402
+
+from pi0_torch.inference.attention import attend  # noqa: E402
+from pi0_torch.inference.conditioning import NormParams, StepConditioning  # noqa: E402, F401 (re-exported: older path)
+from pi0_torch.inference.layout import StreamPass  # noqa: E402
+from pi0_torch.kernels.reference import apply_rope, geglu, rms_norm, rope_cos_sin  # noqa: E402, F401 (re-exported)
 
 if TYPE_CHECKING:
     from pi0_torch.models.configuration_pi0 import PI0Config
