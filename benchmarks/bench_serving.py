@@ -201,7 +201,8 @@ def _flood(policy: Any, args: argparse.Namespace, frame_shape: tuple[int, ...]) 
         print(f"connect-upgrade-reset rounds (8 MiB claimed, 1 MiB sent) from {args.attacker_address}")
     else:
         print(f"refused frame: {len(refused_frame()) / 1024:.0f} KiB, one object past --max-objects 100000")
-    print(f"| attackers | good requests | errors | p50 ms | p90 ms | max ms | {'rounds' if args.flood_kind == 'reset' else 'refusals'}/s |")
+    counted = "rounds" if args.flood_kind == "reset" else "refusals"
+    print(f"| attackers | good requests | errors | p50 ms | p90 ms | max ms | {counted}/s |")
     print("|---:|---:|---:|---:|---:|---:|---:|")
     context = multiprocessing.get_context("spawn")
     for attackers in map(int, args.flood.split(",")):

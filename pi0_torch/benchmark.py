@@ -351,8 +351,8 @@ def bench_generate(args: argparse.Namespace, device: torch.device) -> None:
                             fused = steps_label(model.last_sampling_route)
                             print(f"{preset:12s} {dtype_name:9s} {mode:14s} {fused:8s} {label:12s} {cameras:4d} {batch:5d} "
                                   f"{setup:8.1f} {timing.row()} {rate}{work}")
-                            plotted.append((f"{preset} {dtype_name} {mode} {fused}{'' if method is None else ' ' + label} "
-                                            f"{cameras} cam b{batch}", timing.median * 1e3, timing.minimum * 1e3,
+                            row = f"{preset} {dtype_name} {mode} {fused}{'' if method is None else ' ' + label}"
+                            plotted.append((f"{row} {cameras} cam b{batch}", timing.median * 1e3, timing.minimum * 1e3,
                                             timing.maximum * 1e3))
                             print_kernel_table(table, args.kernel_table)
             del model
@@ -360,7 +360,8 @@ def bench_generate(args: argparse.Namespace, device: torch.device) -> None:
     if args.plot:
         from pi0_torch.utils.charts import bar_chart
 
-        title = f"generate_actions on {device_name(device)}: median ms per chunk ({TEXT_TOKENS} text tokens, 50 actions)"
+        title = (f"generate_actions on {device_name(device)}: median ms per chunk ({TEXT_TOKENS} text tokens, "
+                 "50 actions)")
         bar_chart(plotted, title, " ms").save(args.plot)
         print(f"wrote {args.plot}")
 

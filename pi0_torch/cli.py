@@ -124,7 +124,8 @@ def numpy_mismatch(error: BaseException) -> str | None:
     package = module.split(".")[0] or "a compiled package"
     return (f"{package} does not import with numpy {numpy.__version__} ({text.strip().splitlines()[0][:120]}): it was "
             "built for another numpy major version. A package pinned numpy here (openpi-client pins numpy<2): "
-            "pip install --upgrade 'numpy>=2' here, and keep openpi-client in a virtualenv of its own (docs/serving.md)")
+            "pip install --upgrade 'numpy>=2' here, and keep openpi-client in a virtualenv of its own "
+            "(docs/serving.md)")
 
 
 if __name__ == "__main__":

@@ -106,7 +106,8 @@ class Doctor:
         if needed <= available:
             return None
         if limited is not None and limited <= available:
-            return f"needs about {_size(needed)}, this process's address-space limit (ulimit -v) leaves {_size(limited)}"
+            return (f"needs about {_size(needed)}, this process's address-space limit (ulimit -v) leaves "
+                    f"{_size(limited)}")
         return f"needs about {_size(needed)}, this machine has {_size(available)} available"
 
     def skip(self, path: str, dtype: torch.dtype | str, note: str) -> None:

@@ -440,8 +440,8 @@ def _transformers_config(config: PI0Config) -> Any:
 
 
 def export_to_transformers(
-    model_dir: str | os.PathLike[str], output_dir: str | os.PathLike[str], *, dtype: str | None = None, overwrite: bool = False,
-    progress: bool = False,
+    model_dir: str | os.PathLike[str], output_dir: str | os.PathLike[str], *, dtype: str | None = None,
+    overwrite: bool = False, progress: bool = False,
 ) -> Path:
     """Write a pi0-torch π0 folder as a transformers `PI0ForConditionalGeneration` folder (weights + config.json).
 

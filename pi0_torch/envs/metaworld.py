@@ -170,7 +170,7 @@ class MetaWorldExpert:
         """(The scripted policies are deterministic.)"""
 
     def act(self, env: gymnasium.Env) -> np.ndarray:
-        with warnings.catch_warnings():  # (its "Constant(s) may be too high" on large moves: the action is clipped here)
+        with warnings.catch_warnings():  # ("Constant(s) may be too high" on large moves: the action is clipped here)
             warnings.filterwarnings("ignore", message="Constant\\(s\\) may be too high", category=UserWarning)
             action = self.policy.get_action(env.unwrapped.vector)
         return np.clip(action, -1.0, 1.0).astype(np.float32)
