@@ -88,17 +88,19 @@ def warp(images: torch.Tensor, crop_offset: torch.Tensor, angle: torch.Tensor) -
 
 
 def color_jitter(images: torch.Tensor, brightness: torch.Tensor, contrast: torch.Tensor, hue: torch.Tensor,
-                 apply: torch.Tensor) -> torch.Tensor:
+                 apply: torch.Tensor | None = None) -> torch.Tensor:
     """augmax's ColorJitter on `images` `[N, 3, H, W]` in [0, 1] with per-image amounts `[N]`; images where `apply`
-    `[N]` is False come back unchanged."""
+    `[N]` is False come back unchanged (None: every image is jittered)."""
     shape = (-1, 1, 1)
     red, green, blue = images.unbind(1)  # [N, H, W] each (elementwise: several times faster than max/min over dim 1)
     value = torch.maximum(torch.maximum(red, green), blue)
     spread = value - torch.minimum(torch.minimum(red, green), blue)
-    channel = torch.where((red >= green) & (red >= blue), 0, torch.where(green >= blue, 1, 2))  # the first largest
-    following = torch.gather(images, 1, ((channel + 1) % 3)[:, None]).squeeze(1)
-    after_that = torch.gather(images, 1, ((channel + 2) % 3)[:, None]).squeeze(1)
-    turns = torch.where(spread == 0, 0.0, (2 * channel + (following - after_that) / spread) / 6)
+    red_first = (red >= green) & (red >= blue)  # the first largest channel: red, else green, else blue
+    green_first = ~red_first & (green >= blue)
+    # (the next channel minus the one after it, cyclically, of the largest: g - b, b - r or r - g)
+    difference = torch.where(red_first, green - blue, torch.where(green_first, blue - red, red - green))
+    sector = torch.where(red_first, 0.0, torch.where(green_first, 2.0, 4.0))  # 2 x the largest channel's index
+    turns = torch.where(spread == 0, 0.0, (sector + difference / spread) / 6)
     saturation = torch.where(value == 0, 0.0, spread / value)
 
     b = brightness.float().view(shape)
@@ -111,9 +113,10 @@ def color_jitter(images: torch.Tensor, brightness: torch.Tensor, contrast: torch
     turns = turns + hue.float().view(shape)
 
     offsets = images.new_tensor([5.0, 3.0, 1.0]).view(1, 3, 1, 1)
-    k = torch.remainder(offsets + 6 * turns[:, None], 6)
+    k = offsets + 6 * turns[:, None]
+    k = k - 6 * torch.floor(k / 6)  # (k mod 6: torch.remainder's float kernel takes several times longer)
     jittered = value[:, None] - (value * saturation)[:, None] * torch.clamp(torch.minimum(k, 4 - k), 0, 1)
-    return torch.where(apply.view(-1, 1, 1, 1), jittered, images)
+    return jittered if apply is None else torch.where(apply.view(-1, 1, 1, 1), jittered, images)
 
 
 def check_augmentable(pixel_values: torch.Tensor) -> None:
@@ -137,12 +140,17 @@ def augment_images(pixel_values: torch.Tensor, camera_names: Sequence[str], draw
                          f"{tuple(pixel_values.shape)} dtype {pixel_values.dtype}")
     device = pixel_values.device
     kinds = [int("wrist" in name) for name in camera_names]  # per camera: 0 non-wrist, 1 wrist
-    warped = []
+    # camera-major [C * B, 3, H, W] in [0, 1]: one copy, then in place (the batch's own tensor is never written)
+    images = (pixel_values.transpose(0, 1).reshape(cameras * batch, channels, height, width).float() * 0.5).add_(0.5)
     for index, kind in enumerate(kinds):
-        images = pixel_values[:, index].float() / 2.0 + 0.5  # [B, 3, H, W] in [0, 1]
-        warped.append(images if kind else warp(images, draws.crop_offset.to(device), draws.angle.to(device)))
-    # one jitter over every camera's images (camera-major [C * B, 3, H, W]), each with its camera kind's amounts
-    amounts = [torch.cat([getattr(draws, name)[:, kind] for kind in kinds]).to(device)
-               for name in ("brightness", "contrast", "hue", "apply_jitter")]
-    jittered = color_jitter(torch.cat(warped), *amounts)
-    return (jittered * 2.0 - 1.0).view(cameras, batch, channels, height, width).transpose(0, 1).to(pixel_values.dtype)
+        if not kind:
+            rows = slice(index * batch, (index + 1) * batch)
+            images[rows] = warp(images[rows], draws.crop_offset.to(device), draws.angle.to(device))
+    # one jitter over the images it applies to (half of them: augmax's p), each with its camera kind's amounts
+    brightness, contrast, hue, apply = (torch.cat([getattr(draws, name)[:, kind] for kind in kinds]).to(device)
+                                        for name in ("brightness", "contrast", "hue", "apply_jitter"))
+    chosen = apply.nonzero()[:, 0]
+    if len(chosen):
+        images[chosen] = color_jitter(images[chosen], brightness[chosen], contrast[chosen], hue[chosen])
+    images = images.mul_(2.0).sub_(1.0)
+    return images.view(cameras, batch, channels, height, width).transpose(0, 1).to(pixel_values.dtype)
