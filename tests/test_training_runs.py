@@ -570,3 +570,34 @@ def test_openpi_configs_by_name(tmp_path: Path, caplog: pytest.LogCaptureFixture
                                         + ", ".join(OPENPI_CONFIGS)), ("pi0_droid", "an inference config in openpi")):
         with pytest.raises(ValueError, match=re.escape(message)):
             TrainSettings.from_openpi_config(name, dataset="d", model="m", output_dir="o")
+
+
+def _two_dim_dataset(root: Path, moving_second_dim: bool) -> Path:
+    rng = np.random.default_rng(1)
+    episodes = []
+    for _ in range(4):
+        actions = rng.uniform(-1, 1, (10, 2))
+        if not moving_second_dim:
+            actions[:, 1] = 0.0  # (a gripper the first task never moves)
+        episodes.append(EpisodeRecord("go", {"observation.images.top": rng.integers(0, 256, (10, 16, 16, 3), np.uint8)},
+                                      {"observation.state": rng.uniform(-1, 1, (10, 2)), "action": actions}))
+    return write_lerobot_dataset(root, episodes, fps=10, storage="image",
+                                 vector_names={"observation.state": ["x", "y"], "action": ["x", "y"]})
+
+
+def test_auto_norm_stats_leave_a_model_whose_statistics_do_not_describe_the_data(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """`--norm-stats auto` keeps a trained model's statistics for data of its robot space; but a dim that never moved
+    in the model's data (its scale floored at min_norm_scale) and moves in the dataset normalized to hundreds: the
+    demo policy's curriculum, Reach then PickPlace, trained at a loss of 5.7e5. Such a dataset trains with its own
+    statistics, saying why."""
+    first = train_policy(settings(_two_dim_dataset(tmp_path / "still", False), tmp_path / "first", max_steps=1,
+                                  train_split=None, config_overrides={**TINY, "action_dim": 2}))
+    with caplog.at_level(logging.WARNING, logger="pi0_torch.training.model_setup"):
+        train_policy(settings(_two_dim_dataset(tmp_path / "moving", True), tmp_path / "second", max_steps=1,
+                              train_split=None, model=first["output_dir"], config_overrides={}))
+    assert re.search(r"norm stats: the dataset's actions dim 1 lies [\d.e+]+ of the model's scale from its centre with "
+                     r"a spread of [\d.e+]+ times its own \(beyond 10\); .* trains with the dataset's", caplog.text)
+    saved = PI0Processor.from_pretrained(tmp_path / "second").norm_stats["actions"]
+    assert saved.std[1] > 0.1  # (the dataset's, not the model's floored 0)

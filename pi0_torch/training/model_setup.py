@@ -140,6 +140,12 @@ def build_processor(settings: TrainSettings, config: PI0Config | PI0FastConfig, 
         computed = compute_norm_stats(
             chunks, delta_action_mask=chosen.get("delta_action_mask"), total=len(dataset.episodes), progress=settings.progress,
         )
+    if settings.norm_stats == "auto" and source == "model" and computed is not None:
+        far = _far_from_model(model_processor, computed)
+        if far is not None:  # the model's statistics do not describe this data: it would normalize to hundreds
+            logger.warning("norm stats: the dataset's %s; the model's statistics do not describe these episodes, so the "
+                           "run trains with the dataset's (--norm-stats auto; --norm-stats model keeps the model's)", far)
+            source = "dataset"
     if source == "dataset":
         norm_stats = computed
     elif source == "model":
@@ -165,6 +171,42 @@ def build_processor(settings: TrainSettings, config: PI0Config | PI0FastConfig, 
     return PI0Processor.from_config(config, tokenizer, norm_stats, **robot)
 
 
+# How far a dataset's statistics may lie from a model's, in the model's normalized units (centre shift, or spread as a
+# multiple of the model's), for `--norm-stats auto` to keep the model's: a fine-tune continues the policy on data like
+# its own; beyond, the data normalizes to tens or hundreds (a dim constant in the model's data, its scale floored at
+# min_norm_scale, that moves in the dataset: the demo policy's gripper, Reach to PickPlace, trained at a loss of 5.7e5)
+AUTO_KEEPS_MODEL_WITHIN = 10.0
+
+
+def _distances(model_processor: PI0Processor, computed: dict[str, Any]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Per key ("state", "actions"): how far the dataset's centre lies from the model's, and its spread as a multiple of
+    the model's, per dim, in the model's normalized units (its norm mode's scale, floored at `min_norm_scale`)."""
+    distances = {}
+    for key in ("state", "actions"):
+        ours, theirs = model_processor.norm_stats[key], computed[key]
+        dims = min(ours.dim, theirs.dim)
+        if model_processor.norm_mode == "quantile" and ours.has_quantiles and theirs.has_quantiles:
+            span = np.maximum(ours.q99[:dims] - ours.q01[:dims], model_processor.min_norm_scale) / 2  # (units of [-1, 1])
+            shift = np.abs((theirs.q01[:dims] + theirs.q99[:dims]) / 2 - (ours.q01[:dims] + ours.q99[:dims]) / 2) / span
+            spread = (theirs.q99[:dims] - theirs.q01[:dims]) / (2 * span)
+        else:
+            scale = np.maximum(ours.std[:dims], model_processor.min_norm_scale)
+            shift = np.abs(theirs.mean[:dims] - ours.mean[:dims]) / scale
+            spread = theirs.std[:dims] / scale
+        distances[key] = (shift, spread)
+    return distances
+
+
+def _far_from_model(model_processor: PI0Processor, computed: dict[str, Any]) -> str | None:
+    """Where the dataset's statistics lie beyond `AUTO_KEEPS_MODEL_WITHIN` of the model's (one phrase), or None."""
+    for key, (shift, spread) in _distances(model_processor, computed).items():
+        worst = int(np.argmax(np.maximum(shift, spread)))
+        if max(float(shift[worst]), float(spread[worst])) > AUTO_KEEPS_MODEL_WITHIN:
+            return (f"{key} dim {worst} lies {float(shift[worst]):.3g} of the model's scale from its centre with a "
+                    f"spread of {float(spread[worst]):.3g} times its own (beyond {AUTO_KEEPS_MODEL_WITHIN:g})")
+    return None
+
+
 def _log_norm_stats_choice(settings: TrainSettings, source: str, model_processor: PI0Processor | None,
                            computed: dict[str, Any] | None) -> None:
     """Say which statistics the run trains with, and, where the model folder has statistics of the same robot space,
@@ -177,18 +219,7 @@ def _log_norm_stats_choice(settings: TrainSettings, source: str, model_processor
     logger.info("norm stats: %s%s", what, reason)
     if model_processor is None or computed is None:
         return
-    mode = model_processor.norm_mode
-    for key in ("state", "actions"):
-        ours, theirs = model_processor.norm_stats[key], computed[key]
-        dims = min(ours.dim, theirs.dim)
-        if mode == "quantile" and ours.has_quantiles and theirs.has_quantiles:
-            span = np.maximum(ours.q99[:dims] - ours.q01[:dims], model_processor.min_norm_scale) / 2  # (units of [-1, 1])
-            shift = np.abs((theirs.q01[:dims] + theirs.q99[:dims]) / 2 - (ours.q01[:dims] + ours.q99[:dims]) / 2) / span
-            spread = (theirs.q99[:dims] - theirs.q01[:dims]) / (2 * span)
-        else:
-            scale = np.maximum(ours.std[:dims], model_processor.min_norm_scale)
-            shift = np.abs(theirs.mean[:dims] - ours.mean[:dims]) / scale
-            spread = theirs.std[:dims] / scale
+    for key, (shift, spread) in _distances(model_processor, computed).items():
         worst = int(np.argmax(shift))
         logger.info("norm stats, %s: the dataset's centre lies up to %.2f of the model's scale from the model's (dim %d); "
                     "its spread is %.2f-%.2f times the model's%s", key, float(shift[worst]), worst, float(spread.min()),
