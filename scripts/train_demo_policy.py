@@ -199,6 +199,7 @@ def main(argv: list[str] | None = None) -> int:
             warmup_steps=200 if stage_steps > 200 else scaled_warmup_steps(stage_steps),  # (the Trainer would scale it)
             logging_steps=100, save_steps=stage_steps, seed=0, rtc_max_delay=rtc_max_delay or None,
             delta_action_mask=DELTA_ACTION_MASK,
+            norm_stats="dataset",  # (each stage's own episodes: Reach's gripper never moves, PickPlace's does)
         )
         if trained_with(settings):  # e.g. the plain stages, trained by the plain policy's run
             print(f"stage {stage.name}: reusing {run_dir}, trained with the same settings")
