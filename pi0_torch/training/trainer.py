@@ -488,7 +488,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def settings_from_args(args: argparse.Namespace) -> TrainSettings:
     """The run's settings from `pi0-torch train`'s options; with `--config NAME`, openpi's config of that name, each
-    of its values replaced by the flag's where the flag was given (`args._given`: the options on the command line)."""
+    of its values replaced by the flag's where the flag was given (`args._argv`: the command line, where the CLI keeps
+    it; else the options that differ from their defaults)."""
     names = {f for f in TrainSettings.__dataclass_fields__}
     values = {name: getattr(args, name) for name in names if hasattr(args, name)}
     values["camera_map"] = dict(args.camera)
@@ -496,29 +497,26 @@ def settings_from_args(args: argparse.Namespace) -> TrainSettings:
     values["progress"] = True  # long command-line work keeps its progress bar
     if args.config is None:
         return TrainSettings(**values)
-    argv = getattr(args, "_argv", None)  # (the CLI keeps its command line there)
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    argv = getattr(args, "_argv", None)
     if argv is not None:
-        given = given_options(argv)
-    else:  # (an `argparse.Namespace` built by hand: the options that differ from their defaults)
-        given = {name for name in names if hasattr(args, name) and getattr(args, name) != _parser_default(name)}
+        given = given_options(parser, argv)
+    else:  # (an `argparse.Namespace` built by hand)
+        defaults = {name: parser.get_default("camera" if name == "camera_map" else name) for name in values}
+        defaults["camera_map"] = dict(defaults["camera_map"])
+        given = {name for name, value in values.items() if value != defaults[name]}
     given |= {"dataset", "model", "output_dir"}
-    kept = {name: value for name, value in values.items() if name in given or name not in openpi_config(args.config).settings}
-    overridden = sorted(flag_name(name) for name in given if name in openpi_config(args.config).settings)
+    recipe = openpi_config(args.config).settings
+    kept = {name: value for name, value in values.items() if name in given or name not in recipe}
+    overridden = sorted(flag_name(name) for name in given if name in recipe)
     logger.info("openpi's config %s%s", args.config, f", with {', '.join(overridden)} from the command line" if overridden else "")
     return TrainSettings.from_openpi_config(args.config, **kept)
 
 
-def _parser_default(name: str) -> Any:
-    parser = argparse.ArgumentParser()
-    add_arguments(parser)
-    return parser.get_default("camera" if name == "camera_map" else name)
-
-
-def given_options(argv: Sequence[str]) -> set[str]:
-    """The `TrainSettings` fields whose options appear on the command line `argv` (`--batch-size 8`,
-    `--batch-size=8`, `--no-augment`, `--camera ...`)."""
-    parser = argparse.ArgumentParser()
-    add_arguments(parser)
+def given_options(parser: argparse.ArgumentParser, argv: Sequence[str]) -> set[str]:
+    """The `TrainSettings` fields whose options (of `parser`, `add_arguments`') appear on the command line `argv`
+    (`--batch-size 8`, `--batch-size=8`, `--no-augment`, `--camera ...`)."""
     given = set()
     for action in parser._actions:
         if any(token == flag or token.startswith(flag + "=") for token in argv for flag in action.option_strings):
