@@ -34,7 +34,7 @@ def main() -> int:
     from kernel_resources import replace_launches
 
     # (every kernel module imported before TRITON_INTERPRET is set below, so that its kernels compile)
-    from pi0_torch.kernels import launch, ops, persistent, reference, triton_kernels as K  # noqa: F401
+    from pi0_torch.kernels import launch, ops, persistent, triton_kernels as K  # noqa: F401
 
     if launch.DIRECT_REASON is not None:
         print(f"no direct launches here: {launch.DIRECT_REASON}")
@@ -63,9 +63,9 @@ def main() -> int:
 
     def step() -> None:  # (`FusedSteps.step_`'s ops, π0)
         tokens = ops.call(ops.embed_actions, x_t, in_w, scale, mlp_w, scale)
-        reference.layer_by_layer_(ops.runner(tokens.device), tokens, [scale] * layers, [qkv_w] * layers,
-                                  [o_w] * layers, [scale] * layers, [gate_up_w] * layers, [down_w] * layers, tables,
-                                  tables, caches, caches, first, ends[:50], 818, 1e-6)
+        ops.expert_layers_op_by_op_(tokens, [scale] * layers, [qkv_w] * layers, [o_w] * layers, [scale] * layers,
+                                    [gate_up_w] * layers, [down_w] * layers, tables, tables, caches, caches, first,
+                                    ends[:50], 818, 1e-6)
         ops.call(ops.norm_linear_euler_, x_t, tokens, scale, scale[:32], out_w, -0.1, 1e-6)
 
     stacked_scales, stacked_cache = scale.expand(layers, -1), cache.expand(layers, -1, -1, -1)

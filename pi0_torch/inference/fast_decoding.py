@@ -74,11 +74,13 @@ def decode_layers_(
     returns `x` (the last layer's output)."""
     batch, head_dim, eps = x.shape[0], layers.keys[0].shape[-1], layers.eps
     ends = slot + 1
+    rope_cache_write, range_attention, geglu = (ops.resolved(op, x.device)
+                                                for op in (ops.rope_cache_write, ops.range_attention, ops.geglu))
     for (attention_scale, mlp_scale), weights, key_cache, value_cache in zip(layers.scales, layers.weights, layers.keys,
                                                                              layers.values):
         qkv = torch.mm(rms_norm(x, eps, attention_scale), weights.qkv)
-        q = ops.call(ops.rope_cache_write, qkv, cos, sin, key_cache, value_cache, 0, slot)  # [B, N * H]
-        attended = ops.call(ops.range_attention, q.view(batch, 1, -1, head_dim), key_cache, value_cache, first, ends)
+        q = rope_cache_write(qkv, cos, sin, key_cache, value_cache, 0, slot)  # [B, N * H]
+        attended = range_attention(q.view(batch, 1, -1, head_dim), key_cache, value_cache, first, ends)
         x.addmm_(attended, weights.o)
-        x.addmm_(ops.call(ops.geglu, torch.mm(rms_norm(x, eps, mlp_scale), weights.gate_up)), weights.down)
+        x.addmm_(geglu(torch.mm(rms_norm(x, eps, mlp_scale), weights.gate_up)), weights.down)
     return x

@@ -24,7 +24,7 @@ import torch
 
 from pi0_torch.inference.attention import attend
 from pi0_torch.inference.conditioning import NormParams, StepConditioning
-from pi0_torch.kernels import ops, reference
+from pi0_torch.kernels import ops
 from pi0_torch.kernels.reference import rms_norm
 
 if TYPE_CHECKING:
@@ -114,7 +114,7 @@ class FusedSteps:
         if self.persistent:
             ops.call(ops.expert_layers_, joint, *self.layer_arguments[index])
         else:
-            reference.layer_by_layer_(ops.runner(joint.device), joint, *self.layer_arguments[index])
+            ops.expert_layers_op_by_op_(joint, *self.layer_arguments[index])
         if joint is not tokens:  # (a view at batch 1, a copy else)
             tokens = joint.view(batch, -1, width)[:, 1:].reshape(-1, width)
         row = index if self.final_scales.shape[0] > 1 else 0  # (π0.5: a final norm per step)

@@ -3,10 +3,9 @@ meta device and to `torch.compile`, and its kernel launches record in a CUDA gra
 
 Each op runs its Triton kernel (`pi0_torch.kernels.triton_kernels`) where `triton_reason` finds none against it (a
 CUDA tensor and an importable triton, or `TRITON_INTERPRET=1`), else its torch reference
-(`pi0_torch.kernels.reference`). `call` goes through the dispatcher only where something has to see the op itself
-(a dispatch mode such as the op counter or FakeTensor, or compiling): a custom op's dispatch costs 20-70 µs of host
-time per call, more than the kernel it launches. `runner` makes the same choice once for a run of calls (a sampling
-step's layers).
+(`pi0_torch.kernels.reference`). `call` (the one way the engine calls an op) goes through the dispatcher only where
+something has to see the op itself (a dispatch mode such as the op counter or FakeTensor, or compiling): a custom
+op's dispatch costs 20-70 µs of host time per call, more than the kernel it launches.
 
 (No `from __future__ import annotations` here: `torch.library.custom_op` reads the schema from the annotations.)
 """
@@ -76,16 +75,15 @@ def triton_reason(device: torch.device) -> Optional[str]:
     return _triton_import_error() or _interpreter_error()
 
 
-def _module(name: str, triton: bool) -> ModuleType:
-    """The module of op `name`'s implementation: its Triton kernels' where `triton` (`triton_reason` found nothing
-    against them, so `_triton_import_error` imported them: no import statement per call), else the references."""
-    if not triton:
-        return reference
-    return sys.modules[PERSISTENT if name == "expert_layers_" else TRITON_KERNELS]
-
-
-def _implementation(name: str, device: torch.device) -> Callable[..., Any]:
-    return getattr(_module(name, triton_reason(device) is None), name)
+@functools.lru_cache(maxsize=None)
+def _home(name: str, device: torch.device) -> tuple[ModuleType, bool]:
+    """The module of op `name`'s implementation for tensors on `device`, and whether it launches on a GPU: its Triton
+    kernels' where `triton_reason` finds nothing against them (`_triton_import_error` imported them), else the torch
+    references. Decided once per op and device: what decides it (the device, the installed triton,
+    `TRITON_INTERPRET`, read by triton when the kernels are defined) holds for the process."""
+    if triton_reason(device) is not None:
+        return reference, False
+    return sys.modules[PERSISTENT if name == "expert_layers_" else TRITON_KERNELS], device.type == "cuda"
 
 
 def _dispatched() -> bool:
@@ -99,32 +97,40 @@ def _run(name: str, *args: Any) -> Any:
     so a model on cuda:1 while cuda:0 is current makes its GPU current for the launch (its kernels would otherwise
     run on cuda:0, on cuda:0's stream, against cuda:1's memory)."""
     device = args[0].device
-    implementation = _implementation(name, device)
-    if device.type == "cuda" and device.index != torch.cuda.current_device():
+    module, on_gpu = _home(name, device)
+    implementation = getattr(module, name)
+    if on_gpu and device.index != torch.cuda.current_device():
         with torch.cuda.device(device):
             return implementation(*args)
     return implementation(*args)
 
 
 def call(op: Any, *args: Any) -> Any:
-    """Run the custom op `op` (e.g. `norm_qkv_rope`): straight into its implementation, or through the dispatcher
-    where a dispatch mode or the compiler has to see it (see the module docstring)."""
+    """Run the custom op `op` (e.g. `call(norm_qkv_rope, ...)`): straight into its implementation, or through the
+    dispatcher where a dispatch mode or the compiler has to see it (see the module docstring). The one way the
+    engine calls an op: about half a µs of host time on top of the implementation's on the development CPU."""
     if _dispatched():
         return op(*args)
-    return _run(op._name.split("::")[-1], *args)
+    return _run(_NAMES[op], *args)
 
 
-def runner(device: torch.device) -> Callable[..., Any]:
-    """`call` by the op's name, for a run of calls on `device`'s tensors that nothing can enter in between (a
-    sampling step's layers): `runner(device)(name, *args)`. What `call` decides per call (the dispatcher or not, the
-    Triton implementation or the reference, the GPU to make current) is decided once, here; each call still looks
-    its implementation up by name. About 2 of a fused op call's 12 µs of host time on the development CPU."""
+def resolved(op: Any, device: torch.device) -> Callable[..., Any]:
+    """`call(op, ...)` for a run of calls on `device`'s tensors that nothing can enter in between (the layers of a
+    sampling step): what `call` decides per call (the dispatcher or not, the implementation, the GPU to make
+    current), decided once."""
     if _dispatched():
-        return lambda name, *args: getattr(sys.modules[__name__], name)(*args)  # (the custom op; dynamo traces this)
-    if device.type == "cuda" and device.index != torch.cuda.current_device():
-        return _run  # (makes the tensors' GPU current for each launch)
-    triton = triton_reason(device) is None
-    return lambda name, *args: getattr(_module(name, triton), name)(*args)
+        return op
+    module, on_gpu = _home(_NAMES[op], device)
+    if on_gpu and device.index != torch.cuda.current_device():
+        return functools.partial(_run, _NAMES[op])
+    return getattr(module, _NAMES[op])
+
+
+def expert_layers_op_by_op_(x: torch.Tensor, *arguments: Any) -> None:
+    """`expert_layers_` (same arguments) as five ops per layer, each its kernel: the fused step where the persistent
+    kernel is not used (the loop of `reference.expert_layers_`, on the implementations `call` would run)."""
+    reference.expert_layers_(x, *arguments, implementations=tuple(
+        resolved(op, x.device) for op in (norm_qkv_rope, range_attention, matmul_residual_, norm_gate_up_geglu)))
 
 
 @torch.library.custom_op("pi0_torch::embed_actions", mutates_args=())
@@ -243,3 +249,9 @@ def expert_layers_(
 def _(x, attention_scales, qkv, o, mlp_scales, gate_up, down, cos, sin, key_cache, value_cache, first, row_ends,
       first_slot, eps, qkv_bias, o_gate, gate_up_bias, down_gate):
     return None
+
+
+# op -> the name of its implementations (`pi0_torch::geglu` -> `geglu`), for `call`
+_NAMES: dict[Any, str] = {op: op._name.split("::")[-1] for op in (
+    embed_actions, add_layer_norm_, norm_qkv_rope, norm_gate_up_geglu, matmul_residual_, range_attention,
+    norm_linear_euler_, rope_cache_write, geglu, expert_layers_)}

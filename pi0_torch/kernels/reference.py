@@ -211,31 +211,21 @@ def expert_layers_(
     o_gate: torch.Tensor | None = None,  # π0.5: [L, D]
     gate_up_bias: torch.Tensor | None = None,  # π0.5: [L, 2 F]
     down_gate: torch.Tensor | None = None,  # π0.5: [L, D]
+    implementations: tuple[Callable[..., Any], ...] | None = None,
 ) -> None:
     """Every decoder layer of the action expert in one sampling step, on the action tokens `x` (`B` samples of `T`):
-    `layer_by_layer_` with these references."""
-    layer_by_layer_(lambda name, *args: globals()[name](*args), x, attention_scales, qkv, o, mlp_scales, gate_up, down,
-                    cos, sin, key_cache, value_cache, first, row_ends, first_slot, eps, qkv_bias, o_gate, gate_up_bias,
-                    down_gate)
-
-
-def layer_by_layer_(run: Callable[..., Any], x: torch.Tensor, attention_scales: torch.Tensor, qkv: list[torch.Tensor],
-                    o: list[torch.Tensor], mlp_scales: torch.Tensor, gate_up: list[torch.Tensor],
-                    down: list[torch.Tensor], cos: torch.Tensor, sin: torch.Tensor, key_cache: torch.Tensor,
-                    value_cache: torch.Tensor, first: torch.Tensor, row_ends: torch.Tensor, first_slot: int, eps: float,
-                    qkv_bias: torch.Tensor | None = None, o_gate: torch.Tensor | None = None,
-                    gate_up_bias: torch.Tensor | None = None, down_gate: torch.Tensor | None = None) -> None:
-    """`expert_layers_` (same arguments) as five ops per layer, each run by `run(name, *args)`: `norm_qkv_rope`,
-    `range_attention`, `matmul_residual_` (o), `norm_gate_up_geglu`, `matmul_residual_` (down), π0.5's adaRMS biases
-    and gates from the layer's rows. The stacked arguments may also be lists of each layer's."""
+    per layer `norm_qkv_rope`, `range_attention`, `matmul_residual_` (o), `norm_gate_up_geglu`, `matmul_residual_`
+    (down), π0.5's adaRMS biases and gates from the layer's rows. The stacked arguments may also be lists of each
+    layer's. `implementations`: what runs those four ops (`ops.expert_layers_op_by_op_` passes their kernels; by
+    default these references)."""
+    norm_qkv, attention, matmul_residual, norm_mlp = implementations or (
+        norm_qkv_rope, range_attention, matmul_residual_, norm_gate_up_geglu)
     batch, head_dim = key_cache[0].shape[0], key_cache[0].shape[-1]
     for layer in range(len(qkv)):
         keys, values = key_cache[layer], value_cache[layer]
         bias, gate = (None, None) if qkv_bias is None else (qkv_bias[layer], o_gate[layer])
-        q = run("norm_qkv_rope", x, attention_scales[layer], bias, qkv[layer], cos, sin, keys, values, first_slot, eps)
-        attended = run("range_attention", q.view(batch, -1, q.shape[-1] // head_dim, head_dim), keys, values, first,
-                       row_ends)
-        run("matmul_residual_", x, attended, o[layer], gate)
+        q = norm_qkv(x, attention_scales[layer], bias, qkv[layer], cos, sin, keys, values, first_slot, eps)
+        attended = attention(q.view(batch, -1, q.shape[-1] // head_dim, head_dim), keys, values, first, row_ends)
+        matmul_residual(x, attended, o[layer], gate)
         bias, gate = (None, None) if qkv_bias is None else (gate_up_bias[layer], down_gate[layer])
-        hidden = run("norm_gate_up_geglu", x, mlp_scales[layer], bias, gate_up[layer], eps)
-        run("matmul_residual_", x, hidden, down[layer], gate)
+        matmul_residual(x, norm_mlp(x, mlp_scales[layer], bias, gate_up[layer], eps), down[layer], gate)
