@@ -50,6 +50,7 @@ from pi0_torch.models.configuration_pi0_fast import PI0FastConfig, fast_preset_n
 from pi0_torch.inference.conditioning import euler_times
 from pi0_torch.kernels.reference import rope_cos_sin
 from pi0_torch.inference.checks import relative_deviation
+from pi0_torch.inference.layer_pass import decoder_sampling_weights
 from pi0_torch.inference.layout import InputFacts
 from pi0_torch.inference.plan import SamplingInputs, SamplingPlan, SamplingRoute
 from pi0_torch.models.modeling_pi0 import PI0ForActionGeneration
@@ -555,7 +556,8 @@ def decode_step_on_meta(config: PI0FastConfig, fused: bool, steps: int = 8, coun
               torch.empty(1, TEXT_TOKENS, dtype=torch.bool, device=meta))
     with torch.no_grad():
         cache, _ = model.prepare_decoding(torch.empty(1, cameras, 3, size, size, dtype=torch.bfloat16, device=meta),
-                                          torch.empty(1, cameras, dtype=torch.bool, device=meta), *prompt, steps, fused)
+                                          torch.empty(1, cameras, dtype=torch.bool, device=meta), *prompt, steps,
+                                          decoder_sampling_weights(model.layers) if fused else None)
         token, step = torch.empty(1, dtype=torch.long, device=meta), torch.arange(steps, device=meta)[2:3]
         with (AtenOpCounter() if count else contextlib.nullcontext()) as counter:
             model.decode_step(cache, token, step)

@@ -40,6 +40,7 @@ import psutil
 import torch
 
 from pi0_torch.inference.checks import VERIFY_TOLERANCE, relative_deviation
+from pi0_torch.inference.layer_pass import decoder_sampling_weights
 from pi0_torch.kernels import ops
 from pi0_torch.models.configuration_pi0 import PI0Config
 from pi0_torch.models.configuration_pi0_fast import PI0FastConfig
@@ -458,7 +459,7 @@ def fast_decoding_check(model: PI0FastForActionGeneration, inputs: dict[str, tor
         slots = model.decoding_slots(images.shape[1], inputs["input_ids"].shape[1], count)
         fused = model.decoding_kernels_reason(images.device, model.dtype, images.shape[0], slots) is None
         arguments = (inputs["pixel_values"], inputs["image_masks"], inputs["input_ids"], inputs["attention_mask"],
-                     inputs["token_ar_mask"], count, fused)
+                     inputs["token_ar_mask"], count, decoder_sampling_weights(model.layers) if fused else None)
         _, cached = model.decode(model.prepare_decoding, model.decode_step, arguments, 0.0, None, forced=ids[:, prompt:])
     deviation = max(relative_deviation(got, want) for got, want in zip(cached, reference))
     return deviation, bound, "decoded tokens: fused kernels" if fused else "decoded tokens: modules"

@@ -378,6 +378,8 @@ def test_fused_fast_decoding_on_cuda() -> None:
     `capture_decoding` replays them as one hand-captured graph per step (one capture for every call), with eager's
     logits; compiled decoding replayed as CUDA graphs passes its verification against eager decoding (refused, with
     the reason, on torch < 2.12, where it crashed the process on an H200)."""
+    from pi0_torch.inference.layer_pass import decoder_sampling_weights
+
     fast = FastReference()
     infer = {name: value.to(CUDA) for name, value in fast.inputs("infer").items()}
     steps = int(fast["inputs/max_decoding_steps"])
@@ -386,14 +388,14 @@ def test_fused_fast_decoding_on_cuda() -> None:
     model = model.to(torch.bfloat16)
     assert model.decoding_kernels_reason(CUDA, torch.bfloat16) is None
     tokens = model.generate_tokens(**infer, max_new_tokens=steps)
-    arguments = (*infer.values(), steps)
-    _, fused = model.decode(model.prepare_decoding, model.decode_step, (*arguments, True), 0.0, None, forced=tokens)
-    _, modules = model.decode(model.prepare_decoding, model.decode_step, (*arguments, False), 0.0, None, forced=tokens)
+    arguments, weights = (*infer.values(), steps), decoder_sampling_weights(model.layers)
+    _, fused = model.decode(model.prepare_decoding, model.decode_step, (*arguments, weights), 0.0, None, forced=tokens)
+    _, modules = model.decode(model.prepare_decoding, model.decode_step, (*arguments, None), 0.0, None, forced=tokens)
     assert max(relative(got.float(), want.float()) for got, want in zip(fused, modules)) <= 2e-2
     model.capture_decoding()  # hand-captured graphs of the fused step, verified at capture
     graphs = model._decoding_graphs
     for _ in range(2):
-        _, replayed = model.decode(graphs.prepare, graphs.step, (*arguments, True), 0.0, None, forced=tokens)
+        _, replayed = model.decode(graphs.prepare, graphs.step, (*arguments, weights), 0.0, None, forced=tokens)
         assert max(relative(got.float(), want.float()) for got, want in zip(replayed, fused)) <= 1e-2
     assert len(graphs.graphs) == 1 and not graphs.refused
     model.generate_tokens(**infer, max_new_tokens=steps)

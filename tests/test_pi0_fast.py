@@ -17,6 +17,7 @@ from pi0_torch import PI0FastConfig, PI0FastForActionGeneration
 from pi0_torch.conversion.openpi_weights import config_from_openpi_shapes, load_openpi_params
 from pi0_torch.inference import checks, fast_decoding
 from pi0_torch.inference.decoding_graphs import DecodingGraphs
+from pi0_torch.inference.layer_pass import decoder_sampling_weights
 from pi0_torch.kernels import ops
 from pi0_torch.masks import prefix_lm_mask
 from pi0_torch.models.modeling_pi0_fast import token_log_probs
@@ -366,7 +367,7 @@ def test_hand_captured_decoding_replays_eager_decoding_and_refuses_wrong_graphs(
 
     def decode(graphs: DecodingGraphs, inputs: dict[str, torch.Tensor]) -> torch.Tensor:
         with torch.no_grad():
-            return model.decode(graphs.prepare, graphs.step, (*inputs.values(), steps, False), 0.0, None)[0]
+            return model.decode(graphs.prepare, graphs.step, (*inputs.values(), steps, None), 0.0, None)[0]
 
     graphs = DecodingGraphs(model)
     monkeypatch.setattr(graphs, "_record", recording(1.0))
@@ -435,8 +436,9 @@ def test_fused_decoding_matches_openpi_and_the_modules(fast_reference: FastRefer
     forced = torch.randint(0, model.config.vocab_size, (tokens.shape[0], count), generator=torch.Generator().manual_seed(0))
     with torch.no_grad():
         with AtenOpCounter() as counter:
-            _, fused = model.decode(model.prepare_decoding, model.decode_step, (*arguments, True), 0.0, None, forced=forced)
-        _, modules = model.decode(model.prepare_decoding, model.decode_step, (*arguments, False), 0.0, None, forced=forced)
+            _, fused = model.decode(model.prepare_decoding, model.decode_step, (*arguments, decoder_sampling_weights(model.layers)),
+                                    0.0, None, forced=forced)
+        _, modules = model.decode(model.prepare_decoding, model.decode_step, (*arguments, None), 0.0, None, forced=forced)
     for op in ("rope_cache_write", "range_attention", "geglu"):
         assert counter.ops[op] == (count - 1) * layers, counter.ops
     assert counter.ops["addmm_"] == 2 * (count - 1) * layers and "_scaled_dot_product_attention_math" not in counter.ops
@@ -469,7 +471,7 @@ def test_decoding_kernels_run_only_where_they_apply(monkeypatch: pytest.MonkeyPa
         hooked.decoding_kernels_reason(cpu, torch.float32)
     buffers = [torch.zeros(1, 1, 8, hooked.config.head_dim) for _ in hooked.layers]  # (never read)
     with pytest.raises(ValueError, match="a layer's projections are not plain weights"):  # (no None weight at a token)
-        fast_decoding.DecodingLayers.build(hooked.layers, buffers, buffers)
+        fast_decoding.DecodingLayers.build(decoder_sampling_weights(hooked.layers), hooked.layers, buffers, buffers)
     if TRITON_REASON is not None:
         return
     from pi0_torch.kernels import triton_kernels

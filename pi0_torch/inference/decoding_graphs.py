@@ -61,8 +61,8 @@ def cache_tensors(cache: DecodingCache) -> list[torch.Tensor]:
 
 def input_signature(inputs: tuple[Any, ...]) -> tuple[Any, ...]:
     """What a call's graphs are specialised to: `prepare_decoding`'s inputs (five tensors, then the number of new
-    tokens and whether the fused kernels run), each tensor by shape, dtype and device."""
-    return (*((tuple(tensor.shape), tensor.dtype, tensor.device) for tensor in inputs[:5]), *inputs[5:])
+    tokens and the fused layers' weights), each tensor by shape, dtype and device, and whether the fused kernels run."""
+    return (*((tuple(tensor.shape), tensor.dtype, tensor.device) for tensor in inputs[:5]), inputs[5], inputs[6] is not None)
 
 
 class DecodingGraphs:

@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING
 
 import torch
 
-from pi0_torch.inference.layer_pass import SamplingWeights, expert_sampling_weights
+from pi0_torch.inference.layer_pass import SamplingWeights
 from pi0_torch.kernels import ops
 from pi0_torch.kernels.reference import rms_norm
 
@@ -45,16 +45,16 @@ class DecodingLayers:
     eps: float
 
     @classmethod
-    def build(cls, layers: Sequence[FastDecoderLayer], keys: Sequence[torch.Tensor],
+    def build(cls, weights: Sequence[SamplingWeights], layers: Sequence[FastDecoderLayer], keys: Sequence[torch.Tensor],
               values: Sequence[torch.Tensor]) -> DecodingLayers:
-        """`keys`, `values`: the decoding cache's per-layer buffers `[B, 1, S, H]`."""
-        weights = [expert_sampling_weights(layer.block) for layer in layers]
+        """`weights`: each layer's (`layer_pass.decoder_sampling_weights`, the call's plain-weights check); `keys`,
+        `values`: the decoding cache's per-layer buffers `[B, 1, S, H]`."""
         if not all(each.usable for each in weights):
             raise ValueError("fused decoding runs the GEMMs on the layers' weights, and a layer's projections are not "
-                             "plain weights (LoRA, quantized or hooked layers, autocast): decode with fused=False")
+                             "plain weights (LoRA, quantized or hooked layers, autocast): decode with fused=None")
         norms = [norm.weight for layer in layers for norm in (layer.block.attn_norm, layer.block.mlp_norm)]
         scales = torch._foreach_add(norms, 1)  # (one op for all of them)
-        return cls(list(zip(scales[::2], scales[1::2])), weights, [each[:, 0] for each in keys],
+        return cls(list(zip(scales[::2], scales[1::2])), list(weights), [each[:, 0] for each in keys],
                    [each[:, 0] for each in values], layers[0].block.attn_norm.eps)
 
     def tensors(self) -> list[torch.Tensor]:

@@ -9,6 +9,7 @@ The model computes the prefill (`prepare_decoding`) and one decoded token (`deco
 
 from __future__ import annotations
 
+import functools
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -19,7 +20,7 @@ import torch
 from pi0_torch.inference.checks import (decoding_layers_reason, decoding_ops_reason, relative_deviation, setting_reason,
                                         verify_bound)
 from pi0_torch.inference.fast_decoding import DecodingLayers
-from pi0_torch.inference.layer_pass import decoder_sampling_weights
+from pi0_torch.inference.layer_pass import SamplingWeights, decoder_sampling_weights
 
 logger = logging.getLogger(__name__)
 
@@ -83,8 +84,12 @@ class TokenDecoding:
         if temperature < 0:
             raise ValueError(f"temperature must be >= 0, got {temperature}")
         slots = self.decoding_slots(pixel_values.shape[1], input_ids.shape[1], max_new_tokens)
-        fused = (self._compiled_prefill is None  # (compiled decoding traces the modules: see `compile_decoding`)
-                 and self.decoding_kernels_reason(pixel_values.device, self.dtype, pixel_values.shape[0], slots) is None)
+        fused = None  # (compiled decoding traces the modules: see `compile_decoding`)
+        if self._compiled_prefill is None:
+            weights = functools.cache(lambda: decoder_sampling_weights(self.layers))  # (the call's plain-weights check,
+            # made once where something reads it: the gate, then the fused layers)
+            if self.decoding_kernels_reason(pixel_values.device, self.dtype, pixel_values.shape[0], slots, weights) is None:
+                fused = weights()
         inputs = (pixel_values, image_masks, input_ids, attention_mask, token_ar_mask, max_new_tokens, fused)
         if self._compiled_prefill is None:
             if self._decoding_graphs is not None and pixel_values.device.type == "cuda":
@@ -149,15 +154,17 @@ class TokenDecoding:
             raise ValueError(f"decoding_kernels must be one of {self.DECODING_KERNELS}, got {kernels!r}")
         self._decoding_kernels = kernels
 
-    def decoding_kernels_reason(self, device: torch.device, dtype: torch.dtype, batch: int = 1, slots: int = 1_104) -> str | None:
+    def decoding_kernels_reason(self, device: torch.device, dtype: torch.dtype, batch: int = 1, slots: int = 1_104,
+                                weights: Callable[[], list[SamplingWeights]] | None = None) -> str | None:
         """Why decoding `batch` rows on `device` in `dtype` with caches of `slots` (`decoding_slots`; the default is a
-        full-size cache) does not run the fused kernels (None: it does); see `decoding_kernels`. Raises `ValueError`
-        with the reason where "triton" was asked for and cannot be had."""
+        full-size cache) does not run the fused kernels (None: it does); see `decoding_kernels`. `weights`: the call's
+        plain-weights check, as a function that makes it once (made here where not given). Raises `ValueError` with the reason where
+        "triton" was asked for and cannot be had."""
         config = self.config
 
         def check() -> str | None:
-            weights = decoder_sampling_weights(self.layers)
-            return decoding_layers_reason(weights, config.num_key_value_heads, config.head_dim) or decoding_ops_reason(
+            plain = decoder_sampling_weights(self.layers) if weights is None else weights()
+            return decoding_layers_reason(plain, config.num_key_value_heads, config.head_dim) or decoding_ops_reason(
                 device, dtype, config.num_attention_heads, config.head_dim, config.intermediate_size, batch, slots)
 
         return setting_reason(self._decoding_kernels, "decoding_kernels", device, dtype, check)

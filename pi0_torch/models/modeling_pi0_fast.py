@@ -15,6 +15,7 @@ K kv heads, H head size, D width, V vocabulary.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -36,6 +37,7 @@ from pi0_torch.utils.validation import check_tensor as _check_tensor
 from pi0_torch.utils.validation import describe as _describe
 
 if TYPE_CHECKING:
+    from pi0_torch.inference.layer_pass import SamplingWeights
     from pi0_torch.processing.processing_pi0_fast import PI0FastProcessor
 
 # ----------------------------------------------------------------------------------------------------------------------
@@ -236,10 +238,11 @@ class PI0FastForActionGeneration(TokenDecoding, SiglipImageEmbedding, PI0FastPre
         attention_mask: torch.Tensor,
         token_ar_mask: torch.Tensor,
         max_new_tokens: int,
-        fused: bool = False,
+        fused: Sequence[SamplingWeights] | None = None,
     ) -> tuple[DecodingCache, torch.Tensor]:
         """Prefill: run images and prompt once, keep every layer's k/v, and return the cache with the logits `[B, V]`
-        that pick the first token. `fused`: `decode_step` runs the fused kernels (see `decoding_kernels`), else the
+        that pick the first token. `fused`: each layer's weights (`layer_pass.decoder_sampling_weights`, as the call's
+        plain-weights check made them) where `decode_step` runs the fused kernels (see `decoding_kernels`); None: the
         modules.
 
         As openpi's `sample_actions`: each row's tokens are rotated so its last valid token is last ("left to right
@@ -274,7 +277,7 @@ class PI0FastForActionGeneration(TokenDecoding, SiglipImageEmbedding, PI0FastPre
         steps = torch.arange(max_new_tokens, device=device)
         window_start = prefix_len - valid_count  # [B, 1]
         masks = None  # (the fused kernels attend over [first, slot] without one)
-        if not fused:
+        if fused is None:
             slot_index = torch.arange(prefix_len + max_new_tokens, device=device)
             sees = (slot_index[None, None, :] >= window_start[:, :, None]) & (
                 slot_index[None, None, :] <= (prefix_len + steps)[None, :, None]
@@ -290,7 +293,7 @@ class PI0FastForActionGeneration(TokenDecoding, SiglipImageEmbedding, PI0FastPre
             sin=decode_sin,
             slots=prefix_len + steps,
             first=window_start[:, 0],
-            fused=DecodingLayers.build(self.layers, keys, values) if fused else None,
+            fused=None if fused is None else DecodingLayers.build(fused, self.layers, keys, values),
         )
         return cache, logits
 
