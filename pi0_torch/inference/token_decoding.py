@@ -158,8 +158,8 @@ class TokenDecoding:
                                 weights: Callable[[], list[SamplingWeights]] | None = None) -> str | None:
         """Why decoding `batch` rows on `device` in `dtype` with caches of `slots` (`decoding_slots`; the default is a
         full-size cache) does not run the fused kernels (None: it does); see `decoding_kernels`. `weights`: the call's
-        plain-weights check, as a function that makes it once (made here where not given). Raises `ValueError` with the reason where
-        "triton" was asked for and cannot be had."""
+        plain-weights check, as a function that makes it once (made here where not given). Raises `ValueError` with
+        the reason where "triton" was asked for and cannot be had."""
         config = self.config
 
         def check() -> str | None:
