@@ -1,18 +1,20 @@
 """Meta-World end to end: scripted-expert demonstrations, a small π0 trained from scratch, held-out evaluation.
 
     .venv/bin/python scripts/train_metaworld_policy.py [--work-dir outputs/metaworld] [--episodes 100] [--steps 4000]
-        [--eval-episodes 50] [--threads 2]
+        [--eval-episodes 50] [--threads 2] [--no-augment] [--no-baselines]
 
-A dataset or a finished training run of the same settings in `--work-dir` is reused (only evaluated again).
+A dataset or a finished training run of the same settings in `--work-dir` is reused (only evaluated again). Each run
+has its folder (`policy_<episodes>x<steps>`, `_noaug` without augmentation) with its `metaworld_metrics.json`.
 
 1. records `--episodes` successful expert episodes of each task of `TASKS` (`pi0_torch.envs.metaworld`, seeds from
    0, failed seeds skipped, episodes of at most `MAX_STEPS` steps) into one LeRobot v3.0 dataset, as
    `pi0-torch demos --env metaworld/<task>` does per task;
 2. trains the tiny π0 of `POLICY_CONFIG` from scratch with the real pipeline (`pi0_torch.training.train_policy`, the
-   HF Trainer, the recipe of the shipped demo policy: AdamW, warm-up 200 steps, cosine decay to 1e-4, batch 64);
+   HF Trainer, the recipe of the shipped demo policy: AdamW, warm-up 200 steps, cosine decay to 1e-4, batch 64;
+   openpi's image augmentation unless `--no-augment`);
 3. evaluates it in closed loop on held-out seeds (from 1,000,000: placements no demonstration showed) with
-   `pi0-torch eval`'s `evaluate`, beside the scripted expert and uniform random actions on the same seeds, and writes
-   `metaworld_metrics.json` and a Markdown table (success with 95% Wilson intervals).
+   `pi0-torch eval`'s `evaluate`, beside the scripted expert and uniform random actions on the same seeds (not with
+   `--no-baselines`), and writes `metaworld_metrics.json` and a Markdown table (success with 95% Wilson intervals).
 
 Why these tasks: the object each one acts on (drawer, button, window) is large and visible in the 64 x 64 camera
 frame, its expert succeeds in nearly every seed, and an episode takes 60-100 steps, so recording, training and
@@ -111,6 +113,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--steps", type=int, default=4000, help="optimizer steps")
     parser.add_argument("--eval-episodes", type=int, default=50, help="held-out episodes per task and policy")
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--no-augment", action="store_true",
+                        help="train without openpi's image augmentation (as the policy of docs/benchmarks.md before it)")
+    parser.add_argument("--no-baselines", action="store_true", help="evaluate only the policy, not the expert and random")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     args.work_dir.mkdir(parents=True, exist_ok=True)
@@ -125,11 +130,12 @@ def main(argv: list[str] | None = None) -> int:
     recorded = time.time()
     tokenizer = args.work_dir / "tokenizer.model"
     build_test_tokenizer(extra_sentences=[task_prompt(task) for task in TASKS] * 50, save_to=tokenizer)
-    run_dir = args.work_dir / f"policy_{args.episodes}x{args.steps}"
+    run_dir = args.work_dir / f"policy_{args.episodes}x{args.steps}{'_noaug' if args.no_augment else ''}"
     settings = TrainSettings(
         dataset=str(dataset), model="pi0_small", output_dir=str(run_dir), config_overrides=POLICY_CONFIG,
         tokenizer=str(tokenizer), max_steps=args.steps, batch_size=64, learning_rate=2e-3, end_learning_rate=1e-4,
         warmup_steps=min(200, args.steps // 10), logging_steps=100, save_steps=args.steps, seed=0, overwrite=True, threads=args.threads,
+        augment=not args.no_augment,
     )
     state = run_dir / f"checkpoint-{args.steps}" / "trainer_state.json"
     if (run_dir / "model.safetensors").is_file() and state.is_file():  # a finished run of these settings: evaluate it
@@ -142,18 +148,18 @@ def main(argv: list[str] | None = None) -> int:
     trained = time.time()
 
     policy = LocalPolicy(PI0Policy.from_pretrained(run_dir, device="cpu"), source=run_dir)
-    results = closed_loop({"pi0": policy, "expert": ScriptedPolicy("expert"), "random": ScriptedPolicy("random")},
-                          args.eval_episodes)
+    baselines = {} if args.no_baselines else {"expert": ScriptedPolicy("expert"), "random": ScriptedPolicy("random")}
+    results = closed_loop({"pi0": policy, **baselines}, args.eval_episodes)
     metrics = {
         "tasks": list(TASKS), "episodes_per_task": args.episodes, "steps": args.steps, "max_episode_steps": MAX_STEPS,
-        "heldout_seed": HELDOUT_SEED, "noise_scale": NOISE_SCALE, "replan_steps": REPLAN_STEPS,
+        "augment": not args.no_augment, "heldout_seed": HELDOUT_SEED, "noise_scale": NOISE_SCALE, "replan_steps": REPLAN_STEPS,
         "closed_loop": results,
         "minutes": {"recording": round((recorded - start) / 60, 1), "training": round((trained - recorded) / 60, 1),
                     "evaluation": round((time.time() - trained) / 60, 1)}, "reused": reused,
         "train_loss": [[e["step"], round(e["loss"], 4)] for e in log_history if "loss" in e],
         "torch": torch.__version__, "threads": args.threads,
     }
-    (args.work_dir / "metaworld_metrics.json").write_text(json.dumps(metrics, indent=1) + "\n")
+    (run_dir / "metaworld_metrics.json").write_text(json.dumps(metrics, indent=1) + "\n")
     print(table(results))
     print(f"minutes: {metrics['minutes']}; the policy: {run_dir}")
     return 0
