@@ -8,9 +8,9 @@ clipping (1e-4), and at the end every parameter and its EMA (1e-4 relative, per 
 losses, 2e-6 for the parameters. Two differences were found reading openpi and fixed in `PI0Trainer` (the gradient
 clipping had torch's epsilon, `norm + 1e-6`; weight decay skipped biases and norms, where openpi decays every
 parameter); at openpi's weight decay of 1e-10 and gradient norms near 1 neither moves these numbers beyond 1e-7.
-openpi's LoRA case is recorded in the fixture but not compared: openpi's LoRA is per head on its einsums, with the
+openpi's LoRA training is recorded in the fixture but not compared: openpi's LoRA is per head on its einsums, with the
 frozen weights in bfloat16, where this package's is peft's on the fused projections (docs/training.md, "Same as
-openpi")."""
+openpi"). Its LoRA math is: the LoRA tree, adapters merged by the openpi conversion, gives openpi's LoRA loss."""
 
 from __future__ import annotations
 
@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pytest
 import torch
 from transformers import TrainerCallback
 
@@ -107,3 +108,53 @@ def test_bf16_training_follows_openpis_within_bf16(tmp_path: Path) -> None:
     loss within 1e-2 (XLA fuses and rounds differently: two of openpi's own builds differ by 2e-4)."""
     recorded, losses, _, _, _ = train_like_openpi("bf16", tmp_path)
     assert np.abs(np.array(losses) - recorded["loss"]).max() / np.abs(recorded["loss"]).max() <= 1e-2
+
+
+def openpi_lora_tree(recorded: dict[str, Any], stage: str) -> dict[str, np.ndarray]:
+    """openpi's LoRA tree (adapters on both experts) at the start (`stage` "init") or after its 20 steps ("params"):
+    the frozen Gemma weights as openpi keeps them (bf16-rounded, unchanged by training)."""
+    start = OpenpiReference("pi0_small").params
+    tree = {}
+    for path, frozen in zip(map(str, recorded["param_paths"]), recorded["frozen_cast_to_bf16"]):
+        if stage == "params" or frozen:
+            tree[path] = recorded[f"params/{path}"]
+        else:
+            tree[path] = recorded[f"init/{path}"] if "lora" in path else start[path]
+    return tree
+
+
+def test_an_openpi_lora_fine_tune_converts_with_its_adapters_merged(tmp_path: Path) -> None:
+    """openpi's LoRA (per head on q, k and v, the attention output's B summed over heads, the MLP's unscaled): its
+    tree loads with the adapters merged into the weights, and the merged model's loss of every example and action
+    step equals openpi's own LoRA forward (step 0 of the fixture, adapters N(0, 0.1^2) so they matter). The orbax
+    conversion gives the same weights, and reads every adapter."""
+    from pi0_torch import PI0ForActionGeneration
+    from pi0_torch.conversion.convert_openpi import convert_openpi_checkpoint
+    from pi0_torch.conversion.orbax_reader import write_orbax_checkpoint
+
+    recorded = dict(np.load(FIXTURES / "lora.npz"))
+    reference = OpenpiReference("pi0_small")
+    merged = PI0ForActionGeneration(reference.config).eval()
+    load_openpi_params(merged, openpi_lora_tree(recorded, "init"))
+    actions, noise = reference.tensor("inputs/actions"), torch.from_numpy(recorded["noise"][0])
+    with torch.no_grad():
+        velocity = merged(**reference.model_inputs(), actions=actions, noise=noise,
+                          time=torch.from_numpy(recorded["time"][0])).velocity
+    per_example = ((velocity - (noise - actions)) ** 2).mean(-1).numpy()  # [B, horizon], openpi's compute_loss
+    want = recorded["loss_per_example"][0]
+    assert np.abs(per_example - want).max() / np.abs(want).max() <= 1e-5
+    without = reference.model()  # (the adapters change the loss: the check above can fail)
+    with torch.no_grad():
+        assert not torch.allclose(without(**reference.model_inputs(), actions=actions, noise=noise,
+                                          time=torch.from_numpy(recorded["time"][0])).velocity, velocity, atol=1e-3)
+
+    final = openpi_lora_tree(recorded, "params")
+    write_orbax_checkpoint(tmp_path / "ckpt" / "params", final)
+    out = convert_openpi_checkpoint(tmp_path / "ckpt", tmp_path / "out", progress=False).output_dir  # (every leaf used)
+    expected = PI0ForActionGeneration(reference.config)
+    load_openpi_params(expected, final)
+    converted = PI0ForActionGeneration.from_pretrained(out).state_dict()
+    assert all(torch.equal(tensor, converted[name]) for name, tensor in expected.state_dict().items())
+    broken = {path: array for path, array in final.items() if not path.endswith("linear_lora_b")}
+    with pytest.raises(ValueError, match=r"missing: .*mlp/linear_lora_b, .*mlp_1/linear_lora_b"):
+        load_openpi_params(PI0ForActionGeneration(reference.config), broken)

@@ -92,3 +92,30 @@ def test_the_summary_names_what_the_processor_lacks_and_tokenizers_by_name(tmp_p
                      str(FAST_DIR / "fast_tokenizer")]) == 1
     error = capsys.readouterr().err
     assert error.startswith("error: cannot build the processor with --tokenizer test: FAST ids") and " object at 0x" not in error
+
+
+def test_an_openpi_gemma_2b_lora_tree_loads_merged(fast_reference: FastReference) -> None:
+    """π0-FAST's LoRA fine-tunes (`gemma_2b_lora` on its Gemma) load with the adapters merged, by the map π0's LoRA
+    fixture checks against openpi (tests/test_openpi_training.py): zero `lora_b` leaves the weights as they are,
+    others move exactly the Gemma projections."""
+    from pi0_torch.conversion.openpi_paligemma import gemma_lora_openpi_shapes, openpi_lora_ranks
+    from pi0_torch.conversion.openpi_weights import load_openpi_params
+
+    config = fast_reference.config
+    ranks = {(0, "attn"): 4, (0, "ffn"): 4}
+    shapes = gemma_lora_openpi_shapes(config, 0, config.hidden_size, config.intermediate_size, ranks)
+    generator = np.random.default_rng(0)
+    adapters = {path: generator.normal(0, 0.1, shape).astype(np.float32) for path, shape in shapes.items()}
+    assert openpi_lora_ranks({path: array.shape for path, array in adapters.items()}) == ranks
+
+    plain = PI0FastForActionGeneration(config)
+    load_openpi_params(plain, fast_reference.params)
+    untouched = PI0FastForActionGeneration(config)
+    load_openpi_params(untouched, {**fast_reference.params, **{
+        path: np.zeros_like(array) if path.endswith("lora_b") else array for path, array in adapters.items()}})
+    merged = PI0FastForActionGeneration(config)
+    load_openpi_params(merged, {**fast_reference.params, **adapters})
+    projections = ("qkv_proj", "o_proj", "gate_up_proj", "down_proj")
+    for name, tensor in plain.state_dict().items():
+        assert torch.equal(untouched.state_dict()[name], tensor), name
+        assert torch.equal(merged.state_dict()[name], tensor) != name.endswith(tuple(f"{p}.weight" for p in projections)), name

@@ -2,7 +2,7 @@
 convert --from openpi`).
 
 π0 vs π0.5 vs π0-FAST and every dimension come from the parameter tree (`pi0_torch.conversion.openpi_weights`), the
-norm stats from the checkpoint's `assets/`. An openpi leaf is read one layer at a time: a leaf stored as one big
+norm stats from the checkpoint's `assets/`; a LoRA fine-tune's adapters are merged into the weights. An openpi leaf is read one layer at a time: a leaf stored as one big
 chunk is decompressed once, as a stream, and its layers kept in memory or spilled to a scratch folder until they are
 written ([`_OpenpiLeafSource`]); every leaf must be used. The folder is written by `pi0_torch.conversion.output_folder`.
 """
@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from pi0_torch.conversion.openpi_paligemma import openpi_lora_ranks
 from pi0_torch.conversion.openpi_weights import check_openpi_shapes, config_from_openpi_shapes, is_openpi_fast_tree, iter_openpi_state_dict
 from pi0_torch.conversion.orbax_reader import LeafInfo, OrbaxCheckpoint, first_line, streaming_reason
 from pi0_torch.conversion.output_folder import (
@@ -94,6 +95,9 @@ def convert_openpi_checkpoint(
         raise ConversionError(f"{checkpoint.params_dir} is not a π0/π0.5 parameter tree: missing leaf {error}") from None
     except ValueError as error:
         raise ConversionError(f"{checkpoint.params_dir}: {error}") from None
+    if lora_ranks := openpi_lora_ranks(shapes):
+        logger.info("merging openpi's LoRA adapters into the weights they adapt: " + ", ".join(
+            f"{('VLM', 'action expert')[expert]} {kind} rank {rank}" for (expert, kind), rank in sorted(lora_ranks.items())))
     norm_stats_path = find_norm_stats(checkpoint.step_dir, asset_id)
     norm_stats = read_norm_stats(norm_stats_path) if norm_stats_path else None
     if norm_stats is None:
@@ -112,7 +116,7 @@ def convert_openpi_checkpoint(
             with ShardedSafetensorsWriter(folder, plan, torch_dtype, max_shard_bytes) as writer, progress_bar(
                 writer.total_bytes, f"converting {checkpoint.step_dir.parent.name}/{checkpoint.step_dir.name}", progress
             ) as bar:
-                for name, tensor in iter_openpi_state_dict(source.read, config):
+                for name, tensor in iter_openpi_state_dict(source.read, config, lora_ranks):
                     bar.update(writer.write(name, tensor))
                     del tensor
         finally:

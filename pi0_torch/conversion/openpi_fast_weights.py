@@ -28,9 +28,11 @@ import torch
 
 from pi0_torch.conversion.openpi_paligemma import (
     LLM,
+    NO_LORA,
     LeafReader,
     as_tensor,
     gemma_layers_openpi_shapes,
+    gemma_lora_openpi_shapes,
     iter_openpi_layer_weights,
     iter_openpi_vision_state_dict,
     shared_settings_from_openpi_shapes,
@@ -40,12 +42,15 @@ from pi0_torch.conversion.openpi_paligemma import (
 from pi0_torch.models.configuration_pi0_fast import PI0FastConfig
 
 
-def expected_openpi_fast_shapes(config: PI0FastConfig) -> dict[str, tuple[int, ...]]:
-    """Every openpi leaf path (without '/value') a π0-FAST checkpoint of `config` holds, with its shape."""
+def expected_openpi_fast_shapes(config: PI0FastConfig,
+                                lora_ranks: Mapping[tuple[int, str], int] = NO_LORA) -> dict[str, tuple[int, ...]]:
+    """Every openpi leaf path (without '/value') a π0-FAST checkpoint of `config` holds, with its shape; with the
+    LoRA leaves of `lora_ranks` (`openpi_lora_ranks`) for a LoRA fine-tune's tree."""
     L, D = config.num_hidden_layers, config.hidden_size
     shapes = vision_openpi_shapes(config, D)
     shapes[f"{LLM}/embedder/input_embedding"] = (config.vocab_size, D)
     shapes.update(gemma_layers_openpi_shapes(config, 0, D, config.intermediate_size))
+    shapes.update(gemma_lora_openpi_shapes(config, 0, D, config.intermediate_size, lora_ranks))
     for norm in ("pre_attention_norm", "pre_ffw_norm"):
         shapes[f"{LLM}/layers/{norm}/scale"] = (L, D)
     shapes[f"{LLM}/final_norm/scale"] = (D,)
@@ -68,13 +73,15 @@ def config_from_openpi_fast_shapes(shapes: Mapping[str, tuple[int, ...]], **over
     return PI0FastConfig(**{**inferred, **overrides})
 
 
-def iter_openpi_fast_state_dict(read: LeafReader, config: PI0FastConfig) -> Iterator[tuple[str, torch.Tensor]]:
-    """Yield `(our_name, tensor)` for every parameter of `PI0FastForActionGeneration(config)`, one layer at a time."""
+def iter_openpi_fast_state_dict(read: LeafReader, config: PI0FastConfig,
+                                lora_ranks: Mapping[tuple[int, str], int] = NO_LORA) -> Iterator[tuple[str, torch.Tensor]]:
+    """Yield `(our_name, tensor)` for every parameter of `PI0FastForActionGeneration(config)`, one layer at a time,
+    the LoRA adapters `lora_ranks` names merged in."""
     yield from iter_openpi_vision_state_dict(read, config)
     yield "embed_tokens.weight", as_tensor(read(f"{LLM}/embedder/input_embedding", None))
     for i in range(config.num_hidden_layers):
         prefix = f"layers.{i}.block"
-        yield from iter_openpi_layer_weights(read, config, i, 0, prefix)
+        yield from iter_openpi_layer_weights(read, config, i, 0, prefix, lora_ranks)
         yield f"{prefix}.attn_norm.weight", as_tensor(read(f"{LLM}/layers/pre_attention_norm/scale", i))
         yield f"{prefix}.mlp_norm.weight", as_tensor(read(f"{LLM}/layers/pre_ffw_norm/scale", i))
     yield "final_norm.weight", as_tensor(read(f"{LLM}/final_norm/scale", None))

@@ -3,7 +3,9 @@ ours: what `pi0_torch.conversion.openpi_weights` (π0 / π0.5) and `pi0_torch.co
 (π0-FAST) both build on.
 
 openpi stores every layer stacked on axis 0 and kernels as (in, out); we store one tensor per layer in torch's
-(out, in) layout, with q/k/v and gate/up fused. Everything here works one openpi leaf (or one layer of it) at a time
+(out, in) layout, with q/k/v and gate/up fused. A tree trained with openpi's LoRA variants (`gemma_2b_lora`,
+`gemma_300m_lora`: the `*_low_mem_finetune` configs) holds adapter pairs beside the Gemma weights; they are merged
+into the weights they adapt ([`openpi_lora_ranks`]). Everything here works one openpi leaf (or one layer of it) at a time
 through a [`LeafReader`], so a converter can stream a 12 GB checkpoint with bounded memory.
 """
 
@@ -11,10 +13,13 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Iterator, Mapping
+from types import MappingProxyType
 from typing import Any
 
 import numpy as np
 import torch
+
+NO_LORA: Mapping[tuple[int, str], int] = MappingProxyType({})  # `openpi_lora_ranks` of a tree without adapters
 
 # read(path, layer): the openpi array at `path` (without a trailing "/value"), or only its slice `[layer]`.
 LeafReader = Callable[[str, "int | None"], np.ndarray]
@@ -79,6 +84,39 @@ def gemma_layers_openpi_shapes(config: Any, expert: int, width: int, mlp_width: 
     }
 
 
+def openpi_lora_ranks(shapes: Mapping[str, tuple[int, ...]]) -> dict[tuple[int, str], int]:
+    """The LoRA adapters an openpi tree holds (its leaf shapes): `{(expert, "attn" | "ffn"): rank}` for each Gemma
+    expert (0: the VLM, 1: π0's action expert) whose attention or MLP has them; empty for a tree without LoRA."""
+    shapes = {strip_value_suffix(path): shape for path, shape in shapes.items()}
+    ranks = {}
+    for expert in (0, 1):
+        s = expert_suffix(expert)
+        for kind, path in (("attn", f"{LLM}/layers/attn/q_einsum{s}/lora_a"), ("ffn", f"{LLM}/layers/mlp{s}/gating_einsum_lora_a")):
+            if path in shapes:
+                ranks[expert, kind] = shapes[path][-1]
+    return ranks
+
+
+def gemma_lora_openpi_shapes(config: Any, expert: int, width: int, mlp_width: int,
+                             lora_ranks: Mapping[tuple[int, str], int]) -> dict[str, tuple[int, ...]]:
+    """The stacked LoRA leaves of one Gemma expert that `lora_ranks` (`openpi_lora_ranks`) says it has, with their
+    shapes (openpi's `lora.Einsum` and `lora.FeedForward`: `lora_a` takes the einsum's input side, `lora_b` gives its
+    output side)."""
+    L, N, K, H = config.num_hidden_layers, config.num_attention_heads, config.num_key_value_heads, config.head_dim
+    s, D, F = expert_suffix(expert), width, mlp_width
+    shapes = {}
+    if (r := lora_ranks.get((expert, "attn"))) is not None:
+        for name, a, b in (("q_einsum", (N, D), (N,)), ("kv_einsum", (2, K, D), (2, K)), ("attn_vec_einsum", (N, H), (N,))):
+            shapes[f"{LLM}/layers/attn/{name}{s}/lora_a"] = (L, *a, r)
+            shapes[f"{LLM}/layers/attn/{name}{s}/lora_b"] = (L, *b, r, D if name == "attn_vec_einsum" else H)
+    if (r := lora_ranks.get((expert, "ffn"))) is not None:
+        shapes.update({
+            f"{LLM}/layers/mlp{s}/gating_einsum_lora_a": (L, 2, D, r), f"{LLM}/layers/mlp{s}/gating_einsum_lora_b": (L, 2, r, F),
+            f"{LLM}/layers/mlp{s}/linear_lora_a": (L, F, r), f"{LLM}/layers/mlp{s}/linear_lora_b": (L, r, D),
+        })
+    return shapes
+
+
 def shared_settings_from_openpi_shapes(shapes: Mapping[str, tuple[int, ...]]) -> dict[str, Any]:
     """The settings every member's config has that the leaf shapes tell (`pi0_torch.models.configuration_base`):
     the SigLIP tower, the attention of the Gemma (expert 0) and the vocabulary. `shapes` has no '/value' suffixes."""
@@ -135,19 +173,36 @@ def iter_openpi_vision_state_dict(read: LeafReader, config: Any) -> Iterator[tup
     yield "image_projection.bias", as_tensor(read(f"{IMG}/head/bias", None))
 
 
-def iter_openpi_layer_weights(read: LeafReader, config: Any, layer: int, expert: int, prefix: str) -> Iterator[tuple[str, torch.Tensor]]:
+def iter_openpi_layer_weights(read: LeafReader, config: Any, layer: int, expert: int, prefix: str,
+                              lora_ranks: Mapping[tuple[int, str], int] = NO_LORA) -> Iterator[tuple[str, torch.Tensor]]:
     """Yield the attention and MLP weights of one Gemma expert's `layer` as `ExpertLayer` names under `prefix`
-    (q/k/v and gate/up fused); its norms are left to the caller."""
+    (q/k/v and gate/up fused), with the LoRA adapters `lora_ranks` names merged in; its norms are left to the caller.
+
+    openpi's LoRA adds `x A B` to each einsum `x W` (per head for q, k and v), so `W + A B` is merged. The attention's
+    product is scaled by alpha / rank, which every openpi variant sets to 1 (alpha = rank; checkpoints do not store
+    it), and the MLP's is not scaled at all (`lora.FeedForward`). The attention output's second einsum sums `lora_b`
+    over the heads, so its merged update is `A (sum over heads of B)`.
+    """
     N, K, H = config.num_attention_heads, config.num_key_value_heads, config.head_dim
     s = expert_suffix(expert)
-    q = read(f"{LLM}/layers/attn/q_einsum{s}/w", layer)  # (N, D, H)
-    kv = read(f"{LLM}/layers/attn/kv_einsum{s}/w", layer)  # (2, K, D, H)
+    attn, mlp = f"{LLM}/layers/attn", f"{LLM}/layers/mlp{s}"
+    q = read(f"{attn}/q_einsum{s}/w", layer)  # (N, D, H)
+    kv = read(f"{attn}/kv_einsum{s}/w", layer)  # (2, K, D, H)
+    attn_vec = read(f"{attn}/attn_vec_einsum{s}/w", layer)  # (N, H, D)
+    gating = read(f"{mlp}/gating_einsum", layer)  # (2, D, F): [0] gate (GELU), [1] up
+    linear = read(f"{mlp}/linear", layer)  # (F, D)
+    if (expert, "attn") in lora_ranks:
+        q = q + read(f"{attn}/q_einsum{s}/lora_a", layer) @ read(f"{attn}/q_einsum{s}/lora_b", layer)  # (N, D, r) @ (N, r, H)
+        kv = kv + read(f"{attn}/kv_einsum{s}/lora_a", layer) @ read(f"{attn}/kv_einsum{s}/lora_b", layer)
+        heads_b = read(f"{attn}/attn_vec_einsum{s}/lora_b", layer).sum(0)  # (N, r, D) -> (r, D)
+        attn_vec = attn_vec + read(f"{attn}/attn_vec_einsum{s}/lora_a", layer) @ heads_b  # (N, H, r) @ (r, D)
+    if (expert, "ffn") in lora_ranks:
+        gating = gating + read(f"{mlp}/gating_einsum_lora_a", layer) @ read(f"{mlp}/gating_einsum_lora_b", layer)
+        linear = linear + read(f"{mlp}/linear_lora_a", layer) @ read(f"{mlp}/linear_lora_b", layer)
     D = q.shape[1]
     q_rows = q.transpose(0, 2, 1).reshape(N * H, D)
     k_rows, v_rows = (kv[j].transpose(0, 2, 1).reshape(K * H, D) for j in (0, 1))
     yield f"{prefix}.qkv_proj.weight", as_tensor(np.concatenate([q_rows, k_rows, v_rows]))
-    # attn_vec_einsum (N, H, D): head-major rows, then (out, in)
-    yield f"{prefix}.o_proj.weight", as_linear_weight(read(f"{LLM}/layers/attn/attn_vec_einsum{s}/w", layer).reshape(N * H, D))
-    gating = read(f"{LLM}/layers/mlp{s}/gating_einsum", layer)  # (2, D, F): [0] gate (GELU), [1] up
+    yield f"{prefix}.o_proj.weight", as_linear_weight(attn_vec.reshape(N * H, D))  # head-major rows, then (out, in)
     yield f"{prefix}.gate_up_proj.weight", as_tensor(np.concatenate([gating[0].T, gating[1].T]))
-    yield f"{prefix}.down_proj.weight", as_linear_weight(read(f"{LLM}/layers/mlp{s}/linear", layer))
+    yield f"{prefix}.down_proj.weight", as_linear_weight(linear)

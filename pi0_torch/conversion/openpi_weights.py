@@ -38,10 +38,13 @@ from pi0_torch.conversion.openpi_paligemma import (
     LeafReader,
     as_linear_weight,
     as_tensor,
+    NO_LORA,
     expert_suffix,
     gemma_layers_openpi_shapes,
+    gemma_lora_openpi_shapes,
     iter_openpi_layer_weights,
     iter_openpi_vision_state_dict,
+    openpi_lora_ranks,
     shared_settings_from_openpi_shapes,
     strip_value_suffix,
     vision_openpi_shapes,
@@ -50,8 +53,9 @@ from pi0_torch.models.configuration_pi0 import PI0Config
 from pi0_torch.models.configuration_pi0_fast import PI0FastConfig
 
 
-def expected_openpi_shapes(config: PI0Config) -> dict[str, tuple[int, ...]]:
-    """Every openpi leaf path (without '/value') a checkpoint of `config` holds, with its shape."""
+def expected_openpi_shapes(config: PI0Config, lora_ranks: Mapping[tuple[int, str], int] = NO_LORA) -> dict[str, tuple[int, ...]]:
+    """Every openpi leaf path (without '/value') a checkpoint of `config` holds, with its shape; with the LoRA leaves
+    of `lora_ranks` (`openpi_lora_ranks`) for a LoRA fine-tune's tree."""
     L = config.num_hidden_layers
     D0, D1 = config.vlm_hidden_size, config.expert_hidden_size
     shapes = vision_openpi_shapes(config, D0)
@@ -61,6 +65,7 @@ def expected_openpi_shapes(config: PI0Config) -> dict[str, tuple[int, ...]]:
     ):
         s = expert_suffix(expert)
         shapes.update(gemma_layers_openpi_shapes(config, expert, D, F))
+        shapes.update(gemma_lora_openpi_shapes(config, expert, D, F, lora_ranks))
         adaptive = expert == 1 and config.pi05
         for norm in ("pre_attention_norm", "pre_ffw_norm"):
             if adaptive:
@@ -118,9 +123,11 @@ def config_from_openpi_shapes(shapes: Mapping[str, tuple[int, ...]], **overrides
 
 
 def check_openpi_shapes(shapes: Mapping[str, tuple[int, ...]], config: PI0Config | PI0FastConfig) -> None:
-    """Raise `ValueError` naming every missing, unexpected or mis-shaped leaf."""
+    """Raise `ValueError` naming every missing, unexpected or mis-shaped leaf (LoRA leaves included, where the tree
+    has any)."""
     shapes = {strip_value_suffix(k): tuple(v) for k, v in shapes.items()}
-    expected = expected_openpi_fast_shapes(config) if isinstance(config, PI0FastConfig) else expected_openpi_shapes(config)
+    expected_shapes = expected_openpi_fast_shapes if isinstance(config, PI0FastConfig) else expected_openpi_shapes
+    expected = expected_shapes(config, openpi_lora_ranks(shapes))  # type: ignore[arg-type]
     missing = sorted(set(expected) - set(shapes))
     unexpected = sorted(set(shapes) - set(expected))
     misshaped = sorted(f"{p} {shapes[p]} (expected {expected[p]})" for p in set(expected) & set(shapes) if shapes[p] != expected[p])
@@ -129,15 +136,17 @@ def check_openpi_shapes(shapes: Mapping[str, tuple[int, ...]], config: PI0Config
         raise ValueError("openpi parameters do not match the config; " + "; ".join(problems))
 
 
-def iter_openpi_state_dict(read: LeafReader, config: PI0Config | PI0FastConfig) -> Iterator[tuple[str, torch.Tensor]]:
+def iter_openpi_state_dict(read: LeafReader, config: PI0Config | PI0FastConfig,
+                           lora_ranks: Mapping[tuple[int, str], int] = NO_LORA) -> Iterator[tuple[str, torch.Tensor]]:
     """Yield `(our_name, tensor)` for every parameter of `PI0ForActionGeneration(config)` (or, for a
-    `PI0FastConfig`, of `PI0FastForActionGeneration(config)`).
+    `PI0FastConfig`, of `PI0FastForActionGeneration(config)`), the LoRA adapters `lora_ranks` names
+    (`openpi_lora_ranks` of the tree) merged into the Gemma weights.
 
     Reads stacked leaves one layer at a time through `read(path, layer)`, so at most one layer's worth of arrays is
     alive at once. Tensors keep the dtype `read` returns.
     """
     if isinstance(config, PI0FastConfig):
-        yield from iter_openpi_fast_state_dict(read, config)
+        yield from iter_openpi_fast_state_dict(read, config, lora_ranks)
         return
     yield from iter_openpi_vision_state_dict(read, config)
     yield "embed_tokens.weight", as_tensor(read(f"{LLM}/embedder/input_embedding", None))
@@ -145,7 +154,7 @@ def iter_openpi_state_dict(read: LeafReader, config: PI0Config | PI0FastConfig) 
     for i in range(config.num_hidden_layers):
         for expert, name in enumerate(("vlm", "expert")):
             s, prefix = expert_suffix(expert), f"layers.{i}.{name}"
-            yield from iter_openpi_layer_weights(read, config, i, expert, prefix)
+            yield from iter_openpi_layer_weights(read, config, i, expert, prefix, lora_ranks)
             for ours, theirs in (("attn_norm", "pre_attention_norm"), ("mlp_norm", "pre_ffw_norm")):
                 if expert == 1 and config.pi05:
                     yield f"{prefix}.{ours}.modulation.weight", as_linear_weight(read(f"{LLM}/layers/{theirs}{s}/Dense_0/kernel", i))
@@ -167,7 +176,8 @@ def iter_openpi_state_dict(read: LeafReader, config: PI0Config | PI0FastConfig) 
 
 
 def load_openpi_params(model: nn.Module, arrays: Mapping[str, np.ndarray]) -> None:
-    """Load openpi-named arrays (e.g. `params_flat.npz`) into `model` in place, in the model's dtype.
+    """Load openpi-named arrays (e.g. `params_flat.npz`) into `model` in place, in the model's dtype; a LoRA
+    fine-tune's adapters are merged into the weights.
 
     Every leaf must be present with the shape `model.config` implies, and every model parameter gets filled;
     otherwise `ValueError` names the offending leaves and nothing is loaded.
@@ -180,7 +190,7 @@ def load_openpi_params(model: nn.Module, arrays: Mapping[str, np.ndarray]) -> No
         array = np.asarray(arrays[path])
         return array if layer is None else array[layer]
 
-    state_dict = dict(iter_openpi_state_dict(read, config))
+    state_dict = dict(iter_openpi_state_dict(read, config, openpi_lora_ranks({k: v.shape for k, v in arrays.items()})))
     ours = model.state_dict()
     mismatched = [f"{k} {tuple(v.shape)} vs {tuple(ours[k].shape)}" for k, v in state_dict.items() if k in ours and v.shape != ours[k].shape]
     if mismatched or set(state_dict) != set(ours):
