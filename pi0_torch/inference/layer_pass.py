@@ -69,15 +69,13 @@ def runs_its_weights(expert: ExpertLayer) -> bool:
     return not (torch.amp.is_autocast_available(device) and torch.is_autocast_enabled(device))
 
 
-def layer_sampling_weights(layer: JointDecoderLayer, vlm: bool, expert: bool) -> tuple[SamplingWeights, SamplingWeights]:
-    """The (VLM, action expert) `SamplingWeights` of a sampling pass that runs the given experts; `CALL_MODULES` for
-    both where the layer has hooks or a replaced `forward` of its own (block offloading puts the weights in place in a
-    hook, after this is called; a hook that keeps the layer's outputs must not see them updated in place)."""
+def layer_sampling_weights(layer: JointDecoderLayer) -> tuple[SamplingWeights, SamplingWeights]:
+    """The (VLM, action expert) `SamplingWeights` of a sampling pass; `CALL_MODULES` for both where the layer has
+    hooks or a replaced `forward` of its own (block offloading puts the weights in place in a hook, after this is
+    called; a hook that keeps the layer's outputs must not see them updated in place)."""
     if runs_extra_code(layer):
         return CALL_MODULES, CALL_MODULES
-    experts = layer._modules
-    return (expert_sampling_weights(experts["vlm"]) if vlm else CALL_MODULES,
-            expert_sampling_weights(experts["expert"]) if expert else CALL_MODULES)
+    return expert_sampling_weights(layer._modules["vlm"]), expert_sampling_weights(layer._modules["expert"])
 
 
 @dataclass(frozen=True)
@@ -95,7 +93,7 @@ def model_sampling_weights(model: nn.Module) -> ModelSamplingWeights:
     action_linears = [model.action_in_proj, model.action_out_proj]
     if not model.config.pi05:
         action_linears += [model.action_time_mlp_in, model.action_time_mlp_out]
-    return ModelSamplingWeights(tuple(layer_sampling_weights(layer, vlm=True, expert=True) for layer in model.layers),
+    return ModelSamplingWeights(tuple(layer_sampling_weights(layer) for layer in model.layers),
                                 all(plain_linear(linear, bias=True) for linear in action_linears))
 
 
