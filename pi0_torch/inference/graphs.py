@@ -20,7 +20,7 @@ The graphs share a memory pool, guided ones one of their own: a capture CUDA ref
 recording in torch's allocators (there is no Python call that ends that in the pinned host allocator), so a pool that
 saw one is never captured into again, and a refused guidance capture never touches the plain graphs' pool.
 
-`record_graph` (the warm-up runs, the capture, a refused capture's clean-up) also records π0-FAST's prefill and
+`GraphRecorder` (the warm-up runs, the capture, a refused capture's clean-up) also records π0-FAST's prefill and
 decoding step (`pi0_torch.inference.decoding_graphs`).
 """
 
@@ -85,16 +85,13 @@ class SamplingGraphs:
         self.verify = verify  # compare each graph's first replay with eager sampling (see the module docstring)
         self.graphs: dict[tuple[Any, ...], CapturedSampling] = {}
         self.refused: dict[tuple[Any, ...], str] = {}  # plan key -> why its graph was refused: it samples eagerly
-        self.pools: dict[bool, Any] = {}  # guided or not -> the memory pool its graphs share
-        self.stream: torch.cuda.Stream | None = None  # every capture's stream (a pool's captures share one)
-        self.warmup_stream: torch.cuda.Stream | None = None  # (one: cuBLAS keeps a workspace per stream)
+        self.recorder = GraphRecorder()  # (guided graphs in a pool of their own)
 
     def clear(self) -> None:
         """Drop every graph (the model's tensors moved, or its kernels changed)."""
         self.graphs.clear()
         self.refused.clear()
-        self.pools.clear()
-        self.stream = self.warmup_stream = None
+        self.recorder = GraphRecorder()
 
     def covers(self, rtc_method: str | None) -> bool:
         """Whether sampling with this real-time chunking method (None: plain) replays graphs."""
@@ -157,48 +154,53 @@ class SamplingGraphs:
         guided = plan.rtc_method == "guidance"
         with torch.cuda.device(device), _capture_mode(guided):  # (the model's GPU, whichever is current)
             static = type(inputs)(*(None if value is None else value.clone() for value in _tensors(inputs)))
-            if self.stream is None:  # (torch's default capture stream is made once, on whichever GPU was current)
-                self.stream, self.warmup_stream = capture_streams(device)
-            pool = self.pools[guided] if guided in self.pools else torch.cuda.graph_pool_handle()
             try:
-                graph, output, eager = record_graph(lambda: self.model.sample_planned(static, plan, weights), device, self.stream,
-                                                    self.warmup_stream, pool)
+                graph, output, eager = self.recorder.record(lambda: self.model.sample_planned(static, plan, weights),
+                                                            device, pool=guided)
             except GraphCaptureError as error:
-                self.pools.pop(guided, None)  # (never captured into again)
                 raise SamplingCaptureError(f"could not capture {describe_plan(plan, inputs.noise.shape[0])} as a CUDA "
                                            f"graph ({error}); call model.capture_sampling(disable=True) to sample eagerly") from error
-            self.pools[guided] = pool
         return CapturedSampling(graph, static, output), eager
 
 
-def capture_streams(device: torch.device) -> tuple[torch.cuda.Stream, torch.cuda.Stream]:
-    """A capture stream and a warm-up stream on `device`, made once per set of graphs (one warm-up stream: cuBLAS
-    keeps a workspace per stream)."""
-    return torch.cuda.Stream(device=device), torch.cuda.Stream(device=device)
+class GraphRecorder:
+    """How one model's graphs are recorded: on one capture stream, after warm-up runs on one side stream (cuBLAS
+    keeps a workspace per stream), both made on first use, into a memory pool per kind of graph, which a capture CUDA
+    refused is never recorded into again (see the module docstring)."""
 
+    def __init__(self) -> None:
+        self.pools: dict[Any, Any] = {}  # kind -> the memory pool its graphs share
+        self.streams: tuple[torch.cuda.Stream, torch.cuda.Stream] | None = None  # (capture, warm-up)
 
-def record_graph(run: Callable[[], torch.Tensor], device: torch.device, stream: torch.cuda.Stream,
-                 warmup_stream: torch.cuda.Stream, pool: Any) -> tuple[torch.cuda.CUDAGraph, torch.Tensor, torch.Tensor]:
-    """Run `run` `WARMUP_RUNS` times on `warmup_stream`, then record one more run on `stream` into the memory pool
-    `pool`: the graph, the tensor its replays write, and a copy of the last warm-up run's output (an eager run of the
-    same inputs, to verify the graph against). Called inside `torch.cuda.device(device)`. Where CUDA refuses to
-    record, the pool is released (the caller never captures into it again) and `GraphCaptureError` raised."""
-    warmup_stream.wait_stream(torch.cuda.current_stream(device))
-    with torch.cuda.stream(warmup_stream):
-        for _ in range(WARMUP_RUNS):
-            eager = run()
-        eager = eager.clone()
-    torch.cuda.current_stream(device).wait_stream(warmup_stream)
-    graph = torch.cuda.CUDAGraph()
-    try:
-        with torch.cuda.stream(torch.cuda.current_stream(device)):  # (this stream again, should capture fail)
-            with torch.cuda.graph(graph, pool=pool, stream=stream):
-                output = run()
-    except Exception as error:
-        _release_failed_capture(device, pool)
-        raise GraphCaptureError(str(error)) from error
-    torch.cuda.synchronize(device)
-    return graph, output, eager
+    def record(self, run: Callable[[], torch.Tensor], device: torch.device,
+               pool: Any = None) -> tuple[torch.cuda.CUDAGraph, torch.Tensor, torch.Tensor]:
+        """Run `run` `WARMUP_RUNS` times on the warm-up stream, then record one more run on the capture stream into
+        the memory pool of kind `pool`, on `device`: the graph, the tensor its replays write, and a copy of the last
+        warm-up run's output (an eager run of the same inputs, to verify the graph against). Where CUDA refuses to
+        record, the pool is released and dropped, and `GraphCaptureError` raised."""
+        with torch.cuda.device(device):
+            if self.streams is None:  # (torch's default capture stream is made once, on whichever GPU was current)
+                self.streams = torch.cuda.Stream(device=device), torch.cuda.Stream(device=device)
+            stream, warmup_stream = self.streams
+            handle = self.pools[pool] if pool in self.pools else torch.cuda.graph_pool_handle()
+            warmup_stream.wait_stream(torch.cuda.current_stream(device))
+            with torch.cuda.stream(warmup_stream):
+                for _ in range(WARMUP_RUNS):
+                    eager = run()
+                eager = eager.clone()
+            torch.cuda.current_stream(device).wait_stream(warmup_stream)
+            graph = torch.cuda.CUDAGraph()
+            try:
+                with torch.cuda.stream(torch.cuda.current_stream(device)):  # (this stream again, should capture fail)
+                    with torch.cuda.graph(graph, pool=handle, stream=stream):
+                        output = run()
+            except Exception as error:
+                self.pools.pop(pool, None)  # (never captured into again)
+                _release_failed_capture(device, handle)
+                raise GraphCaptureError(str(error)) from error
+            self.pools[pool] = handle
+            torch.cuda.synchronize(device)
+        return graph, output, eager
 
 
 @contextlib.contextmanager
