@@ -277,9 +277,8 @@ class ActionSampling:
         batch = len(facts.text_counts)
         if noise is None:
             noise = torch.randn(batch, config.action_horizon, config.action_dim, generator=generator, device=pixel_values.device)
-        prefix = None
-        if previous_actions is not None:
-            prefix = self._chunk_prefix(batch, previous_actions, inference_delay, execution_horizon, rtc_method, rtc_max_guidance, rtc_schedule)
+        prefix = None if previous_actions is None else self._chunk_prefix(
+            batch, previous_actions, inference_delay, execution_horizon, rtc_method, rtc_max_guidance, rtc_schedule)
         method = None if prefix is None or (rtc_method == "guidance" and rtc_max_guidance == 0) else rtc_method
         if method == "guidance":
             self._check_differentiable_steps()
@@ -435,8 +434,6 @@ class ActionSampling:
         scales = [norm.scale for norm in rms_norm_params(  # (fused: the VLM's attention and MLP norms of each layer)
             [norm for layer in self.layers for norm in (layer.vlm.attn_norm, layer.vlm.mlp_norm)] if fused else [])]
         weights = (model_sampling_weights(self) if weights is None else weights).layers
-        if state is None:  # (the action expert runs nothing in this pass)
-            weights = tuple((vlm, CALL_MODULES) for vlm, _ in weights)
         for index, (layer, layer_keys, layer_values, layer_weights) in enumerate(zip(self.layers, keys, values, weights)):
             last = index == len(self.layers) - 1
             if fused and layer_weights[0].usable:
