@@ -32,10 +32,8 @@ The layers' weights stay where the model keeps them: the kernel reads layer 0's 
 and dtype and start 16-byte aligned. The caches, norm scales and adaRMS tensors are stacked `[L, ...]`.
 
 The numbers are those of `pi0_torch.kernels.reference.expert_layers_` (float32 sums, bf16 outputs), not bit for bit
-(its sums go in other orders). Measured on an H200 (docs/gpu.md): an Euler step of π0's 18 layers takes about 1.09 ms
-so against 0.98 ms in the five launches per layer, inside a CUDA graph; eagerly, where the host's launches bound a
-chunk, the 10 launches of a chunk instead of 900 take it from 45-67 ms to 32-47 ms at batch 1. So "auto" runs it in
-eager calls of one or two samples (`ActionSampling.runs_persistent`), and CUDA graphs keep the five launches.
+(its sums go in other orders). Inside a CUDA graph a step of π0's 18 layers takes about 1.09 ms so against 0.98 ms in
+five launches per layer (an H200, docs/gpu.md); eagerly it is faster: `ActionSampling.runs_persistent` says where.
 """
 
 from __future__ import annotations
@@ -557,12 +555,10 @@ def state_size(depth: int, rows: int, tokens: int, heads: int, head_dim: int, wi
     """The counters of a launch: the next ticket, the programs finished, and per layer the q/k/v tiles and attention
     blocks done, the o-projection, gate/up and down-projection tiles done per row block, the key parts arrived per
     attention block, and the split-K parts arrived per o-projection, down-projection, q/k/v and gate/up tile
-    (`_expert_layers_kernel`'s layout)."""
-    row_blocks = cdiv(rows, tiling.m)
-    attention_blocks = rows // tokens * cdiv(tokens * heads, tiling.attention_m)
-    split_tiles = row_blocks * (cdiv(width, tiling.o) + cdiv(width, tiling.down)
-                                + cdiv((heads + 2) * head_dim // 2, tiling.qkv) + cdiv(mlp_width, tiling.gate_up))
-    return 2 + depth * (2 + 3 * row_blocks + attention_blocks + split_tiles)
+    (`_expert_layers_kernel`'s layout): per phase its tickets over their parts (`phase_tiles`)."""
+    parts = (tiling.qkv_splits, tiling.key_parts, tiling.o_splits, tiling.gate_up_splits, tiling.down_splits)
+    tiles = phase_tiles(rows, tokens, heads, head_dim, width, mlp_width, tiling)
+    return 2 + depth * (2 + 3 * cdiv(rows, tiling.m) + sum(each // split for each, split in zip(tiles, parts)))
 
 
 PHASES = ("q/k/v", "attention", "o-projection", "gate/up", "down-projection")
