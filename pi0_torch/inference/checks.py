@@ -145,9 +145,8 @@ def decoding_ops_reason(device: torch.device, dtype: torch.dtype, heads: int, he
     """Why the fused ops of a decoded token may not run on `device` in `dtype` for `batch` rows over caches of `slots`
     (None: they may): triton is unusable there, or one of them, run once on random inputs shaped exactly as
     decoding's (one row per sample, the slot a device value, a key range that ends before the cache does), differs
-    from its torch reference or fails. Triton compiles a kernel anew per class of its arguments (an integer equal to
-    1 or divisible by 16, the number of key parts), so each batch size and cache length is checked once; a refusal
-    is logged once."""
+    from its torch reference or fails. Checked once per batch size and cache length (triton's classes of arguments:
+    the module docstring; the number of key parts); a refusal is logged once."""
     cases = lambda: decoding_cases(device, dtype, heads, head_dim, mlp_width, batch, slots)  # noqa: E731
     return ops_reason(device, dtype, cases, "π0-FAST decodes through the modules")
 

@@ -9,12 +9,8 @@ dtypes: the first call of each records it (two warm-up runs on a side stream, th
 capture stream); later calls copy their inputs into the graph's static buffers, replay it, and return a copy of its
 output, which the next replay does not overwrite.
 
-Every graph is verified when it is captured: its first replay must give the actions of the last warm-up run, an eager
-run of the same inputs, within `checks.VERIFY_TOLERANCE` (relative to the largest action). A graph that does not is refused
-with a warning naming its plan and the deviation, and that plan samples eagerly from then on: no graph ever replays
-other actions than eager sampling silently. (The first GPU run found one that did: real-time chunking's guidance, whose
-per-step vector-Jacobian product is autograd work, replayed as if the product were zero; guided chunks therefore
-sample eagerly unless `capture_sampling(guidance=True)` asks to try, see `capture_sampling`.)
+Every graph is verified when it is captured, against the last warm-up run (an eager run of the same inputs), and a
+plan whose graph deviates samples eagerly from then on; see `capture_sampling`, also for RTC guidance's graphs.
 
 The graphs share a memory pool, guided ones one of their own: a capture CUDA refuses can leave its pool marked as
 recording in torch's allocators (there is no Python call that ends that in the pinned host allocator), so a pool that

@@ -1,11 +1,9 @@
 """`generate_actions` as it runs fast: `ActionSampling`, the mixin that gives `PI0ForActionGeneration` its sampling
 (as transformers' `GenerationMixin` gives a model `generate`).
 
-The prefix runs once and every layer's post-RoPE k/v stay in static buffers (`cache_prefix`); each Euler step runs
-only the action tokens against them (`denoise_step`); everything that depends only on the flow time is computed for
-all steps up front. The inputs are read on the host once, by their checks; after that nothing waits for the device,
-so the sampling can be replayed as one CUDA graph (`capture_sampling`, see `pi0_torch.inference.graphs`) or run with
-regionally compiled layers (`compile_sampling`).
+As `generate_actions` says, nothing waits for the device after the input checks, so the sampling can be replayed as
+one CUDA graph (`capture_sampling`, see `pi0_torch.inference.graphs`) or run with regionally compiled layers
+(`compile_sampling`).
 
 `PI0ForActionGeneration.sample_actions_reference` computes the same chunk the plain way (openpi's mask, no layout,
 no cache tricks): the tests compare the two at every level.
