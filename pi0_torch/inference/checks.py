@@ -57,11 +57,6 @@ def bound(tolerance: dict[torch.dtype, float], dtype: torch.dtype) -> float:
     return tolerance.get(dtype, tolerance[torch.float32])
 
 
-def verify_bound(dtype: torch.dtype) -> float:
-    """`VERIFY_TOLERANCE` of a model in `dtype`."""
-    return bound(VERIFY_TOLERANCE, dtype)
-
-
 def relative_deviation(got: torch.Tensor, want: torch.Tensor) -> float:
     """max |got - want| / max |want| (inf where `got` is not finite)."""
     got, want = got.float(), want.float()

@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING, Any
 
 import torch
 
-from pi0_torch.inference.checks import relative_deviation, verify_bound
+from pi0_torch.inference.checks import VERIFY_TOLERANCE, bound, relative_deviation
 from pi0_torch.inference.graphs import GraphCaptureError, GraphRecorder
 
 if TYPE_CHECKING:
@@ -119,16 +119,16 @@ class DecodingGraphs:
     def _verify(self, captured: CapturedDecoding, eager_first: torch.Tensor, eager_step: torch.Tensor) -> str | None:
         """Why the graphs are refused (None: their first replays give the last warm-up runs' logits within
         `VERIFY_TOLERANCE`: the prefill's first logits, then the step's on the replayed prefill's cache)."""
-        bound = verify_bound(self.model.dtype)
+        limit = bound(VERIFY_TOLERANCE, self.model.dtype)
         with torch.inference_mode():
             captured.prefill.replay()
             deviations = {"prefill": relative_deviation(captured.first_logits, eager_first)}
             captured.step.replay()
             deviations["step"] = relative_deviation(captured.logits, eager_step)
         for name, deviation in deviations.items():
-            if not deviation <= bound:
+            if not deviation <= limit:
                 return (f"the {name}'s first replay deviates from an eager run by {deviation:.3g} of the largest logit "
-                        f"(bound {bound:g})")
+                        f"(bound {limit:g})")
         return None
 
     def _capture(self, inputs: tuple[Any, ...]) -> tuple[CapturedDecoding, torch.Tensor, torch.Tensor]:

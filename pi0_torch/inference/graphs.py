@@ -31,7 +31,7 @@ from typing import TYPE_CHECKING, Any
 
 import torch
 
-from pi0_torch.inference.checks import relative_deviation, verify_bound
+from pi0_torch.inference.checks import VERIFY_TOLERANCE, bound, relative_deviation
 
 if TYPE_CHECKING:
     from pi0_torch.inference.layer_pass import ModelSamplingWeights
@@ -137,10 +137,10 @@ class SamplingGraphs:
         with torch.inference_mode():
             captured.graph.replay()
         deviation = relative_deviation(captured.output, eager)
-        bound = verify_bound(self.model.dtype)
-        if deviation <= bound:
+        limit = bound(VERIFY_TOLERANCE, self.model.dtype)
+        if deviation <= limit:
             return None
-        return f"its first replay deviates from eager sampling by {deviation:.3g} of the largest action (bound {bound:g})"
+        return f"its first replay deviates from eager sampling by {deviation:.3g} of the largest action (bound {limit:g})"
 
     def _capture(self, inputs: SamplingInputs, plan: SamplingPlan,
                  weights: ModelSamplingWeights | None = None) -> tuple[CapturedSampling, torch.Tensor]:

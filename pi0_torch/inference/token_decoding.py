@@ -17,8 +17,8 @@ from typing import Any
 
 import torch
 
-from pi0_torch.inference.checks import (decoding_layers_reason, decoding_ops_reason, relative_deviation, setting_reason,
-                                        verify_bound)
+from pi0_torch.inference.checks import (VERIFY_TOLERANCE, bound, decoding_layers_reason, decoding_ops_reason,
+                                        relative_deviation, setting_reason)
 from pi0_torch.inference.fast_decoding import DecodingLayers
 from pi0_torch.inference.layer_pass import SamplingWeights, decoder_sampling_weights
 
@@ -99,10 +99,10 @@ class TokenDecoding:
             self._calls_to_verify -= 1
             _, eager_logits = self.decode(*eager, inputs, temperature, None, forced=tokens)
             deviation = max(relative_deviation(got, want) for got, want in zip(logits, eager_logits))
-            bound = verify_bound(self.dtype)
-            if not deviation <= bound:
+            limit = bound(VERIFY_TOLERANCE, self.dtype)
+            if not deviation <= limit:
                 logger.warning("compiled decoding was refused: its logits deviate from eager decoding by %.3g of the "
-                               "largest (bound %g); generate_tokens decodes eagerly from now on", deviation, bound)
+                               "largest (bound %g); generate_tokens decodes eagerly from now on", deviation, limit)
                 self.compile_decoding(disable=True)
                 return self.decode(*eager, inputs, temperature, generator)[0]
         return tokens
