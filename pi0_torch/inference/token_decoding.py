@@ -89,7 +89,7 @@ class TokenDecoding:
         if self._compiled_prefill is None:  # (compiled decoding traces the modules: see `compile_decoding`)
             weights = functools.cache(lambda: decoder_sampling_weights(self.layers))  # (the call's plain-weights check,
             # made once where something reads it: the gate, then the fused layers)
-            reason = self.decoding_kernels_reason(pixel_values.device, self.dtype, pixel_values.shape[0], slots, weights)
+            reason = self.decoding_kernels_reason(pixel_values.device, self.dtype, len(pixel_values), slots, weights)
             graphs = self._decoding_graphs if pixel_values.device.type == "cuda" else None
             functions = eager if graphs is None else (graphs.prepare, graphs.step)
             return self.decode(*functions, (*inputs, weights() if reason is None else None), temperature, generator)[0]
@@ -137,10 +137,9 @@ class TokenDecoding:
 
     @property
     def decoding_kernels(self) -> str:
-        """What runs the decoder layers of each decoded token: "auto" (cuBLAS's GEMMs with the fused Triton kernels of
-        `pi0_torch.kernels` around them, nine ops per layer, ten launches, attention over the token's one range of
-        slots with no mask, see `pi0_torch.inference.fast_decoding`; on CUDA in bf16 / fp16 where the kernels passed
-        their check against the torch references on that device; else "torch"), "torch" (the modules, SDPA with a
+        """What runs the decoder layers of each decoded token: "auto" (the fused Triton kernels around cuBLAS's GEMMs,
+        `pi0_torch.inference.fast_decoding`, on CUDA in bf16 / fp16 where the kernels passed their check against the
+        torch references on that device; else "torch"), "torch" (the modules, SDPA with a
         mask; the CPU's path) or "triton" (the fused kernels wherever triton runs them, `TRITON_INTERPRET=1` included,
         or a `ValueError` naming why not). The check runs once per batch size and cache length (triton compiles the
         kernels per class of arguments). The prefill always runs the modules."""
