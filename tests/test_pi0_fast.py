@@ -335,8 +335,8 @@ def test_hand_captured_decoding_replays_eager_decoding_and_refuses_wrong_graphs(
 ) -> None:
     """`capture_decoding`: the prefill and the step of each input signature are recorded once; a call copies its
     inputs into the prefill's static inputs and replays it into the static cache, and every token replays the step
-    on that cache (simulated here, as the CPU records nothing: `recorder.record` gives a "graph" whose replay runs the eager
-    code again into the captured output, as a recorded graph rewrites the same memory). One capture serves two
+    on that cache (simulated here, as the CPU records nothing: `recorder.record` gives a "graph" whose replay runs the
+    eager code again into the captured output, as a recorded graph rewrites the same memory). One capture serves two
     different observations with eager decoding's tokens; graphs whose first replays differ from the eager runs are
     refused with a warning naming the deviation, that call decodes eagerly, and the signature is not captured again.
     On the CPU `generate_tokens` itself stays eager."""

@@ -148,7 +148,7 @@ class DecodingGraphs:
             prefill_graph, _, eager_first = self.recorder.record(prefill, self.model.device)
             token = first_logits.argmax(dim=-1)  # [B]
             step_index = torch.zeros(1, dtype=torch.long, device=token.device)
-            step_graph, logits, eager_step = self.recorder.record(lambda: self.model.decode_step(cache, token, step_index),
-                                                                  self.model.device)
+            step_graph, logits, eager_step = self.recorder.record(
+                lambda: self.model.decode_step(cache, token, step_index), self.model.device)
         captured = CapturedDecoding(prefill_graph, static_inputs, first_logits, step_graph, cache, token, step_index, logits)
         return captured, eager_first, eager_step

@@ -140,7 +140,8 @@ class SamplingGraphs:
         limit = bound(VERIFY_TOLERANCE, self.model.dtype)
         if deviation <= limit:
             return None
-        return f"its first replay deviates from eager sampling by {deviation:.3g} of the largest action (bound {limit:g})"
+        return (f"its first replay deviates from eager sampling by {deviation:.3g} of the largest action "
+                f"(bound {limit:g})")
 
     def _capture(self, inputs: SamplingInputs, plan: SamplingPlan,
                  weights: ModelSamplingWeights | None = None) -> tuple[CapturedSampling, torch.Tensor]:

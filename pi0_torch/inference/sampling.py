@@ -315,7 +315,8 @@ class ActionSampling:
         batch_size = check_int("batch_size", batch_size, minimum=1, maximum=MAX_BATCH_SIZE)
         text_length = check_int("text_length", config.max_token_len if text_length is None else text_length, minimum=1,
                                 maximum=config.max_token_len)
-        return SamplingProgram(self, batch_size, config.num_inference_steps if num_steps is None else num_steps, text_length)
+        num_steps = config.num_inference_steps if num_steps is None else num_steps
+        return SamplingProgram(self, batch_size, num_steps, text_length)
 
     def _check_differentiable_steps(self) -> None:
         """RTC guidance differentiates the action expert's layers (a vector-Jacobian product per step): refuse, by

@@ -179,7 +179,8 @@ def _split_matmul(x_ptr, stride_xm, scale_ptr, w_ptr, stride_wk, stride_wn, rows
     else:
         k_start, k_stop = 0, K
     acc, acc_second, squares = _matmul_tiles(x_ptr, stride_xm, scale_ptr, w_ptr, stride_wk, stride_wn, rows, columns,
-                                             second, M, k_start, k_stop, N, BLOCK_M, BLOCK_N, BLOCK_K, NORM, PAIRED, DOT, "")
+                                             second, M, k_start, k_stop, N, BLOCK_M, BLOCK_N, BLOCK_K, NORM, PAIRED,
+                                             DOT, "")
     if SPLIT:
         acc, acc_second, squares, last = _sum_splits(acc, acc_second, squares, workspace_ptr, counter_ptr,
                                                      tl.program_id(0) * tl.num_programs(1) + tl.program_id(1),
@@ -249,8 +250,8 @@ def _norm_qkv_rope_kernel(
                                                  first_half, half, M, K, (HEADS + 2) * HEAD_DIM, (HEADS + 2) * half,
                                                  workspace_ptr, counter_ptr, k_split, splits, BLOCK_M, BLOCK_N, BLOCK_K,
                                                  True, True, DOT, SPLIT)
-    _rope_store(acc1, acc2, squares, rows, pairs, pairs < written, bias_ptr, cos_ptr, sin_ptr, q_ptr, key_ptr, value_ptr, M, K,
-                tokens, first_slot, slots, stride_cos_b, stride_cos_t, eps, HEADS, HEAD_DIM, HAS_BIAS)
+    _rope_store(acc1, acc2, squares, rows, pairs, pairs < written, bias_ptr, cos_ptr, sin_ptr, q_ptr, key_ptr,
+                value_ptr, M, K, tokens, first_slot, slots, stride_cos_b, stride_cos_t, eps, HEADS, HEAD_DIM, HAS_BIAS)
 
 
 @triton.jit
@@ -302,9 +303,9 @@ def _norm_gate_up_geglu_kernel(
 ):
     rows = tl.program_id(0) * BLOCK_M + tl.arange(0, BLOCK_M)
     columns = tl.program_id(1) * BLOCK_N + tl.arange(0, BLOCK_N)  # gate column c pairs with up column F + c
-    gate, up, squares, written = _split_matmul(x_ptr, stride_xm, scale_ptr, w_ptr, stride_wk, stride_wn, rows, columns, F,
-                                               M, K, F, F, workspace_ptr, counter_ptr, k_split, splits, BLOCK_M, BLOCK_N,
-                                               BLOCK_K, True, True, DOT, SPLIT)
+    gate, up, squares, written = _split_matmul(x_ptr, stride_xm, scale_ptr, w_ptr, stride_wk, stride_wn, rows, columns,
+                                               F, M, K, F, F, workspace_ptr, counter_ptr, k_split, splits, BLOCK_M,
+                                               BLOCK_N, BLOCK_K, True, True, DOT, SPLIT)
     _geglu_store(gate, up, squares, rows, columns, columns < written, bias_ptr, out_ptr, M, K, F, eps, HAS_BIAS)
 
 
@@ -332,9 +333,9 @@ def _matmul_residual_kernel(
 ):
     rows = tl.program_id(0) * BLOCK_M + tl.arange(0, BLOCK_M)
     columns = tl.program_id(1) * BLOCK_N + tl.arange(0, BLOCK_N)
-    acc, unused, no_squares, written = _split_matmul(y_ptr, stride_ym, y_ptr, w_ptr, stride_wk, stride_wn, rows, columns,
-                                                     0, M, K, N, N, workspace_ptr, counter_ptr, k_split, splits, BLOCK_M,
-                                                     BLOCK_N, BLOCK_K, False, False, DOT, SPLIT)
+    acc, unused, no_squares, written = _split_matmul(y_ptr, stride_ym, y_ptr, w_ptr, stride_wk, stride_wn, rows,
+                                                     columns, 0, M, K, N, N, workspace_ptr, counter_ptr, k_split,
+                                                     splits, BLOCK_M, BLOCK_N, BLOCK_K, False, False, DOT, SPLIT)
     column_ok = columns < written  # (split: only the last program writes)
     if HAS_GATE:
         acc = acc * tl.load(gate_ptr + columns, mask=column_ok, other=0.0).to(tl.float32)[None, :]
