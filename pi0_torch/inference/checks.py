@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import functools
 import logging
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import replace
 from typing import TYPE_CHECKING, Any
 
@@ -29,7 +29,7 @@ from pi0_torch.kernels import ops, reference
 from pi0_torch.kernels.reference import rope_cos_sin
 
 if TYPE_CHECKING:
-    from pi0_torch.inference.layer_pass import ModelSamplingWeights
+    from pi0_torch.inference.layer_pass import ModelSamplingWeights, SamplingWeights
     from pi0_torch.inference.plan import SamplingInputs, SamplingPlan
 
 logger = logging.getLogger(__name__)
@@ -86,40 +86,22 @@ def setting_reason(setting: str, name: str, device: torch.device, dtype: torch.d
     return reason
 
 
-def attention_shape_reason(kv_heads: int, head_dim: int) -> str | None:
-    """Why the fused attention cannot run a model's heads (None: it can): it folds the query heads onto one kv head,
-    and its head size is a power of two >= 16."""
+def layers_reason(kv_heads: int, head_dim: int, weights: Sequence[SamplingWeights], compiled: bool = False,
+                  plain_action_linears: bool = True) -> str | None:
+    """Why the fused kernels cannot run a model's layers at all (None: they can): the fused attention folds the query
+    heads onto one kv head, and its head size is a power of two >= 16; then (π0's steps) compiled layers; then each
+    layer's `SamplingWeights` (the call's plain-weights check, `layer_pass`: the action expert's or the decoder's); then
+    (π0's steps) the action projections, as `ModelSamplingWeights.plain_action_linears` says."""
     if kv_heads != 1:
         return f"the fused attention folds the query heads onto one kv head; this model has {kv_heads}"
     if head_dim < 16 or head_dim & (head_dim - 1):
         return f"the fused kernels need a head size that is a power of two >= 16, not {head_dim}"
-    return None
-
-
-NOT_PLAIN = "a layer's projections are not plain weights (LoRA, quantized or hooked layers, autocast)"
-
-
-def sampling_layers_reason(kv_heads: int, head_dim: int, compiled: bool, weights: ModelSamplingWeights) -> str | None:
-    """Why π0's fused steps cannot run the model's layers at all (None: they can): the heads, compiled layers, or
-    this call's plain-weights check (`weights`, made once per call: `layer_pass.model_sampling_weights`)."""
-    if (reason := attention_shape_reason(kv_heads, head_dim)) is not None:
-        return reason
     if compiled:
         return "the layers are compiled (compile_sampling)"
-    if not all(expert.usable for _, expert in weights.layers):
-        return NOT_PLAIN
-    if not weights.plain_action_linears:
-        return "an action projection is not a plain linear layer (LoRA, quantized or hooked layers)"
-    return None
-
-
-def decoding_layers_reason(weights: list, kv_heads: int, head_dim: int) -> str | None:
-    """Why π0-FAST's fused decoding cannot run the decoder layers at all (None: it can): the heads, or a layer's
-    `SamplingWeights` (`layer_pass.decoder_sampling_weights`) that is not plain."""
-    if (reason := attention_shape_reason(kv_heads, head_dim)) is not None:
-        return reason
     if not all(each.usable for each in weights):
-        return NOT_PLAIN
+        return "a layer's projections are not plain weights (LoRA, quantized or hooked layers, autocast)"
+    if not plain_action_linears:
+        return "an action projection is not a plain linear layer (LoRA, quantized or hooked layers)"
     return None
 
 

@@ -20,7 +20,7 @@ import torch
 
 from pi0_torch.inference import fused_pass, vision_pass
 from pi0_torch.inference.attention import KERNELS, choose_kernel
-from pi0_torch.inference.checks import (auto_avoids_persistent, sampling_layers_reason, sampling_ops_reason, setting_reason,
+from pi0_torch.inference.checks import (auto_avoids_persistent, layers_reason, sampling_ops_reason, setting_reason,
                                         verify_fused_sampling)
 from pi0_torch.inference.conditioning import NormParams, StepConditioning, euler_times
 from pi0_torch.inference.fused_pass import FusedSteps
@@ -177,9 +177,11 @@ class ActionSampling:
 
         def check() -> str | None:
             plain = model_sampling_weights(self) if weights is None else weights
-            return sampling_layers_reason(config.num_key_value_heads, config.head_dim, self.sampling_compiled, plain) or (
-                sampling_ops_reason(device, dtype, config.expert_hidden_size, config.num_attention_heads, config.head_dim,
-                                    config.expert_intermediate_size, config.action_dim, config.vision_hidden_size))
+            experts = [expert for _, expert in plain.layers]
+            return layers_reason(config.num_key_value_heads, config.head_dim, experts, self.sampling_compiled,
+                                 plain.plain_action_linears) or sampling_ops_reason(
+                device, dtype, config.expert_hidden_size, config.num_attention_heads, config.head_dim,
+                config.expert_intermediate_size, config.action_dim, config.vision_hidden_size)
 
         unsupported = None if rtc_method is None else f"real-time chunking ({rtc_method}) steps run unfused"
         return setting_reason(self._sampling_kernels, "sampling_kernels", device, dtype, check, unsupported)

@@ -17,7 +17,7 @@ from typing import Any
 
 import torch
 
-from pi0_torch.inference.checks import (VERIFY_TOLERANCE, bound, decoding_layers_reason, decoding_ops_reason,
+from pi0_torch.inference.checks import (VERIFY_TOLERANCE, bound, decoding_ops_reason, layers_reason,
                                         relative_deviation, setting_reason)
 from pi0_torch.inference.fast_decoding import DecodingLayers
 from pi0_torch.inference.layer_pass import SamplingWeights, decoder_sampling_weights
@@ -161,7 +161,7 @@ class TokenDecoding:
 
         def check() -> str | None:
             plain = decoder_sampling_weights(self.layers) if weights is None else weights()
-            return decoding_layers_reason(plain, config.num_key_value_heads, config.head_dim) or decoding_ops_reason(
+            return layers_reason(config.num_key_value_heads, config.head_dim, plain) or decoding_ops_reason(
                 device, dtype, config.num_attention_heads, config.head_dim, config.intermediate_size, batch, slots)
 
         return setting_reason(self._decoding_kernels, "decoding_kernels", device, dtype, check)
