@@ -23,8 +23,7 @@ from typing import TYPE_CHECKING, Any
 
 import torch
 
-from pi0_torch.inference.checks import VERIFY_TOLERANCE, bound, relative_deviation
-from pi0_torch.inference.graphs import GraphCaptureError, GraphRecorder
+from pi0_torch.inference.graphs import GraphCaptureError, GraphRecorder, replay_refusal
 
 if TYPE_CHECKING:
     from pi0_torch.inference.token_decoding import DecodingCache, TokenDecoding
@@ -89,8 +88,13 @@ class DecodingGraphs:
                 captured, eager_first, eager_step = self._capture(inputs)
             except GraphCaptureError as error:
                 captured, refusal = None, f"CUDA could not record them ({error})"
-            else:
-                refusal = self._verify(captured, eager_first, eager_step) if self.verify else None
+            else:  # (the prefill's first logits, then the step's on the replayed prefill's cache)
+                refusal, dtype = None, self.model.dtype
+                if self.verify:
+                    refusal = (replay_refusal(captured.prefill, captured.first_logits, eager_first, dtype,
+                                              "the prefill's", "an eager run", "logit")
+                               or replay_refusal(captured.step, captured.logits, eager_step, dtype, "the step's",
+                                                 "an eager run", "logit"))
             if refusal is not None:
                 self.refused[key] = refusal
                 batch, cameras = inputs[0].shape[:2]
@@ -115,21 +119,6 @@ class DecodingGraphs:
             captured.step_index.copy_(step)
             captured.step.replay()
         return captured.logits
-
-    def _verify(self, captured: CapturedDecoding, eager_first: torch.Tensor, eager_step: torch.Tensor) -> str | None:
-        """Why the graphs are refused (None: their first replays give the last warm-up runs' logits within
-        `VERIFY_TOLERANCE`: the prefill's first logits, then the step's on the replayed prefill's cache)."""
-        limit = bound(VERIFY_TOLERANCE, self.model.dtype)
-        with torch.inference_mode():
-            captured.prefill.replay()
-            deviations = {"prefill": relative_deviation(captured.first_logits, eager_first)}
-            captured.step.replay()
-            deviations["step"] = relative_deviation(captured.logits, eager_step)
-        for name, deviation in deviations.items():
-            if not deviation <= limit:
-                return (f"the {name}'s first replay deviates from an eager run by {deviation:.3g} of the largest logit "
-                        f"(bound {limit:g})")
-        return None
 
     def _capture(self, inputs: tuple[Any, ...]) -> tuple[CapturedDecoding, torch.Tensor, torch.Tensor]:
         """Record the prefill and the step of `inputs`' signature: the graphs with their static buffers (an eager

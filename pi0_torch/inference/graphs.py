@@ -117,7 +117,8 @@ class SamplingGraphs:
                 self.guidance, failed = False, str(error)
             if captured is None:  # (outside the `except`: its traceback holds the failed capture's tensors)
                 return self.model.sample_planned(inputs, plan, weights), failed
-            refusal = self._verify(captured, eager, plan) if self.verify else None
+            refusal = replay_refusal(captured.graph, captured.output, eager, self.model.dtype, "its", "eager sampling",
+                                     "action") if self.verify else None
             if refusal is not None:
                 self.refused[key] = refusal
                 logger.warning("the CUDA graph of %s was refused: %s; that plan samples eagerly from now on",
@@ -130,18 +131,6 @@ class SamplingGraphs:
                     static.copy_(value)
             captured.graph.replay()
         return captured.output.clone(), None  # (outside inference mode: a normal tensor the next replay leaves alone)
-
-    def _verify(self, captured: CapturedSampling, eager: torch.Tensor, plan: SamplingPlan) -> str | None:
-        """Why the graph's first replay is refused (None: it gives the actions of `eager`, the last warm-up run of the
-        same inputs, within `VERIFY_TOLERANCE`)."""
-        with torch.inference_mode():
-            captured.graph.replay()
-        deviation = relative_deviation(captured.output, eager)
-        limit = bound(VERIFY_TOLERANCE, self.model.dtype)
-        if deviation <= limit:
-            return None
-        return (f"its first replay deviates from eager sampling by {deviation:.3g} of the largest action "
-                f"(bound {limit:g})")
 
     def _capture(self, inputs: SamplingInputs, plan: SamplingPlan,
                  weights: ModelSamplingWeights | None = None) -> tuple[CapturedSampling, torch.Tensor]:
@@ -158,6 +147,20 @@ class SamplingGraphs:
                 raise SamplingCaptureError(f"could not capture {describe_plan(plan, inputs.noise.shape[0])} as a CUDA "
                                            f"graph ({error}); call model.capture_sampling(disable=True) to sample eagerly") from error
         return CapturedSampling(graph, static, output), eager
+
+
+def replay_refusal(graph: Any, output: torch.Tensor, eager: torch.Tensor, dtype: torch.dtype, whose: str,
+                   reference: str, unit: str) -> str | None:
+    """Replay `graph` once: why it is refused (None: `output` is then `eager`, the last warm-up run's output, within
+    `VERIFY_TOLERANCE` of the largest `unit`; the sentence names `whose` replay and the eager `reference`)."""
+    with torch.inference_mode():
+        graph.replay()
+    deviation = relative_deviation(output, eager)
+    limit = bound(VERIFY_TOLERANCE, dtype)
+    if deviation <= limit:
+        return None
+    return (f"{whose} first replay deviates from {reference} by {deviation:.3g} of the largest {unit} "
+            f"(bound {limit:g})")
 
 
 class GraphRecorder:
