@@ -35,13 +35,10 @@ if TYPE_CHECKING:
 
 @dataclass
 class FusedSteps:
-    """What every fused step of one call shares: the decoder layers' arguments of each step after its action tokens
-    (`expert_layers_`'s: the layers' weights, their norms' scales and π0.5's adaRMS biases and gates of the step, the
-    caches, the action tokens' RoPE tables `[B, T, H]` and key range; stacked `[L, ...]` for the persistent launch,
-    lists of each layer's views for five launches per layer), whether a step's layers run as one persistent launch,
-    the action embedding's weights and each step's bias (π0: action_in_proj folded into the action half of
-    action_time_mlp_in, the step's time half in the bias), and the final norm's scale and bias of each step
-    (`action_out_proj`'s bias, plus π0.5's final adaRMS shift through it).
+    """What every fused step of one call shares: each step's `expert_layers_` arguments (stacked `[L, ...]` for the
+    persistent launch, lists of each layer's views for five launches per layer), the action embedding's weights and
+    each step's bias (π0: action_in_proj folded into the action half of action_time_mlp_in, the step's time half in
+    the bias), and the final norm's scale and bias of each step (`action_out_proj`'s, plus π0.5's adaRMS shift).
 
     π0's state token (`PrefixCache.state`) runs with the first step's action tokens, ahead of them in its slot: it
     sees the prefix and itself, they see it too, and its keys and values stay in the caches for the other steps. So

@@ -1,16 +1,8 @@
 """Sampling as CUDA graphs, captured by hand (no compiler): `PI0ForActionGeneration.capture_sampling`.
 
-Eager sampling of a full-size π0 launches thousands of small kernels per chunk, and the CPU that launches them, not
-the GPU, sets the pace. A CUDA graph records those launches once and replays them with one call. The sampling after
-the input checks never reads the device from the host (`ActionSampling.sample_planned`), so it records as is.
-
-One graph per `SamplingPlan` (prefix layout, Euler times, real-time chunking method, fused steps) and input shapes /
-dtypes: the first call of each records it (two warm-up runs on a side stream, then the capture, on the model's own
-capture stream); later calls copy their inputs into the graph's static buffers, replay it, and return a copy of its
-output, which the next replay does not overwrite.
-
-Every graph is verified when it is captured, against the last warm-up run (an eager run of the same inputs), and a
-plan whose graph deviates samples eagerly from then on; see `capture_sampling`, also for RTC guidance's graphs.
+The sampling after the input checks never reads the device from the host (`ActionSampling.sample_planned`), so it
+records as is: one graph per `SamplingPlan` and input shapes / dtypes, captured, verified and replayed as
+`capture_sampling` says.
 
 The graphs share a memory pool, guided ones one of their own: a capture CUDA refuses can leave its pool marked as
 recording in torch's allocators (there is no Python call that ends that in the pinned host allocator), so a pool that

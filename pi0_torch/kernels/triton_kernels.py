@@ -25,9 +25,7 @@ dtype on a GPU. Under `TRITON_INTERPRET=1` (the CPU tests) they are float32: the
 Only `tl.load` / `tl.store` (with a cache modifier) / `tl.dot` (with its input precision) / `tl.where` / `tl.exp` /
 `tl.sqrt` / reductions / `tl.atomic_add` / `tl.debug_barrier` are used, all in the triton that torch 2.10's CUDA
 wheels pin (3.6; every variant also compiles with 3.2). Tilings come from `blocks`, `narrow_blocks` and
-`attention_blocks`, measured on an H200 (small M: the suffix's 50 rows per sample; split-K in the same launch where
-a GEMM's output tiles are few, see `split_k` and `_sum_splits`). Each kernel launches through
-`pi0_torch.kernels.launch.direct_launch` (the compiled kernel called without triton's per-call binding).
+`attention_blocks`; each kernel launches through `pi0_torch.kernels.launch.direct_launch`.
 """
 
 from __future__ import annotations
