@@ -6,9 +6,8 @@
   step in one persistent launch, `kernels.persistent.expert_layers_`), then the final norm, `action_out_proj` and the
   Euler update in one.
 - The prefix pass (`prefix_layer`): the VLM's GEMMs stay cuBLAS's (compute-bound at 800+ rows) with RoPE and the cache
-  write, and the GeGLU, fused around them (nine launches per layer instead of fifteen). π0's state token, one row
-  that sees the prefix and itself, runs with the first step's action tokens (`FusedSteps`). SigLIP runs
-  `vision_pass` (nine launches per encoder layer instead of twelve).
+  write, and the GeGLU, fused around them (nine launches per layer instead of fifteen; π0's state token runs with the
+  first step's action tokens, `FusedSteps`). SigLIP runs `vision_pass` (nine launches per encoder layer, not twelve).
 
 It computes what `ActionSampling.denoise_step` followed by `x_t += dt * velocity` computes, with fewer roundings in
 bf16 (the fused epilogues round once). Used for plain sampling on CUDA in bf16 / fp16 (`ActionSampling.sampling_kernels`,

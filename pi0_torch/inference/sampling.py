@@ -395,10 +395,9 @@ class ActionSampling:
         and itself, so neither changes with the noisy actions or the flow time. The buffers have room for the action
         tokens, whose k/v each denoising step writes in place (no per-step copy of the prefix). `differentiable_steps`:
         the steps will attend through SDPA's mask (RTC guidance), so the buffers are laid out for it. `fused`: the
-        layers run `fused_pass.prefix_layer` (the fused kernels around cuBLAS's GEMMs), SigLIP `vision_pass`, and π0's
-        state token is left to the first fused step, which runs it beside the action tokens on the same pass over the
-        action expert's weights (`PrefixCache.state`, `fused_pass.FusedSteps`). `attention`: the attention kernel
-        setting (default: `attention_kernel`). `weights`: the call's plain-weights check (made here where not given).
+        layers run `fused_pass.prefix_layer`, SigLIP `vision_pass`, and π0's state token is left to the first fused
+        step (`PrefixCache.state`, `fused_pass.FusedSteps`). `attention`: the attention kernel setting (default:
+        `attention_kernel`). `weights`: the call's plain-weights check (made here where not given).
         """
         config = self.config
         pixel_values = inputs.pixel_values
