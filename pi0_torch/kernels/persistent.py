@@ -435,8 +435,10 @@ def expert_layers_(
     hidden = x.new_empty(rows, mlp_width)
     partial = x.new_empty(tiling.key_parts, rows * heads, head_dim, dtype=torch.float32)
     stats = x.new_empty(2, tiling.key_parts, rows * heads, dtype=torch.float32)
-    qkv_parts, o_parts, gate_up_parts, down_parts = (
-        phase_workspace(x, outputs, tiling.m, columns, splits)
+    row_blocks = cdiv(rows, tiling.m)
+    qkv_parts, o_parts, gate_up_parts, down_parts = (  # each phase's split-K workspace (its tiles' parts; the layers
+        # take turns in it), or `x` where the phase is not split (never read); q/k/v's outputs are column pairs
+        x if splits == 1 else split_workspace(x, row_blocks * cdiv(outputs, columns), tiling.m, columns, splits)
         for outputs, columns, splits in (((heads + 2) * head_dim // 2, tiling.qkv, tiling.qkv_splits),
                                          (width, tiling.o, tiling.o_splits),
                                          (mlp_width, tiling.gate_up, tiling.gate_up_splits),
@@ -573,11 +575,3 @@ def phase_tiles(rows: int, tokens: int, heads: int, head_dim: int, width: int, m
             row_blocks * cdiv(width, tiling.o) * tiling.o_splits,
             row_blocks * cdiv(mlp_width, tiling.gate_up) * tiling.gate_up_splits,
             row_blocks * cdiv(width, tiling.down) * tiling.down_splits]
-
-
-def phase_workspace(x: torch.Tensor, outputs: int, rows: int, columns: int, splits: int) -> torch.Tensor:
-    """The split-K workspace of a phase with `outputs` output columns (q/k/v: column pairs) for each of `x`'s rows, in
-    tiles of `rows` x `columns` (`split_workspace`; one launch's layers take turns in it), or `x` where the phase is
-    not split (never read)."""
-    tiles = cdiv(x.shape[0], rows) * cdiv(outputs, columns)
-    return x if splits == 1 else split_workspace(x, tiles, rows, columns, splits)
