@@ -103,11 +103,6 @@ class ActionSampling:
         return self.__dict__.setdefault("_fused_verdicts", {})
 
     @property
-    def _device_times(self) -> dict[tuple[tuple[float, ...], torch.device], torch.Tensor]:
-        """(Euler times, device) -> those times as a float32 tensor there (made once)."""
-        return self.__dict__.setdefault("_euler_times_on", {})
-
-    @property
     def last_sampling_route(self) -> SamplingRoute | None:
         """What ran the last `generate_actions` call that returned actions (None before the first): the kernels of its
         Euler steps ("torch", "triton" or "persistent"), whether it replayed a CUDA graph, why its steps ran unfused,
@@ -531,10 +526,10 @@ class ActionSampling:
 
     def _times_on(self, times: tuple[float, ...], device: torch.device) -> torch.Tensor:
         """The Euler times as a float32 tensor on `device`, made once (no host-to-device copy per call)."""
-        key = (times, device)
-        if key not in self._device_times:
-            self._device_times[key] = torch.tensor(times, dtype=torch.float32, device=device)
-        return self._device_times[key]
+        made = self.__dict__.setdefault("_euler_times_on", {})  # (times, device) -> the tensor
+        if (times, device) not in made:
+            made[times, device] = torch.tensor(times, dtype=torch.float32, device=device)
+        return made[times, device]
 
     def _chunk_prefix(
         self,
@@ -650,7 +645,7 @@ class ActionSampling:
         they are dropped and captured again on the next call."""
         if getattr(self, "_graphs", None) is not None:
             self._graphs.clear()
-        self._device_times.clear()
+        self.__dict__.pop("_euler_times_on", None)  # (`_times_on`'s)
         self._fused_refusals.clear()
         return super()._apply(fn, *args, **kwargs)
 
