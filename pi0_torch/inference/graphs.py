@@ -134,7 +134,7 @@ class SamplingGraphs:
             static = type(inputs)(*(None if value is None else value.clone() for value in _tensors(inputs)))
             try:
                 graph, output, eager = self.recorder.record(lambda: self.model.sample_planned(static, plan, weights),
-                                                            device, pool=guided)
+                                                            device, kind=guided)
             except GraphCaptureError as error:
                 raise SamplingCaptureError(f"could not capture {describe_plan(plan, inputs.noise.shape[0])} as a CUDA "
                                            f"graph ({error}); call model.capture_sampling(disable=True) to sample eagerly") from error
@@ -165,16 +165,16 @@ class GraphRecorder:
         self.streams: tuple[torch.cuda.Stream, torch.cuda.Stream] | None = None  # (capture, warm-up)
 
     def record(self, run: Callable[[], torch.Tensor], device: torch.device,
-               pool: Any = None) -> tuple[torch.cuda.CUDAGraph, torch.Tensor, torch.Tensor]:
+               kind: Any = None) -> tuple[torch.cuda.CUDAGraph, torch.Tensor, torch.Tensor]:
         """Run `run` `WARMUP_RUNS` times on the warm-up stream, then record one more run on the capture stream into
-        the memory pool of kind `pool`, on `device`: the graph, the tensor its replays write, and a copy of the last
-        warm-up run's output (an eager run of the same inputs, to verify the graph against). Where CUDA refuses to
-        record, the pool is released and dropped, and `GraphCaptureError` raised."""
+        the memory pool of the graphs of `kind`, on `device`: the graph, the tensor its replays write, and a copy of
+        the last warm-up run's output (an eager run of the same inputs, to verify the graph against). Where CUDA
+        refuses to record, the pool is released and dropped, and `GraphCaptureError` raised."""
         with torch.cuda.device(device):
             if self.streams is None:  # (torch's default capture stream is made once, on whichever GPU was current)
                 self.streams = torch.cuda.Stream(device=device), torch.cuda.Stream(device=device)
             stream, warmup_stream = self.streams
-            handle = self.pools[pool] if pool in self.pools else torch.cuda.graph_pool_handle()
+            pool = self.pools[kind] if kind in self.pools else torch.cuda.graph_pool_handle()
             warmup_stream.wait_stream(torch.cuda.current_stream(device))
             with torch.cuda.stream(warmup_stream):
                 for _ in range(WARMUP_RUNS):
@@ -184,13 +184,13 @@ class GraphRecorder:
             graph = torch.cuda.CUDAGraph()
             try:
                 with torch.cuda.stream(torch.cuda.current_stream(device)):  # (this stream again, should capture fail)
-                    with torch.cuda.graph(graph, pool=handle, stream=stream):
+                    with torch.cuda.graph(graph, pool=pool, stream=stream):
                         output = run()
             except Exception as error:
-                self.pools.pop(pool, None)  # (never captured into again)
-                _release_failed_capture(device, handle)
+                self.pools.pop(kind, None)  # (never captured into again)
+                _release_failed_capture(device, pool)
                 raise GraphCaptureError(str(error)) from error
-            self.pools[pool] = handle
+            self.pools[kind] = pool
             torch.cuda.synchronize(device)
         return graph, output, eager
 
