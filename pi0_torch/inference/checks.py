@@ -26,6 +26,7 @@ from typing import TYPE_CHECKING, Any
 import torch
 
 from pi0_torch.kernels import ops, reference
+from pi0_torch.kernels.ops import op_name
 from pi0_torch.kernels.reference import rope_cos_sin
 
 if TYPE_CHECKING:
@@ -198,11 +199,6 @@ def ops_reason(device: torch.device, dtype: torch.dtype, cases: Callable[[], lis
     if reason is not None and device.type == "cuda":
         logger.warning("%s: %s", fallback, reason)
     return reason
-
-
-def op_name(op: Any) -> str:
-    """The name of a custom op of `pi0_torch.kernels.ops` (its function in `reference` and the Triton modules)."""
-    return op._name.split("::")[-1]
 
 
 def seeded_random(device: torch.device, dtype: torch.dtype) -> Callable[..., torch.Tensor]:
