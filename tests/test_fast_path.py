@@ -248,7 +248,7 @@ def test_sampling_runs_the_gemms_on_transposed_weights_and_accumulates_in_place(
     for change, apply in changes.items():
         layer = JointDecoderLayer(config)
         apply(layer)
-        vlm_weights, expert_weights = layer_sampling_weights(layer, vlm=True, expert=True)
+        vlm_weights, expert_weights = layer_sampling_weights(layer)
         assert expert_weights is CALL_MODULES, change
         assert (vlm_weights is CALL_MODULES) == (change == "a hook on the layer"), change  # (the VLM's projections are plain)
     with torch.autocast("cpu", dtype=torch.bfloat16):

@@ -335,8 +335,8 @@ def test_hand_captured_decoding_replays_eager_decoding_and_refuses_wrong_graphs(
 ) -> None:
     """`capture_decoding`: the prefill and the step of each input signature are recorded once; a call copies its
     inputs into the prefill's static inputs and replays it into the static cache, and every token replays the step
-    on that cache (simulated here, as the CPU records nothing: `_record` gives a "graph" whose replay runs the eager
-    code again into the captured output, as a recorded graph rewrites the same memory). One capture serves two
+    on that cache (simulated here, as the CPU records nothing: `recorder.record` gives a "graph" whose replay runs the
+    eager code again into the captured output, as a recorded graph rewrites the same memory). One capture serves two
     different observations with eager decoding's tokens; graphs whose first replays differ from the eager runs are
     refused with a warning naming the deviation, that call decodes eagerly, and the signature is not captured again.
     On the CPU `generate_tokens` itself stays eager."""
@@ -357,8 +357,8 @@ def test_hand_captured_decoding_replays_eager_decoding_and_refuses_wrong_graphs(
 
     recorded: list[float] = []
 
-    def recording(scale: float) -> Callable[[Callable[[], torch.Tensor]], tuple[Replay, torch.Tensor, torch.Tensor]]:
-        def record(run: Callable[[], torch.Tensor]) -> tuple[Replay, torch.Tensor, torch.Tensor]:
+    def recording(scale: float) -> Callable[..., tuple[Replay, torch.Tensor, torch.Tensor]]:
+        def record(run: Callable[[], torch.Tensor], *_: object) -> tuple[Replay, torch.Tensor, torch.Tensor]:
             recorded.append(scale)
             eager = run().clone()
             output = run()
@@ -370,7 +370,7 @@ def test_hand_captured_decoding_replays_eager_decoding_and_refuses_wrong_graphs(
             return model.decode(graphs.prepare, graphs.step, (*inputs.values(), steps, None), 0.0, None)[0]
 
     graphs = DecodingGraphs(model)
-    monkeypatch.setattr(graphs, "_record", recording(1.0))
+    monkeypatch.setattr(graphs.recorder, "record", recording(1.0))
     assert torch.equal(decode(graphs, infer), expected)
     assert torch.equal(decode(graphs, swapped), expected_swapped)  # (the second call's inputs copied in)
     assert recorded == [1.0, 1.0] and len(graphs.graphs) == 1 and not graphs.refused  # (a prefill and a step)
@@ -378,7 +378,7 @@ def test_hand_captured_decoding_replays_eager_decoding_and_refuses_wrong_graphs(
     assert captured.cache.keys[0].shape[2] == model.decoding_slots(3, infer["input_ids"].shape[1], steps)
 
     wrong = DecodingGraphs(model)
-    monkeypatch.setattr(wrong, "_record", recording(3.0))
+    monkeypatch.setattr(wrong.recorder, "record", recording(3.0))
     with caplog.at_level(logging.WARNING):
         assert torch.equal(decode(wrong, infer), expected)
         assert torch.equal(decode(wrong, swapped), expected_swapped)

@@ -17,7 +17,4 @@ model math in `pi0_torch.models` (nothing here imports it).
 - π0-FAST: `token_decoding` (`TokenDecoding`, the mixin that gives the model `generate_tokens`, `compile_decoding`
   and `capture_decoding`), `fast_decoding` (decoded tokens on the fused kernels), `decoding_graphs` (hand-captured
   CUDA graphs of the prefill and the per-token step).
-
-`pi0_torch.models.modeling_pi0.PI0ForActionGeneration.sample_actions_reference` is the plain loop the engine is tested
-against at every level.
 """

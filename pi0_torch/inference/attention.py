@@ -124,9 +124,7 @@ def choose_kernel(kernel: str, device: torch.device, dtype: torch.dtype, kv_head
     return kernel
 
 
-@functools.lru_cache(maxsize=None)
-def _compute_capability(device: torch.device) -> tuple[int, int]:
-    return torch.cuda.get_device_capability(device)
+_compute_capability = functools.lru_cache(maxsize=None)(torch.cuda.get_device_capability)  # (per device, once)
 
 
 def plan_attention(ranges: KeyRanges, num_heads: int, kv_heads: int, dtype: torch.dtype, kernel: str, key_slots: int | None = None) -> AttentionPlan:

@@ -19,17 +19,18 @@ from __future__ import annotations
 
 import functools
 import logging
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import replace
 from typing import TYPE_CHECKING, Any
 
 import torch
 
 from pi0_torch.kernels import ops, reference
+from pi0_torch.kernels.ops import op_name
 from pi0_torch.kernels.reference import rope_cos_sin
 
 if TYPE_CHECKING:
-    from pi0_torch.inference.layer_pass import ModelSamplingWeights
+    from pi0_torch.inference.layer_pass import ModelSamplingWeights, SamplingWeights
     from pi0_torch.inference.plan import SamplingInputs, SamplingPlan
 
 logger = logging.getLogger(__name__)
@@ -55,11 +56,6 @@ VERIFY_TOLERANCE = {torch.float32: 1e-4, torch.bfloat16: 1e-2, torch.float16: 1e
 def bound(tolerance: dict[torch.dtype, float], dtype: torch.dtype) -> float:
     """A tolerance table's bound for `dtype` (float32's for any other dtype)."""
     return tolerance.get(dtype, tolerance[torch.float32])
-
-
-def verify_bound(dtype: torch.dtype) -> float:
-    """`VERIFY_TOLERANCE` of a model in `dtype`."""
-    return bound(VERIFY_TOLERANCE, dtype)
 
 
 def relative_deviation(got: torch.Tensor, want: torch.Tensor) -> float:
@@ -91,40 +87,22 @@ def setting_reason(setting: str, name: str, device: torch.device, dtype: torch.d
     return reason
 
 
-def attention_shape_reason(kv_heads: int, head_dim: int) -> str | None:
-    """Why the fused attention cannot run a model's heads (None: it can): it folds the query heads onto one kv head,
-    and its head size is a power of two >= 16."""
+def layers_reason(kv_heads: int, head_dim: int, weights: Sequence[SamplingWeights], compiled: bool = False,
+                  plain_action_linears: bool = True) -> str | None:
+    """Why the fused kernels cannot run a model's layers at all (None: they can): the fused attention folds the query
+    heads onto one kv head, and its head size is a power of two >= 16; then (π0's steps) compiled layers; then each
+    layer's `SamplingWeights` (the call's plain-weights check, `layer_pass`: the action expert's or the decoder's); then
+    (π0's steps) the action projections, as `ModelSamplingWeights.plain_action_linears` says."""
     if kv_heads != 1:
         return f"the fused attention folds the query heads onto one kv head; this model has {kv_heads}"
     if head_dim < 16 or head_dim & (head_dim - 1):
         return f"the fused kernels need a head size that is a power of two >= 16, not {head_dim}"
-    return None
-
-
-NOT_PLAIN = "a layer's projections are not plain weights (LoRA, quantized or hooked layers, autocast)"
-
-
-def sampling_layers_reason(kv_heads: int, head_dim: int, compiled: bool, weights: ModelSamplingWeights) -> str | None:
-    """Why π0's fused steps cannot run the model's layers at all (None: they can): the heads, compiled layers, or
-    this call's plain-weights check (`weights`, made once per call: `layer_pass.model_sampling_weights`)."""
-    if (reason := attention_shape_reason(kv_heads, head_dim)) is not None:
-        return reason
     if compiled:
         return "the layers are compiled (compile_sampling)"
-    if not all(expert.usable for _, expert in weights.layers):
-        return NOT_PLAIN
-    if not weights.plain_action_linears:
-        return "an action projection is not a plain linear layer (LoRA, quantized or hooked layers)"
-    return None
-
-
-def decoding_layers_reason(weights: list, kv_heads: int, head_dim: int) -> str | None:
-    """Why π0-FAST's fused decoding cannot run the decoder layers at all (None: it can): the heads, or a layer's
-    `SamplingWeights` (`layer_pass.decoder_sampling_weights`) that is not plain."""
-    if (reason := attention_shape_reason(kv_heads, head_dim)) is not None:
-        return reason
     if not all(each.usable for each in weights):
-        return NOT_PLAIN
+        return "a layer's projections are not plain weights (LoRA, quantized or hooked layers, autocast)"
+    if not plain_action_linears:
+        return "an action projection is not a plain linear layer (LoRA, quantized or hooked layers)"
     return None
 
 
@@ -145,9 +123,8 @@ def decoding_ops_reason(device: torch.device, dtype: torch.dtype, heads: int, he
     """Why the fused ops of a decoded token may not run on `device` in `dtype` for `batch` rows over caches of `slots`
     (None: they may): triton is unusable there, or one of them, run once on random inputs shaped exactly as
     decoding's (one row per sample, the slot a device value, a key range that ends before the cache does), differs
-    from its torch reference or fails. Triton compiles a kernel anew per class of its arguments (an integer equal to
-    1 or divisible by 16, the number of key parts), so each batch size and cache length is checked once; a refusal
-    is logged once."""
+    from its torch reference or fails. Checked once per batch size and cache length (triton's classes of arguments:
+    the module docstring; the number of key parts); a refusal is logged once."""
     cases = lambda: decoding_cases(device, dtype, heads, head_dim, mlp_width, batch, slots)  # noqa: E731
     return ops_reason(device, dtype, cases, "π0-FAST decodes through the modules")
 
@@ -222,11 +199,6 @@ def ops_reason(device: torch.device, dtype: torch.dtype, cases: Callable[[], lis
     if reason is not None and device.type == "cuda":
         logger.warning("%s: %s", fallback, reason)
     return reason
-
-
-def op_name(op: Any) -> str:
-    """The name of a custom op of `pi0_torch.kernels.ops` (its function in `reference` and the Triton modules)."""
-    return op._name.split("::")[-1]
 
 
 def seeded_random(device: torch.device, dtype: torch.dtype) -> Callable[..., torch.Tensor]:

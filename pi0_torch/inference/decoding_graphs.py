@@ -11,15 +11,8 @@ gets two graphs, recorded once:
 - the step: `decode_step` on that static cache, a static token and step, into static logits.
 
 A call copies its inputs in and replays the prefill, then per token copies the token and step in and replays the step.
-Unlike `compile_decoding(mode="reduce-overhead")` this needs no compiler: it runs on torch 2.10 and 2.11 too, where
-inductor's graphs of the decoding step crashed the process, and it replays the fused kernels (`fast_decoding`) where
-eager decoding runs them.
-
-Both graphs are verified when captured (`graphs.record_graph`: warm-up runs on a side stream, then the capture): their
-first replays must give the logits of the last warm-up runs (eager prefill, eager step of the same token) within
-`VERIFY_TOLERANCE`, relative to the largest logit. Graphs that do not, or that CUDA refuses to record, are refused with
-a warning, and their signature decodes eagerly from then on: no graph ever picks other tokens than eager decoding
-silently.
+Both graphs are recorded by `graphs.GraphRecorder` and verified when captured, against the last warm-up runs (eager
+prefill, eager step of the same token); see `TokenDecoding.capture_decoding`.
 """
 
 from __future__ import annotations
@@ -30,12 +23,9 @@ from typing import TYPE_CHECKING, Any
 
 import torch
 
-from pi0_torch.inference.checks import relative_deviation, verify_bound
-from pi0_torch.inference.graphs import GraphCaptureError, capture_streams, record_graph
+from pi0_torch.inference.graphs import GraphCaptureError, GraphRecorder, replay_refusal
 
 if TYPE_CHECKING:
-    from collections.abc import Callable
-
     from pi0_torch.inference.token_decoding import DecodingCache, TokenDecoding
 
 logger = logging.getLogger(__name__)
@@ -76,16 +66,14 @@ class DecodingGraphs:
         self.graphs: dict[tuple[Any, ...], CapturedDecoding] = {}
         self.refused: dict[tuple[Any, ...], str] = {}  # signature -> why its graphs were refused: it decodes eagerly
         self.replays: dict[int, CapturedDecoding] = {}  # id(static cache) -> its graphs (what `step` looks up)
-        self.pool: Any = None  # the memory pool the graphs share
-        self.stream: torch.cuda.Stream | None = None  # every capture's stream
-        self.warmup_stream: torch.cuda.Stream | None = None
+        self.recorder = GraphRecorder()
 
     def clear(self) -> None:
         """Drop every graph (the model's tensors moved, or its kernels changed)."""
         self.graphs.clear()
         self.refused.clear()
         self.replays.clear()
-        self.pool = self.stream = self.warmup_stream = None
+        self.recorder = GraphRecorder()
 
     def prepare(self, *inputs: Any) -> tuple[DecodingCache, torch.Tensor]:
         """`prepare_decoding(*inputs)`: a replay of the signature's prefill graph (captured and verified on first use)
@@ -100,8 +88,13 @@ class DecodingGraphs:
                 captured, eager_first, eager_step = self._capture(inputs)
             except GraphCaptureError as error:
                 captured, refusal = None, f"CUDA could not record them ({error})"
-            else:
-                refusal = self._verify(captured, eager_first, eager_step) if self.verify else None
+            else:  # (the prefill's first logits, then the step's on the replayed prefill's cache)
+                refusal, dtype = None, self.model.dtype
+                if self.verify:
+                    refusal = (replay_refusal(captured.prefill, captured.first_logits, eager_first, dtype,
+                                              "the prefill's", "an eager run", "logit")
+                               or replay_refusal(captured.step, captured.logits, eager_step, dtype, "the step's",
+                                                 "an eager run", "logit"))
             if refusal is not None:
                 self.refused[key] = refusal
                 batch, cameras = inputs[0].shape[:2]
@@ -127,21 +120,6 @@ class DecodingGraphs:
             captured.step.replay()
         return captured.logits
 
-    def _verify(self, captured: CapturedDecoding, eager_first: torch.Tensor, eager_step: torch.Tensor) -> str | None:
-        """Why the graphs are refused (None: their first replays give the last warm-up runs' logits within
-        `VERIFY_TOLERANCE`: the prefill's first logits, then the step's on the replayed prefill's cache)."""
-        bound = verify_bound(self.model.dtype)
-        with torch.inference_mode():
-            captured.prefill.replay()
-            deviations = {"prefill": relative_deviation(captured.first_logits, eager_first)}
-            captured.step.replay()
-            deviations["step"] = relative_deviation(captured.logits, eager_step)
-        for name, deviation in deviations.items():
-            if not deviation <= bound:
-                return (f"the {name}'s first replay deviates from an eager run by {deviation:.3g} of the largest logit "
-                        f"(bound {bound:g})")
-        return None
-
     def _capture(self, inputs: tuple[Any, ...]) -> tuple[CapturedDecoding, torch.Tensor, torch.Tensor]:
         """Record the prefill and the step of `inputs`' signature: the graphs with their static buffers (an eager
         prefill of `inputs` allocates them), and the last warm-up runs' logits (prefill, then the step feeding the
@@ -156,25 +134,10 @@ class DecodingGraphs:
                 torch._foreach_copy_([*cache_tensors(cache), first_logits], [*cache_tensors(fresh), logits])
                 return first_logits
 
-            prefill_graph, _, eager_first = self._record(prefill)
+            prefill_graph, _, eager_first = self.recorder.record(prefill, self.model.device)
             token = first_logits.argmax(dim=-1)  # [B]
             step_index = torch.zeros(1, dtype=torch.long, device=token.device)
-            step_graph, logits, eager_step = self._record(lambda: self.model.decode_step(cache, token, step_index))
+            step_graph, logits, eager_step = self.recorder.record(
+                lambda: self.model.decode_step(cache, token, step_index), self.model.device)
         captured = CapturedDecoding(prefill_graph, static_inputs, first_logits, step_graph, cache, token, step_index, logits)
         return captured, eager_first, eager_step
-
-    def _record(self, run: Callable[[], torch.Tensor]) -> tuple[Any, torch.Tensor, torch.Tensor]:
-        """`graphs.record_graph` of `run` on the model's GPU, into the graphs' shared pool: the graph, where its
-        replays write `run`'s output, and the last warm-up run's output."""
-        device = self.model.device
-        with torch.cuda.device(device):
-            if self.stream is None:
-                self.stream, self.warmup_stream = capture_streams(device)
-            pool = self.pool if self.pool is not None else torch.cuda.graph_pool_handle()
-            try:
-                recorded = record_graph(run, device, self.stream, self.warmup_stream, pool)
-            except GraphCaptureError:
-                self.pool = None  # (never captured into again)
-                raise
-            self.pool = pool
-        return recorded

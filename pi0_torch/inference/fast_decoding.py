@@ -1,18 +1,14 @@
 """π0-FAST's decoded tokens with the fused ops of `pi0_torch.kernels` around cuBLAS's GEMMs: nine ops per decoder layer
 and token instead of about twenty-three.
 
-Per layer: RMSNorm, the q/k/v GEMM, RoPE + the k/v cache write (`rope_cache_write`), attention over the token's one
-range of slots (`range_attention`), the o-projection accumulated into the residual (`addmm_`), RMSNorm, the gate/up
-GEMM, `geglu`, the down-projection accumulated into the residual. A decoded token sees one contiguous range of the k/v
-cache, `[first[b], its own slot]` (openpi's window, see `PI0FastForActionGeneration.prepare_decoding`), so attention
-needs no mask; the token's slot is a device value, so one CUDA graph serves every step. The GEMMs stay cuBLAS's: at
-one row per sample they are matrix-vector products over Gemma 2B's weights, which cuBLAS reads near bandwidth (split-K
-included) and π0's fused GEMM kernels, tiled for the suffix's 50 rows, are not tuned for.
+A decoded token sees one contiguous range of the k/v cache, `[first[b], its own slot]` (openpi's window, see
+`PI0FastForActionGeneration.prepare_decoding`), so attention needs no mask; the token's slot is a device value, so one
+CUDA graph serves every step. The GEMMs stay cuBLAS's: at one row per sample they are matrix-vector products over
+Gemma 2B's weights, which cuBLAS reads near bandwidth (split-K included) and π0's fused GEMM kernels, tiled for the
+suffix's 50 rows, are not tuned for.
 
 It computes what `FastDecoderLayer` computes with a k/v buffer, with fewer roundings in bf16 (RoPE rounds once, the
-residual adds round with their GEMM). Used on CUDA in bf16 / fp16 (`PI0FastForActionGeneration.decoding_kernels`,
-"auto") after `checks.decoding_ops_reason` found the kernels equal to their torch references at the model's sizes and the
-call's batch size and cache length on that device; the prefill runs the modules.
+residual adds round with their GEMM). Where it runs: `PI0FastForActionGeneration.decoding_kernels`.
 """
 
 from __future__ import annotations

@@ -6,9 +6,8 @@
   step in one persistent launch, `kernels.persistent.expert_layers_`), then the final norm, `action_out_proj` and the
   Euler update in one.
 - The prefix pass (`prefix_layer`): the VLM's GEMMs stay cuBLAS's (compute-bound at 800+ rows) with RoPE and the cache
-  write, and the GeGLU, fused around them (nine launches per layer instead of fifteen). π0's state token, one row
-  that sees the prefix and itself, runs with the first step's action tokens (`FusedSteps`). SigLIP runs
-  `vision_pass` (nine launches per encoder layer instead of twelve).
+  write, and the GeGLU, fused around them (nine launches per layer instead of fifteen; π0's state token runs with the
+  first step's action tokens, `FusedSteps`). SigLIP runs `vision_pass` (nine launches per encoder layer, not twelve).
 
 It computes what `ActionSampling.denoise_step` followed by `x_t += dt * velocity` computes, with fewer roundings in
 bf16 (the fused epilogues round once). Used for plain sampling on CUDA in bf16 / fp16 (`ActionSampling.sampling_kernels`,
@@ -35,20 +34,16 @@ if TYPE_CHECKING:
 
 @dataclass
 class FusedSteps:
-    """What every fused step of one call shares: the decoder layers' arguments of each step after its action tokens
-    (`expert_layers_`'s: the layers' weights, their norms' scales and π0.5's adaRMS biases and gates of the step, the
-    caches, the action tokens' RoPE tables `[B, T, H]` and key range; stacked `[L, ...]` for the persistent launch,
-    lists of each layer's views for five launches per layer), whether a step's layers run as one persistent launch,
-    the action embedding's weights and each step's bias (π0: action_in_proj folded into the action half of
-    action_time_mlp_in, the step's time half in the bias), and the final norm's scale and bias of each step
-    (`action_out_proj`'s bias, plus π0.5's final adaRMS shift through it).
+    """What every fused step of one call shares: each step's `expert_layers_` arguments (stacked `[L, ...]` for the
+    persistent launch, lists of each layer's views for five launches per layer), the action embedding's weights and
+    each step's bias (π0: action_in_proj folded into the action half of action_time_mlp_in, the step's time half in
+    the bias), and the final norm's scale and bias of each step (`action_out_proj`'s, plus π0.5's adaRMS shift).
 
     π0's state token (`PrefixCache.state`) runs with the first step's action tokens, ahead of them in its slot: it
     sees the prefix and itself, they see it too, and its keys and values stay in the caches for the other steps. So
     the action expert's weights are read once less per chunk than with a pass of its own (as openpi's suffix computes
     it, where every step recomputes it)."""
 
-    model: PI0ForActionGeneration
     persistent: bool
     layer_arguments: list[tuple[Any, ...]]  # per step (π0: the first step's with the state token ahead of its tokens)
     state: torch.Tensor | None  # π0: the state token [B, D1], run by the first step
@@ -58,6 +53,7 @@ class FusedSteps:
     out_weight: torch.Tensor  # [D1, A]
     final_scales: torch.Tensor  # [steps or 1, D1]
     final_biases: torch.Tensor  # [steps or 1, A]
+    eps: float  # the norms'
 
     @classmethod
     def build(cls, model: PI0ForActionGeneration, actions: ActionPass, conditioning: StepConditioning, steps: int,
@@ -77,7 +73,8 @@ class FusedSteps:
             step_norms = [step.layer_norms for step in conditioning.steps()] if config.pi05 else [norms] * steps
             per_step = [[[getattr(pair[index], name) for pair in layer_norms] for index, name in names]
                         for layer_norms in step_norms]
-        qkv, o, gate_up, down = projection_lists(actions.expert_weights)
+        qkv, o, gate_up, down = (list(each) for each in zip(*((own.qkv, own.o, own.gate_up, own.down)
+                                                               for own in actions.expert_weights)))
         device = cache.first.device
         first_slot = stream.first_slot
         slotted = [((stream.cos[:, :, 0], stream.sin[:, :, 0]), torch.full((stream.tokens,), cache.slots, device=device),
@@ -100,8 +97,8 @@ class FusedSteps:
             in_biases = torch.addmm(conditioning.condition, in_biases.expand(steps, -1), actions.action_weight)  # [steps, D1]
             in_weight = torch.mm(in_weight, actions.action_weight)
             mlp_out = (model.action_time_mlp_out.weight.t(), model.action_time_mlp_out.bias)
-        return cls(model, persistent, layer_arguments, cache.state, in_weight, in_biases, mlp_out, out_weight,
-                   final.scale.view(-1, final.scale.shape[-1]), final_biases)
+        return cls(persistent, layer_arguments, cache.state, in_weight, in_biases, mlp_out, out_weight,
+                   final.scale.view(-1, final.scale.shape[-1]), final_biases, config.rms_norm_eps)
 
     def step_(self, x_t: torch.Tensor, index: int, dt: float) -> None:
         """The `index`-th Euler step of the call at `x_t` (float32 `[B, horizon, A]`, updated in place)."""
@@ -119,12 +116,7 @@ class FusedSteps:
             tokens = joint.view(batch, -1, width)[:, 1:].reshape(-1, width)
         row = index if self.final_scales.shape[0] > 1 else 0  # (π0.5: a final norm per step)
         ops.call(ops.norm_linear_euler_, x_t, tokens, self.final_scales[row], self.final_biases[row], self.out_weight, dt,
-                 self.model.config.rms_norm_eps)
-
-
-def projection_lists(weights: list[SamplingWeights]) -> tuple[list[torch.Tensor], ...]:
-    """Each layer's q/k/v, o, gate/up and down weights (transposed) as four lists, `expert_layers_`'s arguments."""
-    return tuple(list(each) for each in zip(*((own.qkv, own.o, own.gate_up, own.down) for own in weights)))
+                 self.eps)
 
 
 def prefix_layer(

@@ -1,26 +1,14 @@
 """Sampling as CUDA graphs, captured by hand (no compiler): `PI0ForActionGeneration.capture_sampling`.
 
-Eager sampling of a full-size π0 launches thousands of small kernels per chunk, and the CPU that launches them, not
-the GPU, sets the pace. A CUDA graph records those launches once and replays them with one call. The sampling after
-the input checks never reads the device from the host (`ActionSampling.sample_planned`), so it records as is.
-
-One graph per `SamplingPlan` (prefix layout, Euler times, real-time chunking method, fused steps) and input shapes /
-dtypes: the first call of each records it (two warm-up runs on a side stream, then the capture, on the model's own
-capture stream); later calls copy their inputs into the graph's static buffers, replay it, and return a copy of its
-output, which the next replay does not overwrite.
-
-Every graph is verified when it is captured: its first replay must give the actions of the last warm-up run, an eager
-run of the same inputs, within `checks.VERIFY_TOLERANCE` (relative to the largest action). A graph that does not is refused
-with a warning naming its plan and the deviation, and that plan samples eagerly from then on: no graph ever replays
-other actions than eager sampling silently. (The first GPU run found one that did: real-time chunking's guidance, whose
-per-step vector-Jacobian product is autograd work, replayed as if the product were zero; guided chunks therefore
-sample eagerly unless `capture_sampling(guidance=True)` asks to try, see `capture_sampling`.)
+The sampling after the input checks never reads the device from the host (`ActionSampling.sample_planned`), so it
+records as is: one graph per `SamplingPlan` and input shapes / dtypes, captured, verified and replayed as
+`capture_sampling` says.
 
 The graphs share a memory pool, guided ones one of their own: a capture CUDA refuses can leave its pool marked as
 recording in torch's allocators (there is no Python call that ends that in the pinned host allocator), so a pool that
 saw one is never captured into again, and a refused guidance capture never touches the plain graphs' pool.
 
-`record_graph` (the warm-up runs, the capture, a refused capture's clean-up) also records π0-FAST's prefill and
+`GraphRecorder` (the warm-up runs, the capture, a refused capture's clean-up) also records π0-FAST's prefill and
 decoding step (`pi0_torch.inference.decoding_graphs`).
 """
 
@@ -35,7 +23,7 @@ from typing import TYPE_CHECKING, Any
 
 import torch
 
-from pi0_torch.inference.checks import relative_deviation, verify_bound
+from pi0_torch.inference.checks import VERIFY_TOLERANCE, bound, relative_deviation
 
 if TYPE_CHECKING:
     from pi0_torch.inference.layer_pass import ModelSamplingWeights
@@ -85,16 +73,13 @@ class SamplingGraphs:
         self.verify = verify  # compare each graph's first replay with eager sampling (see the module docstring)
         self.graphs: dict[tuple[Any, ...], CapturedSampling] = {}
         self.refused: dict[tuple[Any, ...], str] = {}  # plan key -> why its graph was refused: it samples eagerly
-        self.pools: dict[bool, Any] = {}  # guided or not -> the memory pool its graphs share
-        self.stream: torch.cuda.Stream | None = None  # every capture's stream (a pool's captures share one)
-        self.warmup_stream: torch.cuda.Stream | None = None  # (one: cuBLAS keeps a workspace per stream)
+        self.recorder = GraphRecorder()  # (guided graphs in a pool of their own)
 
     def clear(self) -> None:
         """Drop every graph (the model's tensors moved, or its kernels changed)."""
         self.graphs.clear()
         self.refused.clear()
-        self.pools.clear()
-        self.stream = self.warmup_stream = None
+        self.recorder = GraphRecorder()
 
     def covers(self, rtc_method: str | None) -> bool:
         """Whether sampling with this real-time chunking method (None: plain) replays graphs."""
@@ -124,7 +109,8 @@ class SamplingGraphs:
                 self.guidance, failed = False, str(error)
             if captured is None:  # (outside the `except`: its traceback holds the failed capture's tensors)
                 return self.model.sample_planned(inputs, plan, weights), failed
-            refusal = self._verify(captured, eager, plan) if self.verify else None
+            refusal = replay_refusal(captured.graph, captured.output, eager, self.model.dtype, "its", "eager sampling",
+                                     "action") if self.verify else None
             if refusal is not None:
                 self.refused[key] = refusal
                 logger.warning("the CUDA graph of %s was refused: %s; that plan samples eagerly from now on",
@@ -138,17 +124,6 @@ class SamplingGraphs:
             captured.graph.replay()
         return captured.output.clone(), None  # (outside inference mode: a normal tensor the next replay leaves alone)
 
-    def _verify(self, captured: CapturedSampling, eager: torch.Tensor, plan: SamplingPlan) -> str | None:
-        """Why the graph's first replay is refused (None: it gives the actions of `eager`, the last warm-up run of the
-        same inputs, within `VERIFY_TOLERANCE`)."""
-        with torch.inference_mode():
-            captured.graph.replay()
-        deviation = relative_deviation(captured.output, eager)
-        bound = verify_bound(self.model.dtype)
-        if deviation <= bound:
-            return None
-        return f"its first replay deviates from eager sampling by {deviation:.3g} of the largest action (bound {bound:g})"
-
     def _capture(self, inputs: SamplingInputs, plan: SamplingPlan,
                  weights: ModelSamplingWeights | None = None) -> tuple[CapturedSampling, torch.Tensor]:
         """Warm up and capture the plan's graph: the graph, and the last warm-up run's actions (eager sampling of the
@@ -157,48 +132,67 @@ class SamplingGraphs:
         guided = plan.rtc_method == "guidance"
         with torch.cuda.device(device), _capture_mode(guided):  # (the model's GPU, whichever is current)
             static = type(inputs)(*(None if value is None else value.clone() for value in _tensors(inputs)))
-            if self.stream is None:  # (torch's default capture stream is made once, on whichever GPU was current)
-                self.stream, self.warmup_stream = capture_streams(device)
-            pool = self.pools[guided] if guided in self.pools else torch.cuda.graph_pool_handle()
             try:
-                graph, output, eager = record_graph(lambda: self.model.sample_planned(static, plan, weights), device, self.stream,
-                                                    self.warmup_stream, pool)
+                graph, output, eager = self.recorder.record(lambda: self.model.sample_planned(static, plan, weights),
+                                                            device, kind=guided)
             except GraphCaptureError as error:
-                self.pools.pop(guided, None)  # (never captured into again)
                 raise SamplingCaptureError(f"could not capture {describe_plan(plan, inputs.noise.shape[0])} as a CUDA "
                                            f"graph ({error}); call model.capture_sampling(disable=True) to sample eagerly") from error
-            self.pools[guided] = pool
         return CapturedSampling(graph, static, output), eager
 
 
-def capture_streams(device: torch.device) -> tuple[torch.cuda.Stream, torch.cuda.Stream]:
-    """A capture stream and a warm-up stream on `device`, made once per set of graphs (one warm-up stream: cuBLAS
-    keeps a workspace per stream)."""
-    return torch.cuda.Stream(device=device), torch.cuda.Stream(device=device)
+def replay_refusal(graph: Any, output: torch.Tensor, eager: torch.Tensor, dtype: torch.dtype, whose: str,
+                   reference: str, unit: str) -> str | None:
+    """Replay `graph` once: why it is refused (None: `output` is then `eager`, the last warm-up run's output, within
+    `VERIFY_TOLERANCE` of the largest `unit`; the sentence names `whose` replay and the eager `reference`)."""
+    with torch.inference_mode():
+        graph.replay()
+    deviation = relative_deviation(output, eager)
+    limit = bound(VERIFY_TOLERANCE, dtype)
+    if deviation <= limit:
+        return None
+    return (f"{whose} first replay deviates from {reference} by {deviation:.3g} of the largest {unit} "
+            f"(bound {limit:g})")
 
 
-def record_graph(run: Callable[[], torch.Tensor], device: torch.device, stream: torch.cuda.Stream,
-                 warmup_stream: torch.cuda.Stream, pool: Any) -> tuple[torch.cuda.CUDAGraph, torch.Tensor, torch.Tensor]:
-    """Run `run` `WARMUP_RUNS` times on `warmup_stream`, then record one more run on `stream` into the memory pool
-    `pool`: the graph, the tensor its replays write, and a copy of the last warm-up run's output (an eager run of the
-    same inputs, to verify the graph against). Called inside `torch.cuda.device(device)`. Where CUDA refuses to
-    record, the pool is released (the caller never captures into it again) and `GraphCaptureError` raised."""
-    warmup_stream.wait_stream(torch.cuda.current_stream(device))
-    with torch.cuda.stream(warmup_stream):
-        for _ in range(WARMUP_RUNS):
-            eager = run()
-        eager = eager.clone()
-    torch.cuda.current_stream(device).wait_stream(warmup_stream)
-    graph = torch.cuda.CUDAGraph()
-    try:
-        with torch.cuda.stream(torch.cuda.current_stream(device)):  # (this stream again, should capture fail)
-            with torch.cuda.graph(graph, pool=pool, stream=stream):
-                output = run()
-    except Exception as error:
-        _release_failed_capture(device, pool)
-        raise GraphCaptureError(str(error)) from error
-    torch.cuda.synchronize(device)
-    return graph, output, eager
+class GraphRecorder:
+    """How one model's graphs are recorded: on one capture stream, after warm-up runs on one side stream (cuBLAS
+    keeps a workspace per stream), both made on first use, into a memory pool per kind of graph, which a capture CUDA
+    refused is never recorded into again (see the module docstring)."""
+
+    def __init__(self) -> None:
+        self.pools: dict[Any, Any] = {}  # kind -> the memory pool its graphs share
+        self.streams: tuple[torch.cuda.Stream, torch.cuda.Stream] | None = None  # (capture, warm-up)
+
+    def record(self, run: Callable[[], torch.Tensor], device: torch.device,
+               kind: Any = None) -> tuple[torch.cuda.CUDAGraph, torch.Tensor, torch.Tensor]:
+        """Run `run` `WARMUP_RUNS` times on the warm-up stream, then record one more run on the capture stream into
+        the memory pool of the graphs of `kind`, on `device`: the graph, the tensor its replays write, and a copy of
+        the last warm-up run's output (an eager run of the same inputs, to verify the graph against). Where CUDA
+        refuses to record, the pool is released and dropped, and `GraphCaptureError` raised."""
+        with torch.cuda.device(device):
+            if self.streams is None:  # (torch's default capture stream is made once, on whichever GPU was current)
+                self.streams = torch.cuda.Stream(device=device), torch.cuda.Stream(device=device)
+            stream, warmup_stream = self.streams
+            pool = self.pools[kind] if kind in self.pools else torch.cuda.graph_pool_handle()
+            warmup_stream.wait_stream(torch.cuda.current_stream(device))
+            with torch.cuda.stream(warmup_stream):
+                for _ in range(WARMUP_RUNS):
+                    eager = run()
+                eager = eager.clone()
+            torch.cuda.current_stream(device).wait_stream(warmup_stream)
+            graph = torch.cuda.CUDAGraph()
+            try:
+                with torch.cuda.stream(torch.cuda.current_stream(device)):  # (this stream again, should capture fail)
+                    with torch.cuda.graph(graph, pool=pool, stream=stream):
+                        output = run()
+            except Exception as error:
+                self.pools.pop(kind, None)  # (never captured into again)
+                _release_failed_capture(device, pool)
+                raise GraphCaptureError(str(error)) from error
+            self.pools[kind] = pool
+            torch.cuda.synchronize(device)
+        return graph, output, eager
 
 
 @contextlib.contextmanager

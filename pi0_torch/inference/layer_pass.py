@@ -49,35 +49,27 @@ PROJECTIONS = ("qkv_proj", "o_proj", "gate_up_proj", "down_proj")  # an expert's
 
 def expert_sampling_weights(expert: ExpertLayer) -> SamplingWeights:
     """The projections' weights for a sampling pass, or `CALL_MODULES` where running the GEMMs on them is not what
-    calling the modules does (see `runs_its_weights`)."""
-    if not runs_its_weights(expert):
-        return CALL_MODULES
-    return SamplingWeights(*(expert._modules[name]._parameters["weight"].t() for name in PROJECTIONS))
-
-
-def runs_its_weights(expert: ExpertLayer) -> bool:
-    """Whether running the GEMMs on the expert's weights is what calling its modules does. Not so for a projection
-    that is not a bias-free `nn.Linear` itself (LoRA, quantized layers) or whose weight is not a plain parameter (a
-    tensor subclass: quantized weights, FSDP2's DTensor shards), a hook or a replaced `forward` on a projection or norm
-    (offloading, pruning, a user's hooks), or autocast."""
+    calling the modules does: a projection that is not a bias-free `nn.Linear` itself (LoRA, quantized layers) or whose
+    weight is not a plain parameter (a tensor subclass: quantized weights, FSDP2's DTensor shards), a hook or a replaced
+    `forward` on a projection or norm (offloading, pruning, a user's hooks), or autocast."""
     modules = expert._modules  # (checked on every eager call: no `nn.Module.__getattr__`, about a microsecond each)
     if not all(plain_linear(modules.get(name), bias=False) for name in PROJECTIONS):
-        return False
+        return CALL_MODULES
     if runs_extra_code(modules["attn_norm"]) or runs_extra_code(modules["mlp_norm"]):
-        return False
+        return CALL_MODULES
     device = modules["qkv_proj"]._parameters["weight"].device.type
-    return not (torch.amp.is_autocast_available(device) and torch.is_autocast_enabled(device))
+    if torch.amp.is_autocast_available(device) and torch.is_autocast_enabled(device):
+        return CALL_MODULES
+    return SamplingWeights(*(modules[name]._parameters["weight"].t() for name in PROJECTIONS))
 
 
-def layer_sampling_weights(layer: JointDecoderLayer, vlm: bool, expert: bool) -> tuple[SamplingWeights, SamplingWeights]:
-    """The (VLM, action expert) `SamplingWeights` of a sampling pass that runs the given experts; `CALL_MODULES` for
-    both where the layer has hooks or a replaced `forward` of its own (block offloading puts the weights in place in a
-    hook, after this is called; a hook that keeps the layer's outputs must not see them updated in place)."""
+def layer_sampling_weights(layer: JointDecoderLayer) -> tuple[SamplingWeights, SamplingWeights]:
+    """The (VLM, action expert) `SamplingWeights` of a sampling pass; `CALL_MODULES` for both where the layer has
+    hooks or a replaced `forward` of its own (block offloading puts the weights in place in a hook, after this is
+    called; a hook that keeps the layer's outputs must not see them updated in place)."""
     if runs_extra_code(layer):
         return CALL_MODULES, CALL_MODULES
-    experts = layer._modules
-    return (expert_sampling_weights(experts["vlm"]) if vlm else CALL_MODULES,
-            expert_sampling_weights(experts["expert"]) if expert else CALL_MODULES)
+    return expert_sampling_weights(layer._modules["vlm"]), expert_sampling_weights(layer._modules["expert"])
 
 
 @dataclass(frozen=True)
@@ -95,7 +87,7 @@ def model_sampling_weights(model: nn.Module) -> ModelSamplingWeights:
     action_linears = [model.action_in_proj, model.action_out_proj]
     if not model.config.pi05:
         action_linears += [model.action_time_mlp_in, model.action_time_mlp_out]
-    return ModelSamplingWeights(tuple(layer_sampling_weights(layer, vlm=True, expert=True) for layer in model.layers),
+    return ModelSamplingWeights(tuple(layer_sampling_weights(layer) for layer in model.layers),
                                 all(plain_linear(linear, bias=True) for linear in action_linears))
 
 

@@ -108,23 +108,16 @@ def prefix_stream(
 ) -> StreamPass:
     """The prefix in slots `[0, length)`: sample b's valid tokens from `first[b]` at positions 0, 1, ...; they see
     each other (bidirectional) and nothing after. `rope`: the call's `rope_tables`."""
-    return _stream(config, first, 0, (layout.length,), layout, kernel, slots, dtype, rope)
+    return suffix_stream(config, first, layout, 0, (layout.length,), kernel, slots, dtype, rope)
 
 
 def suffix_stream(
     config: PI0Config, first: torch.Tensor, layout: PrefixLayout, first_slot: int, group_rows: tuple[int, ...], kernel: str,
     slots: int, dtype: torch.dtype, rope: tuple[torch.Tensor, torch.Tensor],
 ) -> StreamPass:
-    """Suffix tokens in slots from `first_slot` (after the prefix): positions continue after each sample's valid
-    prefix tokens; each group of rows sees the valid prefix and the suffix slots up to its own end. `rope`: the call's
-    `rope_tables`."""
-    return _stream(config, first, first_slot, group_rows, layout, kernel, slots, dtype, rope)
-
-
-def _stream(
-    config: PI0Config, first: torch.Tensor, first_slot: int, group_rows: tuple[int, ...], layout: PrefixLayout,
-    kernel: str, slots: int, dtype: torch.dtype, rope: tuple[torch.Tensor, torch.Tensor],
-) -> StreamPass:
+    """Tokens in slots from `first_slot` (the suffix's: after the prefix; the prefix's: `prefix_stream`) at the
+    positions of `rope`, the call's `rope_tables`; each group of rows sees the valid prefix and the slots up to its own
+    end."""
     tokens = sum(group_rows)
     cos, sin = (table[:, first_slot : first_slot + tokens] for table in rope)
     ends = tuple(first_slot + sum(group_rows[: index + 1]) for index in range(len(group_rows)))

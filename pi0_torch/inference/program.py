@@ -32,9 +32,6 @@ from pi0_torch.inference.conditioning import euler_times
 from pi0_torch.inference.layout import PrefixLayout
 from pi0_torch.inference.plan import SamplingInputs, SamplingPlan
 
-INPUT_NAMES = ("pixel_values", "image_masks", "input_ids", "attention_mask", "state", "noise")
-
-
 class SamplingProgram(nn.Module):
     """`generate_actions(pixel_values, image_masks, input_ids, attention_mask, state, noise=noise)` after its checks,
     for one batch size, step count and prompt length (see the module docstring). Make it with
@@ -47,21 +44,14 @@ class SamplingProgram(nn.Module):
     normalized model space.
     """
 
-    def __init__(self, model: nn.Module, batch_size: int, plan: SamplingPlan, text_length: int) -> None:
+    def __init__(self, model: nn.Module, batch_size: int, num_steps: int, text_length: int) -> None:
         super().__init__()
         self.model = model
         self.batch_size = batch_size
-        self.plan = plan
         self.text_length = text_length
-
-    @staticmethod
-    def static_layout(num_cameras: int, tokens_per_image: int, text_length: int) -> PrefixLayout:
-        """The prefix layout of a program: every camera, every text slot, padded (any sample may have fewer)."""
-        return PrefixLayout(tuple(range(num_cameras)), num_cameras * tokens_per_image + text_length, padded=True)
-
-    @staticmethod
-    def times(num_steps: int) -> tuple[float, ...]:
-        return tuple(euler_times(num_steps))
+        cameras = model.config.num_cameras  # (every camera, every text slot, padded: any sample may have fewer)
+        layout = PrefixLayout(tuple(range(cameras)), cameras * model.config.tokens_per_image + text_length, padded=True)
+        self.plan = SamplingPlan(layout, tuple(euler_times(num_steps)), attention="sdpa")  # (what exporters take)
 
     def forward(
         self,

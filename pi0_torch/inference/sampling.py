@@ -1,11 +1,9 @@
 """`generate_actions` as it runs fast: `ActionSampling`, the mixin that gives `PI0ForActionGeneration` its sampling
 (as transformers' `GenerationMixin` gives a model `generate`).
 
-The prefix runs once and every layer's post-RoPE k/v stay in static buffers (`cache_prefix`); each Euler step runs
-only the action tokens against them (`denoise_step`); everything that depends only on the flow time is computed for
-all steps up front. The inputs are read on the host once, by their checks; after that nothing waits for the device,
-so the sampling can be replayed as one CUDA graph (`capture_sampling`, see `pi0_torch.inference.graphs`) or run with
-regionally compiled layers (`compile_sampling`).
+As `generate_actions` says, nothing waits for the device after the input checks, so the sampling can be replayed as
+one CUDA graph (`capture_sampling`, see `pi0_torch.inference.graphs`) or run with regionally compiled layers
+(`compile_sampling`).
 
 `PI0ForActionGeneration.sample_actions_reference` computes the same chunk the plain way (openpi's mask, no layout,
 no cache tricks): the tests compare the two at every level.
@@ -22,7 +20,7 @@ import torch
 
 from pi0_torch.inference import fused_pass, vision_pass
 from pi0_torch.inference.attention import KERNELS, choose_kernel
-from pi0_torch.inference.checks import (auto_avoids_persistent, sampling_layers_reason, sampling_ops_reason, setting_reason,
+from pi0_torch.inference.checks import (auto_avoids_persistent, layers_reason, sampling_ops_reason, setting_reason,
                                         verify_fused_sampling)
 from pi0_torch.inference.conditioning import NormParams, StepConditioning, euler_times
 from pi0_torch.inference.fused_pass import FusedSteps
@@ -105,11 +103,6 @@ class ActionSampling:
         return self.__dict__.setdefault("_fused_verdicts", {})
 
     @property
-    def _device_times(self) -> dict[tuple[tuple[float, ...], torch.device], torch.Tensor]:
-        """(Euler times, device) -> those times as a float32 tensor there (made once)."""
-        return self.__dict__.setdefault("_euler_times_on", {})
-
-    @property
     def last_sampling_route(self) -> SamplingRoute | None:
         """What ran the last `generate_actions` call that returned actions (None before the first): the kernels of its
         Euler steps ("torch", "triton" or "persistent"), whether it replayed a CUDA graph, why its steps ran unfused,
@@ -179,9 +172,11 @@ class ActionSampling:
 
         def check() -> str | None:
             plain = model_sampling_weights(self) if weights is None else weights
-            return sampling_layers_reason(config.num_key_value_heads, config.head_dim, self.sampling_compiled, plain) or (
-                sampling_ops_reason(device, dtype, config.expert_hidden_size, config.num_attention_heads, config.head_dim,
-                                    config.expert_intermediate_size, config.action_dim, config.vision_hidden_size))
+            experts = [expert for _, expert in plain.layers]
+            return layers_reason(config.num_key_value_heads, config.head_dim, experts, self.sampling_compiled,
+                                 plain.plain_action_linears) or sampling_ops_reason(
+                device, dtype, config.expert_hidden_size, config.num_attention_heads, config.head_dim,
+                config.expert_intermediate_size, config.action_dim, config.vision_hidden_size)
 
         unsupported = None if rtc_method is None else f"real-time chunking ({rtc_method}) steps run unfused"
         return setting_reason(self._sampling_kernels, "sampling_kernels", device, dtype, check, unsupported)
@@ -277,9 +272,8 @@ class ActionSampling:
         batch = len(facts.text_counts)
         if noise is None:
             noise = torch.randn(batch, config.action_horizon, config.action_dim, generator=generator, device=pixel_values.device)
-        prefix = None
-        if previous_actions is not None:
-            prefix = self._chunk_prefix(batch, previous_actions, inference_delay, execution_horizon, rtc_method, rtc_max_guidance, rtc_schedule)
+        prefix = None if previous_actions is None else self._chunk_prefix(
+            batch, previous_actions, inference_delay, execution_horizon, rtc_method, rtc_max_guidance, rtc_schedule)
         method = None if prefix is None or (rtc_method == "guidance" and rtc_max_guidance == 0) else rtc_method
         if method == "guidance":
             self._check_differentiable_steps()
@@ -318,9 +312,8 @@ class ActionSampling:
         batch_size = check_int("batch_size", batch_size, minimum=1, maximum=MAX_BATCH_SIZE)
         text_length = check_int("text_length", config.max_token_len if text_length is None else text_length, minimum=1,
                                 maximum=config.max_token_len)
-        layout = SamplingProgram.static_layout(config.num_cameras, config.tokens_per_image, text_length)
-        times = SamplingProgram.times(config.num_inference_steps if num_steps is None else num_steps)
-        return SamplingProgram(self, batch_size, SamplingPlan(layout, times, attention="sdpa"), text_length)
+        num_steps = config.num_inference_steps if num_steps is None else num_steps
+        return SamplingProgram(self, batch_size, num_steps, text_length)
 
     def _check_differentiable_steps(self) -> None:
         """RTC guidance differentiates the action expert's layers (a vector-Jacobian product per step): refuse, by
@@ -397,10 +390,9 @@ class ActionSampling:
         and itself, so neither changes with the noisy actions or the flow time. The buffers have room for the action
         tokens, whose k/v each denoising step writes in place (no per-step copy of the prefix). `differentiable_steps`:
         the steps will attend through SDPA's mask (RTC guidance), so the buffers are laid out for it. `fused`: the
-        layers run `fused_pass.prefix_layer` (the fused kernels around cuBLAS's GEMMs), SigLIP `vision_pass`, and π0's
-        state token is left to the first fused step, which runs it beside the action tokens on the same pass over the
-        action expert's weights (`PrefixCache.state`, `fused_pass.FusedSteps`). `attention`: the attention kernel
-        setting (default: `attention_kernel`). `weights`: the call's plain-weights check (made here where not given).
+        layers run `fused_pass.prefix_layer`, SigLIP `vision_pass`, and π0's state token is left to the first fused
+        step (`PrefixCache.state`, `fused_pass.FusedSteps`). `attention`: the attention kernel setting (default:
+        `attention_kernel`). `weights`: the call's plain-weights check (made here where not given).
         """
         config = self.config
         pixel_values = inputs.pixel_values
@@ -437,8 +429,6 @@ class ActionSampling:
         scales = [norm.scale for norm in rms_norm_params(  # (fused: the VLM's attention and MLP norms of each layer)
             [norm for layer in self.layers for norm in (layer.vlm.attn_norm, layer.vlm.mlp_norm)] if fused else [])]
         weights = (model_sampling_weights(self) if weights is None else weights).layers
-        if state is None:  # (the action expert runs nothing in this pass)
-            weights = tuple((vlm, CALL_MODULES) for vlm, _ in weights)
         for index, (layer, layer_keys, layer_values, layer_weights) in enumerate(zip(self.layers, keys, values, weights)):
             last = index == len(self.layers) - 1
             if fused and layer_weights[0].usable:
@@ -536,10 +526,10 @@ class ActionSampling:
 
     def _times_on(self, times: tuple[float, ...], device: torch.device) -> torch.Tensor:
         """The Euler times as a float32 tensor on `device`, made once (no host-to-device copy per call)."""
-        key = (times, device)
-        if key not in self._device_times:
-            self._device_times[key] = torch.tensor(times, dtype=torch.float32, device=device)
-        return self._device_times[key]
+        made = self.__dict__.setdefault("_euler_times_on", {})  # (times, device) -> the tensor
+        if (times, device) not in made:
+            made[times, device] = torch.tensor(times, dtype=torch.float32, device=device)
+        return made[times, device]
 
     def _chunk_prefix(
         self,
@@ -655,7 +645,7 @@ class ActionSampling:
         they are dropped and captured again on the next call."""
         if getattr(self, "_graphs", None) is not None:
             self._graphs.clear()
-        self._device_times.clear()
+        self.__dict__.pop("_euler_times_on", None)  # (`_times_on`'s)
         self._fused_refusals.clear()
         return super()._apply(fn, *args, **kwargs)
 

@@ -17,8 +17,8 @@ from typing import Any
 
 import torch
 
-from pi0_torch.inference.checks import (decoding_layers_reason, decoding_ops_reason, relative_deviation, setting_reason,
-                                        verify_bound)
+from pi0_torch.inference.checks import (VERIFY_TOLERANCE, bound, decoding_ops_reason, layers_reason,
+                                        relative_deviation, setting_reason)
 from pi0_torch.inference.fast_decoding import DecodingLayers
 from pi0_torch.inference.layer_pass import SamplingWeights, decoder_sampling_weights
 
@@ -84,29 +84,27 @@ class TokenDecoding:
         if temperature < 0:
             raise ValueError(f"temperature must be >= 0, got {temperature}")
         slots = self.decoding_slots(pixel_values.shape[1], input_ids.shape[1], max_new_tokens)
-        fused = None  # (compiled decoding traces the modules: see `compile_decoding`)
-        if self._compiled_prefill is None:
+        inputs = (pixel_values, image_masks, input_ids, attention_mask, token_ar_mask, max_new_tokens)
+        eager = (self.prepare_decoding, self.decode_step)
+        if self._compiled_prefill is None:  # (compiled decoding traces the modules: see `compile_decoding`)
             weights = functools.cache(lambda: decoder_sampling_weights(self.layers))  # (the call's plain-weights check,
             # made once where something reads it: the gate, then the fused layers)
-            if self.decoding_kernels_reason(pixel_values.device, self.dtype, pixel_values.shape[0], slots, weights) is None:
-                fused = weights()
-        inputs = (pixel_values, image_masks, input_ids, attention_mask, token_ar_mask, max_new_tokens, fused)
-        if self._compiled_prefill is None:
-            if self._decoding_graphs is not None and pixel_values.device.type == "cuda":
-                graphs = self._decoding_graphs
-                return self.decode(graphs.prepare, graphs.step, inputs, temperature, generator)[0]
-            return self.decode(self.prepare_decoding, self.decode_step, inputs, temperature, generator)[0]
+            reason = self.decoding_kernels_reason(pixel_values.device, self.dtype, len(pixel_values), slots, weights)
+            graphs = self._decoding_graphs if pixel_values.device.type == "cuda" else None
+            functions = eager if graphs is None else (graphs.prepare, graphs.step)
+            return self.decode(*functions, (*inputs, weights() if reason is None else None), temperature, generator)[0]
+        inputs += (None,)  # (no fused layers)
         tokens, logits = self.decode(self._compiled_prefill, self._compiled_decode_step, inputs, temperature, generator)
         if self._calls_to_verify > 0:  # the compiled (CUDA graph) decoding against eager decoding of the same tokens
             self._calls_to_verify -= 1
-            _, eager_logits = self.decode(self.prepare_decoding, self.decode_step, inputs, temperature, None, forced=tokens)
+            _, eager_logits = self.decode(*eager, inputs, temperature, None, forced=tokens)
             deviation = max(relative_deviation(got, want) for got, want in zip(logits, eager_logits))
-            bound = verify_bound(self.dtype)
-            if not deviation <= bound:
+            limit = bound(VERIFY_TOLERANCE, self.dtype)
+            if not deviation <= limit:
                 logger.warning("compiled decoding was refused: its logits deviate from eager decoding by %.3g of the "
-                               "largest (bound %g); generate_tokens decodes eagerly from now on", deviation, bound)
+                               "largest (bound %g); generate_tokens decodes eagerly from now on", deviation, limit)
                 self.compile_decoding(disable=True)
-                return self.decode(self.prepare_decoding, self.decode_step, inputs, temperature, generator)[0]
+                return self.decode(*eager, inputs, temperature, generator)[0]
         return tokens
 
     def decode(
@@ -139,10 +137,9 @@ class TokenDecoding:
 
     @property
     def decoding_kernels(self) -> str:
-        """What runs the decoder layers of each decoded token: "auto" (cuBLAS's GEMMs with the fused Triton kernels of
-        `pi0_torch.kernels` around them, nine ops per layer, ten launches, attention over the token's one range of
-        slots with no mask, see `pi0_torch.inference.fast_decoding`; on CUDA in bf16 / fp16 where the kernels passed
-        their check against the torch references on that device; else "torch"), "torch" (the modules, SDPA with a
+        """What runs the decoder layers of each decoded token: "auto" (the fused Triton kernels around cuBLAS's GEMMs,
+        `pi0_torch.inference.fast_decoding`, on CUDA in bf16 / fp16 where the kernels passed their check against the
+        torch references on that device; else "torch"), "torch" (the modules, SDPA with a
         mask; the CPU's path) or "triton" (the fused kernels wherever triton runs them, `TRITON_INTERPRET=1` included,
         or a `ValueError` naming why not). The check runs once per batch size and cache length (triton compiles the
         kernels per class of arguments). The prefill always runs the modules."""
@@ -164,7 +161,7 @@ class TokenDecoding:
 
         def check() -> str | None:
             plain = decoder_sampling_weights(self.layers) if weights is None else weights()
-            return decoding_layers_reason(plain, config.num_key_value_heads, config.head_dim) or decoding_ops_reason(
+            return layers_reason(config.num_key_value_heads, config.head_dim, plain) or decoding_ops_reason(
                 device, dtype, config.num_attention_heads, config.head_dim, config.intermediate_size, batch, slots)
 
         return setting_reason(self._decoding_kernels, "decoding_kernels", device, dtype, check)

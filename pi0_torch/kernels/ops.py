@@ -251,7 +251,11 @@ def _(x, attention_scales, qkv, o, mlp_scales, gate_up, down, cos, sin, key_cach
     return None
 
 
-# op -> the name of its implementations (`pi0_torch::geglu` -> `geglu`), for `call`
-_NAMES: dict[Any, str] = {op: op._name.split("::")[-1] for op in (
+def op_name(op: Any) -> str:
+    """A custom op's name (`pi0_torch::geglu` -> `geglu`): its functions' in `reference` and the Triton modules."""
+    return op._name.split("::")[-1]
+
+
+_NAMES: dict[Any, str] = {op: op_name(op) for op in (  # (for `call`)
     embed_actions, add_layer_norm_, norm_qkv_rope, norm_gate_up_geglu, matmul_residual_, range_attention,
     norm_linear_euler_, rope_cache_write, geglu, expert_layers_)}

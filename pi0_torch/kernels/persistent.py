@@ -32,10 +32,8 @@ The layers' weights stay where the model keeps them: the kernel reads layer 0's 
 and dtype and start 16-byte aligned. The caches, norm scales and adaRMS tensors are stacked `[L, ...]`.
 
 The numbers are those of `pi0_torch.kernels.reference.expert_layers_` (float32 sums, bf16 outputs), not bit for bit
-(its sums go in other orders). Measured on an H200 (docs/gpu.md): an Euler step of π0's 18 layers takes about 1.09 ms
-so against 0.98 ms in the five launches per layer, inside a CUDA graph; eagerly, where the host's launches bound a
-chunk, the 10 launches of a chunk instead of 900 take it from 45-67 ms to 32-47 ms at batch 1. So "auto" runs it in
-eager calls of one or two samples (`ActionSampling.runs_persistent`), and CUDA graphs keep the five launches.
+(its sums go in other orders). Inside a CUDA graph a step of π0's 18 layers takes about 1.09 ms so against 0.98 ms in
+five launches per layer (an H200, docs/gpu.md); eagerly it is faster: `ActionSampling.runs_persistent` says where.
 """
 
 from __future__ import annotations
@@ -437,8 +435,10 @@ def expert_layers_(
     hidden = x.new_empty(rows, mlp_width)
     partial = x.new_empty(tiling.key_parts, rows * heads, head_dim, dtype=torch.float32)
     stats = x.new_empty(2, tiling.key_parts, rows * heads, dtype=torch.float32)
-    qkv_parts, o_parts, gate_up_parts, down_parts = (
-        phase_workspace(x, outputs, tiling.m, columns, splits)
+    row_blocks = cdiv(rows, tiling.m)
+    qkv_parts, o_parts, gate_up_parts, down_parts = (  # each phase's split-K workspace (its tiles' parts; the layers
+        # take turns in it), or `x` where the phase is not split (never read); q/k/v's outputs are column pairs
+        x if splits == 1 else split_workspace(x, row_blocks * cdiv(outputs, columns), tiling.m, columns, splits)
         for outputs, columns, splits in (((heads + 2) * head_dim // 2, tiling.qkv, tiling.qkv_splits),
                                          (width, tiling.o, tiling.o_splits),
                                          (mlp_width, tiling.gate_up, tiling.gate_up_splits),
@@ -557,12 +557,10 @@ def state_size(depth: int, rows: int, tokens: int, heads: int, head_dim: int, wi
     """The counters of a launch: the next ticket, the programs finished, and per layer the q/k/v tiles and attention
     blocks done, the o-projection, gate/up and down-projection tiles done per row block, the key parts arrived per
     attention block, and the split-K parts arrived per o-projection, down-projection, q/k/v and gate/up tile
-    (`_expert_layers_kernel`'s layout)."""
-    row_blocks = cdiv(rows, tiling.m)
-    attention_blocks = rows // tokens * cdiv(tokens * heads, tiling.attention_m)
-    split_tiles = row_blocks * (cdiv(width, tiling.o) + cdiv(width, tiling.down)
-                                + cdiv((heads + 2) * head_dim // 2, tiling.qkv) + cdiv(mlp_width, tiling.gate_up))
-    return 2 + depth * (2 + 3 * row_blocks + attention_blocks + split_tiles)
+    (`_expert_layers_kernel`'s layout): per phase its tickets over their parts (`phase_tiles`)."""
+    parts = (tiling.qkv_splits, tiling.key_parts, tiling.o_splits, tiling.gate_up_splits, tiling.down_splits)
+    tiles = phase_tiles(rows, tokens, heads, head_dim, width, mlp_width, tiling)
+    return 2 + depth * (2 + 3 * cdiv(rows, tiling.m) + sum(each // split for each, split in zip(tiles, parts)))
 
 
 PHASES = ("q/k/v", "attention", "o-projection", "gate/up", "down-projection")
@@ -577,11 +575,3 @@ def phase_tiles(rows: int, tokens: int, heads: int, head_dim: int, width: int, m
             row_blocks * cdiv(width, tiling.o) * tiling.o_splits,
             row_blocks * cdiv(mlp_width, tiling.gate_up) * tiling.gate_up_splits,
             row_blocks * cdiv(width, tiling.down) * tiling.down_splits]
-
-
-def phase_workspace(x: torch.Tensor, outputs: int, rows: int, columns: int, splits: int) -> torch.Tensor:
-    """The split-K workspace of a phase with `outputs` output columns (q/k/v: column pairs) for each of `x`'s rows, in
-    tiles of `rows` x `columns` (`split_workspace`; one launch's layers take turns in it), or `x` where the phase is
-    not split (never read)."""
-    tiles = cdiv(x.shape[0], rows) * cdiv(outputs, columns)
-    return x if splits == 1 else split_workspace(x, tiles, rows, columns, splits)

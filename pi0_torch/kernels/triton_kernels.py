@@ -25,9 +25,7 @@ dtype on a GPU. Under `TRITON_INTERPRET=1` (the CPU tests) they are float32: the
 Only `tl.load` / `tl.store` (with a cache modifier) / `tl.dot` (with its input precision) / `tl.where` / `tl.exp` /
 `tl.sqrt` / reductions / `tl.atomic_add` / `tl.debug_barrier` are used, all in the triton that torch 2.10's CUDA
 wheels pin (3.6; every variant also compiles with 3.2). Tilings come from `blocks`, `narrow_blocks` and
-`attention_blocks`, measured on an H200 (small M: the suffix's 50 rows per sample; split-K in the same launch where
-a GEMM's output tiles are few, see `split_k` and `_sum_splits`). Each kernel launches through
-`pi0_torch.kernels.launch.direct_launch` (the compiled kernel called without triton's per-call binding).
+`attention_blocks`; each kernel launches through `pi0_torch.kernels.launch.direct_launch`.
 """
 
 from __future__ import annotations
@@ -166,20 +164,27 @@ def _matmul_tiles(
 
 
 @triton.jit
-def _k_range(K, k_split, SPLIT: tl.constexpr):
-    """This program's part `[k_start, k_stop)` of the reduction: part `program_id(2)` of `k_split` columns with
-    SPLIT, else all of it."""
+def _split_matmul(x_ptr, stride_xm, scale_ptr, w_ptr, stride_wk, stride_wn, rows, columns, second, M, K, N, written,
+                  workspace_ptr, counter_ptr, k_split, splits, BLOCK_M: tl.constexpr, BLOCK_N: tl.constexpr,
+                  BLOCK_K: tl.constexpr, NORM: tl.constexpr, PAIRED: tl.constexpr, DOT: tl.constexpr,
+                  SPLIT: tl.constexpr):
+    """`_matmul_tiles` of a launch's program: without SPLIT over all K; with SPLIT over part `program_id(2)` of
+    `k_split` columns of the output tile of grid axes 0 and 1, the parts summed by the last to arrive (`_sum_splits`).
+    Returns the sums and the bound of the columns this program writes: `written`, or 0 where another part sums."""
     if SPLIT:
         k_start = tl.program_id(2) * k_split
-        return k_start, tl.minimum(k_start + k_split, K)
-    return 0, K
-
-
-@triton.jit
-def _split_tile():
-    """The output tile of a split-K launch's program: its row and column blocks (grid axes 0 and 1; axis 2 is the
-    part)."""
-    return tl.program_id(0) * tl.num_programs(1) + tl.program_id(1)
+        k_stop = tl.minimum(k_start + k_split, K)
+    else:
+        k_start, k_stop = 0, K
+    acc, acc_second, squares = _matmul_tiles(x_ptr, stride_xm, scale_ptr, w_ptr, stride_wk, stride_wn, rows, columns,
+                                             second, M, k_start, k_stop, N, BLOCK_M, BLOCK_N, BLOCK_K, NORM, PAIRED,
+                                             DOT, "")
+    if SPLIT:
+        acc, acc_second, squares, last = _sum_splits(acc, acc_second, squares, workspace_ptr, counter_ptr,
+                                                     tl.program_id(0) * tl.num_programs(1) + tl.program_id(1),
+                                                     tl.program_id(2), splits, BLOCK_M, BLOCK_N, PAIRED, NORM)
+        written = tl.where(last, written, 0)
+    return acc, acc_second, squares, written
 
 
 @triton.jit
@@ -239,17 +244,12 @@ def _norm_qkv_rope_kernel(
     rows = tl.program_id(0) * BLOCK_M + tl.arange(0, BLOCK_M)
     pairs = tl.program_id(1) * BLOCK_N + tl.arange(0, BLOCK_N)  # column pairs (c, c + H/2) of every head: q..., k, v
     first_half = pairs // half * HEAD_DIM + pairs % half  # (each pair's first column)
-    n = (HEADS + 2) * HEAD_DIM
-    k_start, k_stop = _k_range(K, k_split, SPLIT)
-    acc1, acc2, squares = _matmul_tiles(x_ptr, stride_xm, scale_ptr, w_ptr, stride_wk, stride_wn, rows, first_half, half,
-                                        M, k_start, k_stop, n, BLOCK_M, BLOCK_N, BLOCK_K, True, True, DOT, "")
-    pair_ok = pairs < (HEADS + 2) * half
-    if SPLIT:
-        acc1, acc2, squares, last = _sum_splits(acc1, acc2, squares, workspace_ptr, counter_ptr, _split_tile(),
-                                                tl.program_id(2), splits, BLOCK_M, BLOCK_N, True, True)
-        pair_ok = pairs < tl.where(last, (HEADS + 2) * half, 0)  # (only the last program writes)
-    _rope_store(acc1, acc2, squares, rows, pairs, pair_ok, bias_ptr, cos_ptr, sin_ptr, q_ptr, key_ptr, value_ptr, M, K,
-                tokens, first_slot, slots, stride_cos_b, stride_cos_t, eps, HEADS, HEAD_DIM, HAS_BIAS)
+    acc1, acc2, squares, written = _split_matmul(x_ptr, stride_xm, scale_ptr, w_ptr, stride_wk, stride_wn, rows,
+                                                 first_half, half, M, K, (HEADS + 2) * HEAD_DIM, (HEADS + 2) * half,
+                                                 workspace_ptr, counter_ptr, k_split, splits, BLOCK_M, BLOCK_N, BLOCK_K,
+                                                 True, True, DOT, SPLIT)
+    _rope_store(acc1, acc2, squares, rows, pairs, pairs < written, bias_ptr, cos_ptr, sin_ptr, q_ptr, key_ptr,
+                value_ptr, M, K, tokens, first_slot, slots, stride_cos_b, stride_cos_t, eps, HEADS, HEAD_DIM, HAS_BIAS)
 
 
 @triton.jit
@@ -301,15 +301,10 @@ def _norm_gate_up_geglu_kernel(
 ):
     rows = tl.program_id(0) * BLOCK_M + tl.arange(0, BLOCK_M)
     columns = tl.program_id(1) * BLOCK_N + tl.arange(0, BLOCK_N)  # gate column c pairs with up column F + c
-    k_start, k_stop = _k_range(K, k_split, SPLIT)
-    gate, up, squares = _matmul_tiles(x_ptr, stride_xm, scale_ptr, w_ptr, stride_wk, stride_wn, rows, columns, F, M,
-                                      k_start, k_stop, F, BLOCK_M, BLOCK_N, BLOCK_K, True, True, DOT, "")
-    column_ok = columns < F
-    if SPLIT:
-        gate, up, squares, last = _sum_splits(gate, up, squares, workspace_ptr, counter_ptr, _split_tile(),
-                                              tl.program_id(2), splits, BLOCK_M, BLOCK_N, True, True)
-        column_ok = columns < tl.where(last, F, 0)  # (only the last program writes)
-    _geglu_store(gate, up, squares, rows, columns, column_ok, bias_ptr, out_ptr, M, K, F, eps, HAS_BIAS)
+    gate, up, squares, written = _split_matmul(x_ptr, stride_xm, scale_ptr, w_ptr, stride_wk, stride_wn, rows, columns,
+                                               F, M, K, F, F, workspace_ptr, counter_ptr, k_split, splits, BLOCK_M,
+                                               BLOCK_N, BLOCK_K, True, True, DOT, SPLIT)
+    _geglu_store(gate, up, squares, rows, columns, columns < written, bias_ptr, out_ptr, M, K, F, eps, HAS_BIAS)
 
 
 @triton.jit
@@ -336,14 +331,10 @@ def _matmul_residual_kernel(
 ):
     rows = tl.program_id(0) * BLOCK_M + tl.arange(0, BLOCK_M)
     columns = tl.program_id(1) * BLOCK_N + tl.arange(0, BLOCK_N)
-    k_start, k_stop = _k_range(K, k_split, SPLIT)
-    acc, unused, no_squares = _matmul_tiles(y_ptr, stride_ym, y_ptr, w_ptr, stride_wk, stride_wn, rows, columns, 0, M,
-                                            k_start, k_stop, N, BLOCK_M, BLOCK_N, BLOCK_K, False, False, DOT, "")
-    column_ok = columns < N
-    if SPLIT:
-        acc, unused, no_squares, last = _sum_splits(acc, unused, no_squares, workspace_ptr, counter_ptr, _split_tile(),
-                                                    tl.program_id(2), splits, BLOCK_M, BLOCK_N, False, False)
-        column_ok = columns < tl.where(last, N, 0)  # (only the last program writes)
+    acc, unused, no_squares, written = _split_matmul(y_ptr, stride_ym, y_ptr, w_ptr, stride_wk, stride_wn, rows,
+                                                     columns, 0, M, K, N, N, workspace_ptr, counter_ptr, k_split,
+                                                     splits, BLOCK_M, BLOCK_N, BLOCK_K, False, False, DOT, SPLIT)
+    column_ok = columns < written  # (split: only the last program writes)
     if HAS_GATE:
         acc = acc * tl.load(gate_ptr + columns, mask=column_ok, other=0.0).to(tl.float32)[None, :]
     ok = (rows < M)[:, None] & column_ok[None, :]
@@ -620,18 +611,13 @@ def split_k(x: torch.Tensor, tile: Blocks, tiles: int, depth: int) -> tuple[Bloc
     if tile.splits == 1 or tiles > COUNTER_SLOTS:
         return tile._replace(splits=1), x, x, depth
     workspace = split_workspace(x, tiles, tile.m, tile.n, tile.splits)
-    return tile, workspace, arrival_counters(x.device), cdiv(cdiv(depth, tile.splits), tile.k) * tile.k
+    return tile, workspace, zeroed_counters(x.device, COUNTER_SLOTS), cdiv(cdiv(depth, tile.splits), tile.k) * tile.k
 
 
 def split_workspace(x: torch.Tensor, tiles: int, rows: int, columns: int, splits: int) -> torch.Tensor:
     """float32 room on `x`'s device for the `splits` parts of `tiles` output tiles of `rows` x `columns` each, as
     `_sum_splits` lays them out (per part: two accumulators and the rows' sums of squares)."""
     return x.new_empty(tiles * splits * (2 * rows * columns + rows), dtype=torch.float32)
-
-
-def arrival_counters(device: torch.device) -> torch.Tensor:
-    """The int32 `[COUNTER_SLOTS]` arrival counters of the current stream on `device` (see `split_k`)."""
-    return zeroed_counters(device, COUNTER_SLOTS)
 
 
 def zeroed_counters(device: torch.device, size: int) -> torch.Tensor:
@@ -752,7 +738,7 @@ def range_attention(query, key_cache, value_cache, first, row_ends):
     if splits > 1:
         partial = query.new_empty(splits, batch * rows, head_dim, dtype=torch.float32)
         stats = query.new_empty(2, splits, batch * rows, dtype=torch.float32)
-        counters = arrival_counters(query.device)
+        counters = zeroed_counters(query.device, COUNTER_SLOTS)
     _range_attention_kernel[(row_blocks, batch, splits)](
         query, key_cache, value_cache, out, partial, stats, counters, first, row_ends, batch, rows, heads,
         key_cache.shape[1], head_dim**-0.5, splits, HEAD_DIM=head_dim, DOT=dot_dtype(query.dtype), BLOCK_M=tile.m,
