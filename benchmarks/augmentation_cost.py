@@ -1,76 +1,63 @@
-"""What openpi's image augmentation costs in a training step: the shipped demo policy's size (two 48 px cameras,
-batch 32) on this machine's CPU (or `--device cuda`), side by side in one process.
+"""What openpi's image augmentation costs in a training step of the shipped demo policy's size (two 48 px cameras,
+batch 32): `pi0-torch train`'s own trainer on a small recorded PickPlace dataset, on this machine's CPU.
 
-    .venv/bin/python benchmarks/augmentation_cost.py [--batch 32] [--repeats 30] [--threads 2] [--device cpu]
+    .venv/bin/python benchmarks/augmentation_cost.py [--steps 150] [--rounds 3] [--threads 2]
 
-Times, interleaved round by round: the augmentation as the trainer runs it (`draw_augmentation` for the batch's keys,
-then `augment_images`), and one training step of the model (forward, loss, backward, AdamW step), and prints the
-medians and the augmentation's share of the step with it.
+Each round trains `--steps` steps with the augmentation, timing its two calls inside the trainer
+(`draw_augmentation` for the batch's keys, then `augment_images`), and the same steps without it (`--no-augment`).
+Prints per round the augmentation's time per step, the step times with and without it (wall time of the training
+loop over the steps, `train_runtime`), and the augmentation's share of the augmented step.
 """
 
 from __future__ import annotations
 
 import argparse
-import statistics
+import tempfile
 import time
+from pathlib import Path
 
-import torch
-
+from pi0_torch.envs.demos import record_demos
 from pi0_torch.shipped_policy import demo_policy_dir
-from pi0_torch.models.modeling_pi0 import PI0ForActionGeneration
-from pi0_torch.training.augmentation import augment_images, draw_augmentation
+from pi0_torch.training import pi0_trainer
+from pi0_torch.training.settings import TrainSettings
+from pi0_torch.training.trainer import train_policy
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--batch", type=int, default=32)
-    parser.add_argument("--repeats", type=int, default=30)
+    parser.add_argument("--steps", type=int, default=150)
+    parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--device", default="cpu")
     args = parser.parse_args()
-    torch.set_num_threads(args.threads)
-    device = torch.device(args.device)
-    synchronize = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
 
-    model = PI0ForActionGeneration.from_pretrained(demo_policy_dir()).to(device).train()
-    config = model.config
-    optimizer = torch.optim.AdamW(model.parameters(), lr=1e-5)
-    generator = torch.Generator().manual_seed(0)
-    size, cameras, batch = config.image_size, len(config.camera_names), args.batch
-    inputs = {
-        "pixel_values": torch.rand(batch, cameras, 3, size, size, generator=generator) * 2 - 1,
-        "image_masks": torch.ones(batch, cameras, dtype=torch.bool),
-        "input_ids": torch.randint(0, config.vocab_size, (batch, config.max_token_len), generator=generator),
-        "attention_mask": torch.ones(batch, config.max_token_len, dtype=torch.bool),
-        "state": torch.randn(batch, config.action_dim, generator=generator),
-        "actions": torch.randn(batch, config.action_horizon, config.action_dim, generator=generator),
-    }
-    inputs = {name: tensor.to(device) for name, tensor in inputs.items()}
-
-    def augmentation(step: int) -> None:
-        draws = draw_augmentation([(0, 2, step, position) for position in range(batch)], size, size)
-        augment_images(inputs["pixel_values"], config.camera_names, draws)
-
-    def training_step(step: int) -> None:
-        optimizer.zero_grad(set_to_none=True)
-        model(**inputs).loss.backward()
-        optimizer.step()
-
-    times: dict[str, list[float]] = {"augmentation": [], "training step": []}
-    for step in range(args.repeats + 3):
-        for name, run in (("augmentation", augmentation), ("training step", training_step)):
-            synchronize()
+    spent: list[float] = []  # seconds in the augmentation's calls, this round
+    for name in ("draw_augmentation", "augment_images"):  # (the trainer calls them by these module names)
+        def timed(*arguments, _function=getattr(pi0_trainer, name), **options):
             start = time.perf_counter()
-            run(step)
-            synchronize()
-            if step >= 3:  # (warm-up rounds)
-                times[name].append(time.perf_counter() - start)
-    augment_ms, step_ms = (statistics.median(times[name]) * 1e3 for name in ("augmentation", "training step"))
-    print(f"demo-size batch {batch}, {cameras} cameras of {size} px, {device}, {args.threads} threads, "
-          f"medians of {args.repeats} interleaved rounds")
-    print("| augmentation (draws + images) | training step without it | share of the step with it |")
-    print("|---|---|---|")
-    print(f"| {augment_ms:.2f} ms | {step_ms:.2f} ms | {100 * augment_ms / (augment_ms + step_ms):.1f}% |")
+            result = _function(*arguments, **options)
+            spent.append(time.perf_counter() - start)
+            return result
+        setattr(pi0_trainer, name, timed)
+
+    with tempfile.TemporaryDirectory() as scratch:
+        dataset = Path(scratch) / "pick_place"
+        record_demos("pi0_torch/PickPlace-v0", 20, dataset, image_size=48)
+        print(f"demo policy, batch 32, two 48 px cameras, CPU, {args.threads} threads, {args.steps} steps a run")
+        print("| round | augmentation a step | step with it | step without it | share of the step with it |")
+        print("|---|---|---|---|---|")
+        for round_index in range(1, args.rounds + 1):
+            step_ms, augment_ms = {}, 0.0
+            for augment in (True, False):
+                spent.clear()
+                settings = TrainSettings(dataset=str(dataset), model=str(demo_policy_dir()),
+                                         output_dir=str(Path(scratch) / f"run_{round_index}_{augment}"),
+                                         max_steps=args.steps, batch_size=32, threads=args.threads, cpu=True,
+                                         save_steps=10 * args.steps, logging_steps=10 * args.steps, augment=augment)
+                runtime = train_policy(settings)["log_history"][-1]["train_runtime"]  # (the loop's, not the set-up's)
+                step_ms[augment] = 1e3 * runtime / args.steps
+                augment_ms += 1e3 * sum(spent) / args.steps
+            print(f"| {round_index} | {augment_ms:.2f} ms | {step_ms[True]:.1f} ms | {step_ms[False]:.1f} ms | "
+                  f"{100 * augment_ms / step_ms[True]:.1f}% |")
 
 
 if __name__ == "__main__":

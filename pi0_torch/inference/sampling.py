@@ -1,9 +1,9 @@
 """`generate_actions` as it runs fast: `ActionSampling`, the mixin that gives `PI0ForActionGeneration` its sampling
 (as transformers' `GenerationMixin` gives a model `generate`).
 
-As `generate_actions` says, nothing waits for the device after the input checks, so the sampling can be replayed as
-one CUDA graph (`capture_sampling`, see `pi0_torch.inference.graphs`) or run with regionally compiled layers
-(`compile_sampling`).
+The prefix runs once into static k/v buffers (`cache_prefix`), each Euler step runs only the action tokens against
+them (`denoise_step`), and nothing waits for the device after the input checks: the sampling replays as one CUDA
+graph (`capture_sampling`, `pi0_torch.inference.graphs`) or runs regionally compiled layers (`compile_sampling`).
 
 `PI0ForActionGeneration.sample_actions_reference` computes the same chunk the plain way (openpi's mask, no layout,
 no cache tricks): the tests compare the two at every level.

@@ -15,7 +15,7 @@ augmax's own outputs (`tests/fixtures/augmax_reference`, within 1e-5 on float im
   contrast's S-curve around 0.5 (`slant = tan((c + 1) pi / 4)`), the hue turned by `h`; saturation is drawn by augmax
   but has no effect there (augmax 0.4.1 discards it), and so here; no clipping.
 
-Draws (`draw_augmentation`): per sample, from a numpy generator keyed by the sample's key (the trainer's `(seed,
+Draws (`draw_augmentation`): per sample, from a random stream keyed by the sample's key (the trainer's `(seed,
 step, position in the global batch)`), so runs are reproducible with `--seed` and independent across data-loader
 workers and processes. As in openpi, every non-wrist camera of a sample gets the same crop, angle and jitter, and
 every wrist camera the same jitter of its own (openpi reuses one key per sample for all cameras). A masked (absent)
@@ -52,10 +52,9 @@ class AugmentationDraws:
 
 
 def draw_augmentation(keys: Sequence[Sequence[int]], height: int, width: int) -> AugmentationDraws:
-    """The draws of a batch: per sample, eleven uniform numbers from numpy's `SeedSequence` of its key (a tuple of
-    ints), the hash numpy seeds its generators with (a generator per sample cost a third of the augmentation's time)."""
-    bits = np.stack([np.random.SeedSequence([int(k) for k in key]).generate_state(11, np.uint64) for key in keys])
-    uniform = (bits >> np.uint64(11)).astype(np.float64) * 2.0**-53  # [B, 11] in [0, 1): 53 random bits each
+    """The draws of a batch: per sample, eleven uniform numbers of a stream keyed by the sample's key (a tuple of
+    ints; `keyed_uniforms`)."""
+    uniform = keyed_uniforms(keys, 11)  # [B, 11]
     slack = np.array([(height - int(CROP_FRACTION * height)) / 2, (width - int(CROP_FRACTION * width)) / 2])
     limit = math.radians(MAX_ANGLE_DEGREES)
     amounts = np.array([BRIGHTNESS, CONTRAST, HUE])
@@ -65,6 +64,29 @@ def draw_augmentation(keys: Sequence[Sequence[int]], height: int, width: int) ->
     as_float = lambda array: torch.as_tensor(array, dtype=torch.float32)  # noqa: E731
     return AugmentationDraws(as_float(offsets), as_float(angles), as_float(jitters[..., 0]), as_float(jitters[..., 1]),
                              as_float(jitters[..., 2]), torch.as_tensor(uniform[:, 9:11] < JITTER_PROBABILITY))
+
+
+def keyed_uniforms(keys: Sequence[Sequence[int]], count: int) -> np.ndarray:
+    """`count` uniform numbers in [0, 1) per key (float64 `[len(keys), count]`, 53 random bits each): SplitMix64's
+    stream (Steele, Lea and Flood, 2014) from a hash of the key's ints, all keys at once (a numpy generator per key
+    cost as much as the images' augmentation on a demo-size CPU batch). Keys of one call have the same length."""
+    with np.errstate(over="ignore"):  # (uint64 arithmetic wraps, as SplitMix64 means it to)
+        state = np.zeros(len(keys), np.uint64)
+        for part in np.asarray(keys, dtype=np.int64).reshape(len(keys), -1).T.astype(np.uint64):
+            state = _splitmix64(state ^ part)
+        bits = _splitmix64(state[:, None] + np.arange(1, count + 1, dtype=np.uint64) * _GOLDEN_GAMMA)
+    return (bits >> np.uint64(11)).astype(np.float64) * 2.0**-53
+
+
+_GOLDEN_GAMMA = np.uint64(0x9E3779B97F4A7C15)  # SplitMix64's increment
+
+
+def _splitmix64(x: np.ndarray) -> np.ndarray:
+    """SplitMix64's step and output mix: `x + gamma`, then two xor-shift-multiplies and a xor-shift (uint64)."""
+    x = x + _GOLDEN_GAMMA
+    x = (x ^ (x >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+    x = (x ^ (x >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    return x ^ (x >> np.uint64(31))
 
 
 def warp(images: torch.Tensor, crop_offset: torch.Tensor, angle: torch.Tensor) -> torch.Tensor:
@@ -105,13 +127,13 @@ def color_jitter(images: torch.Tensor, brightness: torch.Tensor, contrast: torch
     # brightness b: v (1 + b) for b < 0, else v (1 - b) + b (per image, a scale and a shift)
     b = brightness.float()
     value = torch.addcmul(b.clamp(min=0).view(shape), value, torch.where(b < 0, 1 + b, 1 - b).view(shape))
-    # contrast's S-curve around 0.5, slant = tan((c + 1) pi / 4): v / slant below `low`, v / slant + 1 - 1 / slant
-    # above 1 - low, slant (v - 0.5) + 0.5 between
+    # contrast's S-curve around 0.5, slant = tan((c + 1) pi / 4): augmax's v / slant below `slant / (2 (1 + slant))`,
+    # v / slant + 1 - 1 / slant above 1 minus that, slant (v - 0.5) + 0.5 between; the three lines meet at those
+    # points, so the curve is the middle line clamped between the outer two (which is below depends on the slant)
     slant = torch.tan((contrast.float().view(shape) + 1) * (math.pi / 4))
-    low = (slant - slant * slant) / (2 * (1 - slant * slant))  # (NaN at slant 1: no branch, the identity)
-    lower = value / slant
+    lower, shift = value / slant, 1 - 1 / slant  # the outer lines: `lower` and `lower + shift`
     middle = torch.addcmul(0.5 - 0.5 * slant, value, slant)
-    value = torch.where(value < low, lower, torch.where(value > 1 - low, lower + (1 - 1 / slant), middle))
+    value = middle.clamp_(lower + shift.clamp(max=0), lower.add_(shift.clamp(min=0)))
 
     k = sixths[:, None] + images.new_tensor([5.0, 3.0, 1.0]).view(1, 3, 1, 1)  # [N, 3, H, W]
     k = k.sub_(torch.floor(k / 6).mul_(6))  # (k mod 6: torch.remainder's float kernel takes several times longer)
@@ -142,7 +164,8 @@ def augment_images(pixel_values: torch.Tensor, camera_names: Sequence[str], draw
     device = pixel_values.device
     kinds = [int("wrist" in name) for name in camera_names]  # per camera: 0 non-wrist, 1 wrist
     # camera-major [C * B, 3, H, W] in [0, 1]: one copy, then in place (the batch's own tensor is never written)
-    images = (pixel_values.transpose(0, 1).reshape(cameras * batch, channels, height, width).float() * 0.5).add_(0.5)
+    images = torch.empty(cameras, batch, channels, height, width, device=device)
+    images = torch.mul(pixel_values.transpose(0, 1), 0.5, out=images).add_(0.5).view(-1, channels, height, width)
     for index, kind in enumerate(kinds):
         if not kind:
             rows = slice(index * batch, (index + 1) * batch)
