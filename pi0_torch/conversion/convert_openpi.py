@@ -1,10 +1,11 @@
 """openpi checkpoints (orbax, read without JAX) -> pi0-torch folders: [`convert_openpi_checkpoint`] (`pi0-torch
 convert --from openpi`).
 
-π0 vs π0.5 vs π0-FAST and every dimension come from the parameter tree (`pi0_torch.conversion.openpi_weights`), the
-norm stats from the checkpoint's `assets/`; a LoRA fine-tune's adapters are merged into the weights. An openpi leaf is read one layer at a time: a leaf stored as one big
-chunk is decompressed once, as a stream, and its layers kept in memory or spilled to a scratch folder until they are
-written ([`_OpenpiLeafSource`]); every leaf must be used. The folder is written by `pi0_torch.conversion.output_folder`.
+π0 vs π0.5 vs π0-FAST and every dimension come from the parameter tree (`pi0_torch.conversion.openpi_weights`), the norm
+stats from the checkpoint's `assets/`; a LoRA fine-tune's adapters are merged into the weights. An openpi leaf is read
+one layer at a time: a leaf stored as one big chunk is decompressed once, as a stream, and its layers kept in memory or
+spilled to a scratch folder until they are written ([`_OpenpiLeafSource`]); every leaf must be used. The folder is
+written by `pi0_torch.conversion.output_folder`.
 """
 
 from __future__ import annotations

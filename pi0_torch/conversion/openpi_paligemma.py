@@ -2,11 +2,11 @@
 ours: what `pi0_torch.conversion.openpi_weights` (π0 / π0.5) and `pi0_torch.conversion.openpi_fast_weights`
 (π0-FAST) both build on.
 
-openpi stores every layer stacked on axis 0 and kernels as (in, out); we store one tensor per layer in torch's
-(out, in) layout, with q/k/v and gate/up fused. A tree trained with openpi's LoRA variants (`gemma_2b_lora`,
-`gemma_300m_lora`: the `*_low_mem_finetune` configs) holds adapter pairs beside the Gemma weights; they are merged
-into the weights they adapt ([`openpi_lora_ranks`]). Everything here works one openpi leaf (or one layer of it) at a time
-through a [`LeafReader`], so a converter can stream a 12 GB checkpoint with bounded memory.
+openpi stores every layer stacked on axis 0 and kernels as (in, out); we store one tensor per layer in torch's (out, in)
+layout, with q/k/v and gate/up fused. A tree trained with openpi's LoRA variants (`gemma_2b_lora`, `gemma_300m_lora`:
+the `*_low_mem_finetune` configs) holds adapter pairs beside the Gemma weights; they are merged into the weights they
+adapt ([`openpi_lora_ranks`]). Everything here works one openpi leaf (or one layer of it) at a time through a
+[`LeafReader`], so a converter can stream a 12 GB checkpoint with bounded memory.
 """
 
 from __future__ import annotations

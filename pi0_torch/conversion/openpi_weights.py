@@ -35,10 +35,10 @@ from pi0_torch.conversion.openpi_fast_weights import (
 from pi0_torch.conversion.openpi_paligemma import (
     IMG,
     LLM,
+    NO_LORA,
     LeafReader,
     as_linear_weight,
     as_tensor,
-    NO_LORA,
     expert_suffix,
     gemma_layers_openpi_shapes,
     gemma_lora_openpi_shapes,

@@ -92,7 +92,7 @@ def _splitmix64(x: np.ndarray) -> np.ndarray:
 def warp(images: torch.Tensor, crop_offset: torch.Tensor, angle: torch.Tensor) -> torch.Tensor:
     """Crop to 95%, resize back and rotate, as one bilinear resampling: `images` `[N, 3, H, W]` in [0, 1], per image
     `crop_offset` `[N, 2]` (cy, cx) and `angle` `[N]` (radians). Outside the image counts as black."""
-    count, _, height, width = images.shape
+    height, width = images.shape[-2:]
     size = torch.tensor([height, width], dtype=torch.float32, device=angle.device)
     scale = torch.tensor([int(CROP_FRACTION * height), int(CROP_FRACTION * width)], dtype=torch.float32,
                          device=angle.device) / size
@@ -103,7 +103,7 @@ def warp(images: torch.Tensor, crop_offset: torch.Tensor, angle: torch.Tensor) -
     linear = scale[:, None] * rotation * size / size[:, None]  # [N, 2, 2], on (y, x)
     shift = 2 * crop_offset.float() / size  # [N, 2]
     theta = torch.cat([linear.flip(1, 2), shift.flip(1)[:, :, None]], -1)  # [N, 2, 3]: affine_grid's (x, y) order
-    grid = F.affine_grid(theta.to(images.device), [count, 3, height, width], align_corners=False)  # [N, H, W, 2]
+    grid = F.affine_grid(theta.to(images.device), list(images.shape), align_corners=False)  # [N, H, W, 2]
     return F.grid_sample(images, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
 
 
