@@ -115,7 +115,8 @@ def test_an_openpi_gemma_2b_lora_tree_loads_merged(fast_reference: FastReference
         path: np.zeros_like(array) if path.endswith("lora_b") else array for path, array in adapters.items()}})
     merged = PI0FastForActionGeneration(config)
     load_openpi_params(merged, {**fast_reference.params, **adapters})
-    projections = ("qkv_proj", "o_proj", "gate_up_proj", "down_proj")
+    projections = tuple(f"{name}.weight" for name in ("qkv_proj", "o_proj", "gate_up_proj", "down_proj"))
+    untouched, merged = untouched.state_dict(), merged.state_dict()
     for name, tensor in plain.state_dict().items():
-        assert torch.equal(untouched.state_dict()[name], tensor), name
-        assert torch.equal(merged.state_dict()[name], tensor) != name.endswith(tuple(f"{p}.weight" for p in projections)), name
+        assert torch.equal(untouched[name], tensor), name
+        assert torch.equal(merged[name], tensor) != name.endswith(projections), name
