@@ -46,7 +46,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from pi0_torch import PI0Config, PI0ForActionGeneration
 from pi0_torch.training.fsdp import shard_model
 from pi0_torch.training.settings import OPENPI_BETAS, OPENPI_EPS
-from pi0_torch.training.trainable import apply_lora, count_trainable, freeze
+from pi0_torch.training.lora import apply_lora
+from pi0_torch.training.trainable import count_trainable, freeze
 
 GIB = 1024**3
 
@@ -128,9 +129,10 @@ def shard_bytes(model: torch.nn.Module, optimizer: torch.optim.Optimizer) -> dic
 def closed_form(model: torch.nn.Module, world: int) -> dict[str, float]:
     total = sum(p.numel() for p in model.parameters())
     trainable = count_trainable(model)
+    stored = sum(p.numel() * p.element_size() for p in model.parameters())  # (LoRA: the frozen projections in bf16)
     return {
         "parameters": total, "trainable": trainable,
-        "sharded_params_GiB": 4 * total / world / GIB, "grads_GiB": 4 * trainable / world / GIB,
+        "sharded_params_GiB": stored / world / GIB, "grads_GiB": 4 * trainable / world / GIB,
         "adamw_GiB": 8 * trainable / world / GIB,
     }
 

@@ -23,7 +23,7 @@ COMMANDS: dict[str, tuple[str, str, tuple[str, ...]]] = {
     "convert": ("pi0_torch.conversion.convert", "Convert openpi / LeRobot / transformers checkpoints to pi0-torch folders (and π0 to transformers).", ()),
     "train": ("pi0_torch.training.trainer", "Fine-tune π0 / π0.5 / π0-FAST on a LeRobot dataset with the Hugging Face Trainer (openpi's recipe).", ("train",)),
     "eval": ("pi0_torch.runtime.rollout", "Closed-loop rollouts of a policy (local or ws://) in gymnasium envs: success with 95% intervals.", ()),
-    "consolidate": ("pi0_torch.training.fsdp", "Turn a sharded checkpoint of `train --fsdp` into a model folder (one process).", ("train",)),
+    "consolidate": ("pi0_torch.training.fsdp", "Turn a sharded (`train --fsdp`) or LoRA (`train --lora`) checkpoint into a model folder (one process).", ("train",)),
     "serve": ("pi0_torch.runtime.serving", "Serve a policy over openpi's websocket protocol (openpi-client compatible).", ("serve",)),
     "bench": ("pi0_torch.benchmark", "Time generate_actions, a training step and loading; compare with transformers' PI0.", ()),
     "quantize": ("pi0_torch.conversion.quantize", "Quantize a model folder with torchao (int8, int4, fp8): a folder from_pretrained loads quantized.", ("quant",)),

@@ -202,9 +202,13 @@ def test_what_cannot_be_exported_is_refused_before_loading(tmp_path: Path) -> No
     (fast / "config.json").write_text(json.dumps({"model_type": "pi0_fast_torch"}))
     with pytest.raises(ExportError, match="π0-FAST model: its variable-length token decoding is not exported"):
         export_model(fast, tmp_path / "out", "onnx")
-    adapter = shutil.copytree(demo_policy_dir(), tmp_path / "lora")
-    (adapter / "adapter_config.json").write_text("{}")
-    with pytest.raises(ExportError, match="LoRA adapter that is not merged"):
+    from pi0_torch import PI0ForActionGeneration
+    from pi0_torch.training.lora import apply_lora
+
+    adapter = shutil.copytree(demo_policy_dir(), tmp_path / "lora")  # a LoRA run's checkpoint: adapters not merged
+    apply_lora(PI0ForActionGeneration.from_pretrained(adapter), 2, 2).save_pretrained(adapter)
+    with pytest.raises(ValueError, match=r"unexpected: layers\.0\.expert.* LoRA run, adapters not merged: `pi0-torch "
+                                         "consolidate"):
         export_model(adapter, tmp_path / "out", "onnx")
     with pytest.raises(ExportError, match="AOTInductor's CPU code has no fast float16 path"):
         export_model("demo", tmp_path / "out", "pt2", dtype="float16")

@@ -8,9 +8,9 @@ clipping (1e-4), and at the end every parameter and its EMA (1e-4 relative, per 
 losses, 2e-6 for the parameters. Two differences were found reading openpi and fixed in `PI0Trainer` (the gradient
 clipping had torch's epsilon, `norm + 1e-6`; weight decay skipped biases and norms, where openpi decays every
 parameter); at openpi's weight decay of 1e-10 and gradient norms near 1 neither moves these numbers beyond 1e-7.
-openpi's LoRA training is recorded in the fixture but not compared: openpi's LoRA is per head on its einsums, with the
-frozen weights in bfloat16, where this package's is peft's on the fused projections (docs/training.md, "Same as
-openpi"). Its LoRA math is: the LoRA tree, adapters merged by the openpi conversion, gives openpi's LoRA loss."""
+openpi's LoRA training (its `gemma_2b_lora` and `gemma_300m_lora` variants and freeze filter, frozen weights in
+bfloat16) is matched the same way over the trainable parameters, the frozen ones bit for bit; and an openpi LoRA tree
+converts with its adapters merged, giving openpi's LoRA loss."""
 
 from __future__ import annotations
 
@@ -22,7 +22,9 @@ import pytest
 import torch
 from transformers import TrainerCallback
 
+from pi0_torch import PI0ForActionGeneration
 from pi0_torch.conversion.openpi_weights import load_openpi_params
+from pi0_torch.training.lora import GEMMA_PREFIXES, apply_lora
 from pi0_torch.training.settings import TrainSettings
 from pi0_torch.training.trainer import build_trainer
 
@@ -43,10 +45,38 @@ class Recorder(TrainerCallback):
         self.weights = {name: value.detach().clone() for name, value in model.state_dict().items()}
 
 
-def train_like_openpi(case: str, tmp_path: Path) -> tuple[dict[str, Any], list[float], list[float], dict, dict]:
+def openpi_lora_factors(recorded: dict[str, Any], stage: str, config: Any) -> dict[str, torch.Tensor]:
+    """The adapters of the fixture's openpi LoRA tree (`stage` "init" or "params") as this package's [`LoRALinear`]
+    factors: q and the kv pair stacked per head, the MLP's down projection as one group."""
+    factors = {}
+    llm = "PaliGemma/llm/layers"
+    for expert, (kind, s) in enumerate((("vlm", ""), ("expert", "_1"))):
+        def leaf(path: str) -> np.ndarray:
+            return recorded[f"{stage}/{llm}/{path}"]
+        for layer in range(config.num_hidden_layers):
+            prefix = f"layers.{layer}.{kind}"
+            for factor in ("a", "b"):
+                q, kv = leaf(f"attn/q_einsum{s}/lora_{factor}")[layer], leaf(f"attn/kv_einsum{s}/lora_{factor}")[layer]
+                parts = {
+                    "qkv_proj": np.concatenate([q, kv[0], kv[1]]),  # (N + 2K, D, r) / (N + 2K, r, H)
+                    "o_proj": leaf(f"attn/attn_vec_einsum{s}/lora_{factor}")[layer],
+                    "gate_up_proj": leaf(f"mlp{s}/gating_einsum_lora_{factor}")[layer],
+                    "down_proj": leaf(f"mlp{s}/linear_lora_{factor}")[layer][None],
+                }
+                for target, value in parts.items():
+                    factors[f"{prefix}.{target}.lora_{factor}"] = torch.from_numpy(np.ascontiguousarray(value))
+    return factors
+
+
+def train_like_openpi(case: str, tmp_path: Path) -> tuple[dict[str, Any], list[float], list[float], dict]:
     recorded = dict(np.load(FIXTURES / f"{case}.npz"))
     reference = OpenpiReference("pi0_small")
     model = reference.model()
+    lora = case == "lora"
+    if lora:  # openpi's variants' ranks, its recorded initial adapters
+        apply_lora(model, int(recorded["lora/paligemma/attn/rank"]), int(recorded["lora/action_expert/attn/rank"]))
+        start = model.state_dict()
+        model.load_state_dict({**start, **openpi_lora_factors(recorded, "init", model.config)})
     batch = {**reference.model_inputs(), "actions": reference.tensor("inputs/actions")}
     steps = int(recorded["num_steps"])
     settings = TrainSettings(
@@ -54,8 +84,10 @@ def train_like_openpi(case: str, tmp_path: Path) -> tuple[dict[str, Any], list[f
         batch_size=int(recorded["batch_size"]), learning_rate=float(recorded["lr_peak"]),
         end_learning_rate=float(recorded["lr_end"]), warmup_steps=int(recorded["lr_warmup_steps"]),
         decay_steps=int(recorded["lr_decay_steps"]), weight_decay=float(recorded["weight_decay"]),
-        max_grad_norm=float(recorded["clip_gradient_norm"]), ema_decay=float(recorded["ema_decay"]),
-        bf16=case == "bf16", augment=False, seed=int(recorded["seed"]), logging_steps=1, save_steps=10 * steps, cpu=True,
+        max_grad_norm=float(recorded["clip_gradient_norm"]),
+        ema_decay=float(recorded["ema_decay"]) if recorded["has_ema"] else None, lora=lora,
+        lora_rank_vlm=int(recorded.get("lora/paligemma/attn/rank", 16)),
+        lora_rank_expert=int(recorded.get("lora/action_expert/attn/rank", 32)), bf16=case == "bf16", augment=False, seed=int(recorded["seed"]), logging_steps=1, save_steps=10 * steps, cpu=True,
     )
     calls = iter(range(steps))
 
@@ -71,13 +103,18 @@ def train_like_openpi(case: str, tmp_path: Path) -> tuple[dict[str, Any], list[f
     trainer.compute_loss = lambda *args, **kwargs: losses.append(compute_loss(*args, **kwargs)) or losses[-1]
     trainer._clip_grad_norm = lambda *args: norms.append(clip(*args)) or norms[-1]
     trainer.train()
-    expected = OpenpiReference("pi0_small").model()
-    load_openpi_params(expected, {key[len("params/"):]: value for key, value in recorded.items() if key.startswith("params/")})
-    averaged = OpenpiReference("pi0_small").model()
+    losses, norms = [float(loss.detach()) for loss in losses], [float(norm) for norm in norms]
+    expected = PI0ForActionGeneration(reference.config)
+    final = {key[len("params/"):]: value for key, value in recorded.items() if key.startswith("params/")}
+    if lora:  # openpi's weights without its adapters merged, and its adapters
+        load_openpi_params(expected, {path: value for path, value in final.items() if "lora" not in path})
+        return recorded, losses, norms, {"params": (recorder.weights, expected.state_dict() | openpi_lora_factors(
+            recorded, "params", model.config)), "start": (start, None)}
+    load_openpi_params(expected, final)
+    averaged = PI0ForActionGeneration(reference.config)
     load_openpi_params(averaged, {key[len("ema/"):]: value for key, value in recorded.items() if key.startswith("ema/")})
     ema = {name: value.detach() for name, value in trainer.model.state_dict().items()}  # (the averages, copied in)
-    return recorded, [float(loss.detach()) for loss in losses], [float(norm) for norm in norms], \
-        {"params": (recorder.weights, expected.state_dict()), "ema": (ema, averaged.state_dict())}, {}
+    return recorded, losses, norms, {"params": (recorder.weights, expected.state_dict()), "ema": (ema, averaged.state_dict())}
 
 
 def worst(ours: dict[str, torch.Tensor], theirs: dict[str, torch.Tensor]) -> tuple[float, str]:
@@ -94,7 +131,7 @@ def worst(ours: dict[str, torch.Tensor], theirs: dict[str, torch.Tensor]) -> tup
 
 
 def test_float32_training_equals_openpis_step_for_step(tmp_path: Path) -> None:
-    recorded, losses, norms, weights, _ = train_like_openpi("fp32", tmp_path)
+    recorded, losses, norms, weights = train_like_openpi("fp32", tmp_path)
     assert len(losses) == len(recorded["loss"]) == 20
     assert np.abs(np.array(losses) - recorded["loss"]).max() / np.abs(recorded["loss"]).max() <= 1e-5
     assert np.abs(np.array(norms) - recorded["grad_norm"]).max() / recorded["grad_norm"].max() <= 1e-4
@@ -106,8 +143,28 @@ def test_float32_training_equals_openpis_step_for_step(tmp_path: Path) -> None:
 def test_bf16_training_follows_openpis_within_bf16(tmp_path: Path) -> None:
     """openpi's bf16 numerics (float32 weights, bf16 activations) against this package's bf16 autocast: each step's
     loss within 1e-2 (XLA fuses and rounds differently: two of openpi's own builds differ by 2e-4)."""
-    recorded, losses, _, _, _ = train_like_openpi("bf16", tmp_path)
+    recorded, losses, _, _ = train_like_openpi("bf16", tmp_path)
     assert np.abs(np.array(losses) - recorded["loss"]).max() / np.abs(recorded["loss"]).max() <= 1e-2
+
+
+def test_lora_training_equals_openpis_step_for_step(tmp_path: Path) -> None:
+    """openpi's LoRA fine-tune (`gemma_2b_lora` rank 16 on the VLM, `gemma_300m_lora` rank 32 on the action expert,
+    its freeze filter, the frozen weights in bfloat16, no EMA) from openpi's recorded initial adapters: each step's loss
+    and gradient norm, and at the end the adapters and the other trained parameters, as in float32; the frozen Gemma
+    weights bit for bit openpi's (bfloat16-rounded once, then untouched)."""
+    recorded, losses, norms, weights = train_like_openpi("lora", tmp_path)
+    assert len(losses) == len(recorded["loss"]) == 20
+    assert np.abs(np.array(losses) - recorded["loss"]).max() / np.abs(recorded["loss"]).max() <= 1e-5
+    assert np.abs(np.array(norms) - recorded["grad_norm"]).max() / recorded["grad_norm"].max() <= 1e-4
+    (ours, theirs), (start, _) = weights["params"], weights["start"]
+    frozen = {name for name in ours if name.startswith(GEMMA_PREFIXES) and ".lora_" not in name}
+    assert frozen and sum(".lora_" in name for name in ours) == 2 * 4 * 2 * 3  # (a, b) x 4 projections x 2 experts x 3 layers
+    for name in frozen:
+        assert ours[name].dtype == (torch.bfloat16 if name.endswith("_proj.weight") else torch.float32), name
+        assert torch.equal(ours[name], start[name]) and torch.equal(ours[name].float(), theirs[name]), name
+    error, name = worst({name: ours[name] for name in ours if name not in frozen},
+                        {name: theirs[name] for name in ours if name not in frozen})
+    assert error <= 1e-4, (name, error)
 
 
 def openpi_lora_tree(recorded: dict[str, Any], stage: str) -> dict[str, np.ndarray]:
@@ -128,7 +185,6 @@ def test_an_openpi_lora_fine_tune_converts_with_its_adapters_merged(tmp_path: Pa
     tree loads with the adapters merged into the weights, and the merged model's loss of every example and action
     step equals openpi's own LoRA forward (step 0 of the fixture, adapters N(0, 0.1^2) so they matter). The orbax
     conversion gives the same weights, and reads every adapter."""
-    from pi0_torch import PI0ForActionGeneration
     from pi0_torch.conversion.convert_openpi import convert_openpi_checkpoint
     from pi0_torch.conversion.orbax_reader import write_orbax_checkpoint
 

@@ -171,20 +171,20 @@ def test_the_gpu_tests_and_the_benchmark_need_none_of_the_extras_a_gpu_image_lac
 
 
 @pytest.mark.parametrize("module, needs", [
-    ("pi0_torch.training.trainable", {"peft", "accelerate"}),  # (accelerate: a dependency of peft itself)
+    ("pi0_torch.training.lora", set()),
     ("pi0_torch.training.pi0_trainer", {"accelerate"}),
     ("pi0_torch.training.checkpoints", {"accelerate"}),
-    ("pi0_torch.training.fsdp", {"accelerate", "peft"}),
+    ("pi0_torch.training.fsdp", {"accelerate"}),
 ])
 def test_each_training_module_asks_only_for_what_it_uses(tmp_path: Path, module: str, needs: set[str]) -> None:
-    """LoRA needs peft and nothing else of [train]: on a GPU image without `datasets` (issue 36) `apply_lora` failed to
-    import, naming `datasets`. With every other module of the extras hidden, each module imports, and LoRA is applied
-    to a small model and merged back."""
+    """LoRA needs nothing of [train]: on a GPU image without `datasets` (issue 36) `apply_lora` failed to import,
+    naming `datasets`. With every other module of the extras hidden, each module imports, and LoRA is applied to a
+    small model and merged back."""
     hidden = sorted(set(GPU_IMAGE_LACKS) | set(EXTRAS["train"]) - needs)
     lora = ("from pi0_torch import PI0Config, PI0ForActionGeneration\n"
             "model = PI0ForActionGeneration(PI0Config.from_preset('pi0_small', num_hidden_layers=1))\n"
             "lora = trainable.apply_lora(model)\n"
-            "assert type(trainable.merge_lora(lora)) is PI0ForActionGeneration\n") if module.endswith("trainable") else ""
+            "assert type(trainable.merge_lora(lora)) is PI0ForActionGeneration\n") if module.endswith("lora") else ""
     done = _python(f"import sys\nsys.modules.update(dict.fromkeys({hidden!r}))\n"
                    f"import importlib\ntrainable = importlib.import_module({module!r})\n{lora}", tmp_path)
     assert done.returncode == 0, done.stderr[-2000:]

@@ -13,7 +13,7 @@ from pi0_torch import PI0FastConfig, PI0FastForActionGeneration, PI0FastProcesso
 from pi0_torch.data.lerobot_dataset import LeRobotEpisodeDataset
 from pi0_torch.training.model_setup import build_processor, load_config
 from pi0_torch.training.settings import TrainSettings
-from pi0_torch.training.trainable import apply_lora, merge_lora
+from pi0_torch.training.lora import LoRALinear, apply_lora, merge_lora
 from pi0_torch.training.trainer import train_policy
 
 from conftest import enable_checkpointing
@@ -63,13 +63,16 @@ def test_fast_lora_is_openpi_gemma_2b_lora(dataset_root: Path, tmp_path: Path) -
     torch.manual_seed(0)
     lora = apply_lora(PI0FastForActionGeneration(config))
     trainable = {name for name, p in lora.named_parameters() if p.requires_grad}
-    assert trainable and all("lora_" in n or ".vision_tower." in n or ".image_projection." in n for n in trainable)
+    assert trainable and all("lora_" in n or n.startswith(("vision_tower.", "image_projection.")) for n in trainable)
     assert {n.split("lora_")[0] for n in trainable if "lora_" in n} == {
-        f"base_model.model.layers.{i}.block.{proj}." for i in range(2) for proj in ("qkv_proj", "o_proj", "gate_up_proj", "down_proj")
+        f"layers.{i}.block.{proj}." for i in range(2) for proj in ("qkv_proj", "o_proj", "gate_up_proj", "down_proj")
     }
-    ranks = {p.shape for n, p in lora.named_parameters() if "lora_A" in n}
-    assert all(16 in shape for shape in ranks)  # rank 16 (alpha 16), as gemma_2b_lora
-    assert isinstance(merge_lora(lora), PI0FastForActionGeneration)
+    heads = config.num_attention_heads + 2 * config.num_key_value_heads
+    assert lora.layers[0].block.qkv_proj.lora_a.shape == (heads, config.hidden_size, 16)  # per head, rank 16: gemma_2b_lora
+    assert lora.layers[0].block.o_proj.lora_b.shape == (config.num_attention_heads, 16, config.hidden_size)
+    assert lora.embed_tokens.weight.dtype == torch.float32 and lora.layers[0].block.down_proj.weight.dtype == torch.bfloat16
+    merged = merge_lora(lora)
+    assert isinstance(merged, PI0FastForActionGeneration) and not any(isinstance(m, LoRALinear) for m in merged.modules())
     processor = build_processor(settings, config, LeRobotEpisodeDataset(str(dataset_root), config.action_horizon, progress=False))
     assert isinstance(processor, PI0FastProcessor) and processor.action_tokenizer.action_dim == 2
     with pytest.raises(ValueError, match="π0-FAST needs a FAST tokenizer"):

@@ -55,7 +55,7 @@ def test_quantizing_while_loading_gives_what_the_folder_holds(int8_folder: Path)
 
 
 def test_weight_only_models_run_rtc_guidance_and_train_with_lora(int8_folder: Path) -> None:
-    from pi0_torch.training.trainable import apply_lora
+    from pi0_torch.training.lora import apply_lora, merge_lora
 
     model = PI0ForActionGeneration.from_pretrained(int8_folder).eval()
     pixels, masks, ids, valid, state, noise = model.sampling_program(1).example_inputs()
@@ -63,9 +63,15 @@ def test_weight_only_models_run_rtc_guidance_and_train_with_lora(int8_folder: Pa
                                     inference_delay=2, execution_horizon=4)
     assert torch.isfinite(guided).all()
     adapted = apply_lora(model.train(), 4, 4)
-    loss = adapted(pixels, masks, ids, valid, state, actions=torch.zeros_like(noise)).loss
+    draws = dict(actions=torch.zeros_like(noise), noise=noise, time=torch.full(noise.shape[:1], 0.5))
+    loss = adapted(pixels, masks, ids, valid, state, **draws).loss
     loss.backward()
     assert any(parameter.grad is not None for name, parameter in adapted.named_parameters() if "lora_" in name)
+    merged = merge_lora(adapted)  # (the adapted projections dequantized, the update added: float weights)
+    assert type(merged.layers[0].expert.qkv_proj.weight.data) is torch.Tensor
+    with torch.no_grad():
+        torch.testing.assert_close(merged(pixels, masks, ids, valid, state, **draws).loss, loss.detach(), rtol=1e-4,
+                                   atol=1e-6)
 
 
 def test_what_a_quantized_model_cannot_do_is_refused_by_name(int8_folder: Path, tmp_path: Path,

@@ -8,7 +8,6 @@ import os
 import shutil
 import subprocess
 import sys
-import warnings
 from dataclasses import replace
 from pathlib import Path
 
@@ -30,7 +29,9 @@ from pi0_torch.training.evaluation import evaluate_policy
 from pi0_torch.training.model_setup import build_processor, load_config
 from pi0_torch.training.pi0_trainer import EMA_FILE, EMACallback, openpi_learning_rate
 from pi0_torch.training.settings import TrainSettings
-from pi0_torch.training.trainable import apply_lora, count_trainable, freeze, loss_free_parameter_names, merge_lora
+from pi0_torch.training.fsdp import consolidate_checkpoint
+from pi0_torch.training.lora import GEMMA_PREFIXES, LoRALinear, apply_lora, merge_lora, merge_lora_state
+from pi0_torch.training.trainable import count_trainable, freeze, loss_free_parameter_names
 from pi0_torch.training.trainer import add_arguments, settings_from_args, train_policy
 
 # a very small π0: two cameras (the dataset has one, so the second is fed as absent), 2 layers
@@ -319,46 +320,62 @@ def test_freeze_groups_train_only_what_they_should(dataset_root: Path, tmp_path:
         assert torch.equal(before[name], after[name]) == name.startswith(vlm_side), name
 
 
-def test_lora_trains_adapters_vision_and_heads_only(dataset_root: Path, tmp_path: Path) -> None:
+def openpi_lora_size(config: PI0Config, kind: str, target: str, rank: int) -> int:
+    """Both factors of openpi's adapters on one projection: per head on q, k and v (`lora_b` per head too on the
+    attention output), per half on gate and up."""
+    width, mlp = ((config.vlm_hidden_size, config.vlm_intermediate_size) if kind == "vlm"
+                  else (config.expert_hidden_size, config.expert_intermediate_size))
+    heads, kv_heads, head_dim = config.num_attention_heads, config.num_key_value_heads, config.head_dim
+    return rank * {"qkv_proj": (heads + 2 * kv_heads) * (width + head_dim), "o_proj": heads * head_dim + heads * width,
+                   "gate_up_proj": 2 * (width + mlp), "down_proj": mlp + width}[target]
+
+
+def test_lora_trains_openpis_adapters_vision_and_heads_only(dataset_root: Path, tmp_path: Path) -> None:
     model = tiny_model()
     freeze(model)
-    rank_vlm, rank_expert = 2, 4
+    config, rank_vlm, rank_expert = model.config, 2, 4
     unused = {name.rsplit(".", 1)[0] for name in loss_free_parameter_names(model)}
-    expected = 0
-    for name, module in model.named_modules():
-        kind = name.split(".")[2] if name.startswith("layers.") and name.count(".") == 3 else None
-        if kind in ("vlm", "expert") and isinstance(module, torch.nn.Linear) and name not in unused:
-            rank = rank_vlm if kind == "vlm" else rank_expert
-            expected += rank * (module.in_features + module.out_features)
+    expected = sum(openpi_lora_size(config, kind, target, rank_vlm if kind == "vlm" else rank_expert)
+                   for layer in range(config.num_hidden_layers) for kind in ("vlm", "expert")
+                   for target in ("qkv_proj", "o_proj", "gate_up_proj", "down_proj")
+                   if f"layers.{layer}.{kind}.{target}" not in unused)
     full = ("vision_tower", "image_projection", "action_in_proj", "action_out_proj", "state_proj", "action_time_mlp_in", "action_time_mlp_out")
     expected += sum(p.numel() for n, p in model.named_parameters() if n.split(".")[0] in full)
-    peft_model = apply_lora(model, rank_vlm, rank_expert)
-    assert count_trainable(peft_model) == expected
-    trainable = [n for n, p in peft_model.named_parameters() if p.requires_grad]
-    assert all("lora_" in n or "modules_to_save" in n for n in trainable)
-    assert not any("embed_tokens" in n or "norm" in n.split("modules_to_save")[0] for n in trainable)
+    initial = {name: value.clone() for name, value in model.state_dict().items()}
+    adapted = apply_lora(model, rank_vlm, rank_expert)
+    assert count_trainable(adapted) == expected
+    for name, param in adapted.named_parameters():  # the Gemma frozen but its adapters, rounded to bf16 (openpi)
+        gemma = name.startswith(GEMMA_PREFIXES)
+        assert param.requires_grad == ((not gemma or ".lora_" in name) and name.rsplit(".", 1)[0] not in unused), name
+        if gemma and ".lora_" not in name:  # (the adapters' dtype: float32)
+            assert param.dtype == (torch.bfloat16 if name.endswith("_proj.weight") else torch.float32), name
+            assert torch.equal(param.float(), initial[name].bfloat16().float()), name
     # with the vision tower frozen, only adapters and the action/state/time heads train
     frozen_vision = apply_lora(freeze(m := tiny_model(), ["vision"]) and m, rank_vlm, rank_expert, ["vision"])
     vision = sum(p.numel() for n, p in tiny_model().named_parameters() if n.split(".")[0] in ("vision_tower", "image_projection"))
     assert count_trainable(frozen_vision) == expected - vision
+    with pytest.raises(ValueError, match="already has LoRA adapters"):
+        apply_lora(frozen_vision)
 
-    # a LoRA run: the merged final model reproduces the adapted model, frozen weights stay as initialised
+    # a LoRA run: the merged final model in float32, frozen weights as initialised (rounded to bf16), the rest trained
     result = train_policy(settings(dataset_root, tmp_path / "lora", max_steps=3, lora=True, lora_rank_vlm=2,
                                    lora_rank_expert=4, learning_rate=1e-2, warmup_steps=0))
     assert result["trainable_parameters"] == expected
     merged = PI0ForActionGeneration.from_pretrained(tmp_path / "lora").state_dict()
-    initial = tiny_model().state_dict()
-    assert torch.equal(merged["embed_tokens.weight"], initial["embed_tokens.weight"])
-    assert torch.equal(merged["layers.0.vlm.attn_norm.weight"], initial["layers.0.vlm.attn_norm.weight"])
+    assert all(value.dtype == torch.float32 for value in merged.values() if value.is_floating_point())
+    assert torch.equal(merged["embed_tokens.weight"], initial["embed_tokens.weight"].bfloat16().float())
+    assert torch.equal(merged["layers.0.vlm.attn_norm.weight"], initial["layers.0.vlm.attn_norm.weight"].bfloat16().float())
     assert not torch.equal(merged["layers.0.expert.qkv_proj.weight"], initial["layers.0.expert.qkv_proj.weight"])
     assert not torch.equal(merged["action_out_proj.weight"], initial["action_out_proj.weight"])
 
 
 def test_lora_resume_continues_the_same_run_and_ema_is_refused(dataset_root: Path, tmp_path: Path) -> None:
-    """A LoRA checkpoint holds the adapters, optimizer and trainer state: resuming gives the uninterrupted run."""
+    """A LoRA checkpoint holds the adapted model, optimizer and trainer state: resuming gives the uninterrupted run,
+    and `consolidate` makes the final model of its last checkpoint."""
     lora = dict(lora=True, lora_rank_vlm=2, lora_rank_expert=4, max_steps=4, save_steps=2, learning_rate=1e-2)
     whole = train_policy(settings(dataset_root, tmp_path / "whole", **lora))
-    assert (tmp_path / "whole" / "checkpoint-2" / "adapter_model.safetensors").is_file()
+    with pytest.raises(ValueError, match="LoRA run, adapters not merged: `pi0-torch consolidate"):
+        PI0ForActionGeneration.from_pretrained(tmp_path / "whole" / "checkpoint-2")
     resumed = train_policy(settings(dataset_root, tmp_path / "resumed", **lora,
                                     resume_from_checkpoint=str(tmp_path / "whole" / "checkpoint-2")))
     expected, got = losses(whole["log_history"]), losses(resumed["log_history"])
@@ -367,32 +384,49 @@ def test_lora_resume_continues_the_same_run_and_ema_is_refused(dataset_root: Pat
         assert got[step] == pytest.approx(expected[step], rel=1e-6, abs=1e-7)
     a = PI0ForActionGeneration.from_pretrained(tmp_path / "whole").state_dict()
     b = PI0ForActionGeneration.from_pretrained(tmp_path / "resumed").state_dict()
+    consolidate_checkpoint(tmp_path / "whole" / "checkpoint-4", tmp_path / "consolidated")
+    c = PI0ForActionGeneration.from_pretrained(tmp_path / "consolidated").state_dict()
     for name in a:
         torch.testing.assert_close(a[name], b[name], rtol=1e-5, atol=1e-6)
+        assert torch.equal(a[name], c[name]), name
     with pytest.raises(ValueError, match="--ema-decay with --lora"):
         train_policy(settings(dataset_root, tmp_path / "ema", **lora, ema_decay=0.9))
     assert not (tmp_path / "ema").exists()
+    with pytest.raises(ValueError, match="neither a sharded checkpoint .* nor a LoRA checkpoint"):
+        consolidate_checkpoint(tmp_path / "whole", tmp_path / "again")
 
 
-def test_merged_lora_model_matches_the_adapted_model() -> None:
-    model = tiny_model()
+@pytest.mark.parametrize("pi05", [False, True])
+def test_merged_lora_model_matches_the_adapted_model(pi05: bool) -> None:
+    model = tiny_model(pi05)
+    with torch.no_grad():  # (a trained base: π0.5's adaRMS gates start at zero, where the layers would add nothing)
+        for param in model.parameters():
+            param.add_(torch.randn_like(param) * 0.05)
     freeze(model)
-    with warnings.catch_warnings():
-        warnings.simplefilter("error", FutureWarning)  # (peft's read of a deprecated transformers property: not shown)
-        peft_model = apply_lora(model, 2, 4)
+    adapted = apply_lora(model, 2, 4, generator=torch.Generator().manual_seed(0))
     with torch.no_grad():
-        for name, param in peft_model.named_parameters():
-            if "lora_B" in name or "modules_to_save" in name:
+        for name, param in adapted.named_parameters():
+            if param.requires_grad:  # (as after training)
                 param.add_(torch.randn_like(param) * 0.05)
     batch = tiny_batch(model.config)
     sampling = {name: batch[name] for name in ("pixel_values", "image_masks", "input_ids", "attention_mask", "state")}
     noise = torch.randn(batch["actions"].shape, generator=torch.Generator().manual_seed(2))
-    expected = peft_model(**batch).velocity
-    expected_actions = peft_model.generate_actions(**sampling, noise=noise, num_steps=2)
-    with peft_model.disable_adapter():  # the adapters take part in sampling (no layer bypasses its module)
-        assert not torch.allclose(peft_model.generate_actions(**sampling, noise=noise, num_steps=2), expected_actions, atol=1e-4)
-    merged = merge_lora(peft_model)
+    expected = adapted(**batch).velocity
+    expected_actions = adapted.generate_actions(**sampling, noise=noise, num_steps=2)
+    state = merge_lora_state(adapted.state_dict())
+    factors = [m.lora_b for m in adapted.modules() if isinstance(m, LoRALinear)]
+    saved = [b.detach().clone() for b in factors]
+    with torch.no_grad():  # the adapters take part in sampling (no layer bypasses its module)
+        for b in factors:
+            b.zero_()
+        assert not torch.allclose(adapted.generate_actions(**sampling, noise=noise, num_steps=2), expected_actions, atol=1e-4)
+        for b, value in zip(factors, saved):
+            b.copy_(value)
+    merged = merge_lora(adapted)
     assert type(merged) is PI0ForActionGeneration
+    assert not any(isinstance(m, LoRALinear) for m in merged.modules())
+    assert merged.state_dict().keys() == state.keys()
+    assert all(torch.equal(value, state[name]) for name, value in merged.state_dict().items())
     torch.testing.assert_close(merged(**batch).velocity, expected, rtol=1e-5, atol=1e-5)
     torch.testing.assert_close(merged.generate_actions(**sampling, noise=noise, num_steps=2), expected_actions, rtol=1e-5, atol=1e-5)
 

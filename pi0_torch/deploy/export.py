@@ -8,8 +8,8 @@ the state normalized and padded, the actions cut to the robot's dims and unnorma
 It is traced with `torch.export` (non-strict), converted, run once by its runtime and compared with the model's own
 `generate_actions` on the same inputs before anything is published; the folder appears whole or not at all.
 
-Refused by name, never as a traceback from an exporter: π0-FAST (its decoding is variable-length), a folder with an
-unmerged LoRA adapter, a device or dtype a format cannot take, an opset below 18.
+Refused by name, never as a traceback from an exporter: π0-FAST (its decoding is variable-length), a LoRA run's
+checkpoint (adapters not merged: `from_pretrained` refuses it), a device or dtype a format cannot take, an opset below 18.
 
 ```python
 >>> import tempfile
@@ -222,9 +222,6 @@ def _check_exportable(model_dir: Path, fmt: str, dtype: str, device: str) -> Non
     if config.get("quantization_config"):
         raise ExportError(f"{model_dir} is quantized (torchao): export the float model it came from; an engine quantizes "
                           "for its hardware (TensorRT: NVIDIA ModelOpt's INT8 / FP8, docs/deploy.md)")
-    if (model_dir / "adapter_config.json").is_file():
-        raise ExportError(f"{model_dir} holds a LoRA adapter that is not merged into the weights: merge it first "
-                          "(peft's merge_and_unload, then save_pretrained; pi0-torch train saves merged policies)")
     if device == "cuda" and not torch.cuda.is_available():
         raise ExportError("--device cuda: no CUDA device is visible to torch here")
     if fmt == "pt2" and device == "cpu" and dtype == "float16":

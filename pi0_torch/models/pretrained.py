@@ -86,6 +86,9 @@ class PI0PreTrainedModel(PreTrainedModel):
             problems["not floating-point"] = wrong_kind
         if problems:
             details = "; ".join(f"{kind}: {', '.join(names[:10])}{' ...' if len(names) > 10 else ''}" for kind, names in problems.items())
+            if any(name.endswith(".lora_a") for name in problems.get("unexpected", ())):
+                details += (" (a checkpoint of a LoRA run, adapters not merged: `pi0-torch consolidate CHECKPOINT "
+                            "--output-dir DIR` writes the model folder)")
             raise ValueError(f"checkpoint {pretrained_model_name_or_path} does not match {cls.__name__}({model.config.model_type}): {details}")
         return (model, info) if want_info else model
 

@@ -14,7 +14,8 @@ if TYPE_CHECKING:
     from pi0_torch.training.batches import PI0DataCollator
     from pi0_torch.training.pi0_trainer import EMACallback, PI0Trainer
     from pi0_torch.training.settings import TrainSettings
-    from pi0_torch.training.trainable import apply_lora, freeze, merge_lora
+    from pi0_torch.training.lora import apply_lora, merge_lora
+    from pi0_torch.training.trainable import freeze
     from pi0_torch.training.trainer import train_policy
 
 _EXPORTS = {
@@ -22,9 +23,9 @@ _EXPORTS = {
     "PI0DataCollator": "pi0_torch.training.batches",
     "PI0Trainer": "pi0_torch.training.pi0_trainer",
     "TrainSettings": "pi0_torch.training.settings",
-    "apply_lora": "pi0_torch.training.trainable",
+    "apply_lora": "pi0_torch.training.lora",
     "freeze": "pi0_torch.training.trainable",
-    "merge_lora": "pi0_torch.training.trainable",
+    "merge_lora": "pi0_torch.training.lora",
     "train_policy": "pi0_torch.training.trainer",
 }
 __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

@@ -47,7 +47,7 @@ SOURCES_KEY = "source_fingerprints"  # in a checkpoint's TRAIN_SETTINGS_FILE: wh
 FINGERPRINT_BYTES = 1 << 20  # a file's fingerprint: its size, and its first and last MiB
 FULL_DISK_BYTES = 64 << 20  # a save that failed with less free space than this failed on a full disk
 # (the last: the sharded model of an --fsdp run, a DCP folder complete once its .metadata is written)
-WEIGHT_FILES = ("model.safetensors", "model.safetensors.index.json", "adapter_model.safetensors", "model_sharded/.metadata")
+WEIGHT_FILES = ("model.safetensors", "model.safetensors.index.json", "model_sharded/.metadata")
 TORCH_STATE_SUFFIXES = (".pt", ".pth")  # optimizer, scheduler, RNG and scaler states, loaded when resuming
 
 
@@ -153,24 +153,17 @@ def trained_step(checkpoint: str | Path) -> int:
     return int(json.loads((Path(checkpoint) / TRAINER_STATE_NAME).read_text())["global_step"])
 
 
-# settings a checkpoint's processor_config.json records of the model config (LoRA checkpoints hold no config.json)
-PROCESSOR_CONFIG_SETTINGS = {"camera_names": "camera_names", "image_size": "image_size", "max_token_len": "max_token_len",
-                             "model_action_dim": "action_dim", "action_horizon": "action_horizon"}
-
-
 def check_resume_settings(config: PI0Config | PI0FastConfig, checkpoint: str | Path) -> None:
     """Refuse resuming a checkpoint trained with other model settings, naming each (`action_horizon 4 there, 8
-    now`), instead of failing later on a tensor shape: every config setting when the checkpoint has its
-    `config.json`, else those its processor records."""
+    now`), instead of failing later on a tensor shape: every setting of the checkpoint's `config.json`."""
     checkpoint = Path(checkpoint)
-    if (checkpoint / "config.json").is_file():
-        saved_config = type(config).from_pretrained(checkpoint)
-        names = [name for name, parameter in inspect.signature(type(config).__init__).parameters.items()
-                 if name != "self" and parameter.kind is not inspect.Parameter.VAR_KEYWORD]
-        saved = {name: getattr(saved_config, name) for name in names}
-    else:
-        recorded = json.loads((checkpoint / "processor_config.json").read_text())
-        saved = {name: recorded[key] for key, name in PROCESSOR_CONFIG_SETTINGS.items() if key in recorded}
+    if not (checkpoint / "config.json").is_file():
+        raise ValueError(f"--resume-from-checkpoint {checkpoint} has no config.json: not a checkpoint of pi0-torch "
+                         "train (LoRA checkpoints of versions that trained LoRA through peft cannot be resumed)")
+    saved_config = type(config).from_pretrained(checkpoint)
+    names = [name for name, parameter in inspect.signature(type(config).__init__).parameters.items()
+             if name != "self" and parameter.kind is not inspect.Parameter.VAR_KEYWORD]
+    saved = {name: getattr(saved_config, name) for name in names}
     differing = [f"{name} {value!r} there, {getattr(config, name)!r} now" for name, value in saved.items()
                  if value != getattr(config, name)]
     if differing:

@@ -4,8 +4,8 @@ dataset's action chunks.
 Everything else is the π0 run: the same dataset reader and collator (the processor decides the batch: prompt with
 `Action: <FAST tokens>|<eos>`, block and loss masks), the same `Trainer` and recipe; the model's forward gives
 openpi's loss (next-token cross-entropy on the action tokens), so no noise or flow time is drawn. `--lora` is
-openpi's `gemma_2b_lora`: rank 16, alpha 16 on every Gemma projection, the rest of the Gemma (embedding, norms)
-frozen, the vision tower and its projection trained in full.
+openpi's `gemma_2b_lora` (`pi0_torch.training.lora`): rank 16, alpha 16, per head on every Gemma projection, the rest
+of the Gemma (embedding, norms) frozen and rounded to bf16, the vision tower and its projection trained in full.
 """
 
 from __future__ import annotations

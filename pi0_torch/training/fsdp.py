@@ -14,15 +14,16 @@ openpi's recipe, so the loss curve is the one of a single process with the same 
 - Gradient clipping: `clip_grad_norm_` over the DTensor gradients takes the global norm across shards.
 - Checkpoints ([`FSDPTrainer`]): `checkpoint-N/` holds the sharded model, optimizer state and EMA as
   `torch.distributed.checkpoint` (DCP) folders (`model_sharded/`, `optimizer_sharded/`, `ema_sharded/`), written by
-  every process into the checkpoint's staging folder like the rest of it, plus `config.json` (+ `adapter_config.json`
-  for LoRA), the processor, the scheduler, RNG and trainer state. DCP reshards on load, so a run resumes on any
-  number of processes. [`consolidate_checkpoint`] (`pi0-torch consolidate`) makes a model folder of one on a single
-  process; the end of training writes the consolidated model into `--output-dir`, as a plain run does.
+  every process into the checkpoint's staging folder like the rest of it, plus `config.json`, the processor, the
+  scheduler, RNG and trainer state. DCP reshards on load, so a run resumes on any number of processes.
+  [`consolidate_checkpoint`] (`pi0-torch consolidate`) makes a model folder of one on a single process; the end of
+  training writes the consolidated model into `--output-dir`, as a plain run does.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import os
 import warnings
@@ -31,7 +32,7 @@ from typing import Any
 
 from pi0_torch.utils.extras import require_extra
 
-require_extra("train", __name__, modules=("accelerate", "peft"))  # transformers.trainer needs accelerate; LoRA peft
+require_extra("train", __name__, modules=("accelerate",))  # transformers.trainer needs accelerate
 import torch
 import torch.distributed.checkpoint as dcp
 from torch import nn
@@ -49,11 +50,14 @@ from transformers.models.siglip.modeling_siglip import SiglipEncoderLayer
 from transformers.trainer import SCHEDULER_NAME
 
 from pi0_torch.models.configuration_pi0 import PI0Config
+from pi0_torch.models.configuration_pi0_fast import PI0FastConfig
 from pi0_torch.models.layers import AdaRMSNorm, JointDecoderLayer
 from pi0_torch.models.modeling_pi0 import PI0ForActionGeneration
+from pi0_torch.models.modeling_pi0_fast import PI0FastForActionGeneration
 from pi0_torch.processing.processing_pi0 import PI0Processor
+from pi0_torch.processing.processing_pi0_fast import PI0FastProcessor
+from pi0_torch.training.lora import merge_lora_state
 from pi0_torch.training.pi0_trainer import CheckpointContents, EMACallback, PI0Trainer
-from pi0_torch.training.trainable import merge_lora
 from pi0_torch.utils import files
 
 logger = logging.getLogger(__name__)
@@ -62,7 +66,6 @@ logger = logging.getLogger(__name__)
 MODEL_FOLDER = "model_sharded"
 OPTIMIZER_FOLDER = "optimizer_sharded"
 EMA_FOLDER = "ema_sharded"
-ADAPTER_CONFIG = "adapter_config.json"
 
 
 def wrap_units(model: nn.Module) -> list[nn.Module]:
@@ -82,12 +85,12 @@ def wrap_units(model: nn.Module) -> list[nn.Module]:
 
 
 def shard_model(model: nn.Module, *, bf16: bool, device_type: str = "cpu", mesh: DeviceMesh | None = None) -> nn.Module:
-    """Shard `model` (a `PI0ForActionGeneration` or its peft LoRA wrapper) over all processes with FSDP2, in
+    """Shard `model` (a `PI0ForActionGeneration`, LoRA adapters or not) over all processes with FSDP2, in
     place: [`wrap_units`], then the root. Needs an initialised process group (the `Trainer`'s arguments set it up
     under `torchrun` / `accelerate launch`). Returns the same module, now an `FSDPModule`.
 
     The parameters become DTensors sharded on dim 0 (each process holds 1/N of every tensor, float32); frozen
-    parameters (`--freeze`, LoRA base weights) are sharded too and get no gradient. `bf16` gathers the weights in
+    parameters (`--freeze`, LoRA's frozen Gemma) are sharded too and get no gradient. `bf16` gathers the weights in
     bfloat16 for compute and reduce-scatters gradients in float32. `mesh` defaults to all processes on `device_type`.
     """
     mesh = mesh or init_device_mesh(device_type, (torch.distributed.get_world_size(),))
@@ -194,18 +197,14 @@ def is_sharded_checkpoint(folder: str | Path) -> bool:
 
 
 class SaveModelConfigCallback(TrainerCallback, CheckpointContents):
-    """Writes `config.json` (and a LoRA run's `adapter_config.json`) into every checkpoint, so that
-    [`consolidate_checkpoint`] can rebuild the model a sharded checkpoint belongs to."""
+    """Writes `config.json` into every checkpoint, so that [`consolidate_checkpoint`] can rebuild the model a sharded
+    checkpoint belongs to (a LoRA run's adapters are in the sharded state itself)."""
 
     def __init__(self, model: nn.Module) -> None:
         self.config: PI0Config = model.config
-        peft_config = getattr(model, "peft_config", None)
-        self.lora_config = peft_config["default"] if peft_config else None
 
     def write_checkpoint(self, folder: Path, state: TrainerState) -> None:
         self.config.save_pretrained(folder)
-        if self.lora_config is not None:
-            self.lora_config.save_pretrained(folder)
 
 
 class ShardedEMACallback(EMACallback):
@@ -230,24 +229,14 @@ class ShardedEMACallback(EMACallback):
 # ----------------------------------------------------------------------------------------------------------------
 
 
-def _skeleton(config: PI0Config, lora_config: Any) -> nn.Module:
-    """The run's model (`PI0ForActionGeneration`, in its peft wrapper for LoRA) on the meta device: no memory."""
+def _model_to_save(config: PI0Config | PI0FastConfig, state_dict: dict[str, torch.Tensor]) -> nn.Module:
+    """A model holding the tensors of `state_dict` (names as the run's model had them; no copy but LoRA's merged
+    weights), to write with `save_pretrained`. Its non-persistent buffers (SigLIP's position ids), which no checkpoint
+    holds, stay on the meta device: load the written folder to run it."""
     with torch.device("meta"):
-        model: nn.Module = PI0ForActionGeneration(config)
-        if lora_config is not None:
-            from peft import get_peft_model
-
-            model = get_peft_model(model, lora_config)
+        model = (PI0FastForActionGeneration if isinstance(config, PI0FastConfig) else PI0ForActionGeneration)(config)
+    model.load_state_dict(merge_lora_state(state_dict), strict=True, assign=True)
     return model
-
-
-def _model_to_save(config: PI0Config, lora_config: Any, state_dict: dict[str, torch.Tensor]) -> PI0ForActionGeneration:
-    """A model holding the tensors of `state_dict` themselves (names as the run's model had them; no copy), LoRA
-    merged into the weights, to write with `save_pretrained`. Its non-persistent buffers (SigLIP's position ids),
-    which no checkpoint holds, stay on the meta device: load the written folder to run it."""
-    model = _skeleton(config, lora_config)
-    model.load_state_dict(state_dict, strict=True, assign=True)
-    return merge_lora(model)
 
 
 def gather_model(model: nn.Module) -> PI0ForActionGeneration | None:
@@ -257,29 +246,48 @@ def gather_model(model: nn.Module) -> PI0ForActionGeneration | None:
     state = get_model_state_dict(model, options=StateDictOptions(full_state_dict=True, cpu_offload=True))
     if torch.distributed.get_rank() != 0:
         return None
-    peft_config = getattr(model, "peft_config", None)
-    return _model_to_save(model.config, peft_config["default"] if peft_config else None, state)
+    return _model_to_save(model.config, state)
 
 
 def consolidate_checkpoint(checkpoint: str | Path, output_dir: str | Path, *, ema: bool = False, overwrite: bool = False) -> Path:
-    """A sharded `checkpoint-N` (of `pi0-torch train --fsdp`) -> a model folder (safetensors + config + processor)
-    that `from_pretrained` loads; one process, no GPU. `ema=True` takes the EMA averages instead of the raw weights
-    (as the final model of an EMA run does). The folder appears whole (written aside, then renamed)."""
+    """A sharded `checkpoint-N` (of `pi0-torch train --fsdp`) or the checkpoint of a LoRA run (its adapters not
+    merged) -> a model folder (safetensors + config + processor) that `from_pretrained` loads, LoRA merged; one process,
+    no GPU. `ema=True` takes the EMA averages instead of the raw weights (as the final model of an EMA run does). The
+    folder appears whole (written aside, then renamed)."""
+    from safetensors import safe_open
+    from safetensors.torch import load_file
+
     checkpoint = Path(checkpoint)
-    if not is_sharded_checkpoint(checkpoint):
-        raise ValueError(f"{checkpoint} is not a sharded checkpoint (no {MODEL_FOLDER}/.metadata)")
+    sharded = is_sharded_checkpoint(checkpoint)
+    weights = [] if sharded else sorted(checkpoint.glob("model*.safetensors"))
+    names = [name for path in weights for name in safe_open(str(path), "pt").keys()]
+    if not sharded and not any(name.endswith(".lora_a") for name in names):
+        raise ValueError(f"{checkpoint} is neither a sharded checkpoint (no {MODEL_FOLDER}/.metadata) nor a LoRA "
+                         "checkpoint (no adapters in model*.safetensors): it is a model folder already")
     if not (checkpoint / "config.json").is_file():
         raise ValueError(f"{checkpoint} has no config.json (written by a version without it): cannot rebuild its model")
     if ema and not (checkpoint / EMA_FOLDER).is_dir():
         raise ValueError(f"--ema: {checkpoint} has no {EMA_FOLDER}/ (the run kept no EMA)")
     files.check_separate(checkpoint, output_dir)
-    config = PI0Config.from_pretrained(checkpoint)
-    lora_config = None
-    if (checkpoint / ADAPTER_CONFIG).is_file():
-        from peft import LoraConfig
+    model_type = json.loads((checkpoint / "config.json").read_text()).get("model_type")
+    config = (PI0FastConfig if model_type == PI0FastConfig.model_type else PI0Config).from_pretrained(checkpoint)
+    state = {name: tensor for path in weights for name, tensor in load_file(path).items()}
+    if sharded:
+        saved = dcp.FileSystemReader(str(checkpoint / MODEL_FOLDER)).read_metadata().state_dict_metadata
+        state = {name.removeprefix("model."): torch.empty(tuple(meta.size), dtype=meta.properties.dtype)
+                 for name, meta in saved.items()}  # (the run's model: a LoRA run's adapters and bfloat16 Gemma included)
+        _load_sharded(checkpoint, state, ema)
+    model = _model_to_save(config, state)
+    with files.atomic_output_dir(output_dir, overwrite=overwrite) as folder:
+        model.save_pretrained(folder)
+        if (checkpoint / "processor_config.json").is_file():
+            processor = PI0FastProcessor if isinstance(config, PI0FastConfig) else PI0Processor
+            processor.from_pretrained(checkpoint).save_pretrained(folder)
+    return Path(output_dir)
 
-        lora_config = LoraConfig.from_pretrained(str(checkpoint))
-    state = {name: torch.empty(t.shape, dtype=t.dtype) for name, t in _skeleton(config, lora_config).state_dict().items()}
+
+def _load_sharded(checkpoint: Path, state: dict[str, torch.Tensor], ema: bool) -> None:
+    """`state` (empty tensors named and shaped as the checkpoint's model) filled from its DCP folders."""
     with warnings.catch_warnings():  # DCP warns that it reads in one process, which is the point here
         warnings.filterwarnings("ignore", message="torch.distributed is disabled")
         dcp.load({"model": state}, checkpoint_id=str(checkpoint / MODEL_FOLDER), no_dist=True)
@@ -287,12 +295,6 @@ def consolidate_checkpoint(checkpoint: str | Path, output_dir: str | Path, *, em
             saved = dcp.FileSystemReader(str(checkpoint / EMA_FOLDER)).read_metadata().state_dict_metadata
             averages = {name: state[name] for name in (key.removeprefix("ema.") for key in saved)}
             dcp.load({"ema": averages}, checkpoint_id=str(checkpoint / EMA_FOLDER), no_dist=True)
-    model = _model_to_save(config, lora_config, state)
-    with files.atomic_output_dir(output_dir, overwrite=overwrite) as folder:
-        model.save_pretrained(folder)
-        if (checkpoint / "processor_config.json").is_file():
-            PI0Processor.from_pretrained(checkpoint).save_pretrained(folder)
-    return Path(output_dir)
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -302,7 +304,7 @@ def consolidate_checkpoint(checkpoint: str | Path, output_dir: str | Path, *, em
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of `pi0-torch consolidate`."""
-    parser.add_argument("checkpoint", help="a checkpoint-N folder written by `pi0-torch train --fsdp`")
+    parser.add_argument("checkpoint", help="a checkpoint-N folder written by `pi0-torch train --fsdp` or `--lora`")
     parser.add_argument("--output-dir", required=True, help="the model folder to write (safetensors, config, processor)")
     parser.add_argument("--ema", action="store_true", help="take the EMA averages instead of the raw weights")
     parser.add_argument("--overwrite", action="store_true", help="replace a non-empty --output-dir")

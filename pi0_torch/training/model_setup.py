@@ -27,8 +27,9 @@ from pi0_torch.processing.processing_pi0_fast import PI0FastProcessor
 from pi0_torch.processing.robot_spaces import get_conversion
 from pi0_torch.processing.tokenization import TEST_TOKENIZER, TEST_TOKENIZER_VOCAB, build_test_tokenizer
 from pi0_torch.training.fast import build_fast_processor
+from pi0_torch.training.lora import apply_lora
 from pi0_torch.training.settings import TrainSettings
-from pi0_torch.training.trainable import FREEZE_GROUPS, apply_lora, freeze
+from pi0_torch.training.trainable import FREEZE_GROUPS, freeze
 
 logger = logging.getLogger(__name__)
 
@@ -228,7 +229,8 @@ def _log_norm_stats_choice(settings: TrainSettings, source: str, model_processor
 
 
 def build_model(settings: TrainSettings, config: PI0Config | PI0FastConfig) -> nn.Module:
-    """The model with its frozen parts set, wrapped in LoRA when asked."""
+    """The model with its frozen parts set, and openpi's LoRA adapters when asked (drawn from `--seed`, the same in
+    every process)."""
     model_class = PI0FastForActionGeneration if isinstance(config, PI0FastConfig) else PI0ForActionGeneration
     if is_model_folder(settings.model):  # with the run's config: it may add training choices (rtc_max_delay)
         model = model_class.from_pretrained(settings.model, config=config, dtype=torch.float32)
@@ -242,7 +244,8 @@ def build_model(settings: TrainSettings, config: PI0Config | PI0FastConfig) -> n
         raise ValueError("--freeze vlm: π0-FAST is all VLM, nothing would train; freeze 'vision' or use --lora")
     freeze(model, settings.freeze)
     if settings.lora:
-        return apply_lora(model, settings.lora_rank_vlm, settings.lora_rank_expert, settings.freeze)
+        return apply_lora(model, settings.lora_rank_vlm, settings.lora_rank_expert, settings.freeze,
+                          torch.Generator().manual_seed(settings.seed))
     return model
 
 

@@ -32,7 +32,8 @@ from typing import Any
 
 from pi0_torch.utils.extras import require_extra
 
-# all of it: the Trainer needs accelerate, LoRA peft, the loss plot matplotlib, which a run would reach only later
+# all of it: the Trainer needs accelerate, the data datasets and av, the loss plot matplotlib, which a run would reach
+# only later
 require_extra("train", __name__)
 import torch
 from torch import nn
@@ -75,8 +76,9 @@ from pi0_torch.training.settings import (
     check_settings,
     flag_name,
 )
+from pi0_torch.training.lora import merge_lora
 from pi0_torch.training.openpi_configs import OPENPI_CONFIGS, openpi_config
-from pi0_torch.training.trainable import FREEZE_GROUPS, count_trainable, merge_lora
+from pi0_torch.training.trainable import FREEZE_GROUPS, count_trainable
 from pi0_torch.utils import files
 from pi0_torch.utils.threads import add_threads_argument, set_threads
 from pi0_torch.utils.validation import first_line

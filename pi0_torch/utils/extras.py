@@ -7,7 +7,7 @@
 |---|---|---|
 | `serve` | `pi0-torch serve`, `eval --policy ws://...` | websockets, msgpack |
 | `envs` | the tabletop envs, `pi0-torch eval` / `demo` (and their videos) | gymnasium, av |
-| `train` | `pi0-torch train`, LeRobot datasets (`demos` writes them) | datasets, pyarrow, pandas, av, peft, accelerate, matplotlib |
+| `train` | `pi0-torch train`, LeRobot datasets (`demos` writes them) | datasets, pyarrow, pandas, av, accelerate, matplotlib |
 | `kernels` | the fused Triton kernels of sampling on CUDA (torch's CUDA wheels already bring triton) | triton |
 | `deploy` | running an exported ONNX policy (`pi0_torch.deploy.ExportedPolicy`; needs no torch) | onnxruntime |
 | `export` | `pi0-torch export --format onnx` (and checking the result) | onnx, onnxscript, onnxruntime |
@@ -38,7 +38,7 @@ from collections.abc import Sequence
 EXTRAS: dict[str, tuple[str, ...]] = {
     "serve": ("websockets", "msgpack"),
     "envs": ("gymnasium", "av"),
-    "train": ("datasets", "pyarrow", "pandas", "av", "peft", "accelerate", "matplotlib"),
+    "train": ("datasets", "pyarrow", "pandas", "av", "accelerate", "matplotlib"),
     "kernels": ("triton",),
     "deploy": ("onnxruntime",),
     "export": ("onnx", "onnxscript", "onnxruntime"),
