@@ -165,13 +165,17 @@ def estimate(args: argparse.Namespace) -> None:
     from torch._subclasses.fake_tensor import FakeTensorMode
     from torch.testing._internal.distributed.fake_pg import FakeStore
 
-    patches = (
-        mock.patch.object(PI0ForActionGeneration, "_check_inputs", lambda self, pixel_values, *rest: pixel_values.shape[0]),
-    )
+    from pi0_torch.inference.layout import InputFacts
+
+    def every_token_valid(self: Any, pixel_values: torch.Tensor, image_masks: torch.Tensor, input_ids: torch.Tensor,
+                          *rest: Any, **floats: Any) -> InputFacts:  # (the checks read values: fake tensors hold none)
+        batch, cameras, length = pixel_values.shape[0], pixel_values.shape[1], input_ids.shape[1]
+        return InputFacts(((True,) * cameras,) * batch, (length,) * batch, length)
+
     for world in args.world:
         dist.init_process_group("fake", rank=0, world_size=world, store=FakeStore())
         mesh = init_device_mesh("cpu", (world,))
-        with patches[0], patches[1], FakeTensorMode():
+        with mock.patch.object(PI0ForActionGeneration, "_check_inputs", every_token_valid), FakeTensorMode():
             model = shard_model(build(args.preset, args.lora, args.checkpointing, fake=True), bf16=args.bf16, mesh=mesh)
             breakdown, held = tracked_steps(model, synthetic_batch(model.config, args.batch), args.steps)
             result = {

@@ -34,6 +34,7 @@ from collections.abc import Mapping, Sequence
 import torch
 import torch.nn.functional as F
 from torch import nn
+from torch._subclasses.fake_tensor import FakeTensor
 
 from pi0_torch.models.configuration_pi0 import PI0Config
 from pi0_torch.models.layers import ExpertLayer
@@ -52,6 +53,11 @@ def lora_update(lora_a: torch.Tensor, lora_b: torch.Tensor, heads_summed: bool) 
     if heads_summed:
         return (a.flatten(0, 1) @ b.sum(0)).T  # (N H, r) @ (r, D) -> [D, N H]
     return (a @ b).transpose(1, 2).flatten(0, 1)  # (G, in, r) @ (G, r, out) -> [G out, in]
+
+
+def _quantized(tensor: torch.Tensor) -> bool:
+    """Whether `tensor` holds quantized data (a torchao tensor subclass; the fake tensors of memory estimates do not)."""
+    return type(tensor) is not torch.Tensor and not isinstance(tensor, FakeTensor)
 
 
 def _in_dtype(tensor: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
@@ -98,7 +104,7 @@ class LoRALinear(nn.Module):
     def merged(self, dtype: torch.dtype) -> nn.Linear:
         """A plain `nn.Linear` holding `W + update` in `dtype` (a quantized `W` dequantized: quantize the merged model
         again with `pi0-torch quantize`)."""
-        weight = self.weight if type(self.weight.data) is torch.Tensor else self.weight.dequantize()
+        weight = self.weight.dequantize() if _quantized(self.weight.data) else self.weight
         linear = nn.Linear(self.in_features, self.out_features, bias=False, device=self.weight.device, dtype=dtype)
         with torch.no_grad():
             linear.weight.copy_(weight.float() + lora_update(self.lora_a, self.lora_b, self.heads_summed))
@@ -175,11 +181,11 @@ def _store_frozen_gemma_as_openpi(model: nn.Module) -> None:
         if not f"{name}.".startswith(GEMMA_PREFIXES):
             continue
         for param_name, param in module.named_parameters(recurse=False):
-            if (param.requires_grad or param_name.startswith("lora_") or type(param.data) is not torch.Tensor
-                    or not param.is_floating_point()):
+            if param.requires_grad or param_name.startswith("lora_") or _quantized(param.data) or not param.is_floating_point():
                 continue
-            rounded = param.data.to(torch.bfloat16)
-            param.data = rounded if isinstance(module, LoRALinear) else rounded.to(param.dtype)
+            rounded = param.detach().to(torch.bfloat16)
+            stored = rounded if isinstance(module, LoRALinear) else rounded.to(param.dtype)
+            setattr(module, param_name, nn.Parameter(stored, requires_grad=False))
 
 
 def merge_lora(model: nn.Module) -> nn.Module:
