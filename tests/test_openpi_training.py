@@ -68,7 +68,10 @@ def openpi_lora_factors(recorded: dict[str, Any], stage: str, config: Any) -> di
     return factors
 
 
-def train_like_openpi(case: str, tmp_path: Path) -> tuple[dict[str, Any], list[float], list[float], dict]:
+def train_like_openpi(case: str, tmp_path: Path) -> tuple[dict[str, Any], list[float], list[float], dict[str, Any]]:
+    """Train the fixture model on openpi's recorded batch and draws for `case` ("fp32", "bf16", "lora"): openpi's
+    record, the losses and gradient norms of every step, and {"params": (ours, openpi's) at the end, "ema": the same
+    for the averages, or for LoRA "start": the adapted model before training}."""
     recorded = dict(np.load(FIXTURES / f"{case}.npz"))
     reference = OpenpiReference("pi0_small")
     model = reference.model()
@@ -85,9 +88,8 @@ def train_like_openpi(case: str, tmp_path: Path) -> tuple[dict[str, Any], list[f
         end_learning_rate=float(recorded["lr_end"]), warmup_steps=int(recorded["lr_warmup_steps"]),
         decay_steps=int(recorded["lr_decay_steps"]), weight_decay=float(recorded["weight_decay"]),
         max_grad_norm=float(recorded["clip_gradient_norm"]),
-        ema_decay=float(recorded["ema_decay"]) if recorded["has_ema"] else None, lora=lora,
-        lora_rank_vlm=int(recorded.get("lora/paligemma/attn/rank", 16)),
-        lora_rank_expert=int(recorded.get("lora/action_expert/attn/rank", 32)), bf16=case == "bf16", augment=False, seed=int(recorded["seed"]), logging_steps=1, save_steps=10 * steps, cpu=True,
+        ema_decay=float(recorded["ema_decay"]) if recorded["has_ema"] else None, lora=lora, bf16=case == "bf16",
+        augment=False, seed=int(recorded["seed"]), logging_steps=1, save_steps=10 * steps, cpu=True,
     )
     calls = iter(range(steps))
 
@@ -108,8 +110,8 @@ def train_like_openpi(case: str, tmp_path: Path) -> tuple[dict[str, Any], list[f
     final = {key[len("params/"):]: value for key, value in recorded.items() if key.startswith("params/")}
     if lora:  # openpi's weights without its adapters merged, and its adapters
         load_openpi_params(expected, {path: value for path, value in final.items() if "lora" not in path})
-        return recorded, losses, norms, {"params": (recorder.weights, expected.state_dict() | openpi_lora_factors(
-            recorded, "params", model.config)), "start": (start, None)}
+        theirs = expected.state_dict() | openpi_lora_factors(recorded, "params", model.config)
+        return recorded, losses, norms, {"params": (recorder.weights, theirs), "start": start}
     load_openpi_params(expected, final)
     averaged = PI0ForActionGeneration(reference.config)
     load_openpi_params(averaged, {key[len("ema/"):]: value for key, value in recorded.items() if key.startswith("ema/")})
@@ -156,7 +158,7 @@ def test_lora_training_equals_openpis_step_for_step(tmp_path: Path) -> None:
     assert len(losses) == len(recorded["loss"]) == 20
     assert np.abs(np.array(losses) - recorded["loss"]).max() / np.abs(recorded["loss"]).max() <= 1e-5
     assert np.abs(np.array(norms) - recorded["grad_norm"]).max() / recorded["grad_norm"].max() <= 1e-4
-    (ours, theirs), (start, _) = weights["params"], weights["start"]
+    (ours, theirs), start = weights["params"], weights["start"]
     frozen = {name for name in ours if name.startswith(GEMMA_PREFIXES) and ".lora_" not in name}
     assert frozen and sum(".lora_" in name for name in ours) == 2 * 4 * 2 * 3  # (a, b) x 4 projections x 2 experts x 3 layers
     for name in frozen:

@@ -56,7 +56,7 @@ def lora_update(lora_a: torch.Tensor, lora_b: torch.Tensor, heads_summed: bool) 
 
 
 def _quantized(tensor: torch.Tensor) -> bool:
-    """Whether `tensor` holds quantized data (a torchao tensor subclass; the fake tensors of memory estimates do not)."""
+    """Whether `tensor` holds quantized data (a torchao tensor subclass; fake tensors of memory estimates do not)."""
     return type(tensor) is not torch.Tensor and not isinstance(tensor, FakeTensor)
 
 
@@ -181,7 +181,8 @@ def _store_frozen_gemma_as_openpi(model: nn.Module) -> None:
         if not f"{name}.".startswith(GEMMA_PREFIXES):
             continue
         for param_name, param in module.named_parameters(recurse=False):
-            if param.requires_grad or param_name.startswith("lora_") or _quantized(param.data) or not param.is_floating_point():
+            kept = param_name.startswith("lora_") or _quantized(param.data) or not param.is_floating_point()
+            if param.requires_grad or kept:
                 continue
             rounded = param.detach().to(torch.bfloat16)
             stored = rounded if isinstance(module, LoRALinear) else rounded.to(param.dtype)
