@@ -73,6 +73,8 @@ def test_fast_lora_is_openpi_gemma_2b_lora(dataset_root: Path, tmp_path: Path) -
     assert lora.embed_tokens.weight.dtype == torch.float32 and lora.layers[0].block.down_proj.weight.dtype == torch.bfloat16
     merged = merge_lora(lora)
     assert isinstance(merged, PI0FastForActionGeneration) and not any(isinstance(m, LoRALinear) for m in merged.modules())
+    train_policy(fast_settings(dataset_root, tmp_path / "lora", lora=True, max_steps=2))  # (the tied head reads the
+    assert PI0FastForActionGeneration.from_pretrained(tmp_path / "lora").dtype == torch.float32  # rounded embedding)
     processor = build_processor(settings, config, LeRobotEpisodeDataset(str(dataset_root), config.action_horizon, progress=False))
     assert isinstance(processor, PI0FastProcessor) and processor.action_tokenizer.action_dim == 2
     with pytest.raises(ValueError, match="π0-FAST needs a FAST tokenizer"):

@@ -367,6 +367,10 @@ def test_lora_trains_openpis_adapters_vision_and_heads_only(dataset_root: Path, 
     assert torch.equal(merged["layers.0.vlm.attn_norm.weight"], initial["layers.0.vlm.attn_norm.weight"].bfloat16().float())
     assert not torch.equal(merged["layers.0.expert.qkv_proj.weight"], initial["layers.0.expert.qkv_proj.weight"])
     assert not torch.equal(merged["action_out_proj.weight"], initial["action_out_proj.weight"])
+    # π0.5 under bf16 autocast with gradient checkpointing: the bf16-stored projections and float32 adapters mix
+    train_policy(settings(dataset_root, tmp_path / "pi05", model="pi05_small", lora=True, lora_rank_vlm=2, lora_rank_expert=4,
+                          bf16=True, gradient_checkpointing=True, max_steps=2))
+    assert all(p.dtype == torch.float32 for p in PI0ForActionGeneration.from_pretrained(tmp_path / "pi05").parameters())
 
 
 def test_lora_resume_continues_the_same_run_and_ema_is_refused(dataset_root: Path, tmp_path: Path) -> None:
