@@ -231,7 +231,8 @@ def _log_norm_stats_choice(settings: TrainSettings, source: str, model_processor
 def build_model(settings: TrainSettings, config: PI0Config | PI0FastConfig) -> nn.Module:
     """The model with its frozen parts set, and openpi's LoRA adapters when asked (drawn from `--seed`, the same in
     every process)."""
-    model_class = PI0FastForActionGeneration if isinstance(config, PI0FastConfig) else PI0ForActionGeneration
+    fast = isinstance(config, PI0FastConfig)
+    model_class = PI0FastForActionGeneration if fast else PI0ForActionGeneration
     if is_model_folder(settings.model):  # with the run's config: it may add training choices (rtc_max_delay)
         model = model_class.from_pretrained(settings.model, config=config, dtype=torch.float32)
     else:
@@ -240,12 +241,18 @@ def build_model(settings: TrainSettings, config: PI0Config | PI0FastConfig) -> n
     for group in settings.freeze:
         if group not in FREEZE_GROUPS:
             raise ValueError(f"--freeze {group!r}: expected one of {FREEZE_GROUPS}")
-    if "vlm" in settings.freeze and isinstance(config, PI0FastConfig):
+    if "vlm" in settings.freeze and fast:
         raise ValueError("--freeze vlm: π0-FAST is all VLM, nothing would train; freeze 'vision' or use --lora")
     freeze(model, settings.freeze)
     if settings.lora:
-        return apply_lora(model, settings.lora_rank_vlm, settings.lora_rank_expert, settings.freeze,
-                          torch.Generator().manual_seed(settings.seed))
+        model = apply_lora(model, settings.lora_rank_vlm, settings.lora_rank_expert, settings.freeze,
+                           torch.Generator().manual_seed(settings.seed))
+        adapters = sum(p.numel() for name, p in model.named_parameters() if ".lora_" in name and p.requires_grad)
+        frozen = sum(p.numel() * p.element_size() for p in model.parameters() if not p.requires_grad)
+        vlm = [] if "vlm" in settings.freeze else [f"rank {settings.lora_rank_vlm} on the {'' if fast else 'VLM '}Gemma"]
+        expert = [] if fast else [f"rank {settings.lora_rank_expert} on the action expert"]
+        logger.info("LoRA in openpi's layout: %s, %d adapter parameters; the rest of the Gemma frozen and rounded to "
+                    "bf16 (frozen weights: %.3g GiB)", ", ".join(vlm + expert), adapters, frozen / 2**30)
     return model
 
 
