@@ -50,7 +50,7 @@ def openpi_lora_factors(recorded: dict[str, Any], stage: str, config: Any) -> di
     factors: q and the kv pair stacked per head, the MLP's down projection as one group."""
     factors = {}
     llm = "PaliGemma/llm/layers"
-    for expert, (kind, s) in enumerate((("vlm", ""), ("expert", "_1"))):
+    for kind, s in (("vlm", ""), ("expert", "_1")):
         def leaf(path: str) -> np.ndarray:
             return recorded[f"{stage}/{llm}/{path}"]
         for layer in range(config.num_hidden_layers):
@@ -78,8 +78,8 @@ def train_like_openpi(case: str, tmp_path: Path) -> tuple[dict[str, Any], list[f
     lora = case == "lora"
     if lora:  # openpi's variants' ranks, its recorded initial adapters
         apply_lora(model, int(recorded["lora/paligemma/attn/rank"]), int(recorded["lora/action_expert/attn/rank"]))
-        start = model.state_dict()
-        model.load_state_dict({**start, **openpi_lora_factors(recorded, "init", model.config)})
+        assert not model.load_state_dict(openpi_lora_factors(recorded, "init", model.config), strict=False).unexpected_keys
+        start = {name: value.clone() for name, value in model.state_dict().items()}
     batch = {**reference.model_inputs(), "actions": reference.tensor("inputs/actions")}
     steps = int(recorded["num_steps"])
     settings = TrainSettings(
