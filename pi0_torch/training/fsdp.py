@@ -260,7 +260,10 @@ def consolidate_checkpoint(checkpoint: str | Path, output_dir: str | Path, *, em
     checkpoint = Path(checkpoint)
     sharded = is_sharded_checkpoint(checkpoint)
     weights = [] if sharded else sorted(checkpoint.glob("model*.safetensors"))
-    names = [name for path in weights for name in safe_open(str(path), "pt").keys()]
+    names = []
+    for path in weights:  # (the headers only)
+        with safe_open(str(path), "pt") as handle:
+            names += handle.keys()
     if not sharded and not any(name.endswith(".lora_a") for name in names):
         raise ValueError(f"{checkpoint} is neither a sharded checkpoint (no {MODEL_FOLDER}/.metadata) nor a LoRA "
                          "checkpoint (no adapters in model*.safetensors): it is a model folder already")
@@ -271,12 +274,13 @@ def consolidate_checkpoint(checkpoint: str | Path, output_dir: str | Path, *, em
     files.check_separate(checkpoint, output_dir)
     model_type = json.loads((checkpoint / "config.json").read_text()).get("model_type")
     config = (PI0FastConfig if model_type == PI0FastConfig.model_type else PI0Config).from_pretrained(checkpoint)
-    state = {name: tensor for path in weights for name, tensor in load_file(path).items()}
     if sharded:
         saved = dcp.FileSystemReader(str(checkpoint / MODEL_FOLDER)).read_metadata().state_dict_metadata
         state = {name.removeprefix("model."): torch.empty(tuple(meta.size), dtype=meta.properties.dtype)
                  for name, meta in saved.items()}  # (the run's model: a LoRA run's adapters and bfloat16 Gemma included)
         _load_sharded(checkpoint, state, ema)
+    else:
+        state = {name: tensor for path in weights for name, tensor in load_file(path).items()}
     model = _model_to_save(config, state)
     with files.atomic_output_dir(output_dir, overwrite=overwrite) as folder:
         model.save_pretrained(folder)
