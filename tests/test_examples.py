@@ -57,8 +57,9 @@ def test_evaluate_notebook_runs(tmp_path: Path) -> None:
 
 
 def test_demo_recipe_runs_end_to_end_and_shares_its_plain_stages(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    """`scripts/train_demo_policy.py` at a tiny scale: records, trains the plain stages, evaluates, writes the policy;
-    a second run with `--rtc-max-delay` reuses the plain stages and fine-tunes with delays in one more."""
+    """`scripts/train_demo_policy.py` at a tiny scale: records, trains the plain stages (without image augmentation,
+    as the shipped policy), evaluates, writes the policy; a second run with `--rtc-max-delay` reuses the plain stages
+    and fine-tunes with delays in one more, a third with `--augment-stage` with openpi's augmentation."""
     script = runpy.run_path(str(EXAMPLES.parent / "scripts" / "train_demo_policy.py"))
     plain = [stage.name for stage in script["STAGES"]]
     threads = torch.get_num_threads()
@@ -66,16 +67,21 @@ def test_demo_recipe_runs_end_to_end_and_shares_its_plain_stages(tmp_path: Path,
     try:
         assert script["main"]([*tiny, "--destination", str(tmp_path / "plain")]) == 0
         assert script["main"]([*tiny, "--rtc-max-delay", "2", "--destination", str(tmp_path / "rtc")]) == 0
+        assert script["main"]([*tiny, "--augment-stage", "--destination", str(tmp_path / "augmented")]) == 0
     finally:
         torch.set_num_threads(threads)
     out = capsys.readouterr().out
-    assert all(out.count(f"stage {name}: reusing") == 1 for name in plain)
-    assert "stage delays: reusing" not in out
-    for name, delay, stages in (("plain", 0, plain), ("rtc", 2, [*plain, "delays"])):
+    assert all(out.count(f"stage {name}: reusing") == 2 for name in plain)
+    assert "stage delays: reusing" not in out and "stage augmented: reusing" not in out
+    for name, delay, stages in (("plain", 0, plain), ("rtc", 2, [*plain, "delays"]), ("augmented", 0, [*plain, "augmented"])):
         metrics = json.loads((tmp_path / name / "demo_metrics.json").read_text())
         assert list(metrics["steps"]) == stages and metrics["rtc_max_delay"] == delay
-        assert metrics["reused_stages"] == ([] if delay == 0 else plain)
+        assert metrics["reused_stages"] == ([] if name == "plain" else plain)
+        assert metrics["augmented_stages"] == (["augmented"] if name == "augmented" else [])
         assert json.loads((tmp_path / name / "config.json").read_text())["rtc_max_delay"] == delay
+    for stage in [*plain, "delays", "augmented"]:
+        recorded = json.loads(next(tmp_path.glob(f"{stage}_rtc*/pi0_train_settings.json")).read_text())
+        assert recorded["augment"] is (stage == "augmented")
 
 
 def test_the_finetune_example_runs_twice_in_a_row(tmp_path: Path) -> None:
